@@ -1,0 +1,1 @@
+"""Estimation: generic filters, robust/adaptive parts, per-channel I/Q prefilters, rate converters."""

@@ -1,0 +1,1 @@
+"""Geodesy and inertial navigation (lowest layer: imports nothing else of the project)."""

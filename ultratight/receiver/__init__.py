@@ -1,0 +1,1 @@
+"""Processing: acquisition, correlators, tracking, PVT, the ultra-tight engine, scenarios, CLI."""

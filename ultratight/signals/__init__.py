@@ -1,0 +1,1 @@
+"""The GPS L1 C/A signal: codes, navigation message, ephemeris, front end, IF files, generator."""
