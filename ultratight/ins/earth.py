@@ -67,3 +67,41 @@ def dcm_ecef_from_enu(lat, lon):
     c[2, 1] = cl
     c[2, 2] = sl
     return c
+
+
+@njit(cache=True)
+def ecef_to_llh_batch(pos_e):
+    """Vectorised :func:`ecef_to_llh`: (n, 3) -> (n, 3) [lat_rad, lon_rad, h_m]."""
+    n = pos_e.shape[0]
+    out = np.empty((n, 3))
+    for i in range(n):
+        out[i] = ecef_to_llh(pos_e[i])
+    return out
+
+
+@njit(cache=True)
+def llh_to_ecef_batch(llh):
+    """Vectorised :func:`llh_to_ecef`: (n, 3) -> (n, 3)."""
+    n = llh.shape[0]
+    out = np.empty((n, 3))
+    for i in range(n):
+        out[i] = llh_to_ecef(llh[i, 0], llh[i, 1], llh[i, 2])
+    return out
+
+
+def dcm_ecef_from_enu_vec(lat, lon):
+    """Vectorised :func:`dcm_ecef_from_enu`: arrays (n,) -> (n, 3, 3)."""
+    lat = np.asarray(lat, float)
+    lon = np.asarray(lon, float)
+    sl, cl = np.sin(lat), np.cos(lat)
+    so, co = np.sin(lon), np.cos(lon)
+    c = np.zeros(lat.shape + (3, 3))
+    c[..., 0, 0] = -so
+    c[..., 0, 1] = -sl * co
+    c[..., 0, 2] = cl * co
+    c[..., 1, 0] = co
+    c[..., 1, 1] = -sl * so
+    c[..., 1, 2] = cl * so
+    c[..., 2, 1] = cl
+    c[..., 2, 2] = sl
+    return c
