@@ -1,0 +1,498 @@
+"""IF sample files: formats, JSON sidecar, ION GNSS SDR metadata XML, streaming reader, writer.
+
+Formats (``FORMATS``; all little-endian unless an ION XML says otherwise)
+--------------------------------------------------------------------------
+=============  =========================================================================
+``i8``         real, int8 per sample
+``i16``        real, int16 per sample
+``f32``        real, float32 per sample
+``ci8``        complex, int8 I then int8 Q per sample
+``ci16``       complex, int16 I then int16 Q
+``cf32``       complex, float32 I then float32 Q (numpy complex64 layout)
+``i2packed``   real, 2 bits per sample, 4 samples per byte, first sample in the most
+               significant bits (bits 7-6), then 5-4, 3-2, 1-0
+``ci2packed``  complex, 2 bits per component, 2 samples per byte: I0 (bits 7-6),
+               Q0 (5-4), I1 (3-2), Q1 (1-0)
+=============  =========================================================================
+
+2-bit code (sign-magnitude): bit 1 = sign (1 = negative), bit 0 = magnitude
+(1 = large). Codes 0, 1, 2, 3 mean +1, +3, -1, -3 (the front-end levels of
+:mod:`ultratight.signals.frontend`). Packed files may end with padding samples
+(code 0); the sidecar's ``n_samples`` gives the true count.
+
+Sidecar ``<file>.json`` (written for every file we write; found automatically)::
+
+    {"format": "ci8", "fs_hz": 4e6, "if_hz": 0.0, "is_complex": true,
+     "iq_conj": false, "inversion": false, "n_samples": 240000000,
+     "start_week": 2190, "start_tow_s": 518400.0, "bits": 8,
+     "generator": {...resolved configuration...}, "version": "0.1.0"}
+
+Conventions on reading: ``iq_conj = True`` (argument or sidecar) returns
+``x = I - jQ``. ``inversion = True`` in a sidecar means the spectrum is mirrored:
+for complex data it is the same as ``iq_conj``; for *real* data the reader
+multiplies sample ``n`` by ``(-1)**n`` (a shift by fs/2, which mirrors the spectrum)
+and reports ``if_hz' = fs/2 - if_hz``, so consumers always see a non-inverted
+signal and never need to know.
+
+ION GNSS SDR Metadata Standard XML (``meta=path.xml``): a single stream in a
+single lump/chunk/block is supported. Sample rate = system ``freqbase`` x stream
+``ratefactor`` (units from the ``format`` attribute: Hz/kHz/MHz/GHz), IF from the band's
+``translatedfreq``, sample type from ``quantization``/``packedbits``/``format``
+(IF, IFn, IQ, IQn, QI, QIn) /``encoding`` (TC/INT8/INT16 two's complement, FP
+float, SM sign-magnitude 2-bit) and the chunk ``endian``; ``inverted`` or the
+``n`` suffix formats set inversion; the file is the ``<file><url>`` relative
+to the XML when ``path`` is None.
+"""
+
+import json
+import os
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ultratight.errors import FormatError, InputFileError
+
+
+@dataclass(frozen=True)
+class FormatSpec:
+    name: str
+    dtype: str          # numpy dtype of one stored component / byte
+    is_complex: bool
+    packed2: bool = False   # 2-bit packed
+
+    @property
+    def comps(self):
+        return 2 if self.is_complex else 1
+
+    @property
+    def samples_per_byte(self):
+        return (2 if self.is_complex else 4) if self.packed2 else None
+
+    @property
+    def bytes_per_sample(self):
+        if self.packed2:
+            return None
+        return np.dtype(self.dtype).itemsize * self.comps
+
+
+FORMATS = {
+    "i8": FormatSpec("i8", "<i1", False),
+    "i16": FormatSpec("i16", "<i2", False),
+    "f32": FormatSpec("f32", "<f4", False),
+    "ci8": FormatSpec("ci8", "<i1", True),
+    "ci16": FormatSpec("ci16", "<i2", True),
+    "cf32": FormatSpec("cf32", "<f4", True),
+    "i2packed": FormatSpec("i2packed", "u1", False, packed2=True),
+    "ci2packed": FormatSpec("ci2packed", "u1", True, packed2=True),
+}
+
+# 2-bit code -> level (sign-magnitude): 0:+1, 1:+3, 2:-1, 3:-3
+CODE2_LEVEL = np.array([1.0, 3.0, -1.0, -3.0], dtype=np.float32)
+# byte -> 4 levels (MSB first)
+_BYTE_LUT = np.stack([CODE2_LEVEL[(np.arange(256) >> s) & 3] for s in (6, 4, 2, 0)], axis=1).astype(np.float32)
+
+
+def get_format(name):
+    try:
+        return FORMATS[name]
+    except (KeyError, TypeError):
+        raise FormatError(f"unknown IF sample format {name!r}; expected one of {', '.join(FORMATS)}") from None
+
+
+def sidecar_path(path):
+    return Path(str(path) + ".json")
+
+
+# ------------------------------------------------------------------------------------------
+# ION GNSS SDR metadata XML
+# ------------------------------------------------------------------------------------------
+_FREQ_UNITS = {"hz": 1.0, "khz": 1e3, "mhz": 1e6, "ghz": 1e9}
+
+
+def _strip_ns(root):
+    for el in root.iter():
+        if isinstance(el.tag, str) and "}" in el.tag:
+            el.tag = el.tag.split("}", 1)[1]
+        el.tag = el.tag.lower() if isinstance(el.tag, str) else el.tag
+    return root
+
+
+def _freq(el, what, xml_path):
+    if el is None or el.text is None:
+        return None
+    unit = (el.get("format") or "Hz").strip().lower()
+    if unit not in _FREQ_UNITS:
+        raise FormatError(f"{xml_path}: unknown frequency unit {unit!r} for <{what}>")
+    try:
+        return float(el.text) * _FREQ_UNITS[unit]
+    except ValueError:
+        raise FormatError(f"{xml_path}: <{what}> is not a number: {el.text!r}") from None
+
+
+def parse_ion_metadata(xml_path):
+    """Parse a single-stream ION GNSS SDR metadata XML file into sidecar-like fields."""
+    xml_path = Path(xml_path)
+    if not xml_path.is_file():
+        raise InputFileError(f"metadata file not found: {xml_path}")
+    try:
+        root = _strip_ns(ET.parse(xml_path).getroot())
+    except ET.ParseError as exc:
+        raise FormatError(f"{xml_path}: not valid XML ({exc})") from None
+    streams = [s for s in root.iter("stream") if s.find("quantization") is not None]
+    lump_streams = [s for s in root.iter("lump") for s in s.findall("stream")]
+    if len({id(s) for s in lump_streams}) > 1:
+        raise FormatError(f"{xml_path}: {len(lump_streams)} streams in the lump; only one stream is supported")
+    if not streams:
+        raise FormatError(f"{xml_path}: no <stream> with <quantization> found")
+    st = lump_streams[0] if lump_streams and lump_streams[0].find("quantization") is not None else streams[0]
+
+    def txt(el, tag, default=None):
+        e = el.find(tag)
+        return e.text.strip() if e is not None and e.text else default
+
+    quant = int(txt(st, "quantization", "0"))
+    packed = int(txt(st, "packedbits", "0"))
+    fmt = (txt(st, "format", "IF") or "IF").upper()
+    enc = (txt(st, "encoding", "TC") or "TC").upper()
+    ratefactor = float(txt(st, "ratefactor", "1"))
+    freqbase = None
+    for el in root.iter("freqbase"):
+        freqbase = _freq(el, "freqbase", xml_path)
+        break
+    if freqbase is None:
+        raise FormatError(f"{xml_path}: no <freqbase> (system sample rate) found")
+    band = st.find("band")
+    if_hz = _freq(band.find("translatedfreq"), "translatedfreq", xml_path) if band is not None else 0.0
+    inverted = False
+    if band is not None and txt(band, "inverted", "false").lower() in ("true", "1", "yes"):
+        inverted = True
+    if fmt.endswith("N"):
+        inverted = True
+        fmt = fmt[:-1]
+    if fmt not in ("IF", "IQ", "QI"):
+        raise FormatError(f"{xml_path}: unsupported stream <format> {fmt!r} (expected IF, IQ, QI or with n)")
+    is_complex = fmt in ("IQ", "QI")
+    endian = "<"
+    for el in root.iter("endian"):
+        if el.text and el.text.strip().lower() == "big":
+            endian = ">"
+    comp_bits = packed // 2 if is_complex else packed
+    if enc == "FP" or enc.startswith("FLOAT"):
+        if quant != 32:
+            raise FormatError(f"{xml_path}: floating-point quantization {quant} not supported (expected 32)")
+        name, dtype = ("cf32" if is_complex else "f32"), endian + "f4"
+    elif quant == 2 and enc in ("SM", "SIGNMAG") and comp_bits == 2:
+        name, dtype = ("ci2packed" if is_complex else "i2packed"), "u1"
+    elif quant in (1, 2, 3, 4, 5, 6, 7, 8) and comp_bits == 8 and enc in ("TC", "INT8", "SM"):
+        name, dtype = ("ci8" if is_complex else "i8"), "i1"
+    elif quant <= 16 and comp_bits == 16 and enc in ("TC", "INT16"):
+        name, dtype = ("ci16" if is_complex else "i16"), endian + "i2"
+    else:
+        raise FormatError(
+            f"{xml_path}: unsupported sample layout (quantization={quant}, packedbits={packed}, "
+            f"format={fmt}, encoding={enc})")
+    url = None
+    for f in root.iter("file"):
+        url = txt(f, "url")
+        if url:
+            break
+    return {"format": name, "dtype": dtype, "fs_hz": freqbase * ratefactor, "if_hz": if_hz or 0.0,
+            "is_complex": is_complex, "iq_swap": fmt == "QI", "inversion": inverted, "bits": quant,
+            "data_file": str(xml_path.parent / url) if url else None}
+
+
+# ------------------------------------------------------------------------------------------
+# reader
+# ------------------------------------------------------------------------------------------
+class IfSource:
+    """A sampled-IF file opened for streaming reads (memory-mapped; nothing is loaded whole).
+
+    Attributes: ``path, fmt, fs_hz, if_hz, is_complex, n_samples, duration_s, start_week,
+    start_tow_s, meta`` (the sidecar dict, or ``{}``). ``read`` returns complex64 (complex
+    formats) or float32 (real formats).
+    """
+
+    def __init__(self, path, fmt, fs_hz, if_hz, iq_conj=False, inversion=False, start_week=None,
+                 start_tow_s=None, n_samples=None, dtype=None, iq_swap=False, meta=None):
+        self.path = Path(path)
+        self.spec = get_format(fmt)
+        self.fmt = self.spec.name
+        self.fs_hz = float(fs_hz)
+        if not np.isfinite(self.fs_hz) or self.fs_hz <= 0:
+            raise FormatError(f"{self.path}: sample rate must be > 0 Hz, got {fs_hz}")
+        self.is_complex = self.spec.is_complex
+        self.meta = dict(meta or {})
+        self.start_week = start_week
+        self.start_tow_s = start_tow_s
+        self._iq_swap = bool(iq_swap)
+        self._conj = bool(iq_conj) != bool(inversion and self.is_complex)
+        self._alt_sign = bool(inversion and not self.is_complex)
+        if_hz = float(if_hz)
+        self.file_if_hz = if_hz
+        self.if_hz = self.fs_hz / 2.0 - if_hz if self._alt_sign else if_hz
+        if not self.path.is_file():
+            raise InputFileError(f"IF file not found: {self.path}")
+        size = self.path.stat().st_size
+        spec = self.spec
+        if spec.packed2:
+            total = size * spec.samples_per_byte
+        else:
+            bps = spec.bytes_per_sample
+            if size % bps:
+                raise FormatError(
+                    f"{self.path}: size {size} bytes is not a whole number of {self.fmt} samples "
+                    f"({bps} bytes each)")
+            total = size // bps
+        if n_samples is not None:
+            if n_samples > total:
+                raise FormatError(f"{self.path}: sidecar says {n_samples} samples but the file holds {total}")
+            total = int(n_samples)
+        self.n_samples = int(total)
+        self.duration_s = self.n_samples / self.fs_hz
+        dt = np.dtype(dtype or spec.dtype)
+        self._mm = np.memmap(self.path, dtype=dt, mode="r") if size > 0 else np.zeros(0, dt)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def close(self):
+        mm = getattr(self, "_mm", None)
+        if isinstance(mm, np.memmap) and mm._mmap is not None:
+            mm._mmap.close()
+        self._mm = None
+
+    def __repr__(self):
+        return (f"IfSource({str(self.path)!r}, fmt={self.fmt!r}, fs_hz={self.fs_hz}, if_hz={self.if_hz}, "
+                f"n_samples={self.n_samples})")
+
+    def read(self, start, count):
+        """Samples ``[start, start+count)`` (clipped to the file end) as complex64 / float32."""
+        start = int(start)
+        if start < 0:
+            raise ValueError("start must be >= 0")
+        count = max(0, min(int(count), self.n_samples - start))
+        spec = self.spec
+        if spec.packed2:
+            spb = spec.samples_per_byte
+            comp_start = start * spec.comps
+            comp_stop = (start + count) * spec.comps
+            b0, b1 = comp_start // 4, -(-comp_stop // 4)
+            vals = _BYTE_LUT[np.asarray(self._mm[b0:b1])].reshape(-1)
+            vals = vals[comp_start - 4 * b0: comp_start - 4 * b0 + count * spec.comps]
+            del spb
+            raw = np.ascontiguousarray(vals, dtype=np.float32)
+        else:
+            c = spec.comps
+            raw = np.asarray(self._mm[start * c:(start + count) * c]).astype(np.float32)
+        if self.is_complex:
+            if self._iq_swap:
+                raw = raw.reshape(-1, 2)[:, ::-1].copy().reshape(-1)
+            x = raw.view(np.complex64)
+            if self._conj:
+                raw[1::2] *= -1.0
+            return x
+        if self._alt_sign:
+            first = start & 1
+            raw[(1 - first)::2] *= -1.0
+        return raw
+
+    def blocks(self, block_len, start=0, stop=None):
+        """Iterate ``(start_index, samples)`` over consecutive blocks of ``block_len`` samples."""
+        block_len = int(block_len)
+        if block_len <= 0:
+            raise ValueError("block_len must be > 0")
+        stop = self.n_samples if stop is None else min(int(stop), self.n_samples)
+        pos = int(start)
+        while pos < stop:
+            n = min(block_len, stop - pos)
+            yield pos, self.read(pos, n)
+            pos += n
+
+
+def read_sidecar(path):
+    """The JSON sidecar of ``path`` as a dict, or None if absent."""
+    sp = sidecar_path(path)
+    if not sp.is_file():
+        return None
+    try:
+        with open(sp) as f:
+            return json.load(f)
+    except (OSError, json.JSONDecodeError) as exc:
+        raise FormatError(f"{sp}: unreadable JSON sidecar ({exc})") from None
+
+
+def open_if(path=None, meta=None, fs_hz=None, if_hz=None, fmt=None, iq_conj=False):
+    """Open an IF file. Parameters come from (in rising priority) the sidecar ``<path>.json``
+    or ``meta`` (a JSON sidecar or ION XML path), then the explicit arguments.
+
+    Raises InputFileError (missing file) or FormatError (unknown format, size not a whole
+    number of samples, no sidecar and no ``fmt``/``fs_hz``).
+    """
+    info = {}
+    if meta is not None:
+        mp = Path(meta)
+        if not mp.is_file():
+            raise InputFileError(f"metadata file not found: {mp}")
+        if mp.suffix.lower() == ".xml":
+            info = parse_ion_metadata(mp)
+            if path is None:
+                if not info.get("data_file"):
+                    raise FormatError(f"{mp}: no <file><url> and no data path given")
+                path = info["data_file"]
+        else:
+            try:
+                info = json.loads(mp.read_text())
+            except (OSError, json.JSONDecodeError) as exc:
+                raise FormatError(f"{mp}: unreadable JSON metadata ({exc})") from None
+    if path is None:
+        raise InputFileError("no IF file given")
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError(f"IF file not found: {path}")
+    if meta is None:
+        info = read_sidecar(path) or {}
+    fmt = fmt or info.get("format")
+    fs = fs_hz if fs_hz is not None else info.get("fs_hz")
+    if fmt is None or fs is None:
+        raise FormatError(
+            f"{path}: no sidecar {sidecar_path(path).name} or metadata; give the sample format and rate "
+            f"(fmt=/--format and fs_hz=/--fs)")
+    ifh = if_hz if if_hz is not None else info.get("if_hz", 0.0)
+    spec = get_format(fmt)
+    dtype = info.get("dtype") if info.get("format") == spec.name else None
+    return IfSource(path, spec.name, fs, ifh, iq_conj=bool(iq_conj) or bool(info.get("iq_conj", False)),
+                    inversion=bool(info.get("inversion", False)), start_week=info.get("start_week"),
+                    start_tow_s=info.get("start_tow_s"),
+                    n_samples=info.get("n_samples") if info.get("format") == spec.name else None,
+                    dtype=dtype, iq_swap=info.get("iq_swap", False), meta=info)
+
+
+# ------------------------------------------------------------------------------------------
+# writer
+# ------------------------------------------------------------------------------------------
+def _encode2(levels):
+    """Levels (any real) -> 2-bit codes: sign bit 1 if < 0, magnitude bit 1 if |x| > 2."""
+    lv = np.asarray(levels, dtype=np.float32)
+    return ((lv < 0).astype(np.uint8) << 1) | (np.abs(lv) > 2.0).astype(np.uint8)
+
+
+def _tmp_name(path):
+    path = Path(path)
+    return path.with_name(f".{path.name}.tmp{os.getpid()}")
+
+
+class IfWriter:
+    """Streaming writer: ``write(samples)`` blocks, then ``close()`` renames the temp file and
+    writes the sidecar; ``abort()`` (or an exception inside ``with``) removes everything.
+
+    Integer formats round and clip the given float/complex values; 2-bit formats store
+    each component's nearest level of {-3, -1, +1, +3} (see the module doc).
+    """
+
+    def __init__(self, path, fmt, fs_hz, if_hz=0.0, iq_conj=False, inversion=False, start_week=None,
+                 start_tow_s=None, bits=None, extra=None):
+        self.path = Path(path)
+        self.spec = get_format(fmt)
+        self.fs_hz = float(fs_hz)
+        self.if_hz = float(if_hz)
+        self.sidecar = {"format": self.spec.name, "fs_hz": self.fs_hz, "if_hz": self.if_hz,
+                        "is_complex": self.spec.is_complex, "iq_conj": bool(iq_conj),
+                        "inversion": bool(inversion), "start_week": start_week,
+                        "start_tow_s": start_tow_s, "bits": bits}
+        from ultratight import __version__
+
+        self.sidecar["version"] = __version__
+        if extra:
+            self.sidecar.update(extra)
+        self.n_samples = 0
+        self._carry = np.zeros(0, dtype=np.float32)   # 2-bit components not yet packed
+        self._tmp = _tmp_name(self.path)
+        self._f = open(self._tmp, "wb")
+        self._closed = False
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+    def write(self, x):
+        spec = self.spec
+        x = np.asarray(x)
+        if spec.is_complex:
+            comps = np.ascontiguousarray(x, dtype=np.complex64).view(np.float32)
+        else:
+            if np.iscomplexobj(x):
+                raise FormatError(f"{self.path}: complex samples given for real format {spec.name}")
+            comps = np.ascontiguousarray(x, dtype=np.float32).reshape(-1)
+        self.n_samples += comps.size // spec.comps
+        if spec.packed2:
+            comps = np.concatenate([self._carry, comps]) if self._carry.size else comps
+            n4 = comps.size // 4 * 4
+            self._carry = comps[n4:].copy()
+            c = _encode2(comps[:n4]).reshape(-1, 4)
+            b = (c[:, 0] << 6) | (c[:, 1] << 4) | (c[:, 2] << 2) | c[:, 3]
+            self._f.write(b.astype(np.uint8).tobytes())
+            return
+        dt = np.dtype(spec.dtype)
+        if dt.kind == "i":
+            info = np.iinfo(dt)
+            out = np.clip(np.rint(comps), info.min, info.max).astype(dt)
+        else:
+            out = comps.astype(dt)
+        self._f.write(out.tobytes())
+
+    def close(self):
+        if self._closed:
+            return
+        if self.spec.packed2 and self._carry.size:
+            pad = np.zeros(4 - self._carry.size, dtype=np.float32) + 1.0
+            c = _encode2(np.concatenate([self._carry, pad]))
+            self._f.write(bytes([int((c[0] << 6) | (c[1] << 4) | (c[2] << 2) | c[3])]))
+            self._carry = np.zeros(0, dtype=np.float32)
+        self._f.close()
+        self.sidecar["n_samples"] = int(self.n_samples)
+        side_tmp = _tmp_name(sidecar_path(self.path))
+        with open(side_tmp, "w") as f:
+            json.dump(self.sidecar, f, indent=1, default=_json_default)
+        os.replace(self._tmp, self.path)
+        os.replace(side_tmp, sidecar_path(self.path))
+        self._closed = True
+
+    def abort(self):
+        if self._closed:
+            return
+        try:
+            self._f.close()
+        finally:
+            for p in (self._tmp, _tmp_name(sidecar_path(self.path))):
+                try:
+                    os.unlink(p)
+                except FileNotFoundError:
+                    pass
+            self._closed = True
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def write_if(path, samples, fmt, fs_hz, if_hz=0.0, **kw):
+    """Write a whole array (convenience wrapper around :class:`IfWriter`). Returns the path."""
+    with IfWriter(path, fmt, fs_hz, if_hz, **kw) as w:
+        w.write(samples)
+    return Path(path)
