@@ -1,0 +1,249 @@
+"""Correlator bank against an independent numpy correlation, noise statistics and sign conventions."""
+
+import numpy as np
+import pytest
+
+from ultratight.constants import CA_LEN, F_CA, F_L1
+from ultratight.errors import ConfigError
+from ultratight.receiver.correlator import (
+    COLUMNS, CorrelatorBank, code_rate_from_doppler, estimate_sigma_arm)
+from ultratight.signals.ca_code import ca_code
+from ultratight.signals.corr_model import (
+    amplitude_from_cn0, code_autocorr, epl_noise_covariance, signal_amplitude, tap_offsets)
+
+
+def synth(prn, fs, n, code_phase0, doppler_hz, carr_phase0_rad, if_hz=0.0, complex_sampling=True, amp=1.0,
+          sigma=0.0, rng=None, data=None):
+    """Signal whose code phase at sample 0 is code_phase0 (chips) and carrier phase carr_phase0_rad."""
+    t = np.arange(n) / fs
+    p = code_phase0 + t * F_CA * (1.0 + doppler_hz / F_L1)
+    c = ca_code(prn)[np.floor(p).astype(np.int64) % CA_LEN].astype(float)
+    if data is not None:
+        c = c * data[np.floor(p / CA_LEN).astype(np.int64) % data.size]
+    ph = 2 * np.pi * (if_hz + doppler_hz) * t + carr_phase0_rad
+    if complex_sampling:
+        x = amp * c * np.exp(1j * ph)
+        if sigma > 0:
+            x = x + sigma * (rng.standard_normal(n) + 1j * rng.standard_normal(n))
+        return x.astype(np.complex64)
+    x = amp * c * np.cos(ph)
+    if sigma > 0:
+        x = x + sigma * rng.standard_normal(n)
+    return x.astype(np.float32)
+
+
+def reference_epoch(x, fs, prn, code_phase, code_rate, carr_phase_cyc, carr_freq, offsets, sigma_arm):
+    """Straightforward numpy correlation over one period starting at x[0] (exact float64 carrier)."""
+    dp = code_rate / fs
+    k = np.arange(int(2 * fs * 1e-3) + 10)
+    p = code_phase + k * dp
+    n = int(np.count_nonzero(p < CA_LEN))
+    k = k[:n]
+    p = p[:n]
+    base = x[:n].astype(np.complex128) * np.exp(-2j * np.pi * (carr_phase_cyc + k * carr_freq / fs))
+    code = ca_code(prn).astype(float)
+    res_i, res_q = [], []
+    for o in offsets:
+        s = np.sum(base * code[np.floor(p + o).astype(np.int64) % CA_LEN])
+        res_i.append(s.real)
+        res_q.append(s.imag)
+    return np.array(res_i + res_q) / (sigma_arm * np.sqrt(n)), n
+
+
+@pytest.mark.parametrize("complex_sampling,fs,if_hz", [(True, 4.0e6, 0.0), (False, 5.3e6, 1.25e6),
+                                                        (True, 2.5e6, 0.0)])
+def test_matches_numpy_reference(complex_sampling, fs, if_hz):
+    rng = np.random.default_rng(11)
+    prn, fd, cp0, ph0 = 7, -3210.7, 517.37, 0.9
+    n = int(fs * 4.2e-3)
+    x = synth(prn, fs, n, cp0, fd, ph0, if_hz, complex_sampling, amp=1.0, sigma=0.5, rng=rng)
+    bank = CorrelatorBank([prn], fs, if_hz, complex_sampling, spacing_chips=0.5, vel_spacing_chips=1.5)
+    # replica deliberately a bit off the signal (so that all taps see signal and noise)
+    rep_cp, rep_fd, rep_ph = cp0 + 0.13, fd + 40.0, 0.2
+    bank.init_channel(0, prn, rep_cp, rep_fd, 0, carr_phase_cycles=rep_ph, align=False)
+    offsets = [0.0, 0.25, -0.25, 0.75, -0.75]        # [P, E, L, VE, VL] per the documented convention
+    cols = [0, 1, 2, 6, 7, 3, 4, 5, 8, 9]              # order of reference [I_P,I_E,I_L,I_VE,I_VL,Q_...]
+    sigma_arm = 0.37
+    start = 0
+    for epoch in range(4):
+        cp, cr, ph, cf = bank.code_phase[0], bank.code_rate[0], bank.carr_phase[0], bank.carr_freq[0]
+        ref, n_ref = reference_epoch(x[start:], fs, prn, cp, cr, ph, cf, offsets, sigma_arm)
+        out, t0, ns = bank.step(x, 0, sigma_arm)
+        assert t0[0] == start and ns[0] == n_ref
+        got = out[0, cols]
+        rel = np.linalg.norm(got - ref) / np.linalg.norm(ref)
+        assert rel < 1.5e-4, (epoch, rel)
+        start += n_ref
+    assert bank.sample_ptr[0] == start
+    # the state advanced exactly: code phase continues from the start of the next period
+    dp = code_rate_from_doppler(rep_fd) / fs
+    assert bank.code_phase[0] == pytest.approx((rep_cp + start * dp) % CA_LEN, abs=1e-9)
+
+
+def test_column_names():
+    assert COLUMNS[:6] == ("I_P", "I_E", "I_L", "Q_P", "Q_E", "Q_L")
+
+
+def test_noise_unit_variance_and_epl_covariance():
+    rng = np.random.default_rng(5)
+    fs, n_ep = 2.5e6, 3000
+    n = int(fs * 1e-3 * n_ep) + 5000
+    sigma = 3.0
+    x = (sigma * (rng.standard_normal(n) + 1j * rng.standard_normal(n))).astype(np.complex64)
+    bank = CorrelatorBank([1, 2], fs, 0.0, True, spacing_chips=1.0)
+    bank.init_channel(0, 1, 100.0, 1500.0, 0)
+    bank.init_channel(1, 2, 900.0, -4200.0, 0)
+    out, _, _, n_done = bank.run_epochs(x, 0, estimate_sigma_arm(x, True))
+    assert np.all(n_done >= n_ep - 5)
+    z = out[0, :n_done[0]]
+    var = z.var(axis=0)
+    assert np.allclose(var, 1.0, atol=0.1), var
+    cov = np.cov(z.T)
+    assert np.allclose(cov, epl_noise_covariance(1.0), atol=0.08), np.round(cov, 3)
+
+
+def test_noise_unit_variance_real_input():
+    rng = np.random.default_rng(6)
+    fs, if_hz = 5.0e6, 1.2e6
+    n = int(fs * 1.5)
+    x = (2.0 * rng.standard_normal(n)).astype(np.float32)
+    sa = estimate_sigma_arm(x, False)
+    assert sa == pytest.approx(2.0 / np.sqrt(2.0), rel=0.01)
+    bank = CorrelatorBank([9], fs, if_hz, False, spacing_chips=0.5)
+    bank.init_channel(0, 9, 0.0, 2000.0, 0)
+    out, _, _, n_done = bank.run_epochs(x, 0, sa)
+    z = out[0, :n_done[0]]
+    assert np.allclose(z.var(axis=0), 1.0, atol=0.12), z.var(axis=0)
+    assert np.allclose(np.cov(z.T), epl_noise_covariance(0.5), atol=0.1)
+
+
+@pytest.mark.parametrize("complex_sampling", [True, False])
+def test_prompt_amplitude_matches_cn0(complex_sampling):
+    rng = np.random.default_rng(21 + complex_sampling)
+    fs, cn0, sigma = 4.0e6, 42.0, 2.0
+    if_hz = 0.0 if complex_sampling else 1.1e6
+    n_ep = 400
+    n = int(fs * 1e-3 * (n_ep + 2))
+    a = float(signal_amplitude(cn0, fs, sigma, complex_sampling))
+    x = synth(12, fs, n, 300.0, 1500.0, 0.0, if_hz, complex_sampling, amp=a, sigma=sigma, rng=rng)
+    bank = CorrelatorBank([12], fs, if_hz, complex_sampling)
+    bank.init_channel(0, 12, 300.0, 1500.0, 0, carr_phase_cycles=0.0)  # aligned to period start
+    sa = estimate_sigma_arm(x, complex_sampling)
+    out, _, ns, n_done = bank.run_epochs(x, 0, sa)
+    ip = out[0, :n_done[0], 0]
+    qp = out[0, :n_done[0], 3]
+    a_hat = ip.mean()
+    a_true = float(amplitude_from_cn0(cn0, 1e-3))
+    assert 20 * np.log10(a_hat / a_true) == pytest.approx(0.0, abs=0.3)
+    assert abs(qp.mean()) < 0.2                       # phase aligned: signal all in I
+    # C/N0 from the power: (I^2+Q^2 - 2)/2 / T
+    p = np.mean(ip ** 2 + qp ** 2) - 2.0
+    assert 10 * np.log10(p / 2 / 1e-3) == pytest.approx(cn0, abs=0.3)
+
+
+@pytest.mark.parametrize("dtau", [0.2, -0.2, 0.45])
+def test_code_discriminator_sign(dtau):
+    """Input code phase = replica + dtau: taps follow R(dtau + d_x), d_E=-D/2, d_L=+D/2."""
+    fs = 16.0e6 + 123.0
+    # PRN 12: one-chip-shift autocorrelation -1/1023, so R is the ideal triangle (some PRNs, e.g. 17,
+    # have +63/1023 there, which lifts R(tau) by 0.06*|tau| for |tau| < 1)
+    prn, fd = 12, 800.0
+    n = int(fs * 3e-3)
+    x = synth(prn, fs, n, 10.0 + dtau, fd, 0.0)
+    bank = CorrelatorBank([prn], fs, 0.0, True, spacing_chips=1.0)
+    bank.init_channel(0, prn, 10.0, fd, 0, align=False)
+    out, _, ns = bank.step(x, 0, 1.0)
+    a = np.sqrt(ns[0])                      # noise-free unit-amplitude input: P = sqrt(N) R(dtau)
+    expected = code_autocorr(dtau + tap_offsets(1.0))
+    assert np.allclose(out[0, :3] / a, expected, atol=0.02)
+    assert np.allclose(out[0, 3:6], 0.0, atol=0.02 * a)
+    if dtau > 0:
+        assert out[0, 1] > out[0, 2]        # E > L when the input leads the replica
+    else:
+        assert out[0, 1] < out[0, 2]
+
+
+def test_carrier_sign_and_frequency_error():
+    fs, prn = 4.0e6, 4
+    dphi, dfreq = 0.4, 150.0                # input minus replica: rad, Hz
+    x = synth(prn, fs, int(fs * 2e-3), 0.0, 1000.0 + dfreq, dphi)
+    bank = CorrelatorBank([prn], fs, 0.0, True)
+    bank.init_channel(0, prn, 0.0, 1000.0, 0)
+    out, _, ns = bank.step(x, 0, 1.0)
+    T = ns[0] / fs
+    dw = 2 * np.pi * dfreq
+    amp = np.sqrt(ns[0]) * np.sinc(dfreq * T)     # np.sinc(x) = sin(pi x)/(pi x) = sinc(dw T/2)
+    # the code rate follows fd, the input's code is slightly faster: negligible (1e-4 chip)
+    assert out[0, 0] == pytest.approx(amp * np.cos(dw * T / 2 + dphi), rel=2e-3)
+    assert out[0, 3] == pytest.approx(amp * np.sin(dw * T / 2 + dphi), rel=2e-3)
+
+
+def test_not_ready_and_chunked_equals_whole():
+    rng = np.random.default_rng(3)
+    fs = 4.0e6
+    n = int(fs * 6e-3)
+    x = synth(5, fs, n, 200.0, 2500.0, 0.3, sigma=1.0, amp=0.3, rng=rng)
+    whole = CorrelatorBank([5, 6], fs, 0.0, True)
+    chunk = CorrelatorBank([5, 6], fs, 0.0, True)
+    for b in (whole, chunk):
+        b.init_channel(0, 5, 200.0, 2500.0, 0)
+        b.init_channel(1, 6, 17.5, -900.0, 0)
+    ref, ts_ref, ns_ref, nd = whole.run_epochs(x, 0, 1.0)
+    # feed 5000-sample buffers that begin at the earliest sample still needed
+    got = [[], []]
+    while True:
+        start = int(chunk.sample_ptr.min())
+        if start + 4100 > n:
+            break
+        out, ts, ns = chunk.step(x[start:start + 5000], start, 1.0)
+        assert np.all(ns >= 0) and np.any(ns > 0)
+        for ch in range(2):
+            if ns[ch] > 0:
+                assert ts[ch] == ts_ref[ch, len(got[ch])]
+                got[ch].append(out[ch])
+            else:
+                assert np.all(out[ch] == 0.0)
+    # a buffer that begins too late: -1 and state untouched
+    ptr = chunk.sample_ptr.copy()
+    out, ts, ns = chunk.step(x[ptr.max() + 1:], int(ptr.max()) + 1, 1.0)
+    assert np.all(ns == -1) and np.array_equal(chunk.sample_ptr, ptr)
+    for ch in range(2):
+        g = np.array(got[ch])
+        assert nd[ch] - 1 <= g.shape[0] <= nd[ch]
+        assert np.allclose(g, ref[ch, :g.shape[0]], rtol=1e-9, atol=1e-9)
+
+
+def test_add_remove_channels():
+    bank = CorrelatorBank([1], 4e6, 0.0, True)
+    ch0 = bank.add_channel(3, 10.0, 100.0, 0)
+    assert ch0 == 0 and bank.prns[0] == 3
+    ch1 = bank.add_channel(4, 10.0, 100.0, 0)
+    assert ch1 == 1 and bank.n_ch == 2 and bank.prns[1] == 4
+    bank.remove_channel(0)
+    out, ts, ns = bank.step(np.zeros(8000, np.complex64), 0, 1.0)
+    assert ns[0] == 0 and ns[1] > 0
+    ch = bank.add_channel(9, 0.0, 0.0, 0)
+    assert ch == 0 and bank.prns[0] == 9 and bank.active[0]
+
+
+@pytest.mark.parametrize("kwargs,word", [
+    (dict(fs_hz=0.0), "fs_hz"), (dict(fs_hz=-4e6), "fs_hz"),
+    (dict(spacing_chips=0.0), "spacing"), (dict(spacing_chips=2.0), "spacing"),
+    (dict(spacing_chips=-0.5), "spacing"), (dict(vel_spacing_chips=0.0), "vel_spacing"),
+    (dict(prns=[0]), "PRN"), (dict(prns=[33]), "PRN"), (dict(if_hz=5e6), "if_hz"),
+])
+def test_bad_parameters(kwargs, word):
+    args = dict(prns=[1], fs_hz=4e6, if_hz=0.0, is_complex=True)
+    args.update(kwargs)
+    with pytest.raises(ConfigError, match=word):
+        CorrelatorBank(**args)
+
+
+def test_bad_buffer_and_sigma():
+    bank = CorrelatorBank([1], 4e6, 1e6, False)
+    with pytest.raises(ConfigError, match="real input"):
+        bank.step(np.zeros(10, np.complex64), 0, 1.0)
+    with pytest.raises(ConfigError, match="noise_sigma_arm"):
+        bank.step(np.zeros(10, np.float32), 0, 0.0)
+    with pytest.raises(ConfigError, match="zero noise"):
+        estimate_sigma_arm(np.ones(100), True)
