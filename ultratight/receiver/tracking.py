@@ -1,0 +1,555 @@
+"""Scalar tracking: FLL-assisted Costas PLL, carrier-aided DLL, C/N0, lock indicators, bit sync.
+
+All per-epoch work runs in one numba call per IF block (:func:`_track_block`): for every
+active channel it integrates C/A periods with the correlator kernel of
+:mod:`ultratight.receiver.correlator` (E/P/L, normalised per
+:mod:`ultratight.signals.corr_model`: unit noise per arm, prompt amplitude
+``A = sqrt(2 C/N0 T)``), runs the discriminators and loop filters, updates the NCOs,
+and writes one record per epoch.  Python only handles blocks (≈10 Hz).
+
+Loops (standard discrete forms, Kaplan & Hegarty "Understanding GPS", ch. 5, with
+trapezoidal integrators; ``w0`` natural frequency in rad/s, phase in cycles, frequency in Hz):
+
+* Costas discriminator ``e_p = atan(Q_P / I_P) / 2pi`` (cycles, data-bit insensitive).
+* FLL cross/dot discriminator between consecutive coherent sums
+  ``e_f = atan(cross / dot) / (2 pi T)`` (Hz, two-quadrant: data-bit insensitive).
+* PLL order 2 with 1st-order FLL assist:
+  ``x += T (w0p^2 e_p + w0f e_f)``; ``f = x + a2 w0p e_p``;  ``w0p = Bn/0.53``, ``w0f = 4 Bn_f``.
+* PLL order 3 with 2nd-order FLL assist:
+  ``y += T (w0p^3 e_p + w0f^2 e_f)``; ``x += T (y + a3 w0p^2 e_p + a2 w0f e_f)``;
+  ``f = x + b3 w0p e_p``;  ``w0p = Bn/0.7845``, ``w0f = Bn_f/0.53``, a2 = sqrt 2, a3 = 1.1, b3 = 2.4.
+* DLL: normalised early-minus-late envelope ``dtau = (1 - D/2)(|E| - |L|)/(|E| + |L|)`` (chips,
+  input minus replica; exact inside the linear range for a triangle correlation), carrier aided:
+  ``code_rate = F_CA (1 + f/F_L1) + u`` with ``u = 4 Bn dtau`` (order 1) or
+  ``z += T w0^2 dtau``; ``u = z + a2 w0 dtau`` (order 2).
+* Pull-in mode (after (re)acquisition): wide PLL + FLL assist, 1 ms. Track mode (after the
+  phase-lock indicator has held for ``lock_s``): track bandwidths, and after bit sync the
+  coherent integration grows to ``coh_ms`` (aligned to bit edges; the effective PLL
+  bandwidth is capped at ``max_bnt / T`` to keep the discrete loop stable).
+* C/N0: the outputs have unit noise per arm, so ``E[I_P^2 + Q_P^2] = 2 + 2 C/N0 T``; the
+  estimate over ``cn0_win_ms`` epochs is ``(mean P - 2)/(2 T)``, smoothed exponentially
+  (the moments/M2M4 estimator, which needs no noise reference, is :func:`cn0_m2m4`).
+* Phase-lock indicator ``PLI = LP(I^2 - Q^2) / (LP(I^2 + Q^2) - 2)`` ≈ cos(2 dphi) (noise
+  bias removed with the known unit noise), low-pass time constant ``pli_tau_s``.
+* Loss of lock: C/N0 estimate below ``cn0_lost_dbhz`` for ``lost_s`` -> channel mode LOST and
+  deactivated (the pipeline re-acquires it).
+* Bit sync: in track mode, sign changes of 1 ms I_P counted in 20 bins (epoch mod 20); declared
+  when the largest bin leads the second by ``bs_margin`` and holds twice its count.
+"""
+
+import math
+from dataclasses import dataclass, asdict
+
+import numpy as np
+from numba import njit
+
+from ultratight.constants import CA_LEN, F_CA, F_L1, CODE_PER_BIT
+from ultratight.receiver.correlator import _integrate_channel, _COS_LUT, _SIN_LUT
+
+# channel modes
+MODE_OFF, MODE_PULL, MODE_TRACK, MODE_LOST = 0, 1, 2, 3
+
+# float state columns (sf)
+(F_DOPP, F_PLL_X, F_PLL_Y, F_DLL_Z, F_PREV_I, F_PREV_Q, F_AIP, F_AQP, F_AIE, F_AQE, F_AIL, F_AQL,
+ F_AT, F_CN0_P, F_CN0_T, F_CN0_LIN, F_PLI_N, F_PLI_D, F_PLI, F_BIT_SUM, F_LOCK_T, F_UNLOCK_T,
+ F_LOW_T, F_CARR_ACC, F_LAST_I, F_DLL_ERR, F_PLL_ERR, F_FLL_ERR, F_DLL_U) = range(29)
+N_SF = 29
+# int state columns (si)
+(S_MODE, S_EPOCH, S_BIT_PHASE, S_NTRANS, S_HAVE_PREV, S_ACC_N, S_CN0_N, S_BIT_N, S_CN0_VALID) = range(9)
+N_SI = 9
+
+# parameter vector (prm)
+(P_PULL_PLL_BW, P_PULL_FLL_BW, P_PULL_DLL_BW, P_TRK_PLL_BW, P_TRK_FLL_BW, P_TRK_DLL_BW, P_PLL_ORDER,
+ P_DLL_ORDER, P_COH_MS, P_SPACING, P_CN0_WIN, P_CN0_LOST, P_LOST_S, P_PLI_LOCK, P_LOCK_S, P_UNLOCK_S,
+ P_BS_MARGIN, P_PLI_TAU, P_MAX_BNT, P_CN0_ALPHA, P_DLL_NARROW_COH) = range(21)
+N_PRM = 21
+
+# record columns: float (rf) and int (ri)
+(R_CODE_PHASE, R_CODE_RATE, R_CARR_ACC, R_DOPP, R_IP, R_QP, R_IE, R_QE, R_IL, R_QL, R_CN0, R_PLI,
+ R_DLL_ERR, R_PLL_ERR, R_FLL_ERR, R_BIT) = range(16)
+N_RF = 16
+REC_F_NAMES = ("code_phase_chips", "code_rate_cps", "carr_acc_cycles", "doppler_hz", "I_P", "Q_P", "I_E",
+               "Q_E", "I_L", "Q_L", "cn0_dbhz", "pli", "dll_err_chips", "pll_err_cycles", "fll_err_hz",
+               "bit_soft")
+(RI_PTR, RI_N, RI_EPOCH, RI_MODE, RI_FLAGS) = range(5)
+N_RI = 5
+REC_I_NAMES = ("sample_index", "n_samples", "epoch", "mode", "flags")
+# flags
+FL_BIT_DONE, FL_BIT_SYNC, FL_PLL_LOCK, FL_LOOP_UPD = 1, 2, 4, 8
+
+A2, A3, B3 = math.sqrt(2.0), 1.1, 2.4
+CN0_FLOOR_LIN = 1.0     # 0 dB-Hz: reported when the power estimate is at or below the noise
+
+
+@dataclass
+class TrackingConfig:
+    """Loop parameters (bandwidths are noise bandwidths Bn in Hz)."""
+    pull_pll_bw_hz: float = 18.0
+    pull_fll_bw_hz: float = 10.0
+    pull_dll_bw_hz: float = 2.0
+    track_pll_bw_hz: float = 15.0
+    track_fll_bw_hz: float = 2.0
+    track_dll_bw_hz: float = 1.0
+    pll_order: int = 3
+    dll_order: int = 1
+    coh_ms: int = 1                 # coherent integration after bit sync (1, 2, 4, 5, 10 or 20)
+    spacing_chips: float = 1.0
+    cn0_win_ms: int = 100
+    cn0_lost_dbhz: float = 22.0
+    lost_s: float = 1.0
+    pli_lock: float = 0.5
+    lock_s: float = 0.1
+    unlock_s: float = 0.5
+    bs_margin: int = 25
+    pli_tau_s: float = 0.1
+    max_bnt: float = 0.15
+    cn0_alpha: float = 0.3
+
+    def validate(self):
+        from ultratight.errors import ConfigError
+        if self.coh_ms not in (1, 2, 4, 5, 10, 20):
+            raise ConfigError(f"tracking coh_ms must be one of 1, 2, 4, 5, 10, 20 (divides a 20 ms bit), "
+                              f"got {self.coh_ms}")
+        if self.pll_order not in (2, 3) or self.dll_order not in (1, 2):
+            raise ConfigError(f"tracking pll_order must be 2 or 3 and dll_order 1 or 2, "
+                              f"got {self.pll_order}, {self.dll_order}")
+        for k, v in asdict(self).items():
+            if k.endswith("_bw_hz") and not (0.0 <= v <= 100.0):
+                raise ConfigError(f"tracking {k} must be in [0, 100] Hz, got {v}")
+        if not 0.0 < self.spacing_chips < 2.0:
+            raise ConfigError(f"tracking spacing_chips must be in (0, 2), got {self.spacing_chips}")
+
+    def params(self):
+        p = np.zeros(N_PRM)
+        p[P_PULL_PLL_BW] = self.pull_pll_bw_hz
+        p[P_PULL_FLL_BW] = self.pull_fll_bw_hz
+        p[P_PULL_DLL_BW] = self.pull_dll_bw_hz
+        p[P_TRK_PLL_BW] = self.track_pll_bw_hz
+        p[P_TRK_FLL_BW] = self.track_fll_bw_hz
+        p[P_TRK_DLL_BW] = self.track_dll_bw_hz
+        p[P_PLL_ORDER] = self.pll_order
+        p[P_DLL_ORDER] = self.dll_order
+        p[P_COH_MS] = self.coh_ms
+        p[P_SPACING] = self.spacing_chips
+        p[P_CN0_WIN] = self.cn0_win_ms
+        p[P_CN0_LOST] = 10.0 ** (self.cn0_lost_dbhz / 10.0)
+        p[P_LOST_S] = self.lost_s
+        p[P_PLI_LOCK] = self.pli_lock
+        p[P_LOCK_S] = self.lock_s
+        p[P_UNLOCK_S] = self.unlock_s
+        p[P_BS_MARGIN] = self.bs_margin
+        p[P_PLI_TAU] = self.pli_tau_s
+        p[P_MAX_BNT] = self.max_bnt
+        p[P_CN0_ALPHA] = self.cn0_alpha
+        return p
+
+
+# ------------------------------------------------------------------------------ discriminators
+@njit(cache=True)
+def costas_disc(i, q):
+    """Costas (two-quadrant arctangent) phase error in cycles, in [-1/4, 1/4]."""
+    if i == 0.0:
+        return 0.25 if q > 0.0 else (-0.25 if q < 0.0 else 0.0)
+    return math.atan(q / i) / (2.0 * math.pi)
+
+
+@njit(cache=True)
+def fll_disc(i1, q1, i2, q2, t):
+    """Cross/dot frequency error (Hz) between sums (i1,q1) then (i2,q2) spaced t s (two-quadrant)."""
+    cross = i1 * q2 - q1 * i2
+    dot = i1 * i2 + q1 * q2
+    if dot == 0.0:
+        return 0.0
+    return math.atan(cross / dot) / (2.0 * math.pi * t)
+
+
+@njit(cache=True)
+def dll_disc(ie, qe, il, ql, spacing):
+    """Normalised early-minus-late envelope: code error (chips, input minus replica)."""
+    e = math.sqrt(ie * ie + qe * qe)
+    l = math.sqrt(il * il + ql * ql)
+    if e + l == 0.0:
+        return 0.0
+    return (1.0 - 0.5 * spacing) * (e - l) / (e + l)
+
+
+# ------------------------------------------------------------------------------ loop filters
+@njit(cache=True)
+def pll_fll_update(st, ep, ef, t, bn_p, bn_f, order):
+    """One update of the FLL-assisted PLL; st = [x (Hz), y (Hz/s)] updated in place; returns f (Hz)."""
+    x = st[0]
+    y = st[1]
+    if order == 2:
+        w0p = bn_p / 0.53
+        w0f = 4.0 * bn_f
+        xn = x + t * (w0p * w0p * ep + w0f * ef)
+        f = 0.5 * (x + xn) + A2 * w0p * ep
+        st[0] = xn
+        return f
+    w0p = bn_p / 0.7845
+    w0f = bn_f / 0.53
+    yn = y + t * (w0p * w0p * w0p * ep + w0f * w0f * ef)
+    xn = x + t * (0.5 * (y + yn) + A3 * w0p * w0p * ep + A2 * w0f * ef)
+    f = 0.5 * (x + xn) + B3 * w0p * ep
+    st[0] = xn
+    st[1] = yn
+    return f
+
+
+@njit(cache=True)
+def dll_update(z, dtau, t, bn, order):
+    """DLL filter: returns (u chips/s, new integrator z)."""
+    if order == 1:
+        return 4.0 * bn * dtau, z
+    w0 = bn / 0.53
+    zn = z + t * w0 * w0 * dtau
+    return 0.5 * (z + zn) + A2 * w0 * dtau, zn
+
+
+# ------------------------------------------------------------------------------ per-epoch logic
+@njit(cache=True)
+def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2):
+    """Bookkeeping + loops for one channel after one ~1 ms epoch with outputs o[0:6].
+
+    Returns (doppler_hz, code_rate_corr, flags, bit_soft)."""
+    ip, ie, il, qp, qe, ql = o[0], o[1], o[2], o[3], o[4], o[5]
+    mode = si[ch, S_MODE]
+    epoch = si[ch, S_EPOCH]
+    flags = 0
+    bit_soft = 0.0
+    # --- C/N0 (power with unit-noise reference)
+    p = ip * ip + qp * qp
+    sf[ch, F_CN0_P] += p
+    sf[ch, F_CN0_T] += t_ep
+    si[ch, S_CN0_N] += 1
+    if si[ch, S_CN0_N] >= prm[P_CN0_WIN]:
+        nwin = si[ch, S_CN0_N]
+        tbar = sf[ch, F_CN0_T] / nwin
+        lin = (sf[ch, F_CN0_P] / nwin - 2.0) / (2.0 * tbar)
+        if lin < CN0_FLOOR_LIN:
+            lin = CN0_FLOOR_LIN
+        if si[ch, S_CN0_VALID] == 0:
+            sf[ch, F_CN0_LIN] = lin
+            si[ch, S_CN0_VALID] = 1
+        else:
+            sf[ch, F_CN0_LIN] += prm[P_CN0_ALPHA] * (lin - sf[ch, F_CN0_LIN])
+        sf[ch, F_CN0_P] = 0.0
+        sf[ch, F_CN0_T] = 0.0
+        si[ch, S_CN0_N] = 0
+    # --- phase lock indicator
+    a = t_ep / prm[P_PLI_TAU]
+    if a > 1.0:
+        a = 1.0
+    sf[ch, F_PLI_N] += a * ((ip * ip - qp * qp) - sf[ch, F_PLI_N])
+    sf[ch, F_PLI_D] += a * (p - sf[ch, F_PLI_D])
+    den = sf[ch, F_PLI_D] - 2.0
+    if den < 0.05:
+        den = 0.05
+    pli = sf[ch, F_PLI_N] / den
+    sf[ch, F_PLI] = pli
+    if pli > prm[P_PLI_LOCK]:
+        sf[ch, F_LOCK_T] += t_ep
+        sf[ch, F_UNLOCK_T] = 0.0
+    else:
+        sf[ch, F_UNLOCK_T] += t_ep
+        sf[ch, F_LOCK_T] = 0.0
+    if mode == MODE_PULL and sf[ch, F_LOCK_T] >= prm[P_LOCK_S]:
+        mode = MODE_TRACK
+    elif mode == MODE_TRACK and sf[ch, F_UNLOCK_T] >= prm[P_UNLOCK_S]:
+        mode = MODE_PULL
+    if mode == MODE_TRACK:
+        flags |= FL_PLL_LOCK
+    # --- loss of lock (code): C/N0 too low for too long
+    if si[ch, S_CN0_VALID] == 1 and sf[ch, F_CN0_LIN] < prm[P_CN0_LOST]:
+        sf[ch, F_LOW_T] += t_ep
+    else:
+        sf[ch, F_LOW_T] = 0.0
+    if sf[ch, F_LOW_T] >= prm[P_LOST_S]:
+        mode = MODE_LOST
+    # --- bit synchronisation (sign-change histogram), in track mode
+    bph = si[ch, S_BIT_PHASE]
+    if bph < 0 and mode == MODE_TRACK:
+        if sf[ch, F_LAST_I] != 0.0 and (ip > 0.0) != (sf[ch, F_LAST_I] > 0.0):
+            b = epoch % CODE_PER_BIT
+            hist[ch, b] += 1
+            si[ch, S_NTRANS] += 1
+            m1 = 0
+            m2 = 0
+            kbest = 0
+            for k in range(CODE_PER_BIT):
+                h = hist[ch, k]
+                if h > m1:
+                    m2 = m1
+                    m1 = h
+                    kbest = k
+                elif h > m2:
+                    m2 = h
+            if m1 - m2 >= prm[P_BS_MARGIN] and m1 >= 2 * m2:
+                bph = kbest
+                si[ch, S_BIT_PHASE] = bph
+                si[ch, S_BIT_N] = -1      # wait for the next bit edge
+    sf[ch, F_LAST_I] = ip
+    if bph >= 0:
+        flags |= FL_BIT_SYNC
+        pos = (epoch - bph) % CODE_PER_BIT
+        if pos == 0:
+            sf[ch, F_BIT_SUM] = 0.0
+            si[ch, S_BIT_N] = 0
+        if si[ch, S_BIT_N] >= 0:
+            sf[ch, F_BIT_SUM] += ip
+            si[ch, S_BIT_N] += 1
+            if pos == CODE_PER_BIT - 1 and si[ch, S_BIT_N] == CODE_PER_BIT:
+                flags |= FL_BIT_DONE
+                bit_soft = sf[ch, F_BIT_SUM]
+    # --- coherent accumulation
+    coh = 1
+    if mode == MODE_TRACK and bph >= 0:
+        coh = int(prm[P_COH_MS])
+    if coh > 1:
+        if (epoch - bph) % coh == 0:
+            sf[ch, F_AIP] = 0.0
+            sf[ch, F_AQP] = 0.0
+            sf[ch, F_AIE] = 0.0
+            sf[ch, F_AQE] = 0.0
+            sf[ch, F_AIL] = 0.0
+            sf[ch, F_AQL] = 0.0
+            sf[ch, F_AT] = 0.0
+            si[ch, S_ACC_N] = 0
+        sf[ch, F_AIP] += ip
+        sf[ch, F_AQP] += qp
+        sf[ch, F_AIE] += ie
+        sf[ch, F_AQE] += qe
+        sf[ch, F_AIL] += il
+        sf[ch, F_AQL] += ql
+        sf[ch, F_AT] += t_ep
+        si[ch, S_ACC_N] += 1
+        do_upd = si[ch, S_ACC_N] == coh
+        cip, cqp, cie, cqe, cil, cql, tc = (sf[ch, F_AIP], sf[ch, F_AQP], sf[ch, F_AIE], sf[ch, F_AQE],
+                                           sf[ch, F_AIL], sf[ch, F_AQL], sf[ch, F_AT])
+    else:
+        do_upd = True
+        cip, cqp, cie, cqe, cil, cql, tc = ip, qp, ie, qe, il, ql, t_ep
+        si[ch, S_ACC_N] = 0
+    dopp = sf[ch, F_DOPP]
+    u = sf[ch, F_DLL_U]
+    if do_upd and mode != MODE_LOST:
+        flags |= FL_LOOP_UPD
+        ep = costas_disc(cip, cqp)
+        ef = 0.0
+        if si[ch, S_HAVE_PREV] == 1:
+            ef = fll_disc(sf[ch, F_PREV_I], sf[ch, F_PREV_Q], cip, cqp, tc)
+        sf[ch, F_PREV_I] = cip
+        sf[ch, F_PREV_Q] = cqp
+        si[ch, S_HAVE_PREV] = 1
+        dtau = dll_disc(cie, cqe, cil, cql, prm[P_SPACING])
+        if mode == MODE_TRACK:
+            bn_p, bn_f, bn_d = prm[P_TRK_PLL_BW], prm[P_TRK_FLL_BW], prm[P_TRK_DLL_BW]
+        else:
+            bn_p, bn_f, bn_d = prm[P_PULL_PLL_BW], prm[P_PULL_FLL_BW], prm[P_PULL_DLL_BW]
+        cap = prm[P_MAX_BNT] / tc
+        if bn_p > cap:
+            bn_p = cap
+        if bn_f > cap:
+            bn_f = cap
+        tmp2[0] = sf[ch, F_PLL_X]
+        tmp2[1] = sf[ch, F_PLL_Y]
+        dopp = pll_fll_update(tmp2, ep, ef, tc, bn_p, bn_f, int(prm[P_PLL_ORDER]))
+        sf[ch, F_PLL_X] = tmp2[0]
+        sf[ch, F_PLL_Y] = tmp2[1]
+        u, z = dll_update(sf[ch, F_DLL_Z], dtau, tc, bn_d, int(prm[P_DLL_ORDER]))
+        sf[ch, F_DLL_Z] = z
+        sf[ch, F_DOPP] = dopp
+        sf[ch, F_DLL_U] = u
+        sf[ch, F_DLL_ERR] = dtau
+        sf[ch, F_PLL_ERR] = ep
+        sf[ch, F_FLL_ERR] = ef
+    si[ch, S_MODE] = mode
+    si[ch, S_EPOCH] = epoch + 1
+    return dopp, u, flags, bit_soft
+
+
+@njit(cache=True)
+def _track_block(buf, is_complex, buf_start, n_buf, stop_sample, code_ext, pad, active, sample_ptr,
+                 code_phase, code_rate, carr_phase, carr_freq, fs, if_hz, tap_off, sigma_arm,
+                 sf, si, hist, prm, rec_f, rec_i, n_rec):
+    """Closed-loop tracking of every active channel over the buffer (see module docstring).
+
+    A channel stops when its next period would pass the buffer end or ``stop_sample``, or when its
+    record rows are full; ``n_rec[ch]`` counts the rows written (appended after existing ones)."""
+    n_ch = code_phase.shape[0]
+    n_taps = tap_off.shape[0]
+    tap_fix = np.empty(n_taps, dtype=np.int64)
+    for t in range(n_taps):
+        tap_fix[t] = np.int64(np.floor(tap_off[t] * 4294967296.0))
+    acc = np.zeros(2 * n_taps)
+    o = np.zeros(6)
+    tmp2 = np.zeros(2)
+    max_rows = rec_f.shape[1]
+    for ch in range(n_ch):
+        while active[ch] and n_rec[ch] < max_rows:
+            dp = code_rate[ch] / fs
+            n = np.int64(np.ceil((CA_LEN - code_phase[ch]) / dp))
+            if n < 1:
+                n = 1
+            off = sample_ptr[ch] - buf_start
+            if off < 0 or off + n > n_buf or sample_ptr[ch] + n > stop_sample:
+                break
+            cp_fix0 = np.int64(np.floor((code_phase[ch] + pad) * 4294967296.0))
+            cstep = np.int64(np.floor(dp * 4294967296.0 + 0.5))
+            frac = carr_phase[ch] - np.floor(carr_phase[ch])
+            ph0 = np.int64(np.floor(frac * 4294967296.0))
+            phstep = np.int64(np.floor(carr_freq[ch] / fs * 4294967296.0 + 0.5))
+            _integrate_channel(buf, is_complex, off, n, code_ext[ch], cp_fix0, cstep, ph0, phstep,
+                               tap_fix, _COS_LUT, _SIN_LUT, acc)
+            scale = 1.0 / (sigma_arm[ch] * np.sqrt(n))
+            for t in range(3):
+                o[t] = acc[t] * scale
+                o[3 + t] = acc[n_taps + t] * scale
+            r = n_rec[ch]
+            rec_i[ch, r, RI_PTR] = sample_ptr[ch]
+            rec_i[ch, r, RI_N] = n
+            rec_i[ch, r, RI_EPOCH] = si[ch, S_EPOCH]
+            rec_f[ch, r, R_CODE_PHASE] = code_phase[ch]
+            rec_f[ch, r, R_CODE_RATE] = code_rate[ch]
+            rec_f[ch, r, R_CARR_ACC] = sf[ch, F_CARR_ACC]
+            rec_f[ch, r, R_DOPP] = carr_freq[ch] - if_hz
+            # advance NCOs exactly (as the correlator bank does)
+            code_phase[ch] = code_phase[ch] + n * dp - CA_LEN
+            ph = carr_phase[ch] + n * (carr_freq[ch] / fs)
+            carr_phase[ch] = ph - np.floor(ph)
+            sf[ch, F_CARR_ACC] += n * ((carr_freq[ch] - if_hz) / fs)
+            sample_ptr[ch] = sample_ptr[ch] + n
+            t_ep = n / fs
+            dopp, u, flags, bit_soft = _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2)
+            carr_freq[ch] = if_hz + dopp
+            code_rate[ch] = F_CA * (1.0 + dopp / F_L1) + u
+            rec_f[ch, r, R_IP] = o[0]
+            rec_f[ch, r, R_QP] = o[3]
+            rec_f[ch, r, R_IE] = o[1]
+            rec_f[ch, r, R_QE] = o[4]
+            rec_f[ch, r, R_IL] = o[2]
+            rec_f[ch, r, R_QL] = o[5]
+            rec_f[ch, r, R_CN0] = 10.0 * math.log10(sf[ch, F_CN0_LIN]) if si[ch, S_CN0_VALID] else np.nan
+            rec_f[ch, r, R_PLI] = sf[ch, F_PLI]
+            rec_f[ch, r, R_DLL_ERR] = sf[ch, F_DLL_ERR]
+            rec_f[ch, r, R_PLL_ERR] = sf[ch, F_PLL_ERR]
+            rec_f[ch, r, R_FLL_ERR] = sf[ch, F_FLL_ERR]
+            rec_f[ch, r, R_BIT] = bit_soft
+            rec_i[ch, r, RI_MODE] = si[ch, S_MODE]
+            rec_i[ch, r, RI_FLAGS] = flags
+            n_rec[ch] = r + 1
+            if si[ch, S_MODE] == MODE_LOST:
+                active[ch] = False
+
+
+# ------------------------------------------------------------------------------ estimators (numpy)
+def cn0_power(i_p, q_p, t_int):
+    """C/N0 (dB-Hz) from prompt outputs with unit noise per arm: (mean P - 2)/(2T)."""
+    p = np.mean(np.asarray(i_p) ** 2 + np.asarray(q_p) ** 2)
+    lin = max((p - 2.0) / (2.0 * t_int), CN0_FLOOR_LIN)
+    return 10.0 * np.log10(lin)
+
+
+def cn0_m2m4(i_p, q_p, t_int):
+    """Moments (M2M4) C/N0 estimator (dB-Hz), needs no noise reference (complex signal, real noise arms).
+
+    M2 = E|z|^2 = S + N, M4 = E|z|^4 = S^2 + 4 S N + 2 N^2 (N = total noise power of both arms)
+    -> S = sqrt(2 M2^2 - M4), N = M2 - S; C/N0 = S/(N T) with N = 2 (per-arm unit variance) ...
+    normalised form: C/N0 = (S/N)/T."""
+    z2 = np.asarray(i_p) ** 2 + np.asarray(q_p) ** 2
+    m2 = np.mean(z2)
+    m4 = np.mean(z2 * z2)
+    s = math.sqrt(max(2.0 * m2 * m2 - m4, 0.0))
+    n = m2 - s
+    if s <= 0.0 or n <= 0.0:
+        return float("nan")
+    return 10.0 * math.log10(s / n / t_int)
+
+
+# ------------------------------------------------------------------------------ channel bank state
+class TrackingState:
+    """Loop state of ``n_ch`` channels (arrays for the numba kernel) plus record buffers."""
+
+    def __init__(self, n_ch, config=None, max_rows=256):
+        self.config = config or TrackingConfig()
+        self.config.validate()
+        self.prm = self.config.params()
+        self.sf = np.zeros((n_ch, N_SF))
+        self.si = np.zeros((n_ch, N_SI), dtype=np.int64)
+        self.hist = np.zeros((n_ch, CODE_PER_BIT), dtype=np.int64)
+        self.rec_f = np.zeros((n_ch, max_rows, N_RF))
+        self.rec_i = np.zeros((n_ch, max_rows, N_RI), dtype=np.int64)
+        self.n_rec = np.zeros(n_ch, dtype=np.int64)
+
+    def reset_channel(self, ch, doppler_hz):
+        """(Re)start a channel in pull-in mode with the acquisition Doppler."""
+        self.sf[ch] = 0.0
+        self.si[ch] = 0
+        self.hist[ch] = 0
+        self.sf[ch, F_DOPP] = doppler_hz
+        self.sf[ch, F_PLL_X] = doppler_hz
+        self.si[ch, S_MODE] = MODE_PULL
+        self.si[ch, S_BIT_PHASE] = -1
+
+    def mode(self, ch):
+        return int(self.si[ch, S_MODE])
+
+    def cn0_dbhz(self, ch):
+        return 10.0 * math.log10(self.sf[ch, F_CN0_LIN]) if self.si[ch, S_CN0_VALID] else float("nan")
+
+
+class ScalarTracker:
+    """A correlator bank + tracking loops; feed it IF buffers with :meth:`run`.
+
+    ``channels`` are added with :meth:`start_channel` (from acquisition); each call to :meth:`run`
+    tracks every active channel through the buffer and returns the new epoch records as
+    ``(rec_f (n_ch, rows, N_RF), rec_i (n_ch, rows, N_RI), n_rec (n_ch,))`` (copies).
+    """
+
+    def __init__(self, n_ch, fs_hz, if_hz, is_complex, config=None, max_rows=256):
+        from ultratight.receiver.correlator import CorrelatorBank
+        self.config = config or TrackingConfig()
+        self.bank = CorrelatorBank([1] * n_ch, fs_hz, if_hz, is_complex,
+                                   spacing_chips=self.config.spacing_chips)
+        self.state = TrackingState(n_ch, self.config, max_rows)
+        self.fs_hz = float(fs_hz)
+        self.if_hz = float(if_hz)
+        self.is_complex = bool(is_complex)
+        self.n_ch = n_ch
+
+    @property
+    def active(self):
+        return self.bank.active
+
+    def start_channel(self, ch, prn, code_phase_chips, doppler_hz, sample_index):
+        """Start (or restart) channel ``ch`` from an acquisition result valid at ``sample_index``."""
+        self.bank.init_channel(ch, int(prn), code_phase_chips, doppler_hz, int(sample_index), align=True)
+        self.state.reset_channel(ch, float(doppler_hz))
+
+    def stop_channel(self, ch):
+        self.bank.active[ch] = False
+        self.state.si[ch, S_MODE] = MODE_OFF
+
+    def next_needed_sample(self):
+        """Smallest sample_ptr of the active channels (None if none is active)."""
+        if not self.bank.active.any():
+            return None
+        return int(self.bank.sample_ptr[self.bank.active].min())
+
+    def run(self, buf, buf_start, sigma_arm, stop_sample=None):
+        b = self.bank
+        st = self.state
+        if self.is_complex:
+            raw = np.ascontiguousarray(buf, dtype=np.complex64).view(np.float32)
+        else:
+            raw = np.ascontiguousarray(buf, dtype=np.float32)
+        n_buf = int(np.asarray(buf).shape[0])
+        stop = np.int64(buf_start + n_buf if stop_sample is None else stop_sample)
+        sig = np.broadcast_to(np.asarray(sigma_arm, dtype=float), (self.n_ch,)).copy()
+        st.n_rec[:] = 0
+        _track_block(raw, self.is_complex, np.int64(buf_start), np.int64(n_buf), stop, b._code_ext,
+                     b._pad, b.active, b.sample_ptr, b.code_phase, b.code_rate, b.carr_phase, b.carr_freq,
+                     self.fs_hz, self.if_hz, b.tap_offsets_chips, sig, st.sf, st.si, st.hist, st.prm,
+                     st.rec_f, st.rec_i, st.n_rec)
+        m = int(st.n_rec.max()) if st.n_rec.size else 0
+        return st.rec_f[:, :m].copy(), st.rec_i[:, :m].copy(), st.n_rec.copy()
