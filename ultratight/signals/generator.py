@@ -1,0 +1,567 @@
+"""GPS L1 C/A sampled-IF signal generator (streaming, numba, batched over satellites).
+
+Signal model (receiver sample ``n``, receiver-clock time ``T_n = tow0 + n/fs``)::
+
+    complex:  x_n = sum_k a_k D_k c_k(chi_k(n)) exp(j 2 pi (f_IF n/fs + phi_k(n))) + w_n
+    real:     x_n = sum_k a_k D_k c_k(chi_k(n)) cos(2 pi (f_IF n/fs + phi_k(n)))   + w_n
+
+``chi_k`` (C/A code phase, chips) and ``phi_k`` (carrier phase, cycles, = -pseudorange/lambda,
+i.e. relative to a nominal L1 oscillator driven by the receiver clock) come from
+:func:`ultratight.signals.geometry.light_time` for the signal arriving when the receiver
+clock reads ``T_n``. ``w`` is white Gaussian noise of std ``sigma = 1`` per real component
+(times the noise-event factor), ``a_k`` from :func:`ultratight.signals.corr_model.signal_amplitude`
+for the satellite's C/N0, ``D_k`` the LNAV bit (:func:`ultratight.signals.lnav.nav_bits`) of the
+C/A epoch being received (bits align with the satellite-clock transmit time). Spectral
+inversion writes ``conj`` (complex) or ``cos(2 pi f_IF t - phi)`` (real) and marks the sidecar
+``inversion: true``; :func:`ultratight.signals.iffile.open_if` undoes it.
+
+Geometry: the light-time solution is evaluated per satellite at the start and the middle of
+every interval of ``L = round(fs * 1 ms)`` samples (plus the final end point); inside an
+interval the code phase and carrier phase are the quadratic through those three nodes,
+evaluated per sample. For the paper's 20 g / 40 g/s flight the interpolation error is far
+below 1 mm (tests/test_generator.py checks it against direct light-time solutions).
+
+Receiver clock: bias ``b(e) = clock_bias_m + clock_drift_mps * e`` (e = receiver-clock seconds
+since the start); the true reception time of sample ``n`` is ``T_n - b/c`` and the trajectory
+time is ``e - (b(e) - b(0))/c``.
+
+Random numbers: one ``numpy.random.Generator`` from the seed
+(``SeedSequence(seed).spawn(2)``: noise, IMU); noise is drawn block by block with
+``standard_normal(dtype=float32)`` in a fixed block size, so a seed always gives the same file.
+
+Outputs (see docs/generator.md for the schema): ``<stem>.<format>`` IF file and its
+``.json`` sidecar, ``<stem>.truth.h5``, and when the scenario has ``[imu]``,
+``<stem>.imu.h5`` and ``<stem>.traj.h5``. Everything is written to temporary names and
+renamed at the end; a failure removes the temporaries.
+"""
+
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from numba import njit
+
+from ultratight import __version__
+from ultratight.constants import C, CA_LEN, F_CA, T_CA
+from ultratight.errors import ConfigError
+from ultratight.signals.ca_code import ca_code
+from ultratight.signals.corr_model import signal_amplitude
+from ultratight.signals.frontend import FrontEnd
+from ultratight.signals.iffile import FORMATS, IfWriter, get_format
+
+LUT_BITS = 11
+LUT_N = 1 << LUT_BITS
+_LUT_ANG = 2.0 * np.pi * np.arange(LUT_N) / LUT_N
+COS_LUT = np.cos(_LUT_ANG).astype(np.float32)
+SIN_LUT = np.sin(_LUT_ANG).astype(np.float32)
+PHASE_OFFSET = float(1 << 20)     # keeps the per-sample carrier phase positive (see kernels)
+INTERVAL_S = 1e-3                 # geometry node spacing (one C/A period)
+BLOCK_INTERVALS = 100             # intervals per generated block (fixed: reproducibility)
+N_EXT = 3 * CA_LEN                # extended code table length (an interval spans <= 3 code periods)
+
+# coefficient columns: code c0, c1, c2 (chips; chips/sample; chips/sample^2), carrier p0, p1, p2
+C0, C1, C2, P0, P1, P2 = range(6)
+
+
+# ------------------------------------------------------------------------------------------
+# numba kernels
+# ------------------------------------------------------------------------------------------
+@njit(cache=True, fastmath=True)
+def _synth_complex(out, L, n_int, codes, coefs, amps, bits, cos_lut, sin_lut):
+    """Add the satellites' signals to ``out`` (float32 (n_int*L, 2): I, Q)."""
+    nsat = codes.shape[0]
+    lutn = cos_lut.shape[0]
+    mask = lutn - 1
+    flut = float(lutn)
+    for k in range(n_int):
+        base = k * L
+        for s in range(nsat):
+            a = amps[k, s]
+            if a == 0.0:
+                continue
+            c0 = coefs[k, s, 0]
+            c1 = coefs[k, s, 1]
+            c2 = coefs[k, s, 2]
+            p0 = coefs[k, s, 3] * flut
+            p1 = coefs[k, s, 4] * flut
+            p2 = coefs[k, s, 5] * flut
+            d0 = a * bits[k, s, 0]
+            d1 = a * bits[k, s, 1]
+            d2 = a * bits[k, s, 2]
+            for i in range(L):
+                fi = float(i)
+                u = c0 + (c1 + c2 * fi) * fi
+                ci = int(u)
+                if ci > N_EXT - 1:
+                    ci = N_EXT - 1
+                g = d0
+                if ci >= CA_LEN:
+                    g = d1
+                if ci >= 2 * CA_LEN:
+                    g = d2
+                v = g * codes[s, ci]
+                li = int(p0 + (p1 + p2 * fi) * fi + 0.5) & mask
+                out[base + i, 0] += v * cos_lut[li]
+                out[base + i, 1] += v * sin_lut[li]
+
+
+@njit(cache=True, fastmath=True)
+def _synth_real(out, L, n_int, codes, coefs, amps, bits, cos_lut):
+    """Add the satellites' signals to ``out`` (float32 (n_int*L,))."""
+    nsat = codes.shape[0]
+    lutn = cos_lut.shape[0]
+    mask = lutn - 1
+    flut = float(lutn)
+    for k in range(n_int):
+        base = k * L
+        for s in range(nsat):
+            a = amps[k, s]
+            if a == 0.0:
+                continue
+            c0 = coefs[k, s, 0]
+            c1 = coefs[k, s, 1]
+            c2 = coefs[k, s, 2]
+            p0 = coefs[k, s, 3] * flut
+            p1 = coefs[k, s, 4] * flut
+            p2 = coefs[k, s, 5] * flut
+            d0 = a * bits[k, s, 0]
+            d1 = a * bits[k, s, 1]
+            d2 = a * bits[k, s, 2]
+            for i in range(L):
+                fi = float(i)
+                u = c0 + (c1 + c2 * fi) * fi
+                ci = int(u)
+                if ci > N_EXT - 1:
+                    ci = N_EXT - 1
+                g = d0
+                if ci >= CA_LEN:
+                    g = d1
+                if ci >= 2 * CA_LEN:
+                    g = d2
+                li = int(p0 + (p1 + p2 * fi) * fi + 0.5) & mask
+                out[base + i] += g * codes[s, ci] * cos_lut[li]
+
+
+# ------------------------------------------------------------------------------------------
+# geometry -> per-interval polynomial coefficients
+# ------------------------------------------------------------------------------------------
+class SignalPlan:
+    """Everything fixed for a run: time base, satellites, trajectory, clock.
+
+    ``ephs``: list of Ephemeris (one per satellite); ``cn0_dbhz``: (nsat,) array.
+    """
+
+    def __init__(self, ephs, cn0_dbhz, traj, week, tow0, fs_hz, if_hz, is_complex, inversion=False,
+                 clock_bias_m=0.0, clock_drift_mps=0.0, n_samples=None):
+        self.ephs = list(ephs)
+        self.prns = np.array([e.prn for e in self.ephs], dtype=np.int64)
+        self.cn0_dbhz = np.broadcast_to(np.asarray(cn0_dbhz, dtype=float), (len(self.ephs),)).copy()
+        self.traj = traj
+        self.week = int(week)
+        self.tow0 = float(tow0)
+        self.fs = float(fs_hz)
+        self.if_hz = float(if_hz)
+        self.is_complex = bool(is_complex)
+        self.inversion = bool(inversion)
+        self.b0 = float(clock_bias_m)
+        self.drift = float(clock_drift_mps)
+        self.L = max(1, int(round(self.fs * INTERVAL_S)))
+        self.n_samples = n_samples
+        self.codes = np.stack([np.tile(ca_code(int(p)).astype(np.float32), 3) for p in self.prns]) \
+            if len(self.prns) else np.zeros((0, N_EXT), np.float32)
+        self.amp = signal_amplitude(self.cn0_dbhz, self.fs, 1.0, self.is_complex).astype(np.float32)
+        self.bits = {}          # prn -> (first_bit_index (ms//20), int8 array) or None
+
+    # --- time base
+    def clock_bias_m(self, e):
+        return self.b0 + self.drift * e
+
+    def geometry(self, sample_pos):
+        """light_time per satellite at (fractional) sample positions; list of dicts + rx dict."""
+        from ultratight.signals.geometry import light_time
+
+        e = np.asarray(sample_pos, dtype=float) / self.fs
+        b = self.clock_bias_m(e)
+        tau_traj = e - (b - self.b0) / C
+        pos, vel = self.traj.pos_vel_e(np.maximum(tau_traj, 0.0))
+        t_true = self.tow0 + e - b / C
+        out = [light_time(eph, pos, vel, self.week, t_true, b, self.drift) for eph in self.ephs]
+        return out, {"pos_e": pos, "vel_e": vel, "clk_bias_m": b, "t_true": t_true, "e": e}
+
+    def coefficients(self, j0, n_int):
+        """Per-interval coefficients for intervals j0..j0+n_int-1.
+
+        Returns coefs (n_int, nsat, 6), epoch0 (n_int, nsat) int64 (C/A epoch count, ms of week
+        of the sat-clock transmit time, of the code period under way at the interval start),
+        and the geometry at the interval starts (list of dicts, rx dict) for the truth.
+        """
+        L = self.L
+        pos = (j0 * L + 0.5 * L * np.arange(2 * n_int + 1))
+        geo, rx = self.geometry(pos)
+        nsat = len(self.ephs)
+        coefs = np.zeros((n_int, nsat, 6))
+        epoch0 = np.zeros((n_int, nsat), dtype=np.int64)
+        sgn = -1.0 if self.inversion else 1.0
+        n_start = (j0 + np.arange(n_int)) * L
+        # IF phase at interval start (cycles, mod 1), exact for integer rates
+        if_frac = np.mod(np.mod(self.if_hz * n_start.astype(np.float64), self.fs) / self.fs, 1.0)
+        if_rate = self.if_hz / self.fs
+        for s, g in enumerate(geo):
+            cp = g["code_phase_chips"]
+            y0, ym, y1 = cp[0:-1:2], cp[1::2], cp[2::2]
+            dm = np.mod(ym - y0, CA_LEN)
+            d1 = dm + np.mod(y1 - ym, CA_LEN)
+            cq = 2.0 * (d1 - 2.0 * dm) / (L * L)
+            coefs[:, s, C0] = y0
+            coefs[:, s, C2] = cq
+            coefs[:, s, C1] = d1 / L - cq * L
+            ph = g["carrier_phase_cycles"]
+            f0, fm, f1 = ph[0:-1:2], ph[1::2], ph[2::2]
+            pm = sgn * (fm - f0)
+            p1 = sgn * (f1 - f0)
+            pq = 2.0 * (p1 - 2.0 * pm) / (L * L)
+            # complex inverted: conj of the whole signal (IF included); real inverted: cos(IF t - phi)
+            if_sgn = -1.0 if (self.is_complex and self.inversion) else 1.0
+            coefs[:, s, P0] = np.mod(sgn * f0 + if_sgn * if_frac, 1.0)
+            coefs[:, s, P1] = p1 / L - pq * L + if_sgn * if_rate
+            coefs[:, s, P2] = pq
+            coefs[:, s, P0] += PHASE_OFFSET
+            t_tx = g["t_tx_tow"][0:-1:2]
+            epoch0[:, s] = np.rint((t_tx - y0 / F_CA) / T_CA).astype(np.int64)
+        starts = [{k: (v[0:-1:2] if v.ndim == 1 else v[0:-1:2, :]) for k, v in g.items()} for g in geo]
+        rx0 = {k: v[0:-1:2] for k, v in rx.items()}
+        return coefs, epoch0, starts, rx0
+
+    # --- navigation data
+    def set_nav_bits(self, duration_s, enabled):
+        """Fetch LNAV bits covering the run for every satellite (None: all +1)."""
+        self.bits = {}
+        if not enabled:
+            return
+        from ultratight.signals.lnav import nav_bits
+
+        first = int(math.floor((self.tow0 - 0.2) / 0.02))
+        n_bits = int(math.ceil((duration_s + 0.5) / 0.02)) + 2
+        for eph in self.ephs:
+            b = np.asarray(nav_bits(eph, self.week, first * 0.02, n_bits), dtype=np.int8)
+            self.bits[int(eph.prn)] = (first, b)
+
+    def bit_values(self, epoch0):
+        """(n_int, nsat, 3) float32 data bits of epochs epoch0, +1, +2."""
+        n_int, nsat = epoch0.shape
+        out = np.ones((n_int, nsat, 3), dtype=np.float32)
+        for s, prn in enumerate(self.prns):
+            entry = self.bits.get(int(prn))
+            if entry is None:
+                continue
+            first, b = entry
+            for e in range(3):
+                idx = (epoch0[:, s] + e) // 20 - first
+                idx = np.clip(idx, 0, len(b) - 1)
+                out[:, s, e] = b[idx]
+        return out
+
+
+def eval_poly(coefs, i):
+    """Evaluate code (chips) and carrier (cycles, offset removed) polynomials at sample offsets i."""
+    i = np.asarray(i, dtype=float)
+    code = coefs[..., C0] + (coefs[..., C1] + coefs[..., C2] * i) * i
+    carr = (coefs[..., P0] - PHASE_OFFSET) + (coefs[..., P1] + coefs[..., P2] * i) * i
+    return code, carr
+
+
+# ------------------------------------------------------------------------------------------
+# run configuration helpers
+# ------------------------------------------------------------------------------------------
+def _ephemerides(cfg, rx_pos0_e):
+    sat = cfg.get("satellites", {})
+    week, tow = int(cfg["time"]["week"]), float(cfg["time"]["tow_s"])
+    source = sat.get("source", "nominal")
+    if source == "nominal":
+        from ultratight.signals.constellation import nominal_ephemerides
+
+        ephs = nominal_ephemerides(week, tow)
+    elif source == "rinex":
+        from ultratight.signals.rinex import read_rinex_nav
+
+        nav = read_rinex_nav(sat["rinex_path"] if "rinex_path" in sat else sat["rinex"])
+        ephs = {}
+        for prn in sorted(nav.ephemerides):
+            try:
+                e = nav.select(prn, week, tow)
+            except Exception:      # no usable ephemeris for this PRN at this time
+                continue
+            if e is not None:
+                ephs[prn] = e
+    else:
+        raise ConfigError(f"satellites.source must be 'nominal' or 'rinex', got {source!r}")
+    prns = list(sat.get("prns", []) or [])
+    if prns:
+        missing = [p for p in prns if p not in ephs]
+        if missing:
+            raise ConfigError(f"satellites.prns: no ephemeris for PRN {missing} from source {source!r}")
+    else:
+        from ultratight.signals.geometry import visible_prns
+
+        prns = visible_prns(ephs, rx_pos0_e, week, tow, float(sat.get("mask_deg", 5.0)),
+                            max_count=sat.get("max_count"))
+        if not prns:
+            raise ConfigError("satellites: no satellite visible above mask_deg at the start point")
+    cn0 = sat.get("cn0_dbhz", 45.0)
+    if isinstance(cn0, (list, tuple)):
+        if len(cn0) != len(prns):
+            raise ConfigError(f"satellites.cn0_dbhz has {len(cn0)} values for {len(prns)} satellites")
+    return [ephs[p] for p in prns], np.broadcast_to(np.asarray(cn0, float), (len(prns),)).copy()
+
+
+def noise_factor(events, e):
+    """Noise std factor at receiver-clock seconds ``e`` (array) from [[noise_events]]."""
+    f = np.ones(np.shape(e), dtype=np.float32)
+    for ev in events or []:
+        inside = (e >= ev["t0_s"]) & (e < ev["t1_s"])
+        f[inside] *= np.float32(ev["noise_factor"])
+    return f
+
+
+def _tmp(path):
+    path = Path(path)
+    return path.with_name(f".{path.name}.tmp{os.getpid()}")
+
+
+class _TruthWriter:
+    """Appends per-interval truth rows to an HDF5 file (resizable, chunked datasets)."""
+
+    def __init__(self, path, nsat, attrs):
+        import h5py
+
+        self.path = Path(path)
+        self.tmp = _tmp(self.path)
+        self.f = h5py.File(self.tmp, "w")
+        for k, v in attrs.items():
+            self.f.attrs[k] = v
+        self.n = 0
+        self.ds = {}
+        spec = {"t_s": (), "sample_index": (), "tow_s": (), "t_true_tow_s": (), "pos_e": (3,),
+                "vel_e": (3,), "clk_bias_m": (), "clk_drift_mps": (), "noise_factor": (),
+                "code_phase_chips": (nsat,), "carrier_phase_cycles": (nsat,), "doppler_hz": (nsat,),
+                "cn0_dbhz": (nsat,), "nav_bit": (nsat,), "pseudorange_m": (nsat,), "elev_deg": (nsat,),
+                "azim_deg": (nsat,), "t_tx_tow_s": (nsat,)}
+        for name, shp in spec.items():
+            dt = np.int8 if name == "nav_bit" else (np.int64 if name == "sample_index" else np.float64)
+            self.ds[name] = self.f.create_dataset(name, shape=(0,) + shp, maxshape=(None,) + shp,
+                                                  chunks=(1000,) + shp, dtype=dt)
+
+    def append(self, rows):
+        m = len(rows["t_s"])
+        for k, d in self.ds.items():
+            d.resize(self.n + m, axis=0)
+            d[self.n:self.n + m] = rows[k]
+        self.n += m
+
+    def finish(self):
+        self.f.close()
+
+    def abort(self):
+        try:
+            self.f.close()
+        except Exception:
+            pass
+        try:
+            os.unlink(self.tmp)
+        except FileNotFoundError:
+            pass
+
+
+def output_paths(out_dir, stem, fmt):
+    out_dir = Path(out_dir)
+    return {"if": out_dir / f"{stem}.{fmt}", "meta": out_dir / f"{stem}.{fmt}.json",
+            "truth": out_dir / f"{stem}.truth.h5", "imu": out_dir / f"{stem}.imu.h5",
+            "trajectory": out_dir / f"{stem}.traj.h5"}
+
+
+def _progress(total, enabled, desc):
+    if not enabled or not sys.stderr.isatty():
+        return None
+    try:
+        from tqdm import tqdm
+    except ImportError:       # pragma: no cover
+        return None
+    return tqdm(total=total, unit="s", desc=desc, leave=False,
+                bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} s [{elapsed}<{remaining}]")
+
+
+def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, trajectory=None):
+    """Generate the IF file, sidecar, truth (and IMU/trajectory) for a resolved scenario ``cfg``.
+
+    ``seed`` overrides ``cfg['seed']``. ``ephemerides`` (list of Ephemeris, with
+    ``cfg['satellites']['cn0_dbhz']`` scalar or per-satellite) and ``trajectory`` (an object
+    with ``pos_vel_e(t)``) may be given to bypass the scenario's own sources. Returns a dict of
+    the written paths (keys ``if, meta, truth`` and, with ``[imu]``, ``imu, trajectory``) plus
+    ``summary`` (dict).
+    """
+    t_start = time.perf_counter()
+    fe_cfg = cfg.get("frontend", {})
+    fe = FrontEnd.from_config(fe_cfg)
+    fmt = fe_cfg.get("format", "ci8" if fe.is_complex else "i8")
+    spec = get_format(fmt)
+    if spec.is_complex != fe.is_complex:
+        raise ConfigError(f"frontend.format {fmt!r} is {'complex' if spec.is_complex else 'real'} but "
+                          f"frontend.sampling is {'complex' if fe.is_complex else 'real'}")
+    if spec.packed2 and fe.bits not in (1, 2):
+        raise ConfigError(f"frontend.format {fmt!r} stores 2-bit samples; set frontend.bits = 2 (got {fe.bits})")
+    if spec.dtype.endswith("i1") and fe.bits not in (1, 2, 4, 8):
+        raise ConfigError(f"frontend.format {fmt!r} stores 8-bit samples; frontend.bits must be 1, 2, 4 or 8")
+    if spec.dtype.endswith("i2") and fe.bits == 0:
+        raise ConfigError(f"frontend.format {fmt!r} stores integers; frontend.bits must not be 0")
+    duration = float(cfg.get("duration_s", 0))
+    if not duration > 0:
+        raise ConfigError(f"duration_s must be > 0, got {cfg.get('duration_s')}")
+    seed = cfg.get("seed", 0) if seed is None else seed
+    ss_noise, ss_imu = np.random.SeedSequence(int(seed)).spawn(2)
+    rng = np.random.default_rng(ss_noise)
+    week, tow0 = int(cfg["time"]["week"]), float(cfg["time"]["tow_s"])
+    rcv = cfg.get("receiver", {})
+    if trajectory is None:
+        from ultratight.ins.trajectory import build_trajectory
+
+        trajectory = build_trajectory(cfg.get("trajectory", {"kind": "static"}), rcv, duration)
+    if ephemerides is None:
+        p0, _ = trajectory.pos_vel_e(np.zeros(1))
+        ephs, cn0 = _ephemerides(cfg, p0[0])
+    else:
+        ephs = list(ephemerides)
+        cn0 = np.broadcast_to(np.asarray(cfg.get("satellites", {}).get("cn0_dbhz", 45.0), float),
+                              (len(ephs),)).copy()
+    plan = SignalPlan(ephs, cn0, trajectory, week, tow0, fe.fs_hz, fe.if_hz, fe.is_complex, fe.inversion,
+                      rcv.get("clock_bias_m", 0.0), rcv.get("clock_drift_mps", 0.0))
+    plan.set_nav_bits(duration, bool(cfg.get("nav", {}).get("data_bits", True)))
+    events = cfg.get("noise_events", [])
+
+    out_dir = Path(out_dir)
+    if not out_dir.is_dir():
+        raise ConfigError(f"output directory does not exist: {out_dir}")
+    paths = output_paths(out_dir, stem, spec.name)
+    n_total = int(round(duration * fe.fs_hz))
+    L = plan.L
+    n_int_total = -(-n_total // L)
+    resolved = json.loads(json.dumps(cfg, default=str))
+    resolved["seed"] = int(seed)
+    attrs = {"config_json": json.dumps(resolved), "version": __version__, "fs_hz": fe.fs_hz,
+             "if_hz": fe.if_hz, "is_complex": fe.is_complex, "inversion": fe.inversion,
+             "format": spec.name, "week": week, "tow0_s": tow0, "samples_per_row": L,
+             "prn": plan.prns, "cn0_dbhz_config": plan.cn0_dbhz, "seed": int(seed),
+             "n_samples": n_total, "schema": "ultratight generator truth v1 (docs/generator.md)"}
+    writer = IfWriter(paths["if"], spec.name, fe.fs_hz, fe.if_hz, inversion=fe.inversion,
+                      start_week=week, start_tow_s=tow0, bits=fe.bits,
+                      extra={"generator": resolved, "prn": plan.prns.tolist(),
+                             "cn0_dbhz": plan.cn0_dbhz.tolist(), "frontend": fe.to_dict()})
+    truth = None
+    extra_tmps = []
+    bar = _progress(duration, progress, f"generate {stem}")
+    try:
+        truth = _TruthWriter(paths["truth"], len(ephs), attrs)
+        nsat = len(ephs)
+        comps = 2 if fe.is_complex else 1
+        buf = np.empty(BLOCK_INTERVALS * L * comps, dtype=np.float32)
+        for j0 in range(0, n_int_total, BLOCK_INTERVALS):
+            n_int = min(BLOCK_INTERVALS, n_int_total - j0)
+            ns = n_int * L
+            coefs, epoch0, starts, rx0 = plan.coefficients(j0, n_int)
+            bits = plan.bit_values(epoch0)
+            amps = np.broadcast_to(plan.amp, (n_int, nsat)).astype(np.float32)
+            x = buf[:ns * comps]
+            rng.standard_normal(out=x, dtype=np.float32)
+            e_samp = (j0 * L + np.arange(ns)) / fe.fs_hz
+            fac = noise_factor(events, e_samp) if events else None
+            if fac is not None and np.any(fac != 1.0):
+                if comps == 2:
+                    x.reshape(-1, 2)[...] *= fac[:, None]
+                else:
+                    x *= fac
+            if nsat:
+                if fe.is_complex:
+                    _synth_complex(x.reshape(-1, 2), L, n_int, plan.codes, coefs, amps, bits, COS_LUT, SIN_LUT)
+                else:
+                    _synth_real(x, L, n_int, plan.codes, coefs, amps, bits, COS_LUT)
+            n_valid = min(ns, n_total - j0 * L)
+            y = x.view(np.complex64) if fe.is_complex else x
+            y = y[:n_valid]
+            y = fe.filter(y)
+            sig_now = 1.0 if fac is None else fac[:n_valid]
+            if fac is not None and np.all(fac[:n_valid] == fac[0]):
+                sig_now = float(fac[0])
+            y = fe.quantize_block(y, sig_now)
+            writer.write(y)
+            # truth rows (interval starts)
+            e0 = (j0 + np.arange(n_int)) * L / fe.fs_hz
+            nf = noise_factor(events, e0)
+            rows = {"t_s": e0, "sample_index": (j0 + np.arange(n_int)) * L, "tow_s": tow0 + e0,
+                    "t_true_tow_s": rx0["t_true"], "pos_e": rx0["pos_e"], "vel_e": rx0["vel_e"],
+                    "clk_bias_m": rx0["clk_bias_m"], "clk_drift_mps": np.full(n_int, plan.drift),
+                    "noise_factor": nf}
+            rows["code_phase_chips"] = np.stack([g["code_phase_chips"] for g in starts], 1) if nsat else np.zeros((n_int, 0))
+            rows["carrier_phase_cycles"] = np.stack([g["carrier_phase_cycles"] for g in starts], 1) if nsat else np.zeros((n_int, 0))
+            rows["doppler_hz"] = np.stack([g["doppler_hz"] for g in starts], 1) if nsat else np.zeros((n_int, 0))
+            rows["pseudorange_m"] = np.stack([g["pseudorange_m"] for g in starts], 1) if nsat else np.zeros((n_int, 0))
+            rows["elev_deg"] = np.degrees(np.stack([g["elev_rad"] for g in starts], 1)) if nsat else np.zeros((n_int, 0))
+            rows["azim_deg"] = np.degrees(np.stack([g["azim_rad"] for g in starts], 1)) if nsat else np.zeros((n_int, 0))
+            rows["t_tx_tow_s"] = np.stack([g["t_tx_tow"] for g in starts], 1) if nsat else np.zeros((n_int, 0))
+            rows["cn0_dbhz"] = plan.cn0_dbhz[None, :] - 20.0 * np.log10(nf.astype(float))[:, None]
+            rows["nav_bit"] = bits[:, :, 0].astype(np.int8)
+            truth.append(rows)
+            if bar is not None:
+                bar.update(n_valid / fe.fs_hz)
+        truth.f.attrs["elapsed_s"] = time.perf_counter() - t_start
+        truth.finish()
+        result = {"if": paths["if"], "meta": paths["meta"], "truth": paths["truth"]}
+        imu_cfg = cfg.get("imu")
+        if imu_cfg and hasattr(trajectory, "save_h5"):
+            extra_tmps += _write_imu_traj(imu_cfg, trajectory, paths, ss_imu, resolved)
+            result["imu"] = paths["imu"]
+            result["trajectory"] = paths["trajectory"]
+        writer.close()
+        os.replace(truth.tmp, paths["truth"])
+        for tmp, final in extra_tmps:
+            os.replace(tmp, final)
+    except BaseException:
+        writer.abort()
+        if truth is not None:
+            truth.abort()
+        for tmp, _ in extra_tmps:
+            try:
+                os.unlink(tmp)
+            except FileNotFoundError:
+                pass
+        raise
+    finally:
+        if bar is not None:
+            bar.close()
+    result["summary"] = {"prns": plan.prns.tolist(), "cn0_dbhz": plan.cn0_dbhz.tolist(),
+                         "n_samples": n_total, "duration_s": n_total / fe.fs_hz, "fs_hz": fe.fs_hz,
+                         "if_hz": fe.if_hz, "format": spec.name, "seed": int(seed),
+                         "elapsed_s": time.perf_counter() - t_start}
+    return result
+
+
+def _write_imu_traj(imu_cfg, trajectory, paths, ss_imu, resolved):
+    """Write IMU and trajectory truth to temp files; returns [(tmp, final), ...]."""
+    from ultratight.ins import imu as imu_mod
+
+    rate = float(imu_cfg.get("rate_hz", 100.0))
+    errors = imu_mod.imu_errors_from_config(imu_cfg)
+    data = imu_mod.synthesize_imu(trajectory, rate, errors, np.random.default_rng(ss_imu))
+    out = []
+    t_imu = _tmp(paths["imu"])
+    imu_mod.write_imu_h5(t_imu, data, {"config_json": json.dumps(resolved), "version": __version__})
+    out.append((t_imu, paths["imu"]))
+    t_traj = _tmp(paths["trajectory"])
+    trajectory.save_h5(t_traj, rate)
+    out.append((t_traj, paths["trajectory"]))
+    return out
+
+
+__all__ = ["generate", "SignalPlan", "eval_poly", "noise_factor", "output_paths", "FORMATS"]
