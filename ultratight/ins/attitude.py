@@ -276,15 +276,18 @@ def rotvec_to_dcm_vec(phi):
     return np.eye(3) + s1[..., None, None] * k + s2[..., None, None] * (k @ k)
 
 
-def dcm_to_quat_vec(c):
-    """Vectorised DCM -> quaternion (n, 3, 3) -> (n, 4), w >= 0."""
-    c = np.asarray(c, float)
-    out = np.empty(c.shape[:-2] + (4,))
-    flat_c = c.reshape(-1, 3, 3)
-    flat_o = out.reshape(-1, 4)
-    for i in range(flat_c.shape[0]):
-        flat_o[i] = dcm_to_quat(flat_c[i])
+@njit(cache=True)
+def _dcm_to_quat_batch(c):
+    out = np.empty((c.shape[0], 4))
+    for i in range(c.shape[0]):
+        out[i] = dcm_to_quat(c[i])
     return out
+
+
+def dcm_to_quat_vec(c):
+    """Vectorised DCM -> quaternion (..., 3, 3) -> (..., 4), w >= 0."""
+    c = np.ascontiguousarray(c, dtype=float)
+    return _dcm_to_quat_batch(c.reshape(-1, 3, 3)).reshape(c.shape[:-2] + (4,))
 
 
 def quat_to_dcm_vec(q):

@@ -11,7 +11,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ultratight.constants import WGS84_A, WGS84_E2, OMEGA_E  # noqa: F401  (re-exported)
+from ultratight.constants import WGS84_A, WGS84_E2, WGS84_F, OMEGA_E  # noqa: F401  (re-exported)
 
 
 @njit(cache=True)
@@ -105,3 +105,160 @@ def dcm_ecef_from_enu_vec(lat, lon):
     c[..., 2, 1] = cl
     c[..., 2, 2] = sl
     return c
+
+
+# ------------------------------------------------------------------ radii, rates, normal gravity
+
+# WGS-84 geocentric gravitational constant including the atmosphere (EGM / normal-gravity value,
+# NIMA TR8350.2 Table 3.1).  Note: ultratight.constants.GM is the *GPS ICD* value (3.986005e14)
+# used for orbits; the normal gravity field of the WGS-84 ellipsoid is defined with this one.
+WGS84_GM_EARTH = 3.986004418e14
+_E_LIN = WGS84_A * math.sqrt(WGS84_E2)            # linear eccentricity E = sqrt(a^2 - b^2), m
+_B = WGS84_A * math.sqrt(1.0 - WGS84_E2)          # semi-minor axis, m
+
+
+@njit(cache=True)
+def radii(lat):
+    """Meridian (M) and prime-vertical (N) radii of curvature (m) at geodetic latitude ``lat``."""
+    s = math.sin(lat)
+    w2 = 1.0 - WGS84_E2 * s * s
+    rn = WGS84_A / math.sqrt(w2)
+    rm = WGS84_A * (1.0 - WGS84_E2) / (w2 * math.sqrt(w2))
+    return rm, rn
+
+
+@njit(cache=True)
+def earth_rate_l(lat):
+    """Earth rotation rate expressed in local ENU: omega_ie_l (rad/s)."""
+    out = np.empty(3)
+    out[0] = 0.0
+    out[1] = OMEGA_E * math.cos(lat)
+    out[2] = OMEGA_E * math.sin(lat)
+    return out
+
+
+@njit(cache=True)
+def transport_rate_l(lat, h, vel_l):
+    """Transport rate omega_el_l (rad/s) of the ENU frame for ENU velocity ``vel_l``."""
+    rm, rn = radii(lat)
+    out = np.empty(3)
+    out[0] = -vel_l[1] / (rm + h)
+    out[1] = vel_l[0] / (rn + h)
+    out[2] = vel_l[0] * math.tan(lat) / (rn + h)
+    return out
+
+
+@njit(cache=True)
+def _q_fn(x):
+    """q = 1/2 [(1 + 3/x^2) atan(x) - 3/x] with x = E/u (TR8350.2 eq. 4-7).
+
+    For x < 0.3 the exact power series sum_{m>=1} (-1)^m/2 [1/(2m+1) - 3/(2m+3)] x^(2m+1)
+    is used (the closed form cancels ~5 digits at the Earth's surface)."""
+    if x < 0.3:
+        x2 = x * x
+        xp = x2 * x
+        acc = 0.0
+        sign = -1.0
+        for m in range(1, 40):
+            term = 0.5 * sign * (1.0 / (2 * m + 1) - 3.0 / (2 * m + 3)) * xp
+            acc += term
+            if abs(term) < 1e-18 * abs(acc):
+                break
+            xp *= x2
+            sign = -sign
+        return acc
+    return 0.5 * ((1.0 + 3.0 / (x * x)) * math.atan(x) - 3.0 / x)
+
+
+@njit(cache=True)
+def _qp_fn(x):
+    """q' = 3 (1 + 1/x^2) (1 - atan(x)/x) - 1 with x = E/u (TR8350.2 eq. 4-8); series for x < 0.3:
+    q' = sum_{m>=1} (-1)^(m+1) 3 [1/(2m+1) - 1/(2m+3)] x^(2m) - ... (exact expansion)."""
+    if x < 0.3:
+        # 1 - atan(x)/x = sum_{k>=1} (-1)^(k+1) x^(2k)/(2k+1)
+        # q' = 3 sum_k (-1)^(k+1) x^(2k)/(2k+1) + 3 sum_k (-1)^(k+1) x^(2k-2)/(2k+1) - 1
+        #    = sum_{m>=1} 3 (-1)^(m+1) [1/(2m+1) - 1/(2m+3)] x^(2m)      (the x^0 term is 3/3 - 1 = 0)
+        x2 = x * x
+        xp = x2
+        acc = 0.0
+        sign = 1.0
+        for m in range(1, 40):
+            term = 3.0 * sign * (1.0 / (2 * m + 1) - 1.0 / (2 * m + 3)) * xp
+            acc += term
+            if abs(term) < 1e-18 * abs(acc):
+                break
+            xp *= x2
+            sign = -sign
+        return acc
+    return 3.0 * (1.0 + 1.0 / (x * x)) * (1.0 - math.atan(x) / x) - 1.0
+
+
+_Q0 = 0.5 * ((1.0 + 3.0 * _B * _B / (_E_LIN * _E_LIN)) * math.atan(_E_LIN / _B) - 3.0 * _B / _E_LIN)
+
+
+@njit(cache=True)
+def gravity_l(lat, h):
+    """Normal gravity vector (m/s^2) in local ENU at geodetic (lat, h): [0, g_N, g_U].
+
+    Closed-form normal gravity field of the WGS-84 level ellipsoid in ellipsoidal
+    coordinates (NIMA TR8350.2 eqs. 4-5..4-8; Heiskanen & Moritz 2-124..2-126),
+    which is exact for the normal field at any height outside the ellipsoid (valid
+    to 100 km and beyond; the only approximation is floating point, < 1e-9 m/s^2).
+    It includes the centrifugal term and the small northward component of normal
+    gravity above the ellipsoid (plumb-line curvature: -3.4e-4 m/s^2 at 50 km, 28.2 deg N).
+    """
+    slat = math.sin(lat)
+    clat = math.cos(lat)
+    rn = WGS84_A / math.sqrt(1.0 - WGS84_E2 * slat * slat)
+    rho = (rn + h) * clat
+    z = (rn * (1.0 - WGS84_E2) + h) * slat
+    E = _E_LIN
+    E2 = E * E
+    r2 = rho * rho + z * z
+    d = r2 - E2
+    u2 = 0.5 * d * (1.0 + math.sqrt(1.0 + 4.0 * E2 * z * z / (d * d)))
+    u = math.sqrt(u2)
+    sue = math.sqrt(u2 + E2)
+    beta = math.atan2(z * sue, u * rho)
+    sb, cb = math.sin(beta), math.cos(beta)
+    w = math.sqrt((u2 + E2 * sb * sb) / (u2 + E2))
+    q0 = _Q0
+    q = _q_fn(E / u)
+    qp = _qp_fn(E / u)
+    om2 = OMEGA_E * OMEGA_E
+    a2 = WGS84_A * WGS84_A
+    g_u = -(WGS84_GM_EARTH / (u2 + E2) + om2 * a2 * E / (u2 + E2) * (qp / q0) * (0.5 * sb * sb - 1.0 / 6.0)
+            - om2 * u * cb * cb) / w
+    # component along increasing beta (TR8350.2 states it along the opposite sense; checked
+    # against a J2..J12 spherical-harmonic gradient in tests/test_ins_earth.py)
+    g_b = (om2 * a2 / sue * (q / q0) * sb * cb - om2 * sue * sb * cb) / w
+    # unit vectors of the u and beta coordinate lines in the meridian plane (rho, z)
+    eu_r = u * cb / (sue * w)
+    eu_z = sb / w
+    eb_r = -sb / w
+    eb_z = u * cb / (sue * w)
+    g_rho = g_u * eu_r + g_b * eb_r
+    g_z = g_u * eu_z + g_b * eb_z
+    out = np.empty(3)
+    out[0] = 0.0
+    out[1] = -slat * g_rho + clat * g_z
+    out[2] = clat * g_rho + slat * g_z
+    return out
+
+
+@njit(cache=True)
+def normal_gravity(lat, h):
+    """Magnitude of WGS-84 normal gravity (m/s^2) at geodetic latitude ``lat`` and height ``h``."""
+    g = gravity_l(lat, h)
+    return math.sqrt(g[1] * g[1] + g[2] * g[2])
+
+
+@njit(cache=True)
+def gravity_free_air(lat, h):
+    """Somigliana surface gravity with the common second-order free-air height series
+    (Groves 2013 eq. 2.140 form); provided for comparison only (error ~1e-4 m/s^2 at 50 km)."""
+    s2 = math.sin(lat) ** 2
+    g0 = 9.7803253359 * (1.0 + 0.00193185265241 * s2) / math.sqrt(1.0 - WGS84_E2 * s2)
+    m = OMEGA_E * OMEGA_E * WGS84_A * WGS84_A * _B / WGS84_GM_EARTH
+    return g0 * (1.0 - 2.0 / WGS84_A * (1.0 + WGS84_F + m - 2.0 * WGS84_F * s2) * h
+                 + 3.0 * h * h / (WGS84_A * WGS84_A))

@@ -230,7 +230,7 @@ class Trajectory:
         w[:, 2] = -yaw_rate * np.cos(pitch)
         return C, w
 
-    def kinematics(self, t):
+    def kinematics(self, t, extras=True):
         """Full truth at times t (s since start).  Returns a dict of arrays:
 
         ``t``; ``pos_e, vel_e, acc_e`` (ECEF, Earth-relative, acc = d2 pos_e/dt2);
@@ -238,6 +238,7 @@ class Trajectory:
         position); ``pos_l0, vel_l0, acc_l0, jerk_l0`` (start tangent frame);
         ``C_lb`` (body -> current ENU), ``q_lb``, ``euler`` ([roll, pitch, yaw] rad);
         ``omega_ib_b`` (inertial body rate, rad/s), ``omega_eb_b`` (Earth-relative).
+        With ``extras=False`` the quaternion and Euler angles are skipped (faster).
         """
         t = np.atleast_1d(np.asarray(t, dtype=float))
         motion = self.local_motion(t)
@@ -256,16 +257,16 @@ class Trajectory:
         C_lb = C_ll0 @ C_l0b
         # omega_ib_b = omega_l0b_b + C_b,l0 omega_ie_l0  (l0 is Earth-fixed)
         w_ie_b = np.einsum("nji,j->ni", C_l0b, self.omega_ie_l0)
-        from ultratight.ins.attitude import dcm_to_euler
-        euler = np.array([dcm_to_euler(c) for c in C_lb]) if len(t) < 64 else _euler_vec(C_lb)
-        return {
+        out = {
             "t": t, "pos_e": pos_e, "vel_e": vel_e, "acc_e": acc_e, "llh": llh,
             "vel_l": vel_l, "acc_l": acc_l,
             "pos_l0": p, "vel_l0": v, "acc_l0": a, "jerk_l0": j,
-            "C_lb": C_lb, "q_lb": dcm_to_quat_vec(C_lb), "euler": euler,
-            "omega_eb_b": w_l0b_b, "omega_ib_b": w_l0b_b + w_ie_b,
-            "C_l0b": C_l0b,
+            "C_lb": C_lb, "omega_eb_b": w_l0b_b, "omega_ib_b": w_l0b_b + w_ie_b, "C_l0b": C_l0b,
         }
+        if extras:
+            out["q_lb"] = dcm_to_quat_vec(C_lb)
+            out["euler"] = _euler_vec(C_lb)
+        return out
 
     def breakpoints(self):
         """Times (s) where acceleration or angular rate may be discontinuous."""

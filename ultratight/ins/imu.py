@@ -1,0 +1,541 @@
+"""IMU synthesis, sensor error models, unit conversions and IMU file I/O.
+
+IMU data are *increments*: sample k covers the interval (t[k] - dt, t[k]] and holds
+``dtheta_b[k] = int omega_ib_b dt`` (rad) and ``dv_b[k] = int f_b dt`` (m/s), both
+integrated in the (rotating) body frame, exactly what strapdown gyros and
+accelerometers deliver and what :mod:`ultratight.ins.sins` (two-sample coning and
+sculling) expects.  Body frame FLU (x forward, y left, z up).
+
+Ideal increments are computed from the analytic trajectory by 8-point
+Gauss-Legendre quadrature per interval (split at the trajectory's segment
+breakpoints), with the specific force ``f_b = C_bl (C_le a_e + 2 omega_ie x v_l - g_l)``
+using the same normal gravity :func:`ultratight.ins.earth.gravity_l` as the
+mechanisation, so an error-free SINS reproduces the trajectory.
+
+Sensor error model per axis (all in SI inside, see :class:`ImuErrors`)::
+
+    dtheta_meas = (I + S_g + M_g) dtheta + (b_g + b_gm,k) dt + n_g,k,   n_g,k ~ N(0, arw^2 dt)
+    dv_meas     = (I + S_a + M_a) dv     + (b_a + b_am,k) dt + n_a,k,   n_a,k ~ N(0, vrw^2 dt)
+
+then quantised with the residual carried over (sum-preserving).  ``b_gm`` is a
+first-order Gauss-Markov process (steady-state sigma, correlation time tau) sampled
+at the IMU rate.  Datasheet units at the boundary: deg/h, deg/sqrt(h), ug,
+ug/sqrt(Hz), ppm (see the ``*_TO_SI`` constants and docs/ins.md).
+"""
+
+import csv
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ultratight.constants import OMEGA_E
+from ultratight.errors import ConfigError, InputFileError
+from ultratight.ins.earth import gravity_l
+
+# ------------------------------------------------------------------ unit conversions
+G0 = 9.80665                                  # standard gravity, m/s^2 (for ug / g units only)
+DPH_TO_RADPS = math.pi / 180.0 / 3600.0       # deg/h -> rad/s
+DPRH_TO_RADPRS = math.pi / 180.0 / 60.0       # deg/sqrt(h) -> rad/sqrt(s)
+UG_TO_MPS2 = 1e-6 * G0                        # micro-g -> m/s^2
+UGPRHZ_TO_MPSPRS = 1e-6 * G0                  # ug/sqrt(Hz) -> (m/s^2)/sqrt(Hz) = (m/s)/sqrt(s)
+PPM = 1e-6
+MRAD = 1e-3
+URAD = 1e-6
+
+
+@dataclass
+class ImuErrors:
+    """Sensor errors in SI.  Vectors are per body axis (x, y, z)."""
+    gyro_bias: np.ndarray = field(default_factory=lambda: np.zeros(3))        # rad/s
+    accel_bias: np.ndarray = field(default_factory=lambda: np.zeros(3))       # m/s^2
+    gyro_arw: np.ndarray = field(default_factory=lambda: np.zeros(3))         # rad/sqrt(s)
+    accel_vrw: np.ndarray = field(default_factory=lambda: np.zeros(3))        # (m/s)/sqrt(s)
+    gyro_gm_sigma: np.ndarray = field(default_factory=lambda: np.zeros(3))    # rad/s
+    gyro_gm_tau: float = math.inf                                             # s
+    accel_gm_sigma: np.ndarray = field(default_factory=lambda: np.zeros(3))   # m/s^2
+    accel_gm_tau: float = math.inf                                            # s
+    gyro_sf: np.ndarray = field(default_factory=lambda: np.zeros(3))          # dimensionless
+    accel_sf: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    gyro_misalign: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))   # rad, off-diag
+    accel_misalign: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+    gyro_quant: float = 0.0                                                   # rad per LSB of dtheta
+    accel_quant: float = 0.0                                                  # m/s per LSB of dv
+    preset: str = "custom"
+
+    def is_ideal(self):
+        arrs = [self.gyro_bias, self.accel_bias, self.gyro_arw, self.accel_vrw, self.gyro_gm_sigma,
+                self.accel_gm_sigma, self.gyro_sf, self.accel_sf, self.gyro_misalign, self.accel_misalign]
+        return all(not np.any(a) for a in arrs) and self.gyro_quant == 0.0 and self.accel_quant == 0.0
+
+    def to_dict(self):
+        out = {}
+        for k, v in self.__dict__.items():
+            out[k] = v.tolist() if isinstance(v, np.ndarray) else (None if v == math.inf else v)
+        return out
+
+
+# presets in datasheet units (keys as in the scenario [imu] table)
+PRESETS = {
+    "ideal": {},
+    # SPEC §4: gyro bias 0.01 deg/h, gyro white noise 0.005 deg/h taken as the 1-sigma of the
+    # angular-rate samples at the IMU rate; accelerometer bias 30 ug, white noise 3 ug (1 sigma/sample).
+    "paper": {"gyro_bias_dph": 0.01, "gyro_noise_dph": 0.005, "accel_bias_ug": 30.0, "accel_noise_ug": 3.0},
+    # navigation grade (ring-laser class)
+    "navigation": {"gyro_bias_dph": 0.003, "gyro_arw_dprh": 0.002, "gyro_bi_dph": 0.002,
+                   "gyro_bi_tau_s": 3600.0, "accel_bias_ug": 25.0, "accel_vrw_ugrhz": 10.0,
+                   "accel_bi_ug": 10.0, "accel_bi_tau_s": 3600.0, "gyro_sf_ppm": 5.0, "accel_sf_ppm": 50.0},
+    # tactical grade (FOG / good MEMS)
+    "tactical": {"gyro_bias_dph": 1.0, "gyro_arw_dprh": 0.1, "gyro_bi_dph": 0.5, "gyro_bi_tau_s": 300.0,
+                 "accel_bias_ug": 1000.0, "accel_vrw_ugrhz": 60.0, "accel_bi_ug": 100.0,
+                 "accel_bi_tau_s": 300.0, "gyro_sf_ppm": 300.0, "accel_sf_ppm": 300.0,
+                 "gyro_misalign_mrad": 0.5, "accel_misalign_mrad": 0.5},
+    # consumer MEMS
+    "mems": {"gyro_bias_dph": 200.0, "gyro_arw_dprh": 0.5, "gyro_bi_dph": 10.0, "gyro_bi_tau_s": 100.0,
+             "accel_bias_ug": 10000.0, "accel_vrw_ugrhz": 150.0, "accel_bi_ug": 500.0,
+             "accel_bi_tau_s": 100.0, "gyro_sf_ppm": 5000.0, "accel_sf_ppm": 5000.0,
+             "gyro_misalign_mrad": 2.0, "accel_misalign_mrad": 2.0,
+             "gyro_quant_urad": 1.0, "accel_quant_mmps": 0.1},
+}
+
+_KNOWN_KEYS = {
+    "preset", "rate_hz", "gyro_bias_dph", "accel_bias_ug", "gyro_noise_dph", "gyro_arw_dprh",
+    "accel_noise_ug", "accel_vrw_ugrhz", "gyro_bi_dph", "gyro_bi_tau_s", "accel_bi_ug", "accel_bi_tau_s",
+    "gyro_sf_ppm", "accel_sf_ppm", "gyro_misalign_mrad", "accel_misalign_mrad", "gyro_quant_urad",
+    "accel_quant_mmps", "seed", "file",
+}
+
+
+def _axes(value, key):
+    try:
+        a = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ConfigError(f"imu.{key}: expected a number or a list of 3 numbers, got {value!r}") from None
+    if a.ndim == 0:
+        a = np.full(3, float(a))
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        raise ConfigError(f"imu.{key}: expected a number or a list of 3 finite numbers, got {value!r}")
+    return a
+
+
+def _misalign(value, key):
+    a = np.asarray(value, dtype=float)
+    if a.ndim == 0:
+        m = np.full((3, 3), float(a))
+        np.fill_diagonal(m, 0.0)
+        return m
+    if a.shape != (3, 3) or not np.all(np.isfinite(a)):
+        raise ConfigError(f"imu.{key}: expected a number (all off-diagonal terms) or a 3x3 list, got {value!r}")
+    return a.copy()
+
+
+def imu_errors_from_config(imu_cfg):
+    """:class:`ImuErrors` from a scenario ``[imu]`` table (preset + overrides, datasheet units).
+
+    White noise can be given either as a datasheet random walk (``gyro_arw_dprh`` deg/sqrt(h),
+    ``accel_vrw_ugrhz`` ug/sqrt(Hz)) or, as in the paper, as the 1-sigma of the rate samples
+    at the IMU rate (``gyro_noise_dph``, ``accel_noise_ug``; needs ``rate_hz``, default 100):
+    ``arw = sigma_sample / sqrt(rate_hz)``.
+    """
+    imu_cfg = dict(imu_cfg or {})
+    preset = imu_cfg.get("preset", "ideal")
+    if preset not in PRESETS:
+        raise ConfigError(f"imu.preset must be one of {', '.join(PRESETS)}; got {preset!r}")
+    unknown = sorted(set(imu_cfg) - _KNOWN_KEYS)
+    if unknown:
+        raise ConfigError(f"imu: unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(_KNOWN_KEYS))}")
+    cfg = dict(PRESETS[preset])
+    cfg.update({k: v for k, v in imu_cfg.items() if k != "preset"})
+    rate = float(cfg.get("rate_hz", 100.0))
+    if not rate > 0.0:
+        raise ConfigError(f"imu.rate_hz must be > 0, got {rate}")
+    e = ImuErrors(preset=preset)
+    e.gyro_bias = _axes(cfg.get("gyro_bias_dph", 0.0), "gyro_bias_dph") * DPH_TO_RADPS
+    e.accel_bias = _axes(cfg.get("accel_bias_ug", 0.0), "accel_bias_ug") * UG_TO_MPS2
+    if "gyro_noise_dph" in cfg and "gyro_arw_dprh" in cfg:
+        raise ConfigError("imu: give gyro_noise_dph or gyro_arw_dprh, not both")
+    if "accel_noise_ug" in cfg and "accel_vrw_ugrhz" in cfg:
+        raise ConfigError("imu: give accel_noise_ug or accel_vrw_ugrhz, not both")
+    if "gyro_noise_dph" in cfg:
+        e.gyro_arw = _axes(cfg["gyro_noise_dph"], "gyro_noise_dph") * DPH_TO_RADPS / math.sqrt(rate)
+    else:
+        e.gyro_arw = _axes(cfg.get("gyro_arw_dprh", 0.0), "gyro_arw_dprh") * DPRH_TO_RADPRS
+    if "accel_noise_ug" in cfg:
+        e.accel_vrw = _axes(cfg["accel_noise_ug"], "accel_noise_ug") * UG_TO_MPS2 / math.sqrt(rate)
+    else:
+        e.accel_vrw = _axes(cfg.get("accel_vrw_ugrhz", 0.0), "accel_vrw_ugrhz") * UGPRHZ_TO_MPSPRS
+    e.gyro_gm_sigma = _axes(cfg.get("gyro_bi_dph", 0.0), "gyro_bi_dph") * DPH_TO_RADPS
+    e.accel_gm_sigma = _axes(cfg.get("accel_bi_ug", 0.0), "accel_bi_ug") * UG_TO_MPS2
+    e.gyro_gm_tau = float(cfg.get("gyro_bi_tau_s", math.inf))
+    e.accel_gm_tau = float(cfg.get("accel_bi_tau_s", math.inf))
+    for key, tau, sig in (("gyro_bi_tau_s", e.gyro_gm_tau, e.gyro_gm_sigma),
+                          ("accel_bi_tau_s", e.accel_gm_tau, e.accel_gm_sigma)):
+        if not tau > 0.0:
+            raise ConfigError(f"imu.{key} must be > 0, got {tau}")
+        if np.any(sig) and not math.isfinite(tau):
+            raise ConfigError(f"imu.{key} is needed with a bias-instability sigma")
+    e.gyro_sf = _axes(cfg.get("gyro_sf_ppm", 0.0), "gyro_sf_ppm") * PPM
+    e.accel_sf = _axes(cfg.get("accel_sf_ppm", 0.0), "accel_sf_ppm") * PPM
+    e.gyro_misalign = _misalign(cfg.get("gyro_misalign_mrad", 0.0), "gyro_misalign_mrad") * MRAD
+    e.accel_misalign = _misalign(cfg.get("accel_misalign_mrad", 0.0), "accel_misalign_mrad") * MRAD
+    e.gyro_quant = float(cfg.get("gyro_quant_urad", 0.0)) * URAD
+    e.accel_quant = float(cfg.get("accel_quant_mmps", 0.0)) * 1e-3
+    if e.gyro_quant < 0 or e.accel_quant < 0:
+        raise ConfigError("imu: quantisation steps must be >= 0")
+    return e
+
+
+@dataclass
+class ImuData:
+    """Increment IMU data.  ``t[k]`` is the END of interval k; the run starts at ``t0``."""
+    t: np.ndarray
+    dtheta_b: np.ndarray
+    dv_b: np.ndarray
+    rate_hz: float
+    t0: float = 0.0
+    truth: dict | None = None        # optional: t, llh, vel_l, q_lb at t0 and every t[k]
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def n(self):
+        return self.t.shape[0]
+
+    @property
+    def dt(self):
+        return 1.0 / self.rate_hz
+
+
+# ------------------------------------------------------------------ synthesis
+_GL_X, _GL_W = np.polynomial.legendre.leggauss(8)
+
+
+def body_signals(traj, t):
+    """True angular rate omega_ib_b and specific force f_b (FLU body) at times t: two (n, 3) arrays."""
+    k = traj.kinematics(t, extras=False)
+    llh = k["llh"]
+    g = np.empty_like(llh)
+    for i in range(llh.shape[0]):
+        g[i] = gravity_l(llh[i, 0], llh[i, 2])
+    lat = llh[:, 0]
+    w_ie = np.zeros_like(llh)
+    w_ie[:, 1] = OMEGA_E * np.cos(lat)
+    w_ie[:, 2] = OMEGA_E * np.sin(lat)
+    f_l = k["acc_l"] + 2.0 * np.cross(w_ie, k["vel_l"]) - g
+    f_b = np.einsum("nji,nj->ni", k["C_lb"], f_l)
+    return k["omega_ib_b"], f_b
+
+
+def ideal_increments(traj, edges):
+    """Exact (8-point Gauss-Legendre per smooth piece) increments over [edges[k], edges[k+1]]."""
+    edges = np.asarray(edges, dtype=float)
+    bps = traj.breakpoints()
+    bps = bps[(bps > edges[0]) & (bps < edges[-1])]
+    pts = np.union1d(edges, bps)
+    owner = np.searchsorted(edges, pts[:-1], side="right") - 1        # IMU interval of each piece
+    a, b = pts[:-1], pts[1:]
+    half = 0.5 * (b - a)
+    mid = 0.5 * (a + b)
+    tq = (mid[:, None] + half[:, None] * _GL_X[None, :]).ravel()
+    dth = np.zeros((len(edges) - 1, 3))
+    dv = np.zeros((len(edges) - 1, 3))
+    chunk = 200000
+    w_all = np.empty((tq.size, 3))
+    f_all = np.empty((tq.size, 3))
+    for s in range(0, tq.size, chunk):
+        w_all[s:s + chunk], f_all[s:s + chunk] = body_signals(traj, tq[s:s + chunk])
+    wts = (half[:, None] * _GL_W[None, :]).ravel()[:, None]
+    pw = (w_all * wts).reshape(-1, len(_GL_X), 3).sum(axis=1)
+    pf = (f_all * wts).reshape(-1, len(_GL_X), 3).sum(axis=1)
+    np.add.at(dth, owner, pw)
+    np.add.at(dv, owner, pf)
+    return dth, dv
+
+
+def _gauss_markov(rng, n, sigma, tau, dt):
+    """First-order Gauss-Markov samples (n, 3), stationary start, steady-state std sigma."""
+    out = np.zeros((n, 3))
+    if not np.any(sigma) or n == 0:
+        return out
+    from scipy.signal import lfilter
+    phi = math.exp(-dt / tau)
+    drive = rng.standard_normal((n, 3)) * (sigma * math.sqrt(1.0 - phi * phi))
+    x0 = rng.standard_normal(3) * sigma
+    drive[0] = x0
+    for ax in range(3):
+        out[:, ax] = lfilter([1.0], [1.0, -phi], drive[:, ax])
+    return out
+
+
+def _quantise(x, q):
+    if q <= 0.0:
+        return x
+    c = np.cumsum(x, axis=0)
+    cq = np.round(c / q) * q
+    out = np.diff(cq, axis=0, prepend=np.zeros((1, 3)))
+    return out
+
+
+def apply_errors(dtheta, dv, errors, rng, dt):
+    """Corrupt ideal increments with ``errors`` (see module doc); returns new arrays."""
+    n = dtheta.shape[0]
+    Mg = np.eye(3) + np.diag(errors.gyro_sf) + errors.gyro_misalign
+    Ma = np.eye(3) + np.diag(errors.accel_sf) + errors.accel_misalign
+    dth = dtheta @ Mg.T + errors.gyro_bias * dt
+    dvm = dv @ Ma.T + errors.accel_bias * dt
+    if rng is None:
+        rng = np.random.default_rng(0)
+    if np.any(errors.gyro_arw):
+        dth = dth + rng.standard_normal((n, 3)) * (errors.gyro_arw * math.sqrt(dt))
+    if np.any(errors.accel_vrw):
+        dvm = dvm + rng.standard_normal((n, 3)) * (errors.accel_vrw * math.sqrt(dt))
+    dth = dth + _gauss_markov(rng, n, errors.gyro_gm_sigma, errors.gyro_gm_tau, dt) * dt
+    dvm = dvm + _gauss_markov(rng, n, errors.accel_gm_sigma, errors.accel_gm_tau, dt) * dt
+    return _quantise(dth, errors.gyro_quant), _quantise(dvm, errors.accel_quant)
+
+
+def synthesize_imu(traj, rate_hz, errors=None, rng=None, duration_s=None, with_truth=True):
+    """IMU increments along ``traj`` at ``rate_hz`` with ``errors`` (None = ideal).
+
+    ``rng``: numpy Generator (required when the errors are random).  Returns :class:`ImuData`
+    whose ``truth`` holds t, llh, vel_l, q_lb at the interval edges (t0 = 0 and every t[k]).
+    """
+    rate_hz = float(rate_hz)
+    if not rate_hz > 0.0:
+        raise ConfigError(f"IMU rate must be > 0 Hz, got {rate_hz}")
+    duration = traj.duration_s if duration_s is None else float(duration_s)
+    n = int(math.floor(duration * rate_hz + 1e-9))
+    if n < 1:
+        raise ConfigError(f"IMU run of {duration} s at {rate_hz} Hz has no samples")
+    edges = np.arange(n + 1) / rate_hz
+    dth, dv = ideal_increments(traj, edges)
+    if errors is not None and not errors.is_ideal():
+        dth, dv = apply_errors(dth, dv, errors, rng, 1.0 / rate_hz)
+    truth = None
+    if with_truth:
+        k = traj.kinematics(edges)
+        truth = {"t": edges, "llh": k["llh"], "vel_l": k["vel_l"], "q_lb": k["q_lb"]}
+    meta = {"errors": (errors or ImuErrors(preset="ideal")).to_dict()}
+    return ImuData(t=edges[1:].copy(), dtheta_b=dth, dv_b=dv, rate_hz=rate_hz, t0=0.0, truth=truth, meta=meta)
+
+
+# ------------------------------------------------------------------ HDF5 I/O
+IMU_H5_FORMAT = "ultratight-imu"
+IMU_H5_VERSION = 1
+
+
+def write_imu_h5(path, imu, meta=None):
+    """Write :class:`ImuData` to HDF5 (layout in docs/ins.md); temp file then rename."""
+    import h5py
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    allmeta = dict(imu.meta or {})
+    allmeta.update(meta or {})
+    with h5py.File(tmp, "w") as f:
+        f.attrs["format"] = IMU_H5_FORMAT
+        f.attrs["version"] = IMU_H5_VERSION
+        f.attrs["rate_hz"] = float(imu.rate_hz)
+        f.attrs["t0_s"] = float(imu.t0)
+        f.attrs["body_frame"] = "FLU (x forward, y left, z up)"
+        f.attrs["meta_json"] = json.dumps(allmeta, default=str)
+        f.create_dataset("t", data=np.asarray(imu.t, float))
+        f["t"].attrs["units"] = "s (end of each increment interval)"
+        f.create_dataset("dtheta_b", data=np.asarray(imu.dtheta_b, float))
+        f["dtheta_b"].attrs["units"] = "rad"
+        f.create_dataset("dv_b", data=np.asarray(imu.dv_b, float))
+        f["dv_b"].attrs["units"] = "m/s"
+        if imu.truth is not None:
+            g = f.create_group("truth")
+            g.attrs["description"] = "true state at t0 and at every t: llh (rad, rad, m), vel_l ENU m/s, " \
+                                     "q_lb scalar-first body->ENU"
+            for key in ("t", "llh", "vel_l", "q_lb"):
+                g.create_dataset(key, data=np.asarray(imu.truth[key], float))
+    os.replace(tmp, path)
+
+
+def read_imu_h5(path):
+    """Read an IMU HDF5 file written by :func:`write_imu_h5` (InputFileError on problems)."""
+    import h5py
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError(f"{path}: IMU file not found")
+    try:
+        with h5py.File(path, "r") as f:
+            if f.attrs.get("format") != IMU_H5_FORMAT:
+                raise InputFileError(f"{path}: not an ultratight IMU HDF5 file (attribute format = "
+                                     f"{f.attrs.get('format')!r}, expected {IMU_H5_FORMAT!r})")
+            for key in ("t", "dtheta_b", "dv_b"):
+                if key not in f:
+                    raise InputFileError(f"{path}: missing dataset /{key}")
+            t = f["t"][()]
+            dth = f["dtheta_b"][()]
+            dv = f["dv_b"][()]
+            rate = float(f.attrs["rate_hz"])
+            t0 = float(f.attrs.get("t0_s", t[0] - 1.0 / rate if t.size else 0.0))
+            meta = json.loads(f.attrs.get("meta_json", "{}"))
+            truth = None
+            if "truth" in f:
+                truth = {k: f["truth"][k][()] for k in f["truth"].keys()}
+    except OSError as exc:
+        if isinstance(exc, InputFileError):
+            raise
+        raise InputFileError(f"{path}: cannot read HDF5 ({exc})") from None
+    if dth.shape != (t.size, 3) or dv.shape != (t.size, 3):
+        raise InputFileError(f"{path}: dtheta_b {dth.shape} / dv_b {dv.shape} do not match t ({t.size},)")
+    _check_stamps(t, path, first_row=0, what="sample")
+    return ImuData(t=t, dtheta_b=dth, dv_b=dv, rate_hz=rate, t0=t0, truth=truth, meta=meta)
+
+
+# ------------------------------------------------------------------ CSV import
+# accepted columns: time, then either rates or increments, each with a unit suffix
+_TIME_COLS = {"t_s": 1.0}
+_RATE_UNITS = {"radps": 1.0, "dps": math.pi / 180.0}
+_ACC_UNITS = {"mps2": 1.0, "g": G0}
+_DTH_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
+_DV_UNITS = {"mps": 1.0}
+GAP_FACTOR = 1.5        # an interval longer than 1.5 x the median is a gap
+
+
+def _check_stamps(t, path, first_row, what="row"):
+    if t.size == 0:
+        raise InputFileError(f"{path}: no IMU samples")
+    bad = np.nonzero(~np.isfinite(t))[0]
+    if bad.size:
+        raise InputFileError(f"{path}: {what} {first_row + int(bad[0])}: time stamp is not a finite number")
+    if t.size < 2:
+        return None
+    d = np.diff(t)
+    nonpos = np.nonzero(d <= 0.0)[0]
+    if nonpos.size:
+        i = int(nonpos[0]) + 1
+        kind = "duplicate" if d[i - 1] == 0.0 else "out-of-order"
+        raise InputFileError(f"{path}: {what} {first_row + i}: {kind} time stamp t = {t[i]!r} s "
+                             f"(previous {t[i - 1]!r} s); stamps must increase strictly")
+    med = float(np.median(d))
+    gaps = np.nonzero(d > GAP_FACTOR * med)[0]
+    if gaps.size:
+        i = int(gaps[0]) + 1
+        raise InputFileError(f"{path}: {what} {first_row + i}: gap of {d[i - 1]:.6g} s before t = {t[i]!r} s "
+                             f"(nominal interval {med:.6g} s); split the file or fill the gap")
+    return med
+
+
+def read_imu_csv(path):
+    """Read a user IMU CSV file (layout in docs/ins.md) -> :class:`ImuData`.
+
+    First non-comment line: header ``t_s`` plus either rates ``gx_<u>, gy_<u>, gz_<u>`` (u: radps,
+    dps) and ``ax_<u>, ay_<u>, az_<u>`` (u: mps2, g) -- averages over the interval ending at t -- or
+    increments ``dthx_<u>, dthy_<u>, dthz_<u>`` (u: rad, deg) and ``dvx_mps, dvy_mps, dvz_mps``.
+    Lines starting with ``#`` are comments.  Problems raise InputFileError naming the line.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError(f"{path}: IMU CSV file not found")
+    with open(path, newline="") as fh:
+        lines = [(i + 1, ln) for i, ln in enumerate(fh.read().splitlines())]
+    lines = [(i, ln) for i, ln in lines if ln.strip() and not ln.lstrip().startswith("#")]
+    if not lines:
+        raise InputFileError(f"{path}: empty IMU CSV file")
+    hdr_line, hdr = lines[0]
+    cols = [c.strip().lower() for c in next(csv.reader([hdr]))]
+    idx = {c: i for i, c in enumerate(cols)}
+    if "t_s" not in idx:
+        raise InputFileError(f"{path}: line {hdr_line}: header needs a 't_s' column (seconds); got {cols}")
+
+    def find(prefixes, units, kind):
+        out_i, out_s = [], []
+        for p in prefixes:
+            hits = [c for c in cols if c.startswith(p + "_")]
+            if not hits:
+                return None
+            c = hits[0]
+            u = c[len(p) + 1:]
+            if u not in units:
+                raise InputFileError(f"{path}: line {hdr_line}: column {c!r} has unknown unit {u!r} for "
+                                     f"{kind}; allowed: {', '.join(p + '_' + k for k in units)}")
+            out_i.append(idx[c])
+            out_s.append(units[u])
+        return out_i, np.array(out_s)
+
+    g = find(("gx", "gy", "gz"), _RATE_UNITS, "angular rate")
+    a = find(("ax", "ay", "az"), _ACC_UNITS, "specific force")
+    dth = find(("dthx", "dthy", "dthz"), _DTH_UNITS, "angle increment")
+    dvv = find(("dvx", "dvy", "dvz"), _DV_UNITS, "velocity increment")
+    if g and a:
+        mode, ci, cs = "rate", g[0] + a[0], np.concatenate([g[1], a[1]])
+    elif dth and dvv:
+        mode, ci, cs = "increment", dth[0] + dvv[0], np.concatenate([dth[1], dvv[1]])
+    else:
+        raise InputFileError(f"{path}: line {hdr_line}: header must have t_s and either gx_/gy_/gz_ + "
+                             f"ax_/ay_/az_ rate columns or dthx_/dthy_/dthz_ + dvx_/dvy_/dvz_ increment "
+                             f"columns (with unit suffixes); got {cols}")
+    rows = lines[1:]
+    if len(rows) < 2:
+        raise InputFileError(f"{path}: need at least 2 data lines, got {len(rows)}")
+    n = len(rows)
+    data = np.empty((n, 7))
+    line_no = np.empty(n, dtype=int)
+    want = [idx["t_s"]] + ci
+    for r, (ln, text) in enumerate(rows):
+        fields = next(csv.reader([text]))
+        line_no[r] = ln
+        if len(fields) != len(cols):
+            raise InputFileError(f"{path}: line {ln}: {len(fields)} fields, header has {len(cols)}")
+        for j, c in enumerate(want):
+            try:
+                v = float(fields[c])
+            except ValueError:
+                raise InputFileError(f"{path}: line {ln}: column {cols[c]!r}: {fields[c]!r} is not a number") \
+                    from None
+            if not math.isfinite(v):
+                raise InputFileError(f"{path}: line {ln}: column {cols[c]!r} is {fields[c].strip()} "
+                                     f"(NaN/inf not allowed)")
+            data[r, j] = v
+    t = data[:, 0]
+    try:
+        med = _check_stamps(t, path, 0, what="row")
+    except InputFileError as exc:
+        # translate the row index into the file line number
+        msg = str(exc)
+        import re
+        m = re.search(r"row (\d+):", msg)
+        if m:
+            msg = msg.replace(f"row {m.group(1)}:", f"line {line_no[int(m.group(1))]}:")
+        raise InputFileError(msg) from None
+    vals = data[:, 1:] * cs
+    dts = np.diff(t, prepend=t[0] - med)
+    if mode == "rate":
+        vals = vals * dts[:, None]
+    return ImuData(t=t.copy(), dtheta_b=vals[:, :3].copy(), dv_b=vals[:, 3:].copy(), rate_hz=1.0 / med,
+                   t0=float(t[0] - med), truth=None, meta={"source": str(path), "csv_mode": mode})
+
+
+def write_imu_csv(path, imu):
+    """Write increments as CSV (t_s, dthx_rad, ..., dvz_mps) -- the format read_imu_csv reads."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w") as fh:
+        fh.write("# ultratight IMU increments, body frame FLU; t_s = end of interval\n")
+        fh.write("t_s,dthx_rad,dthy_rad,dthz_rad,dvx_mps,dvy_mps,dvz_mps\n")
+        for k in range(imu.n):
+            fh.write(f"{imu.t[k]:.9f}," + ",".join(f"{x:.17g}" for x in imu.dtheta_b[k]) + "," +
+                     ",".join(f"{x:.17g}" for x in imu.dv_b[k]) + "\n")
+    os.replace(tmp, path)
+
+
+# ------------------------------------------------------------------ Allan deviation (for tests/benchmarks)
+def allan_deviation(y, dt, taus):
+    """Overlapping Allan deviation of rate samples ``y`` (n,) at cluster times ``taus`` (s)."""
+    y = np.asarray(y, float)
+    theta = np.concatenate([[0.0], np.cumsum(y) * dt])
+    out = np.empty(len(taus))
+    for i, tau in enumerate(taus):
+        m = int(round(tau / dt))
+        if m < 1 or 2 * m >= theta.size:
+            out[i] = np.nan
+            continue
+        d = theta[2 * m:] - 2.0 * theta[m:-m] + theta[:-2 * m]
+        out[i] = math.sqrt(np.mean(d * d) / (2.0 * (m * dt) ** 2))
+    return out
