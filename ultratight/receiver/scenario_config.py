@@ -1,0 +1,236 @@
+"""Scenario configuration: TOML files in ``ultratight/data/scenarios``, defaults, overrides, validation.
+
+``load_scenario(name_or_path, overrides)`` returns a plain dict with every field of the
+schema in ``/work/notes/INTERFACES.md`` (the tables ``time``, ``receiver``, ``trajectory``,
+``satellites``, ``noise_events``, ``frontend``, ``nav`` and optionally ``imu``) filled with
+defaults and checked. Tables this module does not know (used by other stages) pass through
+unchanged.
+
+``overrides`` is a dict whose keys are either dotted paths (``{"frontend.fs_hz": 2e6,
+"duration_s": 5}``) or nested tables (``{"frontend": {"fs_hz": 2e6}}``); ``None`` values are
+ignored, so CLI flags can be passed straight through.
+
+Relative paths (``satellites.rinex``) resolve against the shared data directory:
+``$ULTRATIGHT_DATA`` if set, else ``../shared/data`` beside the repository; the resolved
+absolute path is stored as ``satellites.rinex_path``.
+"""
+
+import copy
+import math
+import os
+import tomllib
+from pathlib import Path
+
+from ultratight.errors import ConfigError
+
+DEFAULTS = {
+    "description": "",
+    "duration_s": 60.0,
+    "seed": 1,
+    "time": {"week": 2190, "tow_s": 518400.0},
+    "receiver": {"clock_bias_m": 0.0, "clock_drift_mps": 0.0},
+    "trajectory": {"kind": "static"},
+    "satellites": {"source": "nominal", "rinex": "rinex/brdc0010.22n", "prns": [], "max_count": 12,
+                   "mask_deg": 5.0, "cn0_dbhz": 45.0},
+    "noise_events": [],
+    "frontend": {"fs_hz": 4.0e6, "if_hz": 0.0, "sampling": "complex", "format": "ci8", "bits": 8,
+                 "inversion": False, "filter_bw_hz": 0.0, "filter_order": 4},
+    "nav": {"data_bits": True},
+}
+IMU_DEFAULTS = {"preset": "paper", "rate_hz": 100.0}
+
+
+def _scenario_dir():
+    # package data (pyproject: ultratight/data/scenarios/*.toml), found beside the package code
+    return Path(__file__).resolve().parents[1] / "data" / "scenarios"
+
+
+def list_scenarios():
+    """Names of the built-in scenarios (sorted)."""
+    d = _scenario_dir()
+    return sorted(p.stem for p in d.glob("*.toml"))
+
+
+def shared_data_dir():
+    env = os.environ.get("ULTRATIGHT_DATA")
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parents[2].parent / "shared" / "data"
+
+
+def _deep_merge(base, upd):
+    out = copy.deepcopy(base)
+    for k, v in upd.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _deep_merge(out[k], v)
+        else:
+            out[k] = copy.deepcopy(v)
+    return out
+
+
+def _apply_overrides(cfg, overrides):
+    for key, val in (overrides or {}).items():
+        if val is None:
+            continue
+        if isinstance(val, dict) and "." not in key:
+            cfg[key] = _deep_merge(cfg.get(key, {}) if isinstance(cfg.get(key), dict) else {}, val)
+            continue
+        parts = key.split(".")
+        d = cfg
+        for p in parts[:-1]:
+            if not isinstance(d.get(p), dict):
+                d[p] = {}
+            d = d[p]
+        d[parts[-1]] = val
+    return cfg
+
+
+def _read_toml(path):
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: invalid TOML ({exc})") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read scenario file ({exc.strerror})") from None
+
+
+def _locate(name_or_path):
+    s = str(name_or_path)
+    p = Path(s)
+    if s.endswith(".toml") or os.sep in s or p.is_file():
+        if not p.is_file():
+            raise ConfigError(f"scenario file not found: {p}")
+        return p
+    cand = _scenario_dir() / f"{s}.toml"
+    if not cand.is_file():
+        raise ConfigError(f"unknown scenario {s!r}; known scenarios: {', '.join(list_scenarios()) or '(none)'}")
+    return cand
+
+
+def load_scenario(name_or_path, overrides=None):
+    """Load, complete and validate a scenario (see module doc). Raises ConfigError."""
+    path = _locate(name_or_path)
+    raw = _read_toml(path)
+    cfg = _deep_merge(DEFAULTS, raw)
+    cfg.setdefault("name", path.stem)
+    if "imu" in cfg:
+        cfg["imu"] = {**IMU_DEFAULTS, **cfg["imu"]}
+    cfg = _apply_overrides(cfg, overrides)
+    if "imu" in cfg and isinstance(cfg["imu"], dict):
+        cfg["imu"] = {**IMU_DEFAULTS, **cfg["imu"]}
+    cfg["source_file"] = str(path)
+    validate(cfg)
+    return cfg
+
+
+# ------------------------------------------------------------------------------------------
+# validation
+# ------------------------------------------------------------------------------------------
+def _num(cfg, dotted, lo=None, hi=None, lo_open=False, integer=False):
+    d = cfg
+    parts = dotted.split(".")
+    for p in parts[:-1]:
+        d = d.get(p, {})
+    v = d.get(parts[-1])
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise ConfigError(f"{dotted} must be a number, got {v!r}")
+    if integer and int(v) != v:
+        raise ConfigError(f"{dotted} must be an integer, got {v!r}")
+    if not math.isfinite(v):
+        raise ConfigError(f"{dotted} must be finite, got {v!r}")
+    if lo is not None and (v <= lo if lo_open else v < lo):
+        raise ConfigError(f"{dotted} must be {'>' if lo_open else '>='} {lo}, got {v!r}")
+    if hi is not None and v > hi:
+        raise ConfigError(f"{dotted} must be <= {hi}, got {v!r}")
+    return v
+
+
+def _table(cfg, name):
+    t = cfg.get(name)
+    if not isinstance(t, dict):
+        raise ConfigError(f"[{name}] must be a table, got {type(t).__name__}")
+    return t
+
+
+def validate(cfg):
+    """Check a completed scenario dict; raises ConfigError naming the field."""
+    from ultratight.signals.frontend import FrontEnd
+    from ultratight.signals.iffile import FORMATS
+
+    _num(cfg, "duration_s", lo=0, lo_open=True)
+    _num(cfg, "seed", lo=0, integer=True)
+    cfg["seed"] = int(cfg["seed"])
+    _table(cfg, "time")
+    _num(cfg, "time.week", lo=0, integer=True)
+    _num(cfg, "time.tow_s", lo=0, hi=604800.0)
+    if cfg["time"]["tow_s"] >= 604800.0:
+        raise ConfigError(f"time.tow_s must be < 604800, got {cfg['time']['tow_s']}")
+    rcv = _table(cfg, "receiver")
+    for k in ("lat_deg", "lon_deg"):
+        if k not in rcv:
+            raise ConfigError(f"receiver.{k} is required")
+    _num(cfg, "receiver.lat_deg", lo=-90, hi=90)
+    _num(cfg, "receiver.lon_deg", lo=-180, hi=360)
+    rcv.setdefault("h_m", 0.0)
+    _num(cfg, "receiver.h_m", lo=-1e4, hi=1e8)
+    _num(cfg, "receiver.clock_bias_m")
+    _num(cfg, "receiver.clock_drift_mps")
+    _table(cfg, "trajectory")
+    sat = _table(cfg, "satellites")
+    if sat.get("source") not in ("nominal", "rinex"):
+        raise ConfigError(f"satellites.source must be 'nominal' or 'rinex', got {sat.get('source')!r}")
+    if sat["source"] == "rinex":
+        rp = Path(str(sat.get("rinex", "")))
+        if not rp.is_absolute():
+            rp = shared_data_dir() / rp
+        if not rp.is_file():
+            raise ConfigError(f"satellites.rinex: file not found: {rp}")
+        sat["rinex_path"] = str(rp)
+    prns = sat.get("prns", [])
+    if not isinstance(prns, list) or any(isinstance(p, bool) or not isinstance(p, int) or not 1 <= p <= 32
+                                         for p in prns):
+        raise ConfigError(f"satellites.prns must be a list of integers 1..32, got {prns!r}")
+    if len(set(prns)) != len(prns):
+        raise ConfigError(f"satellites.prns has duplicates: {prns!r}")
+    _num(cfg, "satellites.max_count", lo=1, hi=32, integer=True)
+    _num(cfg, "satellites.mask_deg", lo=-90, hi=90)
+    cn0 = sat.get("cn0_dbhz")
+    vals = cn0 if isinstance(cn0, list) else [cn0]
+    for v in vals:
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v <= 80.0:
+            raise ConfigError(f"satellites.cn0_dbhz must be a number (or list) in [0, 80] dB-Hz, got {cn0!r}")
+    if isinstance(cn0, list) and len(cn0) != len(prns):
+        raise ConfigError("satellites.cn0_dbhz as a list needs satellites.prns of the same length")
+    evs = cfg.get("noise_events", [])
+    if not isinstance(evs, list):
+        raise ConfigError("noise_events must be an array of tables [[noise_events]]")
+    for i, ev in enumerate(evs):
+        for k in ("t0_s", "t1_s", "noise_factor"):
+            if k not in ev:
+                raise ConfigError(f"noise_events[{i}].{k} is required")
+            v = ev[k]
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ConfigError(f"noise_events[{i}].{k} must be a number, got {v!r}")
+        if not ev["t0_s"] < ev["t1_s"]:
+            raise ConfigError(f"noise_events[{i}]: t0_s must be < t1_s")
+        if not ev["noise_factor"] > 0:
+            raise ConfigError(f"noise_events[{i}].noise_factor must be > 0")
+    fe = _table(cfg, "frontend")
+    if fe.get("format") not in FORMATS:
+        raise ConfigError(f"frontend.format: unknown IF sample format {fe.get('format')!r}; "
+                          f"expected one of {', '.join(FORMATS)}")
+    _num(cfg, "frontend.fs_hz", lo=0, lo_open=True)
+    _num(cfg, "frontend.if_hz")
+    _num(cfg, "frontend.bits", integer=True)
+    FrontEnd.from_config(fe)       # raises ConfigError for impossible combinations
+    if FORMATS[fe["format"]].is_complex != (fe.get("sampling") == "complex"):
+        raise ConfigError(f"frontend.format {fe['format']!r} does not match frontend.sampling "
+                          f"{fe.get('sampling')!r}")
+    nav = _table(cfg, "nav")
+    if not isinstance(nav.get("data_bits"), bool):
+        raise ConfigError(f"nav.data_bits must be true or false, got {nav.get('data_bits')!r}")
+    if "imu" in cfg:
+        _table(cfg, "imu")
+        _num(cfg, "imu.rate_hz", lo=0, lo_open=True)
+    return cfg
