@@ -1,0 +1,389 @@
+"""GPS L1 C/A acquisition: FFT parallel code-phase search over Doppler bins.
+
+Search
+------
+The input (complex baseband, or real IF mixed down to complex baseband with
+``exp(-j*2*pi*if_hz*t)``) is cut into ``K = noncoherent`` consecutive blocks of
+``N = round(fs * coherent_ms * 1e-3)`` samples.  For a Doppler bin ``f`` the
+block is wiped with ``exp(-j*2*pi*f*n/fs)`` and circularly correlated with the
+sampled local code ``c_rep[n] = code(floor(n * F_CA / fs) mod 1023)`` (repeated
+``coherent_ms`` times) by ``IFFT(FFT(x) * conj(FFT(c_rep)))``, all code phases
+at once.  The Doppler grid is ``f_j = j * step`` (anchored at 0 Hz) with
+``step = (p/q) * fs/N`` (default ``p/q = 2/3``, i.e. ~2/(3T)); a shift by a
+whole FFT bin ``fs/N`` is a circular shift of the spectrum, so only ``q`` mixed
+FFTs per block are computed and every Doppler bin reuses them (the shift is
+applied to the code spectrum, which leaves the correlation magnitude unchanged).
+Code FFTs are cached per ``(fs, N)``.
+
+The detection statistic is the non-coherent sum ``S(f, m) = sum_k |Y_k(f, m)|^2``
+where block ``k``'s correlation is circularly shifted by the predicted lag drift
+(code Doppler ``-N*f/F_L1`` plus the non-integer period ``P - N`` samples per
+block, ``P = fs*T*1023/F_CA/... = fs*coherent_ms*1e-3``), so the peak stays in
+one cell over long searches and for sample rates that are not multiples of
+1.023 MHz.  The code Doppler *inside* one coherent block (<= 0.065 chip at
+10 kHz over 10 ms) is not compensated (loss < 0.3 dB).
+
+Detection statistics
+--------------------
+Under noise only, each ``Y_k`` is circular complex Gaussian, ``|Y_k|^2`` is
+exponential and ``S`` is ``E[S]/(2K) * chi2(2K)`` (chi-square with 2K degrees of
+freedom).  The noise floor ``E[S]`` is estimated as the mean of ``S`` over all
+cells except those within ``+-exclude_chips`` (default 2 chips) of the peak's
+code phase, in every Doppler bin.  The metric is ``peak / noise_floor``; under
+H0 a single cell's metric is ``chi2(2K)/(2K)``.  The search covers
+``M = n_doppler * N`` cells per PRN; with a false-alarm probability ``pfa``
+per PRN search, the per-cell probability is ``1 - (1 - pfa)**(1/M)``
+(Bonferroni/Sidak: cells are treated as independent, which is conservative
+since neighbouring cells are correlated) and the threshold is
+``chi2.isf(pfa_cell, 2K) / (2K)``.
+
+Refinement and C/N0 (detected PRNs)
+-----------------------------------
+1. Parabolic interpolation over the Doppler bins and code lags around the peak.
+2. The code is wiped off at the estimated code phase and the signal summed over
+   1 ms sub-blocks ``z_i``; the residual frequency is
+   ``angle(sum z_{i+1} conj(z_i)) / (2*pi*T_sub)`` (unambiguous +-500 Hz,
+   insensitive to data-bit flips, which only flip single products).
+3. At the fine frequency the normalised power ``|z_i|^2`` (corr_model scaling,
+   unit noise per arm) is evaluated on a 0.05-chip grid of code offsets; the
+   best offset refines the code phase and ``C/N0 = (mean|z|^2 - 2) / (2*T_sub)``.
+
+Outputs
+-------
+``code_phase_chips`` is the signal's code phase at sample ``sample_index`` (the
+first sample of the acquisition block), ready for
+:meth:`ultratight.receiver.correlator.CorrelatorBank.init_channel`;
+``doppler_hz`` is the carrier Doppler (for real IF: relative to ``if_hz``).
+"""
+
+import functools
+import math
+from dataclasses import dataclass
+from fractions import Fraction
+
+import numpy as np
+import scipy.fft
+from scipy.stats import chi2
+
+from ultratight.constants import CA_LEN, F_CA, F_L1
+from ultratight.errors import ConfigError
+from ultratight.signals.ca_code import PRNS, ca_code
+from ultratight.signals.corr_model import noise_sigma_arm
+
+MAX_COHERENT_MS = 10
+_T_SUB = 1e-3              # sub-block length for fine Doppler / C/N0 (s)
+_FINE_CODE_STEP = 0.05     # chips
+_FINE_CODE_SPAN = 0.75     # +- chips around the coarse code phase
+_CHUNK_ELEMS = 1 << 22     # complex elements per IFFT batch
+
+
+@dataclass
+class AcqResult:
+    """One PRN's acquisition result (see module docstring for the definitions)."""
+    prn: int
+    doppler_hz: float          # refined Doppler (coarse when not detected)
+    code_phase_chips: float    # signal code phase at sample_index, [0, 1023)
+    cn0_dbhz: float            # NaN when not detected
+    metric: float              # peak / noise floor
+    detected: bool
+    threshold: float           # metric threshold for the requested pfa
+    sample_index: int          # absolute sample index the code phase refers to
+    doppler_coarse_hz: float = math.nan
+    n_doppler_bins: int = 0
+
+
+def _check_int(name, value, lo, hi):
+    if isinstance(value, bool) or not float(value).is_integer():
+        raise ConfigError(f"acquire: {name} must be a whole number in {lo}..{hi}, got {value!r}")
+    value = int(value)
+    if not lo <= value <= hi:
+        raise ConfigError(f"acquire: {name} must be in {lo}..{hi}, got {value}")
+    return value
+
+
+@functools.lru_cache(maxsize=16)
+def _code_spectra(fs_hz, n, coherent_ms):
+    """conj(FFT(c_rep)) for all 32 PRNs, complex64 (32, n)."""
+    idx = np.floor(np.arange(n) * (F_CA / fs_hz)).astype(np.int64) % CA_LEN
+    codes = np.stack([ca_code(p) for p in PRNS]).astype(np.float32)[:, idx]
+    spec = np.conj(scipy.fft.fft(codes, axis=1, workers=-1)).astype(np.complex64)
+    spec.setflags(write=False)
+    return spec
+
+
+def _as_per_prn(value, prns, name):
+    if isinstance(value, dict):
+        missing = [p for p in prns if p not in value]
+        if missing:
+            raise ConfigError(f"acquire: {name} given per PRN but missing PRNs {missing}")
+        return {p: float(value[p]) for p in prns}
+    return {p: float(value) for p in prns}
+
+
+def _read_input(source, fs_hz, if_hz, is_complex, start_sample, n_needed):
+    """Return (samples, fs, if, is_complex) from an IfSource-like object or an array."""
+    if hasattr(source, "read") and hasattr(source, "fs_hz"):
+        fs_hz = source.fs_hz if fs_hz is None else fs_hz
+        if_hz = getattr(source, "if_hz", 0.0) if if_hz is None else if_hz
+        is_complex = source.is_complex if is_complex is None else is_complex
+        total = getattr(source, "n_samples", None)
+        if total is not None and start_sample + n_needed > total:
+            raise ConfigError(f"acquire: block too short: need {n_needed} samples from sample {start_sample}, "
+                              f"the source has {total}")
+        x = np.asarray(source.read(start_sample, n_needed))
+        offset = 0
+    else:
+        x = np.asarray(source)
+        if x.ndim != 1:
+            raise ConfigError(f"acquire: samples must be a 1-D array, got shape {x.shape}")
+        if is_complex is None:
+            is_complex = np.iscomplexobj(x)
+        offset = start_sample
+    if fs_hz is None:
+        raise ConfigError("acquire: fs_hz is required when passing a sample array")
+    if_hz = 0.0 if if_hz is None else float(if_hz)
+    if x.shape[0] - offset < n_needed:
+        raise ConfigError(f"acquire: block too short: need {n_needed} samples "
+                          f"({n_needed / float(fs_hz) * 1e3:.3f} ms) from sample {start_sample}, "
+                          f"got {max(x.shape[0] - offset, 0)}")
+    return x[offset:offset + n_needed], float(fs_hz), if_hz, bool(is_complex)
+
+
+def _to_baseband(x, fs_hz, if_hz, is_complex):
+    if is_complex:
+        if np.iscomplexobj(x):
+            xb = x.astype(np.complex64, copy=True)
+        else:
+            raise ConfigError("acquire: is_complex=True but the samples are real")
+    else:
+        if np.iscomplexobj(x):
+            raise ConfigError("acquire: is_complex=False but the samples are complex")
+        xb = x.astype(np.float32, copy=False).astype(np.complex64)
+    xb -= xb.mean()
+    if if_hz != 0.0:
+        n = np.arange(x.shape[0], dtype=np.float64)
+        ph = (if_hz / fs_hz) * n
+        ph -= np.floor(ph)
+        xb *= np.exp(-2j * np.pi * ph).astype(np.complex64)
+    return xb
+
+
+def cell_threshold(pfa, n_cells, noncoherent):
+    """Metric threshold (peak / noise floor) for a per-search false-alarm probability ``pfa``.
+
+    Per-cell probability ``1 - (1 - pfa)**(1/n_cells)``; metric of a noise cell
+    ``chi2(2K)/(2K)`` with ``K = noncoherent``.
+    """
+    pfa_cell = -math.expm1(math.log1p(-pfa) / n_cells)
+    return float(chi2.isf(pfa_cell, 2 * noncoherent) / (2 * noncoherent))
+
+
+def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=None, doppler_range_hz=10e3,
+            doppler_center_hz=0.0, coherent_ms=1, noncoherent=10, pfa=1e-3, bin_fraction=Fraction(2, 3),
+            start_sample=0, exclude_chips=2.0, refine=True, workers=-1):
+    """Search PRNs for GPS L1 C/A signals; returns a list of :class:`AcqResult` (one per PRN, in order).
+
+    Parameters
+    ----------
+    source_or_samples : IfSource-like (``read(start, count)``, ``fs_hz``, ``if_hz``, ``is_complex``)
+        or 1-D ndarray (complex or real samples).
+    fs_hz, if_hz, is_complex : front end (taken from the source when None; ``is_complex`` from the dtype).
+    prns : iterable of PRNs (default all 32).
+    doppler_range_hz : half-width of the Doppler window (scalar or {prn: Hz}).
+    doppler_center_hz : window centre (scalar or {prn: Hz}): the assisted mode passes the
+        predicted Doppler per PRN (e.g. from :func:`predicted_doppler`) and a small window.
+    coherent_ms : coherent integration, whole ms, 1..10.
+    noncoherent : number K of non-coherent sums (>= 1).
+    pfa : false-alarm probability per PRN search (0 < pfa < 1).
+    bin_fraction : Doppler bin width as a fraction p/q of the FFT bin fs/N (default 2/3).
+    start_sample : absolute index of the first sample used.
+    """
+    coherent_ms = _check_int("coherent_ms", coherent_ms, 1, MAX_COHERENT_MS)
+    noncoherent = _check_int("noncoherent", noncoherent, 1, 100000)
+    if fs_hz is not None and not (math.isfinite(float(fs_hz)) and float(fs_hz) > 0.0):
+        raise ConfigError(f"acquire: fs_hz must be a positive sampling rate, got {fs_hz!r}")
+    if not (0.0 < float(pfa) < 1.0):
+        raise ConfigError(f"acquire: pfa must be in (0, 1), got {pfa!r}")
+    frac = Fraction(bin_fraction).limit_denominator(16)
+    if not (0 < frac <= 1):
+        raise ConfigError(f"acquire: bin_fraction must be in (0, 1], got {bin_fraction!r}")
+    prns = list(PRNS) if prns is None else [int(p) for p in prns]
+    for p in prns:
+        if not 1 <= p <= 32:
+            raise ConfigError(f"acquire: PRN must be in 1..32, got {p}")
+    if hasattr(source_or_samples, "fs_hz") and fs_hz is None:
+        fs_hz = source_or_samples.fs_hz
+    if fs_hz is None:
+        raise ConfigError("acquire: fs_hz is required when passing a sample array")
+    fs_hz = float(fs_hz)
+    if not (math.isfinite(fs_hz) and fs_hz > 0.0):
+        raise ConfigError(f"acquire: fs_hz must be a positive sampling rate, got {fs_hz!r}")
+    if fs_hz < F_CA:
+        raise ConfigError(f"acquire: fs_hz = {fs_hz} Hz is below the C/A chip rate {F_CA} Hz")
+    n_coh = int(round(fs_hz * coherent_ms * 1e-3))
+    n_needed = n_coh * noncoherent
+    x, fs_hz, if_hz, is_complex = _read_input(source_or_samples, fs_hz, if_hz, is_complex,
+                                              int(start_sample), n_needed)
+    if not is_complex and if_hz == 0.0:
+        raise ConfigError("acquire: real samples need a non-zero if_hz (real baseband cannot carry the signal)")
+    rng_hz = _as_per_prn(doppler_range_hz, prns, "doppler_range_hz")
+    ctr_hz = _as_per_prn(doppler_center_hz, prns, "doppler_center_hz")
+    for p, r in rng_hz.items():
+        if not (math.isfinite(r) and r >= 0.0):
+            raise ConfigError(f"acquire: doppler_range_hz must be >= 0, got {r!r} for PRN {p}")
+        if abs(ctr_hz[p]) + r >= 0.5 * fs_hz:
+            raise ConfigError(f"acquire: Doppler window {ctr_hz[p]} +- {r} Hz exceeds fs/2 = {fs_hz / 2} Hz")
+
+    sigma_arm = _sigma_arm(x, is_complex)
+    xb = _to_baseband(x, fs_hz, if_hz, is_complex)
+    blocks = xb.reshape(noncoherent, n_coh)
+    fft_bin = fs_hz / n_coh
+    step = float(frac) * fft_bin
+    p_num, q_den = frac.numerator, frac.denominator
+    # mixed block spectra for the q fractional offsets r/q of an FFT bin
+    n_idx = np.arange(n_coh)
+    base = []
+    for r in range(q_den):
+        if r == 0:
+            base.append(scipy.fft.fft(blocks, axis=1, workers=workers))
+        else:
+            mix = np.exp(-2j * np.pi * (r / q_den) * n_idx / n_coh).astype(np.complex64)
+            base.append(scipy.fft.fft(blocks * mix, axis=1, workers=workers))
+    code_spec = _code_spectra(fs_hz, n_coh, coherent_ms)
+    period = fs_hz * coherent_ms * 1e-3          # samples per coherent_ms code periods (may be fractional)
+    exclude = int(math.ceil(exclude_chips * fs_hz / F_CA))
+    results = []
+    for prn in prns:
+        j_lo = math.ceil((ctr_hz[prn] - rng_hz[prn]) / step - 1e-9)
+        j_hi = math.floor((ctr_hz[prn] + rng_hz[prn]) / step + 1e-9)
+        js = np.arange(j_lo, j_hi + 1)
+        surf = _search_surface(base, code_spec[prn - 1], js, p_num, q_den, noncoherent, n_coh, period,
+                               step, workers)
+        jrow, m = np.unravel_index(int(np.argmax(surf)), surf.shape)
+        peak = float(surf[jrow, m])
+        lag = (np.arange(n_coh) - m + n_coh // 2) % n_coh - n_coh // 2
+        keep = np.abs(lag) > exclude
+        floor_ = float(surf[:, keep].mean())
+        metric = peak / floor_
+        n_cells = surf.size
+        thr = cell_threshold(float(pfa), n_cells, noncoherent)
+        # parabolic interpolation (Doppler, lag)
+        dj = _parabolic(surf[jrow - 1, m] if jrow > 0 else None, peak,
+                        surf[jrow + 1, m] if jrow + 1 < surf.shape[0] else None)
+        dm = _parabolic(surf[jrow, (m - 1) % n_coh], peak, surf[jrow, (m + 1) % n_coh])
+        fd_coarse = float(js[jrow] * step)
+        fd = fd_coarse + dj * step
+        code_phase = (-(m + dm) * F_CA / fs_hz) % CA_LEN
+        detected = metric > thr
+        cn0 = math.nan
+        if detected and refine:
+            fd, code_phase, cn0 = _refine(xb, fs_hz, prn, fd, code_phase, sigma_arm)
+        results.append(AcqResult(prn=prn, doppler_hz=float(fd), code_phase_chips=float(code_phase),
+                                 cn0_dbhz=float(cn0), metric=metric, detected=bool(detected), threshold=thr,
+                                 sample_index=int(start_sample), doppler_coarse_hz=fd_coarse,
+                                 n_doppler_bins=int(js.size)))
+    return results
+
+
+def _sigma_arm(x, is_complex):
+    if is_complex:
+        xc = x.astype(np.complex128)
+        sigma = math.sqrt(float(np.mean(np.abs(xc - xc.mean()) ** 2)) / 2.0)
+    else:
+        sigma = float(np.std(x.astype(np.float64)))
+    if not sigma > 0.0:
+        raise ConfigError("acquire: the samples have zero power (all equal)")
+    return noise_sigma_arm(sigma, is_complex)
+
+
+def _parabolic(ym, y0, yp):
+    """Vertex offset in (-0.5, 0.5) of the parabola through (-1, ym), (0, y0), (1, yp)."""
+    if ym is None or yp is None:
+        return 0.0
+    den = ym - 2.0 * y0 + yp
+    if den >= 0.0:
+        return 0.0
+    return float(np.clip(0.5 * (ym - yp) / den, -0.5, 0.5))
+
+
+def _search_surface(base, cspec, js, p_num, q_den, k_blocks, n, period, step, workers):
+    """S(j, m) for Doppler bins j (float32 (len(js), n))."""
+    surf = np.zeros((js.size, n), dtype=np.float32)
+    tot = js * p_num
+    shifts = np.floor_divide(tot, q_den)
+    resid = tot - shifts * q_den
+    rows_per_chunk = max(1, _CHUNK_ELEMS // (k_blocks * n))
+    ar = np.arange(n)
+    for r in range(q_den):
+        rows = np.flatnonzero(resid == r)
+        for c0 in range(0, rows.size, rows_per_chunk):
+            rr = rows[c0:c0 + rows_per_chunk]
+            # rolled code spectra: C*[m - s]
+            cs = cspec[(ar[None, :] - shifts[rr][:, None]) % n]
+            prod = base[r][None, :, :] * cs[:, None, :]
+            y = scipy.fft.ifft(prod, axis=2, workers=workers, overwrite_x=True)
+            pw = (y.real * y.real + y.imag * y.imag).astype(np.float32)
+            # lag drift per block (samples): non-integer period and code Doppler
+            drift = (period - n) - n * (js[rr] * step) / F_L1
+            for k in range(k_blocks):
+                sh = np.rint(k * drift).astype(np.int64)
+                if not np.any(sh):
+                    surf[rr] += pw[:, k, :]
+                    continue
+                for s in np.unique(sh):
+                    sel = sh == s
+                    surf[rr[sel]] += np.roll(pw[sel, k, :], -int(s), axis=1)
+    return surf
+
+
+def _refine(xb, fs_hz, prn, fd, code_phase, sigma_arm):
+    """Fine Doppler (phase differences of 1 ms sums) and code phase / C/N0 on a fine code grid."""
+    n_sub = int(round(fs_hz * _T_SUB))
+    n_tot = (xb.shape[0] // n_sub) * n_sub
+    n_blocks = n_tot // n_sub
+    t = np.arange(n_tot) / fs_hz
+    code = ca_code(prn).astype(np.float32)
+    rate = F_CA * (1.0 + fd / F_L1)
+
+    def sums(fd_, cp_):
+        rep = code[np.floor(cp_ + t * rate).astype(np.int64) % CA_LEN]
+        ph = fd_ * t
+        y = xb[:n_tot] * rep * np.exp(-2j * np.pi * (ph - np.floor(ph))).astype(np.complex64)
+        return y.reshape(n_blocks, n_sub).sum(axis=1)
+
+    if n_blocks >= 2:
+        for _ in range(2):
+            z = sums(fd, code_phase)
+            dphi = np.angle(np.sum(z[1:] * np.conj(z[:-1])))
+            fd = fd + dphi / (2.0 * np.pi * n_sub / fs_hz)
+            rate = F_CA * (1.0 + fd / F_L1)
+    offs = np.arange(-_FINE_CODE_SPAN, _FINE_CODE_SPAN + 1e-9, _FINE_CODE_STEP)
+    pw = np.empty(offs.size)
+    scale = 1.0 / (sigma_arm * math.sqrt(n_sub))
+    for i, o in enumerate(offs):
+        z = sums(fd, code_phase + o) * scale
+        pw[i] = np.mean(np.abs(z) ** 2)
+    i = int(np.argmax(pw))
+    d = _parabolic(pw[i - 1] if i > 0 else None, pw[i], pw[i + 1] if i + 1 < pw.size else None)
+    code_phase = (code_phase + offs[i] + d * _FINE_CODE_STEP) % CA_LEN
+    snr = (pw[i] - 2.0) / 2.0                       # A^2/2 = C/N0 * T_sub
+    t_sub = n_sub / fs_hz
+    cn0 = 10.0 * math.log10(snr / t_sub) if snr > 0 else math.nan
+    return fd, code_phase, cn0
+
+
+def predicted_doppler(ephemerides, rx_pos_e, week, tow_s, prns=None, rx_clk_drift_mps=0.0):
+    """Assisted mode: predicted Doppler (Hz) per PRN from ephemerides and an approximate position/time.
+
+    Uses :func:`ultratight.signals.geometry.light_time`; returns {prn: doppler_hz}.  Pass it as
+    ``doppler_center_hz`` with a ``doppler_range_hz`` covering the position/clock-drift uncertainty.
+    """
+    from ultratight.signals.geometry import light_time
+    prns = sorted(ephemerides) if prns is None else list(prns)
+    pos = np.atleast_2d(np.asarray(rx_pos_e, dtype=float))
+    out = {}
+    for p in prns:
+        lt = light_time(ephemerides[p], pos, np.zeros_like(pos), week, np.array([float(tow_s)]),
+                        rx_clk_drift_mps=rx_clk_drift_mps)
+        out[p] = float(np.asarray(lt["doppler_hz"]).ravel()[0])
+    return out
