@@ -104,6 +104,7 @@ MEAS_NAMES = ("I_P", "I_E", "I_L", "Q_P", "Q_E", "Q_L")
 KINDS = ("ckf", "ukf", "rackf")
 _KIND_CODE = {"ckf": 0, "ukf": 1, "rackf": 2}
 ROBUST_MODES = ("period", "every")
+ADAPTIVE_STATS = ("window", "epoch")
 
 # status flags (bit field, per channel, per epoch)
 FLAG_DIVERGED = 1        # non-finite / blown-up covariance -> channel reset
@@ -376,11 +377,14 @@ def _predict(xc, Pc, Phi, Qd, tmpv, tmpm):
 
 @njit(cache=True)
 def _bank_step(kind, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, prm, iprm,
-               innov, nis, theta, flags, W1, W2):
+               innov, nis, theta, flags, W1, W2, acc):
     """One epoch for all channels. Returns -1 - ch if z of an active channel is non-finite.
 
     prm  = [T, beta, dhalf, huber_c, theta_min, wm0, wc0, wi, ut_scale]
-    iprm = [do_correction, robust_every]
+    iprm = [do_correction, robust_every, windowed_adaptive]
+    acc (n_ch, 6): per-channel sums over the correction period (windowed statistics):
+    [tr(P_zz_bar), |r_winsorised|^2, |r|^2, explainable energy, tr(R)] and the held
+    measurement-noise scale lam in column 5.
     W1 (n_w1, 6) and W2 (n_w2, 6, 6) are work arrays (no allocation per epoch).
     """
     n_ch = x.shape[0]
@@ -400,6 +404,7 @@ def _bank_step(kind, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, prm, iprm
     ut_scale = prm[8]
     do_corr = iprm[0] != 0
     robust_every = iprm[1] != 0
+    windowed = iprm[2] != 0
     plim = prm[9:14]
     # work views
     pts = W1[0:11, 0:NX]
@@ -454,37 +459,67 @@ def _bank_step(kind, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, prm, iprm
                 r[m] = z[c, m] - zhat[m]
             pscale = 1.0
             robust = kind == 2 and (do_corr or robust_every)
-            if robust:
-                # eqs. 20-23: standardised residuals against P_zz of eq. 13
+            if kind == 2:
+                lam = acc[c, 5]          # measurement-noise scale held over this period
+                if lam < 1.0:
+                    lam = 1.0
+                # eqs. 20-23: standardised residuals against P_zz of eq. 13 (with lam R)
                 any_out = False
                 for m in range(NZ):
-                    sr = math.sqrt(Pzz0[m, m] + R[m, m])
+                    sr = math.sqrt(Pzz0[m, m] + lam * R[m, m])
                     g = abs(r[m]) / (hc * sr)
                     if g > 1.0:
                         any_out = True
                     else:
                         g = 1.0
                     gam[m] = g
+                if not robust:
+                    any_out = False
                 if any_out:
                     flags[c] |= FLAG_ROBUST
                     for a in range(NZ):
                         for b in range(NZ):
                             ga = gam[a] if gam[a] > gam[b] else gam[b]
-                            Rb[a, b] = R[a, b] * ga
+                            Rb[a, b] = lam * R[a, b] * ga
                     if not _chol_strict(Rb, Lz, NZ):
                         for a in range(NZ):
                             for b in range(NZ):
-                                Rb[a, b] = R[a, b] * math.sqrt(gam[a] * gam[b])
+                                Rb[a, b] = lam * R[a, b] * math.sqrt(gam[a] * gam[b])
                 else:
                     for a in range(NZ):
                         for b in range(NZ):
-                            Rb[a, b] = R[a, b]
+                            Rb[a, b] = lam * R[a, b]
                 # eq. 18
                 trp = 0.0
                 rr = 0.0
                 for a in range(NZ):
                     trp += Pzz0[a, a] + Rb[a, a]
-                    rr += r[a] * r[a]
+                    if windowed:
+                        rw = r[a] / gam[a]       # Huber-winsorised residual
+                        rr += rw * rw
+                    else:
+                        rr += r[a] * r[a]
+                if windowed:
+                    e_full = 0.0
+                    e_expl = 0.0
+                    trr = 0.0
+                    for a in range(NZ):
+                        e_full += r[a] * r[a]
+                        e_expl += Pzz0[a, a] + 2.0 * zhat[a] * zhat[a]
+                        trr += R[a, a]
+                    acc[c, 0] += trp
+                    acc[c, 1] += rr
+                    acc[c, 2] += e_full
+                    acc[c, 3] += e_expl
+                    acc[c, 4] += trr
+                    if do_corr:
+                        trp = acc[c, 0]
+                        rr = acc[c, 1]
+                        # residual energy no state error can explain -> measurement noise scale
+                        lam_new = (acc[c, 2] - acc[c, 3]) / acc[c, 4]
+                        acc[c, 5] = lam_new if lam_new > 1.0 else 1.0
+                        for a in range(5):
+                            acc[c, a] = 0.0
                 # eqs. 37-38: adaptive factor (correction epochs only)
                 if do_corr and rr > trp:
                     th = trp / rr
@@ -585,7 +620,8 @@ class PrefilterBank:
     """
 
     def __init__(self, n_ch, kind="rackf", T=T_CA, spacing_chips=1.0, q=None, huber_c=1.5,
-                 correction_period=50, robust_mode="period", theta_min=1e-3, ukf_alpha=0.5,
+                 correction_period=50, robust_mode="every", adaptive_stat="window", theta_min=1e-3,
+                 ukf_alpha=0.5,
                  ukf_beta=2.0, ukf_kappa=0.0, p_limits=None, cn0_dbhz_init=35.0):
         if kind not in _KIND_CODE:
             raise FilterError(f"prefilter kind {kind!r}: expected one of {KINDS}")
@@ -600,6 +636,8 @@ class PrefilterBank:
             raise FilterError(f"prefilter huber_c={huber_c!r}: expected 1 <= c <= 10 (paper: 1.3-2.0)")
         if int(correction_period) < 1:
             raise FilterError(f"prefilter correction_period={correction_period!r}: expected >= 1 epoch")
+        if adaptive_stat not in ADAPTIVE_STATS:
+            raise FilterError(f"prefilter adaptive_stat {adaptive_stat!r}: expected one of {ADAPTIVE_STATS}")
         if not (0 < theta_min <= 1):
             raise FilterError(f"prefilter theta_min={theta_min!r}: expected 0 < theta_min <= 1")
         self.n_ch = n_ch
@@ -622,8 +660,12 @@ class PrefilterBank:
         dhalf = float(corr_model.tap_offsets(self.spacing_chips)[2])
         self._prm = np.array([self.T, BETA_CODE_CARRIER, dhalf, self.huber_c, self.theta_min,
                               wm0, wc0, wi, ut_scale, *lim])
-        self._iprm = np.zeros(2, dtype=np.int64)
+        self._iprm = np.zeros(3, dtype=np.int64)
         self._iprm[1] = 1 if robust_mode == "every" else 0
+        self._iprm[2] = 1 if adaptive_stat == "window" else 0
+        self.adaptive_stat = adaptive_stat
+        self._acc = np.zeros((n_ch, 6))
+        self._acc[:, 5] = 1.0
         self.x = np.zeros((n_ch, NX))
         self.P = np.zeros((n_ch, NX, NX))
         self.x_post = np.zeros((n_ch, NX))
@@ -678,6 +720,8 @@ class PrefilterBank:
         self.x_post[ch] = self.x0[ch]
         self.nis[ch] = np.nan
         self.innov[ch] = np.nan
+        self._acc[ch] = 0.0
+        self._acc[ch, 5] = 1.0
         if activate:
             self.active[ch] = True
 
@@ -706,7 +750,7 @@ class PrefilterBank:
         self._iprm[0] = 1 if (self.epoch % self.correction_period == 0) else 0
         st = _bank_step(self._kind, self.x, self.P, self.x_post, self.x0, self.P0, self.Phi, self.Qd,
                         self.R, z, b, self.active, self._prm, self._iprm, self.innov, self.nis,
-                        self.theta, self.flags, self._W1, self._W2)
+                        self.theta, self.flags, self._W1, self._W2, self._acc)
         if st < 0:
             c = -1 - st
             raise FilterError(f"prefilter step: non-finite measurement or bit on active channel {c}: "
@@ -735,7 +779,8 @@ class PrefilterBank:
             d["ukf"] = self.ukf_params
         if self.kind == "rackf":
             d.update(huber_c=self.huber_c, correction_period=self.correction_period,
-                     robust_mode=self.robust_mode, theta_min=self.theta_min)
+                     robust_mode=self.robust_mode, adaptive_stat=self.adaptive_stat,
+                     theta_min=self.theta_min)
         return d
 
 
