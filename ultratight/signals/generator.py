@@ -475,8 +475,10 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
             amps = np.broadcast_to(plan.amp, (n_int, nsat)).astype(np.float32)
             x = buf[:ns * comps]
             rng.standard_normal(out=x, dtype=np.float32)
-            e_samp = (j0 * L + np.arange(ns)) / fe.fs_hz
-            fac = noise_factor(events, e_samp) if events else None
+            t_b0, t_b1 = j0 * L / fe.fs_hz, (j0 * L + ns) / fe.fs_hz
+            fac = None
+            if any(ev["t0_s"] < t_b1 and ev["t1_s"] > t_b0 for ev in events):
+                fac = noise_factor(events, (j0 * L + np.arange(ns)) / fe.fs_hz)
             if fac is not None and np.any(fac != 1.0):
                 if comps == 2:
                     x.reshape(-1, 2)[...] *= fac[:, None]
@@ -495,7 +497,7 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
             if fac is not None and np.all(fac[:n_valid] == fac[0]):
                 sig_now = float(fac[0])
             y = fe.quantize_block(y, sig_now)
-            writer.write(y)
+            writer.write(y, exact=fe.bits != 0)   # quantiser levels fit every integer format allowed
             # truth rows (interval starts)
             e0 = (j0 + np.arange(n_int)) * L / fe.fs_hz
             nf = noise_factor(events, e0)

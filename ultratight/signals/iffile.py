@@ -424,7 +424,9 @@ class IfWriter:
         else:
             self.abort()
 
-    def write(self, x):
+    def write(self, x, exact=False):
+        """Append samples. ``exact=True`` promises the values are already integers inside the
+        format's range (e.g. quantiser output), which skips rounding and clipping."""
         spec = self.spec
         x = np.asarray(x)
         if spec.is_complex:
@@ -443,7 +445,9 @@ class IfWriter:
             self._f.write(b.astype(np.uint8).tobytes())
             return
         dt = np.dtype(spec.dtype)
-        if dt.kind == "i":
+        if dt.kind == "i" and exact:
+            out = comps.astype(dt)
+        elif dt.kind == "i":
             info = np.iinfo(dt)
             out = np.clip(np.rint(comps), info.min, info.max).astype(dt)
         else:

@@ -1,0 +1,116 @@
+"""Benchmark the IF generator.
+
+    python benchmarks/bench_generator.py [--quick] [--json OUT.json] [--duration S]
+
+Figures:
+* ``kernel_msat_per_s``: the numba synthesis kernel alone (13 satellites, 4 MHz complex),
+  million satellite-samples per second on one core;
+* ``end_to_end_*``: ``generate()`` on the paper-highdyn scenario (13 satellites, 4 MHz ci8,
+  noise, quantisation, file + truth + IMU writing) for ``--duration`` seconds (60 s by default,
+  5 s with ``--quick``), wall time and satellite-samples per second;
+* the time split (geometry, kernel, noise, quantise+write) measured on 1 s of signal.
+"""
+
+import argparse
+import json
+import os
+import platform
+import tempfile
+import time
+
+import numpy as np
+
+
+def machine():
+    cpu = platform.processor()
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    return {"cpu": cpu, "cores": os.cpu_count(), "platform": platform.platform(),
+            "python": platform.python_version(), "load_avg_1m": os.getloadavg()[0]}
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--json", default=None)
+    ap.add_argument("--duration", type=float, default=None)
+    args = ap.parse_args()
+    duration = args.duration or (5.0 if args.quick else 60.0)
+
+    from ultratight.ins.trajectory import build_trajectory
+    from ultratight.receiver.scenario_config import load_scenario
+    from ultratight.signals import generator as g
+    from ultratight.signals.frontend import FrontEnd
+
+    cfg = load_scenario("paper-highdyn", {"duration_s": duration})
+    traj = build_trajectory(cfg["trajectory"], cfg["receiver"], duration)
+    p0, _ = traj.pos_vel_e(np.zeros(1))
+    ephs, cn0 = g._ephemerides(cfg, p0[0])
+    fs = cfg["frontend"]["fs_hz"]
+    plan = g.SignalPlan(ephs, cn0, traj, cfg["time"]["week"], cfg["time"]["tow_s"], fs, 0.0, True)
+    nsat, L, B = len(ephs), plan.L, g.BLOCK_INTERVALS
+    t0 = time.perf_counter()
+    plan.set_nav_bits(1.0, True)
+    t_nav = time.perf_counter() - t0
+
+    # split on 1 s (10 blocks)
+    t_geo = t_ker = t_noise = t_q = 0.0
+    rng = np.random.default_rng(1)
+    fe = FrontEnd(fs)
+    buf = np.empty(B * L * 2, np.float32)
+    amps = np.broadcast_to(plan.amp, (B, nsat)).astype(np.float32)
+    # compile outside the timing
+    coefs, ep, _, _ = plan.coefficients(0, B)
+    bits = plan.bit_values(ep)
+    g._synth_complex(buf.reshape(-1, 2), L, B, plan.codes, coefs, amps, bits, g.COS_LUT, g.SIN_LUT)
+    n_blocks = 10
+    for b in range(n_blocks):
+        t = time.perf_counter()
+        coefs, ep, _, _ = plan.coefficients(b * B, B)
+        bits = plan.bit_values(ep)
+        t_geo += time.perf_counter() - t
+        t = time.perf_counter()
+        rng.standard_normal(out=buf, dtype=np.float32)
+        t_noise += time.perf_counter() - t
+        t = time.perf_counter()
+        g._synth_complex(buf.reshape(-1, 2), L, B, plan.codes, coefs, amps, bits, g.COS_LUT, g.SIN_LUT)
+        t_ker += time.perf_counter() - t
+        t = time.perf_counter()
+        y = fe.quantize_block(buf.view(np.complex64), 1.0)
+        y.view(np.float32).astype(np.int8).tobytes()
+        t_q += time.perf_counter() - t
+    n_ss = n_blocks * B * L * nsat
+    kernel_rate = n_ss / t_ker / 1e6
+
+    with tempfile.TemporaryDirectory() as d:
+        t = time.perf_counter()
+        res = g.generate(cfg, d, "bench", progress=False)
+        t_e2e = time.perf_counter() - t
+        size = os.path.getsize(res["if"])
+    n_samp = int(round(duration * fs))
+    out = {
+        "machine": machine(),
+        "satellites": nsat, "fs_hz": fs, "format": cfg["frontend"]["format"],
+        "kernel_msat_per_s": kernel_rate,
+        "split_per_signal_second_s": {"geometry": t_geo, "kernel": t_ker, "noise": t_noise,
+                                      "quantise_pack": t_q, "nav_bits_setup": t_nav},
+        "end_to_end_duration_s": duration,
+        "end_to_end_wall_s": t_e2e,
+        "end_to_end_msat_per_s": n_samp * nsat / t_e2e / 1e6,
+        "end_to_end_realtime_factor": t_e2e / duration,
+        "if_file_bytes": size,
+    }
+    print(json.dumps(out, indent=1))
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(out, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
