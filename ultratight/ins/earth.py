@@ -197,8 +197,10 @@ _Q0 = 0.5 * ((1.0 + 3.0 * _B * _B / (_E_LIN * _E_LIN)) * math.atan(_E_LIN / _B) 
 
 
 @njit(cache=True)
-def gravity_l(lat, h):
-    """Normal gravity vector (m/s^2) in local ENU at geodetic (lat, h): [0, g_N, g_U].
+def gravity_nu(lat, h):
+    """Normal gravity (m/s^2) north and up components (g_N, g_U) at geodetic (lat, h).
+
+    Tuple-returning (allocation-free) core of :func:`gravity_l`.
 
     Closed-form normal gravity field of the WGS-84 level ellipsoid in ellipsoidal
     coordinates (NIMA TR8350.2 eqs. 4-5..4-8; Heiskanen & Moritz 2-124..2-126),
@@ -239,10 +241,18 @@ def gravity_l(lat, h):
     eb_z = u * cb / (sue * w)
     g_rho = g_u * eu_r + g_b * eb_r
     g_z = g_u * eu_z + g_b * eb_z
+    return -slat * g_rho + clat * g_z, clat * g_rho + slat * g_z
+
+
+@njit(cache=True)
+def gravity_l(lat, h):
+    """Normal gravity vector (m/s^2) in local ENU at geodetic (lat, h): [0, g_N, g_U]
+    (see :func:`gravity_nu` for the model and its accuracy)."""
+    gn, gu = gravity_nu(lat, h)
     out = np.empty(3)
     out[0] = 0.0
-    out[1] = -slat * g_rho + clat * g_z
-    out[2] = clat * g_rho + slat * g_z
+    out[1] = gn
+    out[2] = gu
     return out
 
 

@@ -28,8 +28,7 @@ import numpy as np
 from numba import njit
 
 from ultratight.constants import OMEGA_E
-from ultratight.ins.attitude import quat_mult, quat_normalize, quat_to_dcm, rotvec_to_quat
-from ultratight.ins.earth import gravity_l, radii
+from ultratight.ins.earth import gravity_nu, radii
 
 # state layout
 Q = slice(0, 4)          # q_lb (scalar first)
@@ -51,92 +50,118 @@ def make_state(q_lb, vel_l, llh):
     return x
 
 
-@njit(cache=True)
-def _cross(a, b):
-    out = np.empty(3)
-    out[0] = a[1] * b[2] - a[2] * b[1]
-    out[1] = a[2] * b[0] - a[0] * b[2]
-    out[2] = a[0] * b[1] - a[1] * b[0]
-    return out
+@njit(cache=True, inline="always")
+def _rv2q(x, y, z):
+    """Rotation vector -> quaternion (tuple; series near zero)."""
+    a2 = x * x + y * y + z * z
+    if a2 < 1e-8:
+        s = 0.5 - a2 / 48.0 + a2 * a2 / 3840.0
+        w = 1.0 - a2 / 8.0 + a2 * a2 / 384.0
+    else:
+        a = math.sqrt(a2)
+        s = math.sin(0.5 * a) / a
+        w = math.cos(0.5 * a)
+    return w, x * s, y * s, z * s
+
+
+@njit(cache=True, inline="always")
+def _qmul(a0, a1, a2, a3, b0, b1, b2, b3):
+    return (a0 * b0 - a1 * b1 - a2 * b2 - a3 * b3,
+            a0 * b1 + a1 * b0 + a2 * b3 - a3 * b2,
+            a0 * b2 - a1 * b3 + a2 * b0 + a3 * b1,
+            a0 * b3 + a1 * b2 - a2 * b1 + a3 * b0)
 
 
 @njit(cache=True)
 def sins_step(x, dtheta, dv, dt):
-    """Advance the SINS state ``x`` (in place) by one IMU interval of length dt."""
-    q = x[0:4]
-    v0 = x[4:7].copy()
-    lat0, lon0, h0 = x[7], x[8], x[9]
+    """Advance the SINS state ``x`` (in place) by one IMU interval of length dt.
+
+    Allocation-free (scalar arithmetic only) so that it runs at > 1 M steps/s."""
+    tx, ty, tz = dtheta[0], dtheta[1], dtheta[2]
+    ux, uy, uz = dv[0], dv[1], dv[2]
     if x[HAS_PREV] > 0.5:
-        dth_p = x[10:13]
-        dv_p = x[13:16]
+        px, py, pz = x[10], x[11], x[12]
+        wx, wy, wz = x[13], x[14], x[15]
     else:
-        dth_p = np.zeros(3)
-        dv_p = np.zeros(3)
-    c_th = _cross(dth_p, dtheta)
-    phi = np.empty(3)
-    for i in range(3):
-        phi[i] = dtheta[i] + c_th[i] / 12.0
-    r1 = _cross(dtheta, dv)
-    r2 = _cross(dth_p, dv)
-    r3 = _cross(dv_p, dtheta)
-    dvs = np.empty(3)
-    for i in range(3):
-        dvs[i] = dv[i] + 0.5 * r1[i] + (r2[i] + r3[i]) / 12.0
-    C = quat_to_dcm(q)
-    dvl = C @ dvs
+        px = py = pz = 0.0
+        wx = wy = wz = 0.0
+    # coning: phi = dth + dth_prev x dth / 12
+    fx = tx + (py * tz - pz * ty) / 12.0
+    fy = ty + (pz * tx - px * tz) / 12.0
+    fz = tz + (px * ty - py * tx) / 12.0
+    # rotation compensation + sculling
+    sx = ux + 0.5 * (ty * uz - tz * uy) + ((py * uz - pz * uy) + (wy * tz - wz * ty)) / 12.0
+    sy = uy + 0.5 * (tz * ux - tx * uz) + ((pz * ux - px * uz) + (wz * tx - wx * tz)) / 12.0
+    sz = uz + 0.5 * (tx * uy - ty * ux) + ((px * uy - py * ux) + (wx * ty - wy * tx)) / 12.0
+    q0, q1, q2, q3 = x[0], x[1], x[2], x[3]
+    # C_lb from q, applied to the body increment
+    c00 = 1.0 - 2.0 * (q2 * q2 + q3 * q3)
+    c01 = 2.0 * (q1 * q2 - q0 * q3)
+    c02 = 2.0 * (q1 * q3 + q0 * q2)
+    c10 = 2.0 * (q1 * q2 + q0 * q3)
+    c11 = 1.0 - 2.0 * (q1 * q1 + q3 * q3)
+    c12 = 2.0 * (q2 * q3 - q0 * q1)
+    c20 = 2.0 * (q1 * q3 - q0 * q2)
+    c21 = 2.0 * (q2 * q3 + q0 * q1)
+    c22 = 1.0 - 2.0 * (q1 * q1 + q2 * q2)
+    lx = c00 * sx + c01 * sy + c02 * sz
+    ly = c10 * sx + c11 * sy + c12 * sz
+    lz = c20 * sx + c21 * sy + c22 * sz
+    vE0, vN0, vU0 = x[4], x[5], x[6]
+    lat0, lon0, h0 = x[7], x[8], x[9]
 
     # mid-interval position predicted with v0 (gravity, Earth rate, radii)
     rm, rn = radii(lat0)
-    h_m = h0 + 0.5 * dt * v0[2]
-    lat_m = lat0 + 0.5 * dt * v0[1] / (rm + h_m)
+    h_m = h0 + 0.5 * dt * vU0
+    lat_m = lat0 + 0.5 * dt * vN0 / (rm + h_m)
     rm, rn = radii(lat_m)
-    g = gravity_l(lat_m, h_m)
+    gN, gU = gravity_nu(lat_m, h_m)
     slat, clat = math.sin(lat_m), math.cos(lat_m)
     wie_n = OMEGA_E * clat
     wie_u = OMEGA_E * slat
     tlat = slat / clat
-    v_m = v0.copy()
-    v1 = np.empty(3)
-    zeta = np.empty(3)
-    for it in range(2):
-        wen_e = -v_m[1] / (rm + h_m)
-        wen_n = v_m[0] / (rn + h_m)
-        wen_u = v_m[0] * tlat / (rn + h_m)
-        zeta[0] = wen_e * dt
-        zeta[1] = (wie_n + wen_n) * dt
-        zeta[2] = (wie_u + wen_u) * dt
-        cz = _cross(zeta, dvl)
-        # Coriolis + transport: (2 w_ie + w_en) x v_m
-        w2 = np.empty(3)
-        w2[0] = wen_e
-        w2[1] = 2.0 * wie_n + wen_n
-        w2[2] = 2.0 * wie_u + wen_u
-        cor = _cross(w2, v_m)
-        for i in range(3):
-            v1[i] = v0[i] + dvl[i] - 0.5 * cz[i] + (g[i] - cor[i]) * dt
-        for i in range(3):
-            v_m[i] = 0.5 * (v0[i] + v1[i])
-        h_m = h0 + 0.5 * dt * (0.75 * v0[2] + 0.25 * v1[2])
+    vEm, vNm, vUm = vE0, vN0, vU0
+    vE1, vN1, vU1 = vE0, vN0, vU0
+    zx = zy = zz = 0.0
+    for _ in range(2):
+        wen_e = -vNm / (rm + h_m)
+        wen_n = vEm / (rn + h_m)
+        wen_u = vEm * tlat / (rn + h_m)
+        zx = wen_e * dt
+        zy = (wie_n + wen_n) * dt
+        zz = (wie_u + wen_u) * dt
+        # (I - [zeta x]/2) dv_l
+        czx = zy * lz - zz * ly
+        czy = zz * lx - zx * lz
+        czz = zx * ly - zy * lx
+        # (2 w_ie + w_en) x v_m
+        ax_, ay_, az_ = wen_e, 2.0 * wie_n + wen_n, 2.0 * wie_u + wen_u
+        corx = ay_ * vUm - az_ * vNm
+        cory = az_ * vEm - ax_ * vUm
+        corz = ax_ * vNm - ay_ * vEm
+        vE1 = vE0 + lx - 0.5 * czx - corx * dt
+        vN1 = vN0 + ly - 0.5 * czy + (gN - cory) * dt
+        vU1 = vU0 + lz - 0.5 * czz + (gU - corz) * dt
+        vEm = 0.5 * (vE0 + vE1)
+        vNm = 0.5 * (vN0 + vN1)
+        vUm = 0.5 * (vU0 + vU1)
+        h_m = h0 + 0.5 * dt * (0.75 * vU0 + 0.25 * vU1)
     # position (trapezoid)
-    h1 = h0 + dt * v_m[2]
-    lat1 = lat0 + dt * v_m[1] / (rm + h_m)
-    lon1 = lon0 + dt * v_m[0] / ((rn + h_m) * clat)
-    # attitude
-    q_bb = rotvec_to_quat(phi)
-    mz = np.empty(3)
-    for i in range(3):
-        mz[i] = -zeta[i]
-    q_ll = rotvec_to_quat(mz)
-    qn = quat_normalize(quat_mult(quat_mult(q_ll, q), q_bb))
-    for i in range(4):
-        x[i] = qn[i]
-    for i in range(3):
-        x[4 + i] = v1[i]
-        x[10 + i] = dtheta[i]
-        x[13 + i] = dv[i]
-    x[7] = lat1
-    x[8] = lon1
-    x[9] = h1
+    x[9] = h0 + dt * vUm
+    x[7] = lat0 + dt * vNm / (rm + h_m)
+    x[8] = lon0 + dt * vEm / ((rn + h_m) * clat)
+    x[4], x[5], x[6] = vE1, vN1, vU1
+    # attitude: q <- q(-zeta) * q * q(phi)
+    b0, b1, b2, b3 = _rv2q(fx, fy, fz)
+    l0, l1, l2, l3 = _rv2q(-zx, -zy, -zz)
+    r0, r1, r2, r3 = _qmul(q0, q1, q2, q3, b0, b1, b2, b3)
+    r0, r1, r2, r3 = _qmul(l0, l1, l2, l3, r0, r1, r2, r3)
+    nrm = 1.0 / math.sqrt(r0 * r0 + r1 * r1 + r2 * r2 + r3 * r3)
+    if r0 < 0.0:
+        nrm = -nrm
+    x[0], x[1], x[2], x[3] = r0 * nrm, r1 * nrm, r2 * nrm, r3 * nrm
+    x[10], x[11], x[12] = tx, ty, tz
+    x[13], x[14], x[15] = ux, uy, uz
     x[HAS_PREV] = 1.0
 
 

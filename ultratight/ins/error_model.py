@@ -1,0 +1,218 @@
+"""SINS error-state models (15 and 17 states) in the ENU local-level frame.
+
+Error state (all "estimated minus true"), named slices/indices:
+
+===========  =====  ==========================================================
+ATT          0:3    attitude error phi (rad, ENU), C_lb_est = (I - [phi x]) C_lb
+VEL          3:6    velocity error dv_l (m/s, ENU)
+POS          6:9    position error [dlat (rad), dlon (rad), dh (m)]
+BG           9:12   gyro bias (rad/s, body FLU): measured rate = true + BG
+BA           12:15  accelerometer bias (m/s^2, body FLU): measured f = true + BA
+CLK          15     receiver clock bias c*dt (m)              (17-state model only)
+DRIFT        16     receiver clock drift c*d(dt)/dt (m/s)     (17-state model only)
+===========  =====  ==========================================================
+
+Continuous model ``dx/dt = F x + G w`` with white noise ``w`` of power spectral
+density ``Qc`` (diagonal) ordered as NOISE_* below: gyro white noise (ARW, rad/sqrt(s)),
+accelerometer white noise (VRW, (m/s)/sqrt(s)), gyro-bias and accel-bias driving noise
+(first-order Gauss-Markov with correlation time tau, or random walk when tau = inf), and
+clock-bias / clock-drift white noise (17-state only).
+
+Equations (psi-angle form of the phi-angle model, Groves / Savage):
+    phi'  = -w_in x phi + dw_in - C_lb bg
+    dv'   = f_l x phi + v x (2 dw_ie + dw_en) - (2 w_ie + w_en) x dv + dg + C_lb ba
+    dlat' = dvN/(M+h) - vN dh/(M+h)^2
+    dlon' = dvE/((N+h) cos lat) + vE tan(lat) dlat/((N+h) cos lat) - vE dh/((N+h)^2 cos lat)
+    dh'   = dvU
+(derivatives of M, N w.r.t. latitude neglected; gravity partials from
+:func:`ultratight.ins.earth.gravity_l` by central differences).
+"""
+
+import math
+
+import numpy as np
+from scipy.linalg import expm
+
+from ultratight.constants import OMEGA_E
+from ultratight.ins.attitude import quat_mult, quat_normalize, quat_to_dcm, rotvec_to_quat
+from ultratight.ins.earth import gravity_l, radii
+
+ATT = slice(0, 3)
+VEL = slice(3, 6)
+POS = slice(6, 9)
+BG = slice(9, 12)
+BA = slice(12, 15)
+CLK = 15
+DRIFT = 16
+N15 = 15
+N17 = 17
+
+NOISE_GYRO = slice(0, 3)
+NOISE_ACCEL = slice(3, 6)
+NOISE_BG = slice(6, 9)
+NOISE_BA = slice(9, 12)
+NOISE_CLK = 12
+NOISE_DRIFT = 13
+NW15 = 12
+NW17 = 14
+
+
+def _skew(v):
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _as_dcm(att):
+    att = np.asarray(att, float)
+    return quat_to_dcm(att) if att.shape == (4,) else att
+
+
+def F_matrix(att, vel_l, llh, f_b, n_states=N15, tau_g=math.inf, tau_a=math.inf):
+    """Continuous-time error dynamics matrix F (n_states x n_states).
+
+    ``att``: q_lb (4,) or C_lb (3, 3); ``vel_l`` ENU m/s; ``llh`` [lat, lon, h];
+    ``f_b`` specific force in body (m/s^2; e.g. dv_b / dt); bias correlation times (s).
+    """
+    if n_states not in (N15, N17):
+        raise ValueError("n_states must be 15 or 17")
+    C = _as_dcm(att)
+    vE, vN, vU = vel_l
+    lat, h = llh[0], llh[2]
+    rm, rn = radii(lat)
+    sl, cl = math.sin(lat), math.cos(lat)
+    tl = sl / cl
+    Rm, Rn = rm + h, rn + h
+    w_ie = np.array([0.0, OMEGA_E * cl, OMEGA_E * sl])
+    w_en = np.array([-vN / Rm, vE / Rn, vE * tl / Rn])
+    w_in = w_ie + w_en
+    f_l = C @ np.asarray(f_b, float)
+    M1 = np.zeros((3, 3))            # d w_ie / d pos
+    M1[1, 0] = -OMEGA_E * sl
+    M1[2, 0] = OMEGA_E * cl
+    Mav = np.zeros((3, 3))           # d w_en / d vel
+    Mav[0, 1] = -1.0 / Rm
+    Mav[1, 0] = 1.0 / Rn
+    Mav[2, 0] = tl / Rn
+    M2 = np.zeros((3, 3))            # d w_en / d pos
+    M2[0, 2] = vN / Rm ** 2
+    M2[1, 2] = -vE / Rn ** 2
+    M2[2, 0] = vE / (Rn * cl * cl)
+    M2[2, 2] = -vE * tl / Rn ** 2
+    # gravity partials (central differences of the model used by the mechanisation)
+    dlat, dh = 1e-6, 1.0
+    Mg = np.zeros((3, 3))
+    Mg[:, 0] = (gravity_l(lat + dlat, h) - gravity_l(lat - dlat, h)) / (2 * dlat)
+    Mg[:, 2] = (gravity_l(lat, h + dh) - gravity_l(lat, h - dh)) / (2 * dh)
+    F = np.zeros((n_states, n_states))
+    F[ATT, ATT] = -_skew(w_in)
+    F[ATT, VEL] = Mav
+    F[ATT, POS] = M1 + M2
+    F[ATT, BG] = -C
+    F[VEL, ATT] = _skew(f_l)
+    F[VEL, VEL] = _skew(vel_l) @ Mav - _skew(2.0 * w_ie + w_en)
+    F[VEL, POS] = _skew(vel_l) @ (2.0 * M1 + M2) + Mg
+    F[VEL, BA] = C
+    F[6, 4] = 1.0 / Rm
+    F[6, 8] = -vN / Rm ** 2
+    F[7, 3] = 1.0 / (Rn * cl)
+    F[7, 6] = vE * tl / (Rn * cl)
+    F[7, 8] = -vE / (Rn * Rn * cl)
+    F[8, 5] = 1.0
+    if math.isfinite(tau_g):
+        F[BG, BG] = -np.eye(3) / tau_g
+    if math.isfinite(tau_a):
+        F[BA, BA] = -np.eye(3) / tau_a
+    if n_states == N17:
+        F[CLK, DRIFT] = 1.0
+    return F
+
+
+def G_matrix(att, n_states=N15):
+    """Noise input matrix G (n_states x 12 or 17 x 14), inputs ordered as NOISE_*."""
+    C = _as_dcm(att)
+    nw = NW15 if n_states == N15 else NW17
+    G = np.zeros((n_states, nw))
+    G[ATT, NOISE_GYRO] = -C
+    G[VEL, NOISE_ACCEL] = C
+    G[BG, NOISE_BG] = np.eye(3)
+    G[BA, NOISE_BA] = np.eye(3)
+    if n_states == N17:
+        G[CLK, NOISE_CLK] = 1.0
+        G[DRIFT, NOISE_DRIFT] = 1.0
+    return G
+
+
+def noise_psd(errors, n_states=N15, clock_psd=(0.0, 0.0)):
+    """Diagonal noise PSD Qc (vector) for :class:`ultratight.ins.imu.ImuErrors`.
+
+    Gauss-Markov bias with steady-state sigma and tau: driving PSD 2 sigma^2 / tau.
+    ``clock_psd`` = (S_b m^2/s, S_d m^2/s^3) for the 17-state model.
+    """
+    nw = NW15 if n_states == N15 else NW17
+    q = np.zeros(nw)
+    q[NOISE_GYRO] = np.asarray(errors.gyro_arw, float) ** 2
+    q[NOISE_ACCEL] = np.asarray(errors.accel_vrw, float) ** 2
+    if math.isfinite(errors.gyro_gm_tau):
+        q[NOISE_BG] = 2.0 * np.asarray(errors.gyro_gm_sigma, float) ** 2 / errors.gyro_gm_tau
+    if math.isfinite(errors.accel_gm_tau):
+        q[NOISE_BA] = 2.0 * np.asarray(errors.accel_gm_sigma, float) ** 2 / errors.accel_gm_tau
+    if n_states == N17:
+        q[NOISE_CLK], q[NOISE_DRIFT] = clock_psd
+    return q
+
+
+def discretize(F, G, Qc, dt):
+    """Van Loan discretisation: Phi = exp(F dt), Qd = int Phi G Qc G^T Phi^T (exact for constant F)."""
+    n = F.shape[0]
+    Qc = np.asarray(Qc, float)
+    GQG = G @ (np.diag(Qc) if Qc.ndim == 1 else Qc) @ G.T
+    A = np.zeros((2 * n, 2 * n))
+    A[:n, :n] = -F
+    A[:n, n:] = GQG
+    A[n:, n:] = F.T
+    B = expm(A * dt)
+    Phi = B[n:, n:].T
+    Qd = Phi @ B[:n, n:]
+    return Phi, 0.5 * (Qd + Qd.T)
+
+
+def discretize_taylor(F, G, Qc, dt):
+    """Second-order Taylor discretisation (fast; for small F dt)."""
+    n = F.shape[0]
+    Fd = F * dt
+    Phi = np.eye(n) + Fd + 0.5 * Fd @ Fd
+    Qc = np.asarray(Qc, float)
+    GQG = G @ (np.diag(Qc) if Qc.ndim == 1 else Qc) @ G.T
+    Qd = 0.5 * (Phi @ GQG + GQG @ Phi.T) * dt
+    return Phi, 0.5 * (Qd + Qd.T)
+
+
+def apply_feedback(x_sins, dx):
+    """Correct a SINS state (ultratight.ins.sins layout) in place with the estimated error state.
+
+    Attitude: C_lb <- (I + [phi x]) C_lb (exactly: q_lb <- q(phi) * q_lb); velocity and
+    position: subtract.  The bias / clock entries are not touched here: accumulate them into
+    the bias estimates used to compensate the increments (:func:`compensate_increments`).
+    Returns nothing; the caller zeroes the corresponding error-state entries (closed loop).
+    """
+    q = x_sins[0:4]
+    qn = quat_normalize(quat_mult(rotvec_to_quat(np.ascontiguousarray(dx[ATT], dtype=float)), q))
+    x_sins[0:4] = qn
+    x_sins[4:7] -= dx[VEL]
+    x_sins[7:10] -= dx[POS]
+
+
+def compensate_increments(dtheta, dv, bg, ba, dt):
+    """Remove estimated biases (rad/s, m/s^2) from increments: returns (dtheta - bg dt, dv - ba dt)."""
+    return dtheta - np.asarray(bg) * dt, dv - np.asarray(ba) * dt
+
+
+def true_error_state(q_est, vel_est, llh_est, q_true, vel_true, llh_true):
+    """Error state (ATT, VEL, POS parts; 9,) of an estimate against truth, same convention as F."""
+    C_e = quat_to_dcm(np.asarray(q_est, float))
+    C_t = quat_to_dcm(np.asarray(q_true, float))
+    from ultratight.ins.attitude import dcm_to_rotvec
+    dx = np.zeros(9)
+    dx[0:3] = dcm_to_rotvec(C_t @ C_e.T)
+    dx[3:6] = np.asarray(vel_est) - np.asarray(vel_true)
+    dx[6:9] = np.asarray(llh_est) - np.asarray(llh_true)
+    return dx
