@@ -1,0 +1,147 @@
+"""``ultratight process``: run the scalar receiver on an IF file (acquisition -> tracking -> PVT)."""
+
+import json
+import math
+import sys
+
+HELP = "run the scalar GPS receiver on an IF file: acquisition, tracking, LNAV decoding, observables, PVT"
+
+
+def _prn_list(text):
+    out = []
+    for part in str(text).split(","):
+        part = part.strip()
+        if not part:
+            continue
+        if "-" in part:
+            a, b = part.split("-", 1)
+            out.extend(range(int(a), int(b) + 1))
+        else:
+            out.append(int(part))
+    return out
+
+
+def add_arguments(p):
+    p.add_argument("iffile", metavar="IFFILE", help="IF sample file")
+    p.add_argument("--meta", metavar="SIDECAR", help="JSON sidecar or ION GNSS SDR metadata XML "
+                                                      "(default: IFFILE.json when present)")
+    p.add_argument("--fs", type=float, metavar="HZ", help="sampling rate (Hz)")
+    p.add_argument("--if", dest="if_hz", type=float, metavar="HZ", help="intermediate frequency (Hz), 0 = baseband")
+    p.add_argument("--format", dest="fmt", metavar="FMT",
+                   help="sample format: i8, i16, f32, ci8, ci16, cf32, i2packed, ci2packed")
+    p.add_argument("--iq-conj", action="store_true", help="read complex samples as I - jQ (inverted spectrum)")
+    p.add_argument("--ephemeris", metavar="RINEX", help="RINEX navigation file (default: decode from the signal)")
+    p.add_argument("--prn", metavar="LIST", help="PRNs to search, e.g. 1,3,7-12 (default: all 32)")
+    p.add_argument("--channels", type=int, default=8, metavar="N", help="tracking channels (default 8)")
+    p.add_argument("--duration", type=float, metavar="S", help="process only the first S seconds")
+    p.add_argument("--start", type=float, default=0.0, metavar="S", help="skip the first S seconds")
+    p.add_argument("--obs-rate", type=float, default=10.0, metavar="HZ",
+                   help="observables / PVT rate, 0.1-50 Hz (default 10)")
+    p.add_argument("--coh-ms", type=int, default=1, metavar="MS",
+                   help="coherent integration after bit sync: 1, 2, 4, 5, 10 or 20 ms (default 1)")
+    p.add_argument("--pll-bw", type=float, default=None, metavar="HZ", help="PLL noise bandwidth in track mode")
+    p.add_argument("--acq-min-cn0", type=float, default=42.0, metavar="DBHZ",
+                   help="declare an acquisition only at this C/N0 or above (default 42 dB-Hz)")
+    p.add_argument("--doppler-range", type=float, default=10e3, metavar="HZ",
+                   help="acquisition Doppler search half-width (default 10 kHz)")
+    p.add_argument("--mask", type=float, default=5.0, metavar="DEG", help="elevation mask (default 5 deg)")
+    p.add_argument("--out", metavar="OUT.h5", help="HDF5 output (schema in docs/process.md)")
+    p.add_argument("--csv", metavar="OUT.csv", help="also write the fixes as CSV")
+    p.add_argument("--kml", metavar="OUT.kml", help="also write the track as KML")
+    p.add_argument("--json", action="store_true", help="print one JSON summary object on stdout")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _jsonable(o):
+    import numpy as np
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return None if not np.isfinite(o) else float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, float) and not math.isfinite(o):
+        return None
+    return str(o)
+
+
+def _clean(o):
+    if isinstance(o, float) and not math.isfinite(o):
+        return None
+    if isinstance(o, dict):
+        return {k: _clean(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_clean(v) for v in o]
+    return o
+
+
+def run(args):
+    from ultratight.errors import ConfigError
+    from ultratight.signals.iffile import open_if
+    from ultratight.receiver.process import NoSignalError, ProcessConfig, process
+    from ultratight.receiver.tracking import TrackingConfig
+
+    if args.meta is None and (args.fs is not None or args.fmt is not None):
+        if args.fs is None or args.fmt is None:
+            raise ConfigError("give both --fs and --format (and --if, default 0) when the file has no sidecar")
+    if args.fs is not None and not (math.isfinite(args.fs) and args.fs > 0):
+        raise ConfigError(f"--fs must be a positive sampling rate in Hz, got {args.fs}")
+    if args.if_hz is not None and args.fs is not None and abs(args.if_hz) >= args.fs:
+        raise ConfigError(f"--if {args.if_hz} Hz must be smaller in magnitude than --fs {args.fs} Hz")
+    source = open_if(args.iffile, meta=args.meta, fs_hz=args.fs, if_hz=args.if_hz, fmt=args.fmt,
+                     iq_conj=args.iq_conj)
+    if source.n_samples == 0:
+        from ultratight.errors import InputFileError
+        raise InputFileError(f"{args.iffile}: the file holds no samples")
+    if not source.is_complex and source.if_hz == 0.0:
+        raise ConfigError(f"{args.iffile}: real samples need a non-zero --if (the IF of the front end)")
+    tcfg = TrackingConfig(coh_ms=args.coh_ms)
+    if args.pll_bw is not None:
+        tcfg.track_pll_bw_hz = args.pll_bw
+    cfg = ProcessConfig(n_channels=args.channels, prns=_prn_list(args.prn) if args.prn else None,
+                        duration_s=args.duration, start_s=args.start, obs_rate_hz=args.obs_rate,
+                        mask_deg=args.mask, acq_min_cn0_dbhz=args.acq_min_cn0,
+                        doppler_range_hz=args.doppler_range, tracking=tcfg)
+    eph = None
+    if args.ephemeris:
+        from ultratight.signals.rinex import read_rinex_nav
+        eph = read_rinex_nav(args.ephemeris)
+    progress = not args.no_progress and not args.json and sys.stderr.isatty()
+    run_config = {k: v for k, v in vars(args).items() if not k.startswith("_")}
+    try:
+        res = process(source, cfg, ephemerides=eph, out_path=args.out, csv_path=args.csv, kml_path=args.kml,
+                      progress=progress, run_config=run_config)
+    except NoSignalError as exc:
+        if args.json:
+            print(json.dumps({"acquired": [], "tracked": [], "fixes": 0, "first_fix_s": None,
+                              "position_ecef_m": None, "position_llh": None, "error": str(exc)}))
+        raise
+    except KeyboardInterrupt:
+        if args.out:
+            print(f"ultratight process: interrupted; partial output (complete=false) written to {args.out}",
+                  file=sys.stderr)
+        raise
+    summ = _clean(res.summary())
+    if args.json:
+        print(json.dumps(summ, default=_jsonable))
+    else:
+        _print_human(summ)
+    return 0
+
+
+def _print_human(s):
+    inp = s["input"]
+    print(f"input: {inp['path']} ({inp['format']}, fs {inp['fs_hz']:g} Hz, IF {inp['if_hz']:g} Hz)")
+    print("acquired: " + ", ".join(f"PRN {a['prn']} ({a['doppler_hz']:+.0f} Hz, {a['cn0_dbhz']:.1f} dB-Hz)"
+                                   for a in s["acquired"]))
+    print(f"tracked: {s['tracked']}")
+    for c in s["channels"]:
+        print(f"  PRN {c['prn']:2d}: locked {100 * c['locked_fraction']:.0f}%, C/N0 {c['cn0_dbhz']} dB-Hz, "
+              f"TOW at {c['tow_s']} s, ephemeris at {c['ephemeris_s']} s, losses {c['losses']}")
+    print(f"fixes: {s['fixes']}, first fix at {s['first_fix_s']} s")
+    if s["position_llh"]:
+        lat, lon, h = s["position_llh"]
+        print(f"median position: {lat:.7f} deg, {lon:.7f} deg, {h:.2f} m")
+    print(f"signal {s['signal_s']:.2f} s in {s['wall_s']:.2f} s (real-time factor {s['realtime_factor']})")
+    if s["out"]:
+        print(f"output: {s['out']}")

@@ -1,0 +1,121 @@
+"""Output files of ``ultratight process``: HDF5 (streamed, temp + rename), CSV and KML tracks.
+
+The HDF5 schema is documented in docs/process.md.  :class:`H5Stream` appends rows to resizable
+chunked datasets (memory use does not grow with the run length) in a temporary file next to the
+target and renames it only in :meth:`H5Stream.finish` (also for a partial run, whose root
+attribute ``complete`` is then False); :meth:`H5Stream.abort` removes the temporary file, so the
+target path never holds a half-written file.
+"""
+
+import json
+import os
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from ultratight import __version__
+from ultratight.errors import InputFileError
+
+CHUNK_ROWS = 4096
+
+
+def _tmp_path(path):
+    path = Path(path)
+    return path.with_name(f".{path.name}.part-{os.getpid()}")
+
+
+class H5Stream:
+    """Append-only HDF5 writer; ``append(dataset_path, rows)`` grows along axis 0."""
+
+    def __init__(self, path):
+        self.path = Path(path)
+        if self.path.parent and not self.path.parent.exists():
+            raise InputFileError(f"output directory does not exist: {self.path.parent}")
+        self.tmp = _tmp_path(self.path)
+        try:
+            self.f = h5py.File(self.tmp, "w")
+        except OSError as exc:
+            raise InputFileError(f"cannot create output {self.path}: {exc}") from None
+        self.f.attrs["version"] = __version__
+        self.f.attrs["complete"] = False
+
+    def append(self, name, rows):
+        rows = np.asarray(rows)
+        if rows.ndim == 0:
+            rows = rows[None]
+        if name in self.f:
+            ds = self.f[name]
+            n0 = ds.shape[0]
+            ds.resize(n0 + rows.shape[0], axis=0)
+            ds[n0:] = rows
+        else:
+            chunk = (min(CHUNK_ROWS, max(1, rows.shape[0] * 4)),) + rows.shape[1:]
+            self.f.create_dataset(name, data=rows, maxshape=(None,) + rows.shape[1:],
+                                  chunks=chunk if rows.shape[0] else (CHUNK_ROWS,) + rows.shape[1:])
+
+    def write(self, name, data, **attrs):
+        ds = self.f.create_dataset(name, data=data)
+        for k, v in attrs.items():
+            ds.attrs[k] = v
+        return ds
+
+    def attrs(self, name="/", **attrs):
+        obj = self.f.require_group(name) if name != "/" else self.f
+        for k, v in attrs.items():
+            if isinstance(v, (dict, list)):
+                v = json.dumps(v, default=str)
+            obj.attrs[k] = v
+
+    def finish(self, complete=True, **attrs):
+        """Close and rename to the target (complete or partial)."""
+        self.attrs(complete=bool(complete), **attrs)
+        self.f.flush()
+        self.f.close()
+        os.replace(self.tmp, self.path)
+
+    def abort(self):
+        try:
+            self.f.close()
+        except Exception:   # noqa: BLE001 - best effort cleanup
+            pass
+        try:
+            os.unlink(self.tmp)
+        except FileNotFoundError:
+            pass
+
+
+def _write_atomic(path, text):
+    path = Path(path)
+    tmp = _tmp_path(path)
+    with open(tmp, "w") as f:
+        f.write(text)
+    os.replace(tmp, path)
+
+
+def write_csv(path, pvt_rows):
+    """PVT fixes as CSV: time, position (ECEF and lat/lon/h), velocity, clock, DOP, satellites used."""
+    cols = ("t_s", "gps_week", "gps_tow_s", "x_m", "y_m", "z_m", "lat_deg", "lon_deg", "h_m", "vx_mps",
+            "vy_mps", "vz_mps", "clk_bias_m", "clk_drift_mps", "pdop", "n_used")
+    lines = [",".join(cols)]
+    for r in pvt_rows:
+        vals = [r["t_s"], r["gps_week"], r["gps_tow_s"], *r["pos_e"], *r["llh_deg"], *r["vel_e"],
+                r["clk_bias_m"], r["clk_drift_mps"], r["pdop"], r["n_used"]]
+        lines.append(",".join(f"{v:.10g}" if isinstance(v, float) else str(v) for v in vals))
+    _write_atomic(path, "\n".join(lines) + "\n")
+
+
+def write_kml(path, pvt_rows, name="ultratight track"):
+    """Positions as a KML LineString (lon,lat,h) plus the first point as a placemark."""
+    coords = " ".join(f"{r['llh_deg'][1]:.9f},{r['llh_deg'][0]:.9f},{r['llh_deg'][2]:.3f}" for r in pvt_rows)
+    first = pvt_rows[0]["llh_deg"] if pvt_rows else (0.0, 0.0, 0.0)
+    text = f"""<?xml version="1.0" encoding="UTF-8"?>
+<kml xmlns="http://www.opengis.net/kml/2.2">
+<Document><name>{name}</name>
+<Placemark><name>track</name><LineString><altitudeMode>absolute</altitudeMode>
+<coordinates>{coords}</coordinates></LineString></Placemark>
+<Placemark><name>first fix</name><Point><altitudeMode>absolute</altitudeMode>
+<coordinates>{first[1]:.9f},{first[0]:.9f},{first[2]:.3f}</coordinates></Point></Placemark>
+</Document></kml>
+"""
+    _write_atomic(path, text)

@@ -1,0 +1,515 @@
+"""The scalar receiver pipeline: IF blocks -> acquisition -> tracking channels -> LNAV -> observables -> PVT.
+
+:func:`process` runs on an opened :class:`ultratight.signals.iffile.IfSource` (or a path) and
+returns a :class:`ProcessResult`; it is what ``ultratight process`` runs and what the scenario
+runner's ``scalar`` method calls on generated IF files (``record_epochs=True`` keeps the
+per-channel, per-epoch Doppler / code phase estimates with their sample indices in memory:
+``result.epochs[prn]``).
+
+Streaming: the file is read in blocks of ``block_ms`` (default 100 ms), tracking runs in one
+numba call per block (:mod:`ultratight.receiver.tracking`), per-epoch series are appended to the
+HDF5 output as they come (nothing per-epoch is kept in memory unless ``record_epochs``), so the
+memory use does not depend on the file length.
+
+Receiver time: ``t_rx(s) = t0 + s/fs`` (receiver clock).  ``t0`` is set when the first channel
+knows its transmit time (``t0 = t_tx + 75 ms``) and is steered by the clock-bias estimate at the
+first fix (and whenever |bias| exceeds 1 ms); reported fix times are GPS time
+``t_rx - bias/c``.
+"""
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ultratight.constants import C, CA_LEN, LAMBDA_L1, T_CA
+from ultratight.errors import ConfigError, InputFileError, UltratightError
+from ultratight.receiver.navdecode import ChannelNav
+from ultratight.receiver.observables import ChannelHistory, observe, pseudorange
+from ultratight.receiver.pvt import solve_pvt
+from ultratight.receiver.tracking import (
+    FL_BIT_DONE, FL_PLL_LOCK, MODE_LOST, MODE_TRACK, N_RF, R_BIT, R_CN0, R_CODE_PHASE, R_DOPP,
+    REC_F_NAMES, REC_I_NAMES, RI_EPOCH, RI_FLAGS, RI_MODE, RI_PTR, S_MODE, ScalarTracker, TrackingConfig)
+
+RX_T0_OFFSET_S = 0.075       # initial guess of the signal travel time
+CLOCK_STEER_S = 1e-3         # re-steer the receiver time when |bias| exceeds this
+SIGMA_SAMPLES = 65536        # samples used per block for the noise-power estimate
+
+
+class NoSignalError(UltratightError):
+    """No satellite acquired in the file (wrong parameters, wrong I/Q convention, no signal)."""
+
+
+@dataclass
+class ProcessConfig:
+    n_channels: int = 8
+    prns: list | None = None
+    duration_s: float | None = None
+    start_s: float = 0.0
+    obs_rate_hz: float = 10.0
+    block_ms: int = 100
+    mask_deg: float = 5.0
+    doppler_range_hz: float = 10e3
+    acq_ms: int = 10
+    acq_pfa: float = 1e-3
+    acq_min_cn0_dbhz: float = 42.0      # declare a detection only at this acquisition C/N0 or above
+    doppler_window_s: float = 0.05      # half-width h of the centred Doppler difference
+    sigma_pr_m: float = 3.0
+    sigma_rr_mps: float = 0.05
+    reacquire: bool = True
+    reacq_retry_s: float = 1.0
+    record_epochs: bool = False
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+
+    def validate(self, source):
+        if not 1 <= int(self.n_channels) <= 32:
+            raise ConfigError(f"--channels must be in 1..32, got {self.n_channels}")
+        if not 0.1 <= self.obs_rate_hz <= 50.0:
+            raise ConfigError(f"observation rate must be in [0.1, 50] Hz, got {self.obs_rate_hz}")
+        if self.duration_s is not None and not self.duration_s > 0:
+            raise ConfigError(f"--duration must be > 0 s, got {self.duration_s}")
+        if self.start_s < 0:
+            raise ConfigError(f"start must be >= 0 s, got {self.start_s}")
+        if self.prns is not None:
+            for p in self.prns:
+                if not 1 <= int(p) <= 32:
+                    raise ConfigError(f"--prn: PRN must be in 1..32, got {p}")
+        if not 10 <= self.block_ms <= 1000:
+            raise ConfigError(f"block_ms must be in [10, 1000], got {self.block_ms}")
+        if self.doppler_window_s * self.obs_rate_hz > 0.5 + 1e-9:
+            self.doppler_window_s = 0.5 / self.obs_rate_hz
+        if self.doppler_range_hz >= 0.5 * source.fs_hz:
+            self.doppler_range_hz = 0.45 * source.fs_hz
+        self.tracking.validate()
+
+
+@dataclass
+class ProcessResult:
+    input: dict
+    acquisition: list                  # AcqResult of every PRN searched
+    channels: list                     # per channel dict: prn, locked_fraction, losses, tow_s, eph_s ...
+    fixes: list                        # per fix dict (see docs/process.md)
+    observations: list                # per obs epoch dict (compact)
+    signal_s: float = 0.0
+    wall_s: float = 0.0
+    interrupted: bool = False
+    out_path: str | None = None
+    epochs: dict = field(default_factory=dict)   # prn -> dict of arrays (record_epochs)
+
+    @property
+    def realtime_factor(self):
+        return self.wall_s / self.signal_s if self.signal_s > 0 else float("nan")
+
+    @property
+    def first_fix_s(self):
+        return self.fixes[0]["t_s"] if self.fixes else None
+
+    def position_median(self):
+        if not self.fixes:
+            return None, None
+        from ultratight.ins.earth import ecef_to_llh
+        pos = np.median(np.array([f["pos_e"] for f in self.fixes]), axis=0)
+        llh = ecef_to_llh(pos.copy())
+        return pos, [math.degrees(llh[0]), math.degrees(llh[1]), float(llh[2])]
+
+    def summary(self):
+        pos, llh = self.position_median()
+        tracked = [c["prn"] for c in self.channels if c["tracked"]]
+        return {
+            "input": self.input,
+            "acquired": [{"prn": a.prn, "doppler_hz": round(a.doppler_hz, 2),
+                          "code_phase_chips": round(a.code_phase_chips, 3),
+                          "cn0_dbhz": round(a.cn0_dbhz, 2), "metric": round(a.metric, 2)}
+                         for a in self.acquisition if a.detected],
+            "detected_below_cn0_floor": [{"prn": a.prn, "doppler_hz": round(a.doppler_hz, 2),
+                                          "cn0_dbhz": round(a.cn0_dbhz, 2), "metric": round(a.metric, 2)}
+                                         for a in self.acquisition if getattr(a, "weak", False)],
+            "tracked": tracked,
+            "channels": self.channels,
+            "fixes": len(self.fixes),
+            "first_fix_s": self.first_fix_s,
+            "position_ecef_m": None if pos is None else [float(v) for v in pos],
+            "position_llh": llh,
+            "velocity_ecef_mps": (None if not self.fixes else
+                                  [float(v) for v in np.median([f["vel_e"] for f in self.fixes], axis=0)]),
+            "signal_s": self.signal_s,
+            "wall_s": round(self.wall_s, 3),
+            "realtime_factor": round(self.realtime_factor, 4) if self.signal_s > 0 else None,
+            "interrupted": self.interrupted,
+            "out": self.out_path,
+        }
+
+
+def _eph_lookup(ephemerides):
+    """Normalise --ephemeris input to a function (prn, week, tow) -> Ephemeris | None."""
+    if ephemerides is None:
+        return lambda prn, week, tow: None
+    if hasattr(ephemerides, "select"):
+        def f(prn, week, tow):
+            if week is None:
+                lst = ephemerides.ephemerides.get(int(prn), [])
+                if not lst:
+                    return None
+                week = lst[len(lst) // 2].week
+            return ephemerides.select(prn, week, tow)
+        return f
+    return lambda prn, week, tow: ephemerides.get(int(prn))
+
+
+def _acquire(source, cfg, start_sample):
+    from ultratight.receiver.acquisition import acquire
+    avail_ms = int((source.n_samples - start_sample) / source.fs_hz * 1000.0)
+    if avail_ms < 1:
+        raise InputFileError(f"{source.path}: only {source.n_samples - start_sample} samples "
+                             f"({(source.n_samples - start_sample) / source.fs_hz * 1e3:.3f} ms) from the start "
+                             f"sample; need at least 1 ms (one C/A period) to acquire")
+    nc = max(1, min(int(cfg.acq_ms), avail_ms - 1 if avail_ms > 1 else 1))
+    prns = cfg.prns if cfg.prns else None
+    return acquire(source, prns=prns, doppler_range_hz=cfg.doppler_range_hz, noncoherent=nc,
+                   pfa=cfg.acq_pfa, start_sample=start_sample)
+
+
+def process(source, config=None, ephemerides=None, out_path=None, csv_path=None, kml_path=None,
+            progress=False, run_config=None):
+    """Run the scalar receiver on ``source`` (IfSource or path); returns a :class:`ProcessResult`.
+
+    ``ephemerides``: None (decode from the signal), a RINEX :class:`NavData` or dict prn ->
+    Ephemeris.  ``out_path``: HDF5 output (schema in docs/process.md).  KeyboardInterrupt stops
+    the run, writes a partial output (root attribute ``complete = False``) and re-raises.
+    """
+    from ultratight.signals.ephemeris import sat_state
+    from ultratight.signals.iffile import open_if
+    from ultratight.receiver.outputs import H5Stream, write_csv, write_kml
+
+    if not hasattr(source, "read"):
+        source = open_if(source)
+    cfg = config or ProcessConfig()
+    cfg.validate(source)
+    fs = source.fs_hz
+    start_sample = int(round(cfg.start_s * fs))
+    stop = source.n_samples if cfg.duration_s is None else min(source.n_samples,
+                                                                 start_sample + int(round(cfg.duration_s * fs)))
+    if stop - start_sample < int(fs * T_CA) + 2:
+        raise InputFileError(f"{source.path}: {max(0, stop - start_sample)} samples to process "
+                             f"(< one 1 ms C/A period at fs = {fs} Hz)")
+    eph_of = _eph_lookup(ephemerides)
+    input_info = {"path": str(source.path), "format": source.fmt, "fs_hz": fs, "if_hz": source.if_hz,
+                  "is_complex": source.is_complex, "iq_conj": bool(getattr(source, "_conj", False)),
+                  "n_samples": int(source.n_samples), "start_week": source.start_week,
+                  "start_tow_s": source.start_tow_s}
+    t_wall0 = time.perf_counter()
+    acq = _acquire(source, cfg, start_sample)
+    for a in acq:
+        if a.detected and not (a.cn0_dbhz >= cfg.acq_min_cn0_dbhz):
+            a.weak = True                # passed the false-alarm test, below the C/N0 floor
+            a.detected = False
+    found = sorted([a for a in acq if a.detected], key=lambda a: -a.metric)
+    if not found:
+        raise NoSignalError(
+            f"no satellites acquired in {source.path} (format {source.fmt}, fs {fs:g} Hz, IF {source.if_hz:g} Hz, "
+            f"{'complex' if source.is_complex else 'real'} samples, iq_conj={input_info['iq_conj']}, "
+            f"Doppler +-{cfg.doppler_range_hz:g} Hz, {min(cfg.acq_ms, int((stop - start_sample) / fs * 1e3))} ms, "
+            f"C/N0 floor {cfg.acq_min_cn0_dbhz:g} dB-Hz; below the floor: "
+            f"{[a.prn for a in acq if getattr(a, 'weak', False)] or 'none'}). "
+            f"Hint: check --fs/--if/--format; for complex files try --iq-conj (I - jQ spectrum inversion); "
+            f"for real files check the IF sign/LO side")
+    found = found[:cfg.n_channels]
+    n_ch = len(found)
+    block_len = int(round(cfg.block_ms * 1e-3 * fs))
+    margin = int(math.ceil(2.2e-3 * fs))
+    tracker = ScalarTracker(n_ch, fs, source.if_hz, source.is_complex, cfg.tracking,
+                            max_rows=int(cfg.block_ms * 1.1) + 8)
+    ref_week = source.start_week
+    navs, hists = [], []
+    chinfo = []
+    for ch, a in enumerate(found):
+        tracker.start_channel(ch, a.prn, a.code_phase_chips, a.doppler_hz, a.sample_index)
+        navs.append(ChannelNav(a.prn, ref_week=ref_week))
+        hists.append(ChannelHistory(fs))
+        chinfo.append({"prn": a.prn, "epochs": 0, "locked_epochs": 0, "losses": 0, "reacquisitions": 0,
+                       "tow_s": None, "ephemeris_s": None, "cn0_dbhz": None, "tracked": False,
+                       "next_retry": None})
+    epochs = {}
+    if cfg.record_epochs:
+        for a in found:
+            epochs[a.prn] = {k: [] for k in ("sample_index", "epoch", "doppler_hz", "code_phase_chips",
+                                             "cn0_dbhz", "mode", "flags")}
+
+    writer = H5Stream(out_path) if out_path else None
+    fixes, observations = [], []
+    obs_step = fs / cfg.obs_rate_hz
+    h_samp = int(round(cfg.doppler_window_s * fs))
+    k_obs = int(math.ceil((start_sample + h_samp + 1) / obs_step))
+    rx_t0 = None                 # receiver time of sample 0 (s of week)
+    last_x = None
+    week_known = ref_week
+    result = ProcessResult(input_info, acq, [], fixes, observations, out_path=str(out_path) if out_path else None,
+                           epochs=epochs)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=round((stop - start_sample) / fs, 1), unit="s", desc="process",
+                   bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.1f}/{total:.1f} s signal "
+                              "[{elapsed}<{remaining}{postfix}]", leave=False)
+    done_s = 0.0
+
+    def write_acq():
+        if writer is None:
+            return
+        writer.write("acquisition/prn", np.array([a.prn for a in acq], dtype=np.int16))
+        writer.write("acquisition/doppler_hz", np.array([a.doppler_hz for a in acq]))
+        writer.write("acquisition/code_phase_chips", np.array([a.code_phase_chips for a in acq]))
+        writer.write("acquisition/cn0_dbhz", np.array([a.cn0_dbhz for a in acq]))
+        writer.write("acquisition/metric", np.array([a.metric for a in acq]))
+        writer.write("acquisition/threshold", np.array([a.threshold for a in acq]))
+        writer.write("acquisition/detected", np.array([a.detected for a in acq]))
+        writer.write("acquisition/sample_index", np.array([a.sample_index for a in acq], dtype=np.int64))
+
+    def do_obs(s_obs):
+        nonlocal rx_t0, last_x, week_known
+        obs = [observe(hists[ch], navs[ch], s_obs, h_samp) for ch in range(n_ch)]
+        ttx = np.array([o["t_tx_sv"] if o is not None else np.nan for o in obs])
+        if rx_t0 is None:
+            if not np.isfinite(ttx).any():
+                return
+            rx_t0 = float(np.nanmax(ttx)) + RX_T0_OFFSET_S - s_obs / fs
+        t_rx = rx_t0 + s_obs / fs
+        pr = pseudorange(t_rx, ttx)
+        row = {"sample_index": int(s_obs), "t_s": (s_obs - start_sample) / fs, "t_rx": t_rx,
+               "prn": [c["prn"] for c in chinfo],
+               "pseudorange_m": pr, "doppler_hz": np.array([o["doppler_hz"] if o else np.nan for o in obs]),
+               "carrier_cycles": np.array([o["carrier_cycles"] if o else np.nan for o in obs]),
+               "cn0_dbhz": np.array([o["cn0_dbhz"] if o else np.nan for o in obs]),
+               "code_phase_chips": np.array([o["code_phase_chips"] if o else np.nan for o in obs]),
+               "pll_lock": np.array([bool(o and o["pll_lock"]) for o in obs])}
+        observations.append({k: row[k] for k in ("t_s", "sample_index")})
+        if writer is not None:
+            writer.append("observables/sample_index", np.array([s_obs], dtype=np.int64))
+            writer.append("observables/t_s", np.array([row["t_s"]]))
+            writer.append("observables/t_rx_tow_s", np.array([t_rx]))
+            for k in ("pseudorange_m", "doppler_hz", "carrier_cycles", "cn0_dbhz", "code_phase_chips"):
+                writer.append(f"observables/{k}", row[k][None, :])
+            writer.append("observables/pll_lock", row["pll_lock"][None, :])
+        # satellite states
+        n = n_ch
+        sp = np.full((n, 3), np.nan)
+        sv = np.full((n, 3), np.nan)
+        prc = np.full(n, np.nan)
+        rr = np.full(n, np.nan)
+        for ch in range(n):
+            o = obs[ch]
+            if o is None or not np.isfinite(ttx[ch]) or not o["pll_lock"]:
+                continue
+            if week_known is None and navs[ch].decoder.week is not None:
+                week_known = navs[ch].decoder.week
+            eph = eph_of(chinfo[ch]["prn"], week_known, ttx[ch])
+            if eph is None:
+                eph = navs[ch].ephemeris
+            if eph is None:
+                continue
+            from ultratight.signals.ephemeris import sat_clock
+            dts, _ = sat_clock(eph, ttx[ch])
+            t_gps = ttx[ch] - float(dts)
+            p_, v_, clk, drift = sat_state(eph, t_gps)
+            sp[ch] = p_[0]
+            sv[ch] = v_[0]
+            prc[ch] = pr[ch] + C * float(clk[0])
+            rr[ch] = -LAMBDA_L1 * o["doppler_hz"] + C * float(drift[0])
+        if np.isfinite(prc).sum() < 4:
+            return
+        sol = solve_pvt(sp, prc, sv, rr, sigma_pr_m=cfg.sigma_pr_m, sigma_rr_mps=cfg.sigma_rr_mps,
+                        x0=last_x, mask_deg=cfg.mask_deg)
+        if not sol.valid or sol.vel_e is None:
+            return
+        if last_x is None or abs(sol.clk_bias_m) > CLOCK_STEER_S * C:
+            # steer the receiver time scale to GPS time and re-solve on the next epoch
+            rx_t0 -= sol.clk_bias_m / C
+            last_x = np.r_[sol.pos_e, 0.0]
+            return
+        last_x = np.r_[sol.pos_e, sol.clk_bias_m]
+        llh_deg = [math.degrees(sol.llh[0]), math.degrees(sol.llh[1]), float(sol.llh[2])]
+        fix = {"t_s": row["t_s"], "sample_index": int(s_obs), "gps_week": week_known,
+               "gps_tow_s": t_rx - sol.clk_bias_m / C, "pos_e": sol.pos_e, "vel_e": sol.vel_e,
+               "llh_deg": llh_deg, "clk_bias_m": sol.clk_bias_m, "clk_drift_mps": sol.clk_drift_mps,
+               "pdop": sol.dops.get("pdop", float("nan")), "gdop": sol.dops.get("gdop", float("nan")),
+               "hdop": sol.dops.get("hdop", float("nan")), "vdop": sol.dops.get("vdop", float("nan")),
+               "n_used": int(sol.used.sum()), "raim_ok": sol.raim_ok,
+               "excluded_prn": [chinfo[j]["prn"] for j in sol.excluded],
+               "used_prn": [chinfo[j]["prn"] for j in np.flatnonzero(sol.used)],
+               "cov_pos_clk": sol.cov_pos_clk, "cov_vel_drift": sol.cov_vel_drift}
+        fixes.append(fix)
+        if writer is not None:
+            writer.append("pvt/t_s", np.array([fix["t_s"]]))
+            writer.append("pvt/sample_index", np.array([s_obs], dtype=np.int64))
+            writer.append("pvt/gps_tow_s", np.array([fix["gps_tow_s"]]))
+            writer.append("pvt/pos_e", sol.pos_e[None, :])
+            writer.append("pvt/vel_e", sol.vel_e[None, :])
+            writer.append("pvt/llh_deg", np.array([llh_deg]))
+            writer.append("pvt/clk_bias_m", np.array([sol.clk_bias_m]))
+            writer.append("pvt/clk_drift_mps", np.array([sol.clk_drift_mps]))
+            writer.append("pvt/cov_pos_clk", sol.cov_pos_clk[None])
+            writer.append("pvt/cov_vel_drift", sol.cov_vel_drift[None])
+            writer.append("pvt/dop", np.array([[fix["gdop"], fix["pdop"], fix["hdop"], fix["vdop"]]]))
+            writer.append("pvt/n_used", np.array([fix["n_used"]], dtype=np.int16))
+            writer.append("pvt/raim_ok", np.array([sol.raim_ok]))
+            used = np.zeros(n_ch, dtype=bool)
+            used[sol.used] = True
+            writer.append("pvt/used", used[None, :])
+
+    def reacquire(ch, now_sample):
+        from ultratight.receiver.acquisition import acquire
+        info = chinfo[ch]
+        if info["next_retry"] is not None and now_sample < info["next_retry"]:
+            return
+        n_need = int(fs * 1e-3 * 10) + 1
+        if now_sample + n_need >= stop:
+            return
+        last_d = float(tracker.state.sf[ch, 0])
+        res = acquire(source, prns=[info["prn"]], doppler_center_hz=last_d,
+                      doppler_range_hz=min(1000.0, 0.45 * fs - abs(last_d)), noncoherent=10,
+                      pfa=cfg.acq_pfa, start_sample=int(now_sample))[0]
+        if res.detected:
+            tracker.start_channel(ch, info["prn"], res.code_phase_chips, res.doppler_hz, res.sample_index)
+            navs[ch].reset()
+            info["reacquisitions"] += 1
+            info["next_retry"] = None
+        else:
+            info["next_retry"] = now_sample + int(cfg.reacq_retry_s * fs)
+
+    complete = False
+    try:
+        write_acq()
+        while True:
+            s = tracker.next_needed_sample()
+            if s is None:
+                # every channel lost: try re-acquiring at the furthest point reached
+                far = max((h.end_sample for h in hists), default=start_sample)
+                if not cfg.reacquire or far + margin >= stop:
+                    break
+                nxt = min((c["next_retry"] or far) for c in chinfo)
+                for ch in range(n_ch):
+                    reacquire(ch, max(far, nxt))
+                if tracker.next_needed_sample() is None:
+                    if all(c["next_retry"] is not None and c["next_retry"] + margin >= stop for c in chinfo):
+                        break
+                    continue
+                s = tracker.next_needed_sample()
+            if s + margin >= stop:
+                break
+            n_read = min(block_len + margin, stop - s)
+            buf = source.read(s, n_read)
+            if buf.shape[0] < margin:
+                break
+            sub = buf[:SIGMA_SAMPLES]
+            if source.is_complex:
+                xc = sub - sub.mean()
+                sigma_arm = math.sqrt(float(np.mean(xc.real ** 2 + xc.imag ** 2)) / 2.0)
+            else:
+                sigma_arm = float(np.std(sub)) / math.sqrt(2.0)
+            if not sigma_arm > 0:
+                sigma_arm = 1.0
+            rf, ri, nr = tracker.run(buf, s, sigma_arm, stop_sample=stop)
+            for ch in range(n_ch):
+                m = int(nr[ch])
+                if m == 0:
+                    continue
+                f_ch, i_ch = rf[ch, :m], ri[ch, :m]
+                hists[ch].append(f_ch, i_ch)
+                info = chinfo[ch]
+                info["epochs"] += m
+                info["locked_epochs"] += int(np.count_nonzero(i_ch[:, RI_FLAGS] & FL_PLL_LOCK))
+                if writer is not None:
+                    g = f"tracking/prn{info['prn']:02d}"
+                    for j, name in enumerate(REC_I_NAMES):
+                        writer.append(f"{g}/{name}", i_ch[:, j])
+                    for j, name in enumerate(REC_F_NAMES):
+                        writer.append(f"{g}/{name}", f_ch[:, j])
+                if cfg.record_epochs:
+                    e = epochs[info["prn"]]
+                    e["sample_index"].append(i_ch[:, RI_PTR].copy())
+                    e["epoch"].append(i_ch[:, RI_EPOCH].copy())
+                    e["doppler_hz"].append(f_ch[:, R_DOPP].copy())
+                    e["code_phase_chips"].append(f_ch[:, R_CODE_PHASE].copy())
+                    e["cn0_dbhz"].append(f_ch[:, R_CN0].copy())
+                    e["mode"].append(i_ch[:, RI_MODE].copy())
+                    e["flags"].append(i_ch[:, RI_FLAGS].copy())
+                bits = np.flatnonzero(i_ch[:, RI_FLAGS] & FL_BIT_DONE)
+                if bits.size:
+                    now_ep = int(i_ch[-1, RI_EPOCH])
+                    navs[ch].feed(f_ch[bits, R_BIT], i_ch[bits, RI_EPOCH] - 19, now_ep)
+                    t_now = (int(i_ch[-1, RI_PTR]) - start_sample) / fs
+                    if info["tow_s"] is None and navs[ch].has_time:
+                        info["tow_s"] = t_now
+                    if info["ephemeris_s"] is None and navs[ch].ephemeris is not None:
+                        info["ephemeris_s"] = t_now
+                if tracker.state.si[ch, S_MODE] == MODE_LOST:
+                    info["losses"] += 1
+                    tracker.stop_channel(ch)
+                    tracker.state.si[ch, S_MODE] = MODE_LOST
+            if cfg.reacquire:
+                for ch in range(n_ch):
+                    if not tracker.active[ch] and tracker.state.si[ch, S_MODE] == MODE_LOST:
+                        reacquire(ch, hists[ch].end_sample if hists[ch].end_sample > 0 else s)
+            # observation epochs fully covered by every active channel
+            ends = [hists[ch].end_sample for ch in range(n_ch) if tracker.active[ch]]
+            limit = min(ends) if ends else max(h.end_sample for h in hists)
+            while True:
+                s_obs = int(round(k_obs * obs_step))
+                if s_obs + h_samp + 1 >= limit:
+                    break
+                do_obs(s_obs)
+                k_obs += 1
+            new_done = (max(h.end_sample for h in hists) - start_sample) / fs
+            if bar is not None and new_done > done_s:
+                bar.update(round(new_done - done_s, 3))
+                el = time.perf_counter() - t_wall0
+                bar.set_postfix_str(f"rtf {el / max(new_done, 1e-9):.3f}, fixes {len(fixes)}", refresh=False)
+            done_s = max(done_s, new_done)
+        complete = True
+    except KeyboardInterrupt:
+        result.interrupted = True
+        raise
+    finally:
+        if bar is not None:
+            bar.close()
+        result.signal_s = max(done_s, 0.0)
+        result.wall_s = time.perf_counter() - t_wall0
+        for ch, info in enumerate(chinfo):
+            info["locked_fraction"] = round(info["locked_epochs"] / info["epochs"], 4) if info["epochs"] else 0.0
+            info["tracked"] = bool(info["locked_fraction"] >= 0.5 or
+                                   (tracker.active[ch] and tracker.state.si[ch, S_MODE] == MODE_TRACK))
+            cn = tracker.state.cn0_dbhz(ch)
+            info["cn0_dbhz"] = None if not np.isfinite(cn) else round(cn, 2)
+            info.pop("next_retry", None)
+        result.channels = chinfo
+        if cfg.record_epochs:
+            for prn, e in epochs.items():
+                for k in list(e):
+                    e[k] = np.concatenate(e[k]) if e[k] else np.zeros(0)
+        if writer is not None:
+            try:
+                if complete or result.interrupted:
+                    _finish_writer(writer, result, cfg, run_config)
+                else:
+                    writer.abort()
+            except Exception:
+                writer.abort()
+                raise
+        if complete:
+            if csv_path:
+                write_csv(csv_path, fixes)
+            if kml_path:
+                write_kml(kml_path, fixes)
+    return result
+
+
+def _finish_writer(writer, result, cfg, run_config):
+    from dataclasses import asdict
+    conf = asdict(cfg)
+    writer.attrs("/", config=conf, run_config=run_config or {}, input=result.input,
+                 signal_s=result.signal_s, wall_s=result.wall_s, interrupted=result.interrupted)
+    for c in result.channels:
+        writer.attrs(f"tracking/prn{c['prn']:02d}", **{k: (-1 if v is None else v) for k, v in c.items()
+                                                       if k != "prn"}, prn=c["prn"])
+    writer.finish(complete=not result.interrupted, summary=result.summary())
