@@ -63,7 +63,7 @@ from fractions import Fraction
 
 import numpy as np
 import scipy.fft
-from scipy.stats import chi2
+from scipy.special import gammainccinv
 
 from ultratight.constants import CA_LEN, F_CA, F_L1
 from ultratight.errors import ConfigError
@@ -90,6 +90,7 @@ class AcqResult:
     sample_index: int          # absolute sample index the code phase refers to
     doppler_coarse_hz: float = math.nan
     n_doppler_bins: int = 0
+    k_eff: float = math.nan    # effective non-coherent sums of the noise cells (<= noncoherent)
 
 
 def _check_int(name, value, lo, hi):
@@ -175,12 +176,13 @@ def cell_threshold(pfa, n_cells, noncoherent):
     ``chi2(2K)/(2K)`` with ``K = noncoherent``.
     """
     pfa_cell = -math.expm1(math.log1p(-pfa) / n_cells)
-    return float(chi2.isf(pfa_cell, 2 * noncoherent) / (2 * noncoherent))
+    # chi2.isf(p, 2K) / (2K) = gammainccinv(K, p) / K  (scipy.stats is slow to import)
+    return float(gammainccinv(noncoherent, pfa_cell) / noncoherent)
 
 
 def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=None, doppler_range_hz=10e3,
             doppler_center_hz=0.0, coherent_ms=1, noncoherent=10, pfa=1e-3, bin_fraction=Fraction(2, 3),
-            start_sample=0, exclude_chips=2.0, refine=True, workers=-1):
+            start_sample=0, exclude_chips=2.0, refine=True, decimate_to_hz=4.0e6, workers=-1):
     """Search PRNs for GPS L1 C/A signals; returns a list of :class:`AcqResult` (one per PRN, in order).
 
     Parameters
@@ -197,6 +199,11 @@ def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=Non
     pfa : false-alarm probability per PRN search (0 < pfa < 1).
     bin_fraction : Doppler bin width as a fraction p/q of the FFT bin fs/N (default 2/3).
     start_sample : absolute index of the first sample used.
+    exclude_chips : half-width (chips) of the code-phase region around the peak left out of the noise floor.
+    refine : fine Doppler, code phase and C/N0 for detected PRNs.
+    decimate_to_hz : when fs >= 2 * decimate_to_hz, the search runs on the baseband signal summed over
+        D = floor(fs / decimate_to_hz) samples (boxcar low-pass, loss < 0.5 dB); None or 0 disables.
+    workers : scipy.fft worker threads (-1: all cores).
     """
     coherent_ms = _check_int("coherent_ms", coherent_ms, 1, MAX_COHERENT_MS)
     noncoherent = _check_int("noncoherent", noncoherent, 1, 100000)
@@ -236,8 +243,24 @@ def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=Non
 
     sigma_arm = _sigma_arm(x, is_complex)
     xb = _to_baseband(x, fs_hz, if_hz, is_complex)
-    blocks = xb.reshape(noncoherent, n_coh)
-    fft_bin = fs_hz / n_coh
+    # high sampling rates: boxcar low-pass + decimation by D for the search (refinement uses full rate)
+    dec = int(fs_hz // decimate_to_hz) if (decimate_to_hz and fs_hz >= 2.0 * decimate_to_hz) else 1
+    fs_s = fs_hz / dec
+    n_s = int(round(fs_s * coherent_ms * 1e-3))
+    if dec > 1:
+        n_use = (n_needed // dec // n_s) * n_s * dec
+        xs = xb[:n_use].reshape(-1, dec).sum(axis=1)
+        xs = xs[:n_s * noncoherent]
+        if xs.shape[0] < n_s * noncoherent:
+            raise ConfigError("acquire: block too short after decimation")
+    else:
+        xs = xb
+    blocks = xs.reshape(noncoherent, n_s)
+    sigma_dec = sigma_arm if dec == 1 else _sigma_arm(xs, True)
+    # a decimated sample j averages input samples j*D .. j*D+D-1, centred (D-1)/2 samples later
+    t_centre_chips = 0.5 * (dec - 1) * F_CA / fs_hz
+    n_coh = n_s
+    fft_bin = fs_s / n_coh
     step = float(frac) * fft_bin
     p_num, q_den = frac.numerator, frac.denominator
     # mixed block spectra for the q fractional offsets r/q of an FFT bin
@@ -249,9 +272,9 @@ def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=Non
         else:
             mix = np.exp(-2j * np.pi * (r / q_den) * n_idx / n_coh).astype(np.complex64)
             base.append(scipy.fft.fft(blocks * mix, axis=1, workers=workers))
-    code_spec = _code_spectra(fs_hz, n_coh, coherent_ms)
-    period = fs_hz * coherent_ms * 1e-3          # samples per coherent_ms code periods (may be fractional)
-    exclude = int(math.ceil(exclude_chips * fs_hz / F_CA))
+    code_spec = _code_spectra(fs_s, n_coh, coherent_ms)
+    period = fs_s * coherent_ms * 1e-3           # samples per coherent_ms code periods (may be fractional)
+    exclude = int(math.ceil(exclude_chips * fs_s / F_CA))
     results = []
     for prn in prns:
         j_lo = math.ceil((ctr_hz[prn] - rng_hz[prn]) / step - 1e-9)
@@ -263,25 +286,30 @@ def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=Non
         peak = float(surf[jrow, m])
         lag = (np.arange(n_coh) - m + n_coh // 2) % n_coh - n_coh // 2
         keep = np.abs(lag) > exclude
-        floor_ = float(surf[:, keep].mean())
+        noise_cells = surf[:, keep]
+        floor_ = float(noise_cells.mean(dtype=np.float64))
         metric = peak / floor_
+        # effective number of non-coherent sums from the cells' own dispersion (moment matching)
+        disp = float(noise_cells.var(dtype=np.float64)) / floor_ ** 2
+        k_eff = float(min(noncoherent, 1.0 / disp)) if disp > 0 else float(noncoherent)
         n_cells = surf.size
-        thr = cell_threshold(float(pfa), n_cells, noncoherent)
+        thr = cell_threshold(float(pfa), n_cells, k_eff)
         # parabolic interpolation (Doppler, lag)
         dj = _parabolic(surf[jrow - 1, m] if jrow > 0 else None, peak,
                         surf[jrow + 1, m] if jrow + 1 < surf.shape[0] else None)
         dm = _parabolic(surf[jrow, (m - 1) % n_coh], peak, surf[jrow, (m + 1) % n_coh])
         fd_coarse = float(js[jrow] * step)
         fd = fd_coarse + dj * step
-        code_phase = (-(m + dm) * F_CA / fs_hz) % CA_LEN
+        code_phase = (-(m + dm) * F_CA / fs_s) % CA_LEN
         detected = metric > thr
         cn0 = math.nan
         if detected and refine:
-            fd, code_phase, cn0 = _refine(xb, fs_hz, prn, fd, code_phase, sigma_arm)
+            fd, code_phase, cn0 = _refine(xs, fs_s, prn, fd, code_phase, sigma_dec)
+        code_phase = (code_phase - t_centre_chips) % CA_LEN
         results.append(AcqResult(prn=prn, doppler_hz=float(fd), code_phase_chips=float(code_phase),
                                  cn0_dbhz=float(cn0), metric=metric, detected=bool(detected), threshold=thr,
                                  sample_index=int(start_sample), doppler_coarse_hz=fd_coarse,
-                                 n_doppler_bins=int(js.size)))
+                                 n_doppler_bins=int(js.size), k_eff=k_eff))
     return results
 
 
@@ -339,30 +367,31 @@ def _search_surface(base, cspec, js, p_num, q_den, k_blocks, n, period, step, wo
 def _refine(xb, fs_hz, prn, fd, code_phase, sigma_arm):
     """Fine Doppler (phase differences of 1 ms sums) and code phase / C/N0 on a fine code grid."""
     n_sub = int(round(fs_hz * _T_SUB))
-    n_tot = (xb.shape[0] // n_sub) * n_sub
-    n_blocks = n_tot // n_sub
+    n_blocks = xb.shape[0] // n_sub
+    n_tot = n_blocks * n_sub
     t = np.arange(n_tot) / fs_hz
     code = ca_code(prn).astype(np.float32)
-    rate = F_CA * (1.0 + fd / F_L1)
 
-    def sums(fd_, cp_):
-        rep = code[np.floor(cp_ + t * rate).astype(np.int64) % CA_LEN]
+    def wipe(fd_):
         ph = fd_ * t
-        y = xb[:n_tot] * rep * np.exp(-2j * np.pi * (ph - np.floor(ph))).astype(np.complex64)
-        return y.reshape(n_blocks, n_sub).sum(axis=1)
+        return xb[:n_tot] * np.exp(-2j * np.pi * (ph - np.floor(ph))).astype(np.complex64)
+
+    def sums(w, fd_, cp_):
+        rep = code[np.floor(cp_ + t * (F_CA * (1.0 + fd_ / F_L1))).astype(np.int64) % CA_LEN]
+        return (w * rep).reshape(n_blocks, n_sub).sum(axis=1)
 
     if n_blocks >= 2:
         for _ in range(2):
-            z = sums(fd, code_phase)
+            z = sums(wipe(fd), fd, code_phase)
             dphi = np.angle(np.sum(z[1:] * np.conj(z[:-1])))
             fd = fd + dphi / (2.0 * np.pi * n_sub / fs_hz)
-            rate = F_CA * (1.0 + fd / F_L1)
+    w = wipe(fd)
     offs = np.arange(-_FINE_CODE_SPAN, _FINE_CODE_SPAN + 1e-9, _FINE_CODE_STEP)
     pw = np.empty(offs.size)
     scale = 1.0 / (sigma_arm * math.sqrt(n_sub))
     for i, o in enumerate(offs):
-        z = sums(fd, code_phase + o) * scale
-        pw[i] = np.mean(np.abs(z) ** 2)
+        z = sums(w, fd, code_phase + o) * scale
+        pw[i] = np.mean(z.real ** 2 + z.imag ** 2)
     i = int(np.argmax(pw))
     d = _parabolic(pw[i - 1] if i > 0 else None, pw[i], pw[i + 1] if i + 1 < pw.size else None)
     code_phase = (code_phase + offs[i] + d * _FINE_CODE_STEP) % CA_LEN
