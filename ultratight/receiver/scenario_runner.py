@@ -1,0 +1,283 @@
+"""``ultratight scenario``: generate (or reuse) IF + IMU + truth, run each method, paper metrics.
+
+Cache: the generated files live in ``OUT/cache/<key>/`` where ``key`` is a hash of the
+resolved scenario configuration (including the seed and any overrides) and the package
+version, so a rerun with the same configuration reuses the data and any change regenerates it.
+
+Per run (seed ``seed + r``) and method the engine runs on the *same* files; the tracking
+errors are estimate minus the generator's truth (``<stem>.truth.h5``, docs/generator.md)
+interpolated at each channel's integration start (see :mod:`ultratight.receiver.metrics`).
+The engine's own randomness (hot-start errors) is seeded by the run seed, so every method of
+a run starts from the same perturbed INS state.
+
+Outputs in ``OUT``: ``results.h5`` (per run and method: estimates, errors, arbitration modes,
+navigation solution; attributes with the resolved configuration) and ``metrics.json``; PNG
+figures like the paper's Fig. 4–7 when matplotlib is installed.
+"""
+
+import hashlib
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ultratight import __version__
+from ultratight.errors import ConfigError, InputFileError
+from ultratight.receiver import metrics as M
+
+SCHEMA = "ultratight scenario results v1 (docs/ultratight.md)"
+
+
+def _cfg_key(cfg):
+    blob = json.dumps(cfg, sort_keys=True, default=str) + __version__
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def prepare_data(cfg, seed, out_dir, progress=False):
+    """Generate the scenario's files under OUT/cache/<key>/ unless they are already there."""
+    from ultratight.signals.generator import generate
+    c = dict(cfg)
+    c["seed"] = int(seed)
+    c.pop("source_file", None)
+    key = _cfg_key(c)
+    d = Path(out_dir) / "cache" / key
+    done = d / "done.json"
+    if done.is_file():
+        paths = json.loads(done.read_text())
+        if all(Path(p).is_file() for p in paths.values()):
+            return {k: Path(v) for k, v in paths.items()}, True
+    d.mkdir(parents=True, exist_ok=True)
+    res = generate(c, d, "data", seed=int(seed), progress=progress)
+    paths = {k: str(v) for k, v in res.items() if k != "summary"}
+    tmp = d / "done.json.tmp"
+    tmp.write_text(json.dumps(paths))
+    os.replace(tmp, done)
+    return {k: Path(v) for k, v in paths.items()}, False
+
+
+def load_truth(path):
+    """Truth arrays of the generator (docs/generator.md): t_s (n,), prn (n_ch,), code phase,
+    Doppler (n, n_ch)."""
+    import h5py
+    try:
+        with h5py.File(path, "r") as f:
+            return {"t_s": f["t_s"][()], "prn": [int(p) for p in f.attrs["prn"]],
+                    "code_phase_chips": f["code_phase_chips"][()], "doppler_hz": f["doppler_hz"][()],
+                    "config": json.loads(f.attrs["config_json"]), "fs_hz": float(f.attrs["fs_hz"]),
+                    "week": int(f.attrs["week"]), "tow0_s": float(f.attrs["tow0_s"])}
+    except (OSError, KeyError) as exc:
+        raise InputFileError(f"{path}: cannot read generator truth ({exc})") from None
+
+
+def ephemerides_for(cfg):
+    """The ephemerides the scenario's signals were generated from (dict prn -> Ephemeris)."""
+    sat = cfg.get("satellites", {})
+    week, tow = int(cfg["time"]["week"]), float(cfg["time"]["tow_s"])
+    if sat.get("source", "nominal") == "nominal":
+        from ultratight.signals.constellation import nominal_ephemerides
+        return nominal_ephemerides(week, tow)
+    from ultratight.signals.rinex import read_rinex_nav
+    nav = read_rinex_nav(sat.get("rinex_path", sat.get("rinex")))
+    out = {}
+    for prn in sorted(nav.ephemerides):
+        try:
+            e = nav.select(prn, week, tow)
+        except Exception:  # noqa: BLE001 - PRN without a usable ephemeris
+            continue
+        if e is not None:
+            out[prn] = e
+    return out
+
+
+def truth_initial_state(cfg):
+    """True INS/clock state at t = 0 from the scenario trajectory."""
+    from ultratight.ins.trajectory import build_trajectory
+    traj = build_trajectory(cfg.get("trajectory", {"kind": "static"}), cfg.get("receiver", {}),
+                            float(cfg["duration_s"]))
+    k = traj.kinematics(np.zeros(1))
+    rcv = cfg.get("receiver", {})
+    return {"llh": k["llh"][0], "vel_l": k["vel_l"][0], "q_lb": k["q_lb"][0],
+            "clk_bias_m": float(rcv.get("clock_bias_m", 0.0)),
+            "clk_drift_mps": float(rcv.get("clock_drift_mps", 0.0))}
+
+
+def run_method(paths, cfg, method, seed, options=None, startup_errors=None, duration_s=None):
+    """Run one method on generated files; returns (EngineResult, truth dict)."""
+    from ultratight.ins.imu import read_imu_h5
+    from ultratight.receiver.engine import EngineOptions, UltratightEngine, check_method
+    from ultratight.receiver.startup import StartupErrors, perturb_state
+    from ultratight.signals.iffile import open_if
+    check_method(method)
+    truth = load_truth(paths["truth"])
+    src = open_if(paths["if"])
+    imu = read_imu_h5(paths["imu"])
+    ephs = ephemerides_for(cfg)
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7]))
+    errs = startup_errors or StartupErrors()
+    init = perturb_state(truth_initial_state(cfg), errs, rng)
+    if method == "scalar":
+        from ultratight.receiver.scalar_adapter import run_scalar
+        res = run_scalar(src, truth["prn"], ephs, truth["week"], truth["tow0_s"], init, duration_s)
+    else:
+        eng = UltratightEngine(src, imu, ephs, truth["prn"], truth["week"], truth["tow0_s"], method=method,
+                               options=options or EngineOptions(), init_state=init, rng=rng,
+                               duration_s=duration_s)
+        res = eng.run()
+    return res, truth
+
+
+def errors_vs_truth(res, truth):
+    return M.tracking_errors(res.t_start, res.doppler_hz, res.code_phase_chips, truth["t_s"],
+                             truth["doppler_hz"], truth["code_phase_chips"])
+
+
+def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scenario_out", duration_s=None,
+                 fs_hz=None, channel=0, plots=True, progress=True, options=None, overrides=None):
+    from ultratight.receiver.engine import check_method
+    from ultratight.receiver.scenario_config import load_scenario
+    for m in methods:
+        check_method(m)
+    if int(runs) < 1:
+        raise ConfigError(f"--runs must be >= 1, got {runs}")
+    ov = dict(overrides or {})
+    if duration_s is not None:
+        if not duration_s > 0:
+            raise ConfigError(f"--duration must be > 0 s, got {duration_s}")
+        ov["duration_s"] = float(duration_s)
+    if fs_hz is not None:
+        ov["frontend.fs_hz"] = float(fs_hz)
+    cfg = load_scenario(name, ov)
+    base_seed = int(cfg.get("seed", 0) if seed is None else seed)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    dur = float(cfg["duration_s"])
+    segs = M.segments_for(dur)
+    per = {m: [] for m in methods}
+    raw = {}
+    for r in range(int(runs)):
+        s = base_seed + r
+        t0 = time.perf_counter()
+        paths, cached = prepare_data(cfg, s, out, progress=progress)
+        if progress:
+            print(f"run {r + 1}/{runs} seed {s}: data {'reused' if cached else 'generated'} "
+                  f"({time.perf_counter() - t0:.1f} s)", flush=True)
+        for m in methods:
+            res, truth = run_method(paths, cfg, m, s, options=options)
+            d_err, c_err = errors_vs_truth(res, truth)
+            summ = M.summarize(res.t_start, d_err, c_err, segs, channel=channel)
+            summ["runtime_s"] = res.runtime_s
+            summ["realtime_factor"] = res.duration_s / res.runtime_s if res.runtime_s > 0 else float("nan")
+            summ["seed"] = s
+            per[m].append(summ)
+            raw[(r, m)] = (res, d_err, c_err)
+            if progress:
+                print(f"  {m:10s} Doppler RMS {np.round(summ['doppler_rms_hz'], 4).tolist()} Hz, code RMS "
+                      f"{np.round(summ['code_rms_chips'], 4).tolist()} chip, lost {summ['lock_lost_channels']}, "
+                      f"{res.runtime_s:.1f} s ({summ['realtime_factor']:.2f}x real time)", flush=True)
+    agg = {m: aggregate(per[m], raw, m, segs, channel) for m in methods}
+    js = {"scenario": cfg.get("name", str(name)), "seed": base_seed, "runs": int(runs), "duration_s": dur,
+          "segments_s": [list(x) for x in segs], "channel": channel,
+          "methods": {m: {k: agg[m][k] for k in ("doppler_rms_hz", "code_rms_chips", "diverged",
+                                                  "lock_lost_channels", "runtime_s", "realtime_factor",
+                                                  "doppler_rms_hz_channel", "code_rms_chips_channel",
+                                                  "segment_diverged")}
+                      for m in methods},
+          "per_run": per, "version": __version__, "paper_table3": M.PAPER_TABLE3, "paper_table4_s": M.PAPER_TABLE4_S}
+    mpath = out / "metrics.json"
+    tmp = out / "metrics.json.tmp"
+    tmp.write_text(json.dumps(js, indent=2, default=float))
+    os.replace(tmp, mpath)
+    hpath = out / "results.h5"
+    write_results_h5(hpath, cfg, raw, methods, runs, base_seed)
+    figs = []
+    if plots:
+        figs = make_plots(out, raw, methods, channel)
+    text = M.format_tables(agg, segs) + "\n" + (
+        f"\n{runs} run(s), seeds {base_seed}..{base_seed + runs - 1}; RMS over all channels and runs; "
+        "'\\' = lock lost (diverged) in that segment.")
+    return {"json": {k: js[k] for k in ("scenario", "seed", "runs", "methods")}, "text": text,
+            "metrics_path": str(mpath), "h5_path": str(hpath), "figures": figs}
+
+
+def aggregate(summaries, raw, method, segs, channel):
+    """Combine runs: RMS over all channels and runs (from the raw errors), lock figures summed."""
+    d_all = [raw[k][1] for k in raw if k[1] == method]
+    c_all = [raw[k][2] for k in raw if k[1] == method]
+    t_all = [raw[k][0].t_start for k in raw if k[1] == method]
+    t = np.concatenate(t_all, axis=0)
+    d = np.concatenate(d_all, axis=0)
+    c = np.concatenate(c_all, axis=0)
+    seg_div = [any(s["segment_diverged"][i] for s in summaries) for i in range(len(segs))]
+    return {
+        "doppler_rms_hz": M.segment_rms(t, d, segs).tolist(),
+        "code_rms_chips": M.segment_rms(t, c, segs).tolist(),
+        "doppler_rms_hz_channel": M.segment_rms(t, d, segs, channel).tolist(),
+        "code_rms_chips_channel": M.segment_rms(t, c, segs, channel).tolist(),
+        "diverged": bool(any(seg_div)),
+        "segment_diverged": seg_div,
+        "lock_lost_channels": int(sum(s["lock_lost_channels"] for s in summaries)),
+        "runtime_s": float(np.mean([s["runtime_s"] for s in summaries])),
+        "realtime_factor": float(np.mean([s["realtime_factor"] for s in summaries])),
+    }
+
+
+def write_results_h5(path, cfg, raw, methods, runs, base_seed):
+    import h5py
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    with h5py.File(tmp, "w") as f:
+        f.attrs["schema"] = SCHEMA
+        f.attrs["version"] = __version__
+        f.attrs["config_json"] = json.dumps(cfg, default=str)
+        f.attrs["methods"] = ",".join(methods)
+        f.attrs["runs"] = int(runs)
+        f.attrs["seed"] = int(base_seed)
+        for (r, m), (res, d_err, c_err) in raw.items():
+            g = f.create_group(f"run{r:03d}/{m}")
+            g.attrs["seed"] = int(base_seed + r)
+            g.attrs["prn"] = np.asarray(res.prns, dtype=np.int64)
+            g.attrs["runtime_s"] = float(res.runtime_s)
+            g.attrs["info_json"] = json.dumps(res.info, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+            for k, v in (("t_start_s", res.t_start), ("doppler_hz", res.doppler_hz),
+                         ("code_phase_chips", res.code_phase_chips), ("amplitude", res.amp),
+                         ("mode", res.mode), ("doppler_err_hz", d_err), ("code_err_chips", c_err),
+                         ("nav_t_s", res.nav_t), ("nav_pos_e", res.nav_pos_e), ("nav_vel_e", res.nav_vel_e),
+                         ("nav_clk", res.nav_clk), ("nav_sigma_doppler_hz", res.nav_sigma_doppler_hz)):
+                g.create_dataset(k, data=np.asarray(v), compression="gzip", compression_opts=1)
+    os.replace(tmp, path)
+
+
+def make_plots(out, raw, methods, channel):
+    """Paper-style figures (Fig. 4–7): Doppler and code-phase error of one channel vs time."""
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return []
+    figs = []
+    pairs = [("fig4_doppler_pbkf_vs_rackf.png", ("pb-kf-utc", "dlb-rackf"), 1, "Doppler error (Hz)"),
+             ("fig5_code_pbkf_vs_rackf.png", ("pb-kf-utc", "dlb-rackf"), 2, "code phase error (chips)"),
+             ("fig6_doppler_dlb.png", ("dlb-ukf", "dlb-ckf", "dlb-rackf"), 1, "Doppler error (Hz)"),
+             ("fig7_code_dlb.png", ("dlb-ukf", "dlb-ckf", "dlb-rackf"), 2, "code phase error (chips)")]
+    for name, ms, idx, ylabel in pairs:
+        have = [m for m in ms if (0, m) in raw]
+        if not have:
+            continue
+        fig, ax = plt.subplots(figsize=(8, 4))
+        for m in have:
+            res = raw[(0, m)][0]
+            err = raw[(0, m)][idx]
+            ax.plot(res.t_start[:, channel], err[:, channel], lw=0.5, label=m)
+        ax.set_xlabel("time (s)")
+        ax.set_ylabel(ylabel)
+        ax.set_title(f"channel {channel} (PRN {raw[(0, have[0])][0].prns[channel]}), run 0")
+        ax.grid(True, alpha=0.3)
+        ax.legend()
+        p = Path(out) / name
+        fig.savefig(p, dpi=110, bbox_inches="tight")
+        plt.close(fig)
+        figs.append(str(p))
+    return figs
