@@ -375,6 +375,55 @@ def _predict(xc, Pc, Phi, Qd, tmpv, tmpm):
             Pc[j, i] = acc
 
 
+N_PRM = 16
+N_W1 = 28
+N_W2 = 8
+
+
+@njit(cache=True)
+def _layout(n):
+    """Offsets of the packed float buffer: x, P, xpost, x0, P0, innov, nis, theta, acc, Phi, Qd, R, prm, W1, W2."""
+    sizes = (n * NX, n * NX * NX, n * NX, n * NX, n * NX * NX, n * NZ, n, n, n * 6,
+             NX * NX, NX * NX, NZ * NZ, N_PRM, N_W1 * NZ, N_W2 * NZ * NZ)
+    offs = np.empty(len(sizes) + 1, dtype=np.int64)
+    o = 0
+    for i in range(len(sizes)):
+        offs[i] = o
+        o += sizes[i]
+    offs[len(sizes)] = o
+    return offs
+
+
+@njit(cache=True)
+def _bank_step_packed(kind, fbuf, ibuf, z, bits):
+    """Packed-argument entry point (few arguments = low dispatch cost).
+
+    ibuf = [flags (n), active (n), do_correction, robust_every, windowed_adaptive].
+    """
+    n = z.shape[0]
+    o = _layout(n)
+    x = fbuf[o[0]:o[1]].reshape((n, NX))
+    P = fbuf[o[1]:o[2]].reshape((n, NX, NX))
+    xpost = fbuf[o[2]:o[3]].reshape((n, NX))
+    x0 = fbuf[o[3]:o[4]].reshape((n, NX))
+    P0 = fbuf[o[4]:o[5]].reshape((n, NX, NX))
+    innov = fbuf[o[5]:o[6]].reshape((n, NZ))
+    nis = fbuf[o[6]:o[7]]
+    theta = fbuf[o[7]:o[8]]
+    acc = fbuf[o[8]:o[9]].reshape((n, 6))
+    Phi = fbuf[o[9]:o[10]].reshape((NX, NX))
+    Qd = fbuf[o[10]:o[11]].reshape((NX, NX))
+    R = fbuf[o[11]:o[12]].reshape((NZ, NZ))
+    prm = fbuf[o[12]:o[13]]
+    W1 = fbuf[o[13]:o[14]].reshape((N_W1, NZ))
+    W2 = fbuf[o[14]:o[15]].reshape((N_W2, NZ, NZ))
+    flags = ibuf[0:n]
+    active = ibuf[n:2 * n]
+    iprm = ibuf[2 * n:2 * n + 3]
+    return _bank_step(kind, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, prm, iprm,
+                      innov, nis, theta, flags, W1, W2, acc)
+
+
 @njit(cache=True)
 def _bank_step(kind, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, prm, iprm,
                innov, nis, theta, flags, W1, W2, acc):
@@ -646,11 +695,12 @@ class PrefilterBank:
         self.T = float(T)
         self.spacing_chips = float(spacing_chips)
         self.q = dict(DEFAULT_Q, **(q or {}))
-        self.Phi, self.Qd = prefilter_model(self.T, q)
-        self.R = np.ascontiguousarray(corr_model.epl_noise_covariance(self.spacing_chips))
+        Phi, Qd = prefilter_model(self.T, q)
+        R = corr_model.epl_noise_covariance(self.spacing_chips)
         self.huber_c = float(huber_c)
         self.correction_period = int(correction_period)
         self.robust_mode = robust_mode
+        self.adaptive_stat = adaptive_stat
         self.theta_min = float(theta_min)
         self.ukf_params = dict(alpha=float(ukf_alpha), beta=float(ukf_beta), kappa=float(ukf_kappa))
         ut_scale, wm0, wc0, wi = ut_weights(ukf_alpha, ukf_beta, ukf_kappa)
@@ -658,29 +708,41 @@ class PrefilterBank:
         if lim.shape != (NX,):
             raise FilterError(f"prefilter p_limits: expected shape ({NX},), got {lim.shape}")
         dhalf = float(corr_model.tap_offsets(self.spacing_chips)[2])
-        self._prm = np.array([self.T, BETA_CODE_CARRIER, dhalf, self.huber_c, self.theta_min,
-                              wm0, wc0, wi, ut_scale, *lim])
-        self._iprm = np.zeros(3, dtype=np.int64)
+        # one packed float buffer and one int buffer (few kernel arguments); attributes are views
+        o = _layout(n_ch)
+        self._fbuf = np.zeros(int(o[-1]))
+        self._ibuf = np.zeros(2 * n_ch + 3, dtype=np.int64)
+        fb = self._fbuf
+        self.x = fb[o[0]:o[1]].reshape(n_ch, NX)
+        self.P = fb[o[1]:o[2]].reshape(n_ch, NX, NX)
+        self.x_post = fb[o[2]:o[3]].reshape(n_ch, NX)
+        self.x0 = fb[o[3]:o[4]].reshape(n_ch, NX)
+        self.P0 = fb[o[4]:o[5]].reshape(n_ch, NX, NX)
+        self.innov = fb[o[5]:o[6]].reshape(n_ch, NZ)
+        self.nis = fb[o[6]:o[7]]
+        self.theta = fb[o[7]:o[8]]
+        self._acc = fb[o[8]:o[9]].reshape(n_ch, 6)
+        self.Phi = fb[o[9]:o[10]].reshape(NX, NX)
+        self.Qd = fb[o[10]:o[11]].reshape(NX, NX)
+        self.R = fb[o[11]:o[12]].reshape(NZ, NZ)
+        self._prm = fb[o[12]:o[13]]
+        self.flags = self._ibuf[0:n_ch]
+        self._active_i = self._ibuf[n_ch:2 * n_ch]
+        self._iprm = self._ibuf[2 * n_ch:]
+        self.Phi[:] = Phi
+        self.Qd[:] = Qd
+        self.R[:] = R
+        self._prm[:14] = [self.T, BETA_CODE_CARRIER, dhalf, self.huber_c, self.theta_min,
+                          wm0, wc0, wi, ut_scale, *lim]
         self._iprm[1] = 1 if robust_mode == "every" else 0
         self._iprm[2] = 1 if adaptive_stat == "window" else 0
-        self.adaptive_stat = adaptive_stat
-        self._acc = np.zeros((n_ch, 6))
         self._acc[:, 5] = 1.0
-        self.x = np.zeros((n_ch, NX))
-        self.P = np.zeros((n_ch, NX, NX))
-        self.x_post = np.zeros((n_ch, NX))
-        self.x0 = np.zeros((n_ch, NX))
-        self.P0 = np.zeros((n_ch, NX, NX))
-        self.innov = np.full((n_ch, NZ), np.nan)
-        self.nis = np.full(n_ch, np.nan)
-        self.theta = np.ones(n_ch)
-        self.flags = np.zeros(n_ch, dtype=np.int64)
+        self.innov[:] = np.nan
+        self.nis[:] = np.nan
+        self.theta[:] = 1.0
         self.n_resets = np.zeros(n_ch, dtype=np.int64)
-        self.active = np.zeros(n_ch, dtype=np.bool_)
         self.epoch = 0
         self._bits_unknown = np.zeros(n_ch)
-        self._W1 = np.zeros((28, NZ))
-        self._W2 = np.zeros((8, NZ, NZ))
         a0 = float(corr_model.amplitude_from_cn0(cn0_dbhz_init, self.T))
         P_init = default_initial_covariance(cn0_dbhz_init, self.T)
         for c in range(n_ch):
@@ -723,13 +785,18 @@ class PrefilterBank:
         self._acc[ch] = 0.0
         self._acc[ch, 5] = 1.0
         if activate:
-            self.active[ch] = True
+            self._active_i[ch] = 1
+
+    @property
+    def active(self):
+        """Per-channel active mask (a copy; change it with set_active / reset / deactivate)."""
+        return self._active_i != 0
 
     def set_active(self, mask):
         m = np.asarray(mask, dtype=np.bool_)
         if m.shape != (self.n_ch,):
             raise FilterError(f"prefilter active mask: expected shape ({self.n_ch},), got {m.shape}")
-        self.active[:] = m
+        self._active_i[:] = m
 
     # -- one epoch -----------------------------------------------------------------
     def step(self, z, bits=None):
@@ -748,9 +815,7 @@ class PrefilterBank:
             if b.shape != (self.n_ch,):
                 raise FilterError(f"prefilter step: bits must have shape ({self.n_ch},), got {b.shape}")
         self._iprm[0] = 1 if (self.epoch % self.correction_period == 0) else 0
-        st = _bank_step(self._kind, self.x, self.P, self.x_post, self.x0, self.P0, self.Phi, self.Qd,
-                        self.R, z, b, self.active, self._prm, self._iprm, self.innov, self.nis,
-                        self.theta, self.flags, self._W1, self._W2, self._acc)
+        st = _bank_step_packed(self._kind, self._fbuf, self._ibuf, z, b)
         if st < 0:
             c = -1 - st
             raise FilterError(f"prefilter step: non-finite measurement or bit on active channel {c}: "
