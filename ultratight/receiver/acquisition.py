@@ -16,9 +16,10 @@ applied to the code spectrum, which leaves the correlation magnitude unchanged).
 Code FFTs are cached per ``(fs, N)``.
 
 The detection statistic is the non-coherent sum ``S(f, m) = sum_k |Y_k(f, m)|^2``
-where block ``k``'s correlation is circularly shifted by the predicted lag drift
-(code Doppler ``-N*f/F_L1`` plus the non-integer period ``P - N`` samples per
-block, ``P = fs*T*1023/F_CA/... = fs*coherent_ms*1e-3``), so the peak stays in
+where block ``k``'s correlation is circularly shifted by ``round(k*drift)``, the
+predicted lag drift per block ``drift = (P - N) - N*f/F_L1`` samples (the
+non-integer code period ``P = fs*coherent_ms*1e-3`` samples versus the block
+length ``N``, plus the code Doppler), so the peak stays in
 one cell over long searches and for sample rates that are not multiples of
 1.023 MHz.  The code Doppler *inside* one coherent block (<= 0.065 chip at
 10 kHz over 10 ms) is not compensated (loss < 0.3 dB).
@@ -30,12 +31,22 @@ exponential and ``S`` is ``E[S]/(2K) * chi2(2K)`` (chi-square with 2K degrees of
 freedom).  The noise floor ``E[S]`` is estimated as the mean of ``S`` over all
 cells except those within ``+-exclude_chips`` (default 2 chips) of the peak's
 code phase, in every Doppler bin.  The metric is ``peak / noise_floor``; under
-H0 a single cell's metric is ``chi2(2K)/(2K)``.  The search covers
-``M = n_doppler * N`` cells per PRN; with a false-alarm probability ``pfa``
-per PRN search, the per-cell probability is ``1 - (1 - pfa)**(1/M)``
-(Bonferroni/Sidak: cells are treated as independent, which is conservative
+H0 a single cell's metric is ``chi2(2K)/(2K)``, of variance ``1/K``.
+
+Real recordings are not pure white noise: the cross-correlation of strong
+satellites with the searched code repeats identically in every block (it does
+not average down non-coherently), and noise-free synthetic files contain *only*
+such cross-correlation.  The cells then have a larger dispersion than ``1/K``.
+The threshold therefore uses an effective number of sums ``K_eff = min(K,
+1/v)``, ``v`` = variance of ``S/noise_floor`` over the noise cells (moment
+matching of a scaled chi-square, Satterthwaite); for white noise
+``K_eff ~= K`` and the test is the textbook one.
+
+The search covers ``M = n_doppler * N`` cells per PRN; with a false-alarm
+probability ``pfa`` per PRN search the per-cell probability is
+``1 - (1 - pfa)**(1/M)`` (Sidak: cells treated as independent, conservative
 since neighbouring cells are correlated) and the threshold is
-``chi2.isf(pfa_cell, 2K) / (2K)``.
+``chi2.isf(pfa_cell, 2*K_eff) / (2*K_eff)`` (:func:`cell_threshold`).
 
 Refinement and C/N0 (detected PRNs)
 -----------------------------------
