@@ -17,7 +17,8 @@ import numpy as np
 from ultratight import __version__
 from ultratight.errors import InputFileError
 
-CHUNK_ROWS = 4096
+CHUNK_ROWS = 1024
+FLUSH_ROWS = 2048
 
 
 def _tmp_path(path):
@@ -39,20 +40,40 @@ class H5Stream:
             raise InputFileError(f"cannot create output {self.path}: {exc}") from None
         self.f.attrs["version"] = __version__
         self.f.attrs["complete"] = False
+        self._pending = {}
+        self._pending_rows = {}
+        self._ds = {}
 
     def append(self, name, rows):
+        """Queue rows for dataset ``name`` (created on first flush); flushed in batches."""
         rows = np.asarray(rows)
         if rows.ndim == 0:
             rows = rows[None]
-        if name in self.f:
-            ds = self.f[name]
-            n0 = ds.shape[0]
-            ds.resize(n0 + rows.shape[0], axis=0)
-            ds[n0:] = rows
-        else:
-            chunk = (min(CHUNK_ROWS, max(1, rows.shape[0] * 4)),) + rows.shape[1:]
-            self.f.create_dataset(name, data=rows, maxshape=(None,) + rows.shape[1:],
-                                  chunks=chunk if rows.shape[0] else (CHUNK_ROWS,) + rows.shape[1:])
+        lst = self._pending.setdefault(name, [])
+        lst.append(rows)
+        n = self._pending_rows.get(name, 0) + rows.shape[0]
+        self._pending_rows[name] = n
+        if n >= FLUSH_ROWS:
+            self._flush(name)
+
+    def _flush(self, name):
+        lst = self._pending.pop(name, None)
+        self._pending_rows.pop(name, None)
+        if not lst:
+            return
+        rows = np.concatenate(lst) if len(lst) > 1 else lst[0]
+        ds = self._ds.get(name)
+        if ds is None:
+            ds = self.f.create_dataset(name, shape=(0,) + rows.shape[1:], dtype=rows.dtype,
+                                       maxshape=(None,) + rows.shape[1:], chunks=(CHUNK_ROWS,) + rows.shape[1:])
+            self._ds[name] = ds
+        n0 = ds.shape[0]
+        ds.resize(n0 + rows.shape[0], axis=0)
+        ds[n0:] = rows
+
+    def flush(self):
+        for name in list(self._pending):
+            self._flush(name)
 
     def write(self, name, data, **attrs):
         ds = self.f.create_dataset(name, data=data)
@@ -61,7 +82,12 @@ class H5Stream:
         return ds
 
     def attrs(self, name="/", **attrs):
-        obj = self.f.require_group(name) if name != "/" else self.f
+        if name == "/":
+            obj = self.f
+        elif name in self.f:
+            obj = self.f[name]
+        else:
+            obj = self.f.require_group(name)
         for k, v in attrs.items():
             if isinstance(v, (dict, list)):
                 v = json.dumps(v, default=str)
@@ -69,6 +95,7 @@ class H5Stream:
 
     def finish(self, complete=True, **attrs):
         """Close and rename to the target (complete or partial)."""
+        self.flush()
         self.attrs(complete=bool(complete), **attrs)
         self.f.flush()
         self.f.close()

@@ -141,6 +141,19 @@ class ProcessResult:
         }
 
 
+TRACK_DTYPE = np.dtype([(n, np.int64) for n in REC_I_NAMES] + [(n, np.float64) for n in REC_F_NAMES])
+
+
+def tracking_rows(rf, ri):
+    """Structured rows (TRACK_DTYPE) of one channel's epoch records."""
+    out = np.empty(rf.shape[0], dtype=TRACK_DTYPE)
+    for j, n in enumerate(REC_I_NAMES):
+        out[n] = ri[:, j]
+    for j, n in enumerate(REC_F_NAMES):
+        out[n] = rf[:, j]
+    return out
+
+
 def _eph_lookup(ephemerides):
     """Normalise --ephemeris input to a function (prn, week, tow) -> Ephemeris | None."""
     if ephemerides is None:
@@ -310,7 +323,7 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
                 continue
             from ultratight.signals.ephemeris import sat_clock
             dts, _ = sat_clock(eph, ttx[ch])
-            t_gps = ttx[ch] - float(dts)
+            t_gps = ttx[ch] - float(np.ravel(dts)[0])
             p_, v_, clk, drift = sat_state(eph, t_gps)
             sp[ch] = p_[0]
             sv[ch] = v_[0]
@@ -420,11 +433,7 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
                 info["epochs"] += m
                 info["locked_epochs"] += int(np.count_nonzero(i_ch[:, RI_FLAGS] & FL_PLL_LOCK))
                 if writer is not None:
-                    g = f"tracking/prn{info['prn']:02d}"
-                    for j, name in enumerate(REC_I_NAMES):
-                        writer.append(f"{g}/{name}", i_ch[:, j])
-                    for j, name in enumerate(REC_F_NAMES):
-                        writer.append(f"{g}/{name}", f_ch[:, j])
+                    writer.append(f"tracking/prn{info['prn']:02d}", tracking_rows(f_ch, i_ch))
                 if cfg.record_epochs:
                     e = epochs[info["prn"]]
                     e["sample_index"].append(i_ch[:, RI_PTR].copy())
