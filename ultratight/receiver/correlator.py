@@ -433,19 +433,32 @@ class CorrelatorBank:
         self.sample_ptr[ch] = int(sample_index)
 
     def _prep(self, buf, noise_sigma_arm):
-        buf = np.asarray(buf)
+        if not isinstance(buf, np.ndarray):
+            buf = np.asarray(buf)
         if self.is_complex:
-            if not np.iscomplexobj(buf):
-                raise ConfigError("CorrelatorBank.step: bank is for complex input but the buffer is real")
-            b = np.ascontiguousarray(buf, dtype=np.complex64).view(np.float32)
+            if buf.dtype != np.complex64 or not buf.flags.c_contiguous:
+                if not np.iscomplexobj(buf):
+                    raise ConfigError("CorrelatorBank.step: bank is for complex input but the buffer is real")
+                buf = np.ascontiguousarray(buf, dtype=np.complex64)
+            b = buf.view(np.float32)
         else:
-            if np.iscomplexobj(buf):
-                raise ConfigError("CorrelatorBank.step: bank is for real input but the buffer is complex")
-            b = np.ascontiguousarray(buf, dtype=np.float32)
+            if buf.dtype != np.float32 or not buf.flags.c_contiguous:
+                if np.iscomplexobj(buf):
+                    raise ConfigError("CorrelatorBank.step: bank is for real input but the buffer is complex")
+                buf = np.ascontiguousarray(buf, dtype=np.float32)
+            b = buf
+        if buf.ndim != 1:
+            raise ConfigError(f"CorrelatorBank.step: buffer must be 1-D, got shape {buf.shape}")
         n_buf = buf.shape[0]
-        sig = np.broadcast_to(np.asarray(noise_sigma_arm, dtype=float), (self.n_ch,)).copy()
-        if not np.all(sig > 0.0):
-            raise ConfigError(f"CorrelatorBank.step: noise_sigma_arm must be > 0, got {noise_sigma_arm!r}")
+        if isinstance(noise_sigma_arm, (float, int, np.floating, np.integer)):
+            sv = float(noise_sigma_arm)
+            if not sv > 0.0:
+                raise ConfigError(f"CorrelatorBank.step: noise_sigma_arm must be > 0, got {noise_sigma_arm!r}")
+            sig = np.full(self.n_ch, sv)
+        else:
+            sig = np.broadcast_to(np.asarray(noise_sigma_arm, dtype=float), (self.n_ch,)).copy()
+            if not np.all(sig > 0.0):
+                raise ConfigError(f"CorrelatorBank.step: noise_sigma_arm must be > 0, got {noise_sigma_arm!r}")
         return b, n_buf, sig
 
     def step(self, buf, buf_start, noise_sigma_arm):

@@ -1,0 +1,175 @@
+"""Correlator-bank throughput against a minimal numba early/prompt/late kernel (same run, same data).
+
+    python benchmarks/bench_correlator.py [--seconds 1.0] [--channels 1 8] [--repeat 5]
+
+Reports M samples/s per channel (channel-samples per second) for the bank (complex and real input)
+and for the minimal kernel, and their ratio.  The minimal kernel is the reference of
+/work/shared/DESIGN.md ("a plain numba kernel of this kind reaches ~300 M samples/s per core"):
+one channel, complex input, E/P/L in one loop into a 4096-entry cos/sin table, no normalisation or
+NCO bookkeeping, in two flavours (float64 phases with floor, and integer phase accumulators); the
+ratio is taken to the faster of the two.  Timings are best-of-``--repeat`` (the machine is shared).
+"""
+
+import argparse
+import platform
+import time
+
+import numpy as np
+from numba import njit
+
+from ultratight.constants import CA_LEN
+from ultratight.receiver.correlator import CorrelatorBank
+from ultratight.signals.ca_code import ca_code
+
+LUT = 4096
+
+
+@njit(cache=True)
+def minimal_epl(x, n, code_ext, cp0, dcp, ph0, dph, cos_t, sin_t, half, out):
+    """x: float32 interleaved I,Q; code_ext: code padded by 2 chips on both sides."""
+    ip = np.float32(0.0); ie = np.float32(0.0); il = np.float32(0.0)
+    qp = np.float32(0.0); qe = np.float32(0.0); ql = np.float32(0.0)
+    for k in range(n):
+        p = cp0 + k * dcp + 2.0
+        ph = ph0 + k * dph
+        li = int((ph - np.floor(ph)) * LUT) & (LUT - 1)
+        c = cos_t[li]
+        s = sin_t[li]
+        xr = x[2 * k]
+        xi = x[2 * k + 1]
+        bi = xr * c + xi * s
+        bq = xi * c - xr * s
+        cp = code_ext[int(p)]
+        ce = code_ext[int(p + half)]
+        cl = code_ext[int(p - half)]
+        ip += bi * cp; ie += bi * ce; il += bi * cl
+        qp += bq * cp; qe += bq * ce; ql += bq * cl
+    out[0] = ip; out[1] = ie; out[2] = il; out[3] = qp; out[4] = qe; out[5] = ql
+
+
+@njit(cache=True)
+def minimal_epl_int(x, n, code_ext, cp0, dcp, ph0, dph, cos_t, sin_t, half, out):
+    """Same with integer accumulators: code phase in 32.32 fixed point, carrier phase 32-bit."""
+    ip = np.float32(0.0); ie = np.float32(0.0); il = np.float32(0.0)
+    qp = np.float32(0.0); qe = np.float32(0.0); ql = np.float32(0.0)
+    cp = cp0
+    ph = ph0
+    for k in range(n):
+        li = (ph >> 20) & (LUT - 1)
+        c = cos_t[li]
+        s = sin_t[li]
+        xr = x[2 * k]
+        xi = x[2 * k + 1]
+        bi = xr * c + xi * s
+        bq = xi * c - xr * s
+        c_p = code_ext[cp >> 32]
+        c_e = code_ext[(cp + half) >> 32]
+        c_l = code_ext[(cp - half) >> 32]
+        ip += bi * c_p; ie += bi * c_e; il += bi * c_l
+        qp += bq * c_p; qe += bq * c_e; ql += bq * c_l
+        cp += dcp
+        ph += dph
+    out[0] = ip; out[1] = ie; out[2] = il; out[3] = qp; out[4] = qe; out[5] = ql
+
+
+def cpu_name():
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def bench_minimal(x, fs, repeat):
+    xf = x.view(np.float32)
+    code = ca_code(1).astype(np.float32)
+    code_ext = code[(np.arange(CA_LEN + 4) - 2) % CA_LEN]
+    ang = 2 * np.pi * (np.arange(LUT) + 0.5) / LUT
+    cos_t, sin_t = np.cos(ang).astype(np.float32), np.sin(ang).astype(np.float32)
+    out = np.zeros(6, np.float32)
+    n_per = int(fs * 1e-3)
+    n_ep = x.shape[0] // n_per
+    dcp = 1.023e6 / fs
+    minimal_epl(xf, n_per, code_ext, 0.0, dcp, 0.0, 1234.0 / fs, cos_t, sin_t, 0.5, out)   # compile
+    best = np.inf
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        for e in range(n_ep):
+            minimal_epl(xf[2 * e * n_per:], n_per, code_ext, 0.0, dcp * 0.999999, 0.1, 1234.0 / fs,
+                        cos_t, sin_t, 0.5, out)
+        best = min(best, time.perf_counter() - t0)
+    rate_float = n_ep * n_per / best / 1e6
+    one = float(1 << 32)
+    args = (code_ext, np.int64(2 * one), np.int64(dcp * 0.999999 * one), np.int64(0), np.int64(1234.0 / fs * one),
+            cos_t, sin_t, np.int64(0.5 * one), out)
+    minimal_epl_int(xf, n_per, *args)
+    best = np.inf
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        for e in range(n_ep):
+            minimal_epl_int(xf[2 * e * n_per:], n_per, *args)
+        best = min(best, time.perf_counter() - t0)
+    return rate_float, n_ep * n_per / best / 1e6
+
+
+def bench_bank(x, fs, is_complex, n_ch, repeat):
+    if_hz = 0.0 if is_complex else 1.0e6
+    bank = CorrelatorBank(list(range(1, n_ch + 1)), fs, if_hz, is_complex)
+
+    def init():
+        for ch in range(n_ch):
+            bank.init_channel(ch, ch + 1, 37.0 * ch, 500.0 * ch - 2000.0, 0)
+
+    init()
+    bank.run_epochs(x[:100000], 0, 1.0)         # compile / warm
+    best = np.inf
+    nd = None
+    for _ in range(repeat):
+        init()
+        t0 = time.perf_counter()
+        _, _, ns, nd = bank.run_epochs(x, 0, 1.0)
+        best = min(best, time.perf_counter() - t0)
+        n_tot = int(ns.sum())
+    # also the per-epoch Python call pattern (step), as the tracking loops use it
+    init()
+    t0 = time.perf_counter()
+    n_step = 0
+    while True:
+        _, _, ns = bank.step(x, 0, 1.0)
+        if not np.any(ns > 0):
+            break
+        n_step += int(ns.sum())
+    t_step = time.perf_counter() - t0
+    return n_tot / best / n_ch / 1e6 * n_ch, n_step / t_step / 1e6
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=1.0)
+    ap.add_argument("--fs", type=float, default=4.0e6)
+    ap.add_argument("--channels", type=int, nargs="+", default=[1, 8])
+    ap.add_argument("--repeat", type=int, default=5)
+    a = ap.parse_args()
+    rng = np.random.default_rng(0)
+    n = int(a.fs * a.seconds)
+    xc = (rng.standard_normal(n) + 1j * rng.standard_normal(n)).astype(np.complex64)
+    xr = rng.standard_normal(n).astype(np.float32)
+    print(f"CPU: {cpu_name()}  (numba single thread; fs = {a.fs / 1e6:.3f} MHz, {a.seconds} s of samples)")
+    ref_f, ref_i = bench_minimal(xc, a.fs, a.repeat)
+    ref = max(ref_f, ref_i)
+    print(f"minimal numba E/P/L kernel (complex), float phase -> LUT:   {ref_f:8.1f} M samples/s")
+    print(f"minimal numba E/P/L kernel (complex), integer accumulators: {ref_i:8.1f} M samples/s")
+    print(f"(ratios below are to the faster minimal kernel, {ref:.1f} M samples/s)")
+    for n_ch in a.channels:
+        for cplx, x in ((True, xc), (False, xr)):
+            rate, rate_step = bench_bank(x, a.fs, cplx, n_ch, a.repeat)
+            kind = "complex" if cplx else "real   "
+            print(f"CorrelatorBank {n_ch:2d} ch {kind} run_epochs: {rate:8.1f} M channel-samples/s "
+                  f"(ratio to minimal {rate / ref:5.2f});  step() loop: {rate_step:8.1f}")
+
+
+if __name__ == "__main__":
+    main()
