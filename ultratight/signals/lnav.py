@@ -356,7 +356,8 @@ class DecodedSubframe:
     start_bit: int            # index in the fed stream of the first bit of the TLM word
     inverted: bool            # stream polarity (True: received bits were complemented)
     sf_id: int
-    tow_s: float              # GPS TOW of the start of this subframe (HOW count·6 − 6)
+    tow_s: float              # GPS TOW of the start of this subframe (HOW count·6 − 6; predicted
+                              # from the previous subframe when the HOW fails parity; None if unknown)
     words: list               # 24-bit source data of words 1..10 (None where parity failed)
     bad_words: list           # 1-based numbers of words failing parity
     page: int = 0             # page number for subframes 4/5 (from the TOW)
@@ -423,6 +424,18 @@ class LnavDecoder:
         sf_id = (d2 >> 2) & 0x7
         return 1 <= sf_id <= 5 and (d2 >> 7) < 100800
 
+    def _how_word(self, b, i, inv):
+        """Source bits of the HOW at subframe start i if its parity holds, else None."""
+        w1 = _word_int(b, i) ^ (0x3FFFFFFF if inv else 0)
+        w2 = _word_int(b, i + WORD_BITS) ^ (0x3FFFFFFF if inv else 0)
+        ok, d2 = check_word(w2, (w1 >> 1) & 1, w1 & 1)
+        return d2 if ok else None
+
+    def _next_how_consistent(self, b, i, inv):
+        h1 = self._how_word(b, i, inv)
+        h2 = self._how_word(b, i + SUBFRAME_BITS, inv)
+        return h1 is not None and h2 is not None and (h2 >> 7) == ((h1 >> 7) + 1) % 100800
+
     def _search(self, b):
         pre = np.array(PREAMBLE, dtype=np.uint8)
         n = len(b)
@@ -440,10 +453,12 @@ class LnavDecoder:
             if not r:
                 continue
             j = i + SUBFRAME_BITS
-            r2 = self._tlm_how_ok(b, j, inv) if j + 2 * WORD_BITS <= n else None
-            if r2 is None:
+            if j + 2 * WORD_BITS > n:
                 return None, None, True           # confirm with the next subframe first
-            if r2:
+            # confirmation: the next subframe's preamble (same polarity) or its TLM+HOW parity
+            # or a HOW there with good parity and the TOW count one higher
+            if np.array_equal(b[j:j + 8], pre if inv == 0 else 1 - pre) or \
+                    self._tlm_how_ok(b, j, inv) or self._next_how_consistent(b, i, inv):
                 return i, inv, False
         return None, None, False
 
@@ -480,8 +495,8 @@ class LnavDecoder:
             self.sync += SUBFRAME_BITS
 
     def _decode_at(self, b, i, inv):
-        if self._tlm_how_ok(b, i, inv) is not True:
-            return None
+        """Decode the subframe at buffer index i (lock held).  Words failing parity are reported;
+        the lock is dropped (None returned) only when the preamble, the TLM and the HOW all fail."""
         d29s, d30s = (int(b[i - 2]) ^ inv, int(b[i - 1]) ^ inv) if i >= 2 else (0, 0)
         words, bad = [], []
         for k in range(SUBFRAME_WORDS):
@@ -490,12 +505,23 @@ class LnavDecoder:
             words.append(d24 if ok else None)
             if not ok:
                 bad.append(k + 1)
-                self.bad_words.append((self.buf_offset + i, k + 1))
             d29s, d30s = (w >> 1) & 1, w & 1
+        pre_ok = (_word_int(b, i) ^ (0x3FFFFFFF if inv else 0)) >> 22 == 0b10001011
         how = words[1]
-        tow = ((how >> 7) * SUBFRAME_S - SUBFRAME_S) % SECONDS_PER_WEEK
-        sf_id = (how >> 2) & 0x7
-        page = int(round(tow / SUBFRAME_S)) // 5 % 25 + 1 if sf_id in (4, 5) else 0
+        how_ok = how is not None and 1 <= (how >> 2) & 0x7 <= 5 and (how >> 7) < 100800
+        if not (pre_ok or 1 not in bad or how_ok):
+            return None
+        for k in bad:
+            self.bad_words.append((self.buf_offset + i, k))
+        if how_ok:
+            tow = ((how >> 7) * SUBFRAME_S - SUBFRAME_S) % SECONDS_PER_WEEK
+            sf_id = (how >> 2) & 0x7
+        elif self.tow_s is not None:             # predicted from the previous subframe
+            tow = (self.tow_s + SUBFRAME_S) % SECONDS_PER_WEEK
+            sf_id = subframe_id_at(tow)
+        else:
+            tow, sf_id = None, 0
+        page = int(round(tow / SUBFRAME_S)) // 5 % 25 + 1 if sf_id in (4, 5) and tow is not None else 0
         sf = DecodedSubframe(self.buf_offset + i, bool(inv), sf_id, tow, words, bad, page)
         self.tow_s = tow
         self.subframes.append(sf)
