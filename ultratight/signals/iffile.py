@@ -278,13 +278,11 @@ class IfSource:
         count = max(0, min(int(count), self.n_samples - start))
         spec = self.spec
         if spec.packed2:
-            spb = spec.samples_per_byte
             comp_start = start * spec.comps
             comp_stop = (start + count) * spec.comps
             b0, b1 = comp_start // 4, -(-comp_stop // 4)
             vals = _BYTE_LUT[np.asarray(self._mm[b0:b1])].reshape(-1)
             vals = vals[comp_start - 4 * b0: comp_start - 4 * b0 + count * spec.comps]
-            del spb
             raw = np.ascontiguousarray(vals, dtype=np.float32)
         else:
             c = spec.comps
