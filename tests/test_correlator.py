@@ -213,6 +213,28 @@ def test_not_ready_and_chunked_equals_whole():
         assert np.allclose(g, ref[ch, :g.shape[0]], rtol=1e-9, atol=1e-9)
 
 
+def test_invalid_nco_reports_minus_two():
+    bank = CorrelatorBank([1, 2], 4e6, 0.0, True)
+    bank.init_channel(0, 1, 0.0, 0.0, 0)
+    bank.init_channel(1, 2, 0.0, 0.0, 0)
+    bank.code_rate[1] = -5.0
+    out, ts, ns = bank.step(np.zeros(8000, np.complex64), 0, 1.0)
+    assert ns[0] == 4000 and ns[1] == -2 and bank.sample_ptr[1] == 0
+
+
+def test_exact_rate_gives_exact_periods():
+    """fs = 4 MHz, zero Doppler: every period is exactly 4000 samples despite float round-off."""
+    bank = CorrelatorBank([1], 4e6, 0.0, True)
+    bank.init_channel(0, 1, 0.0, 0.0, 0)
+    _, ts, ns, nd = bank.run_epochs(np.zeros(4000 * 50, np.complex64), 0, 1.0)
+    assert nd[0] == 50 and np.all(ns[0, :50] == 4000)
+    assert np.array_equal(ts[0, :50], 4000 * np.arange(50))
+    assert bank.code_phase[0] == pytest.approx(0.0, abs=1e-9)
+    # and re-initialising from a code phase within round-off of a period start aligns to it
+    bank.init_channel(0, 1, 1023.0 - 1e-12, 0.0, 100)
+    assert bank.sample_ptr[0] == 100 and bank.code_phase[0] == 0.0
+
+
 def test_add_remove_channels():
     bank = CorrelatorBank([1], 4e6, 0.0, True)
     ch0 = bank.add_channel(3, 10.0, 100.0, 0)

@@ -48,7 +48,15 @@ reports ``n_samples = 0`` (state unchanged: refill and call again, starting the
 next buffer at or before its ``sample_ptr``).  A channel whose ``sample_ptr``
 lies before ``buf_start`` (its samples are no longer in the buffer) reports
 ``n_samples = -1`` (state unchanged; use :meth:`CorrelatorBank.advance_to`).
-Inactive channels report ``n_samples = 0`` and zero outputs.
+Inactive channels report ``n_samples = 0`` and zero outputs.  A channel with an
+invalid NCO state (``code_rate <= 0`` or non-finite phases/frequency) reports
+``n_samples = -2`` (state unchanged).
+
+Kernel-level API (used by the tracking module for its fused loops; keep stable):
+``_integrate_channel`` (one channel, raw sums), ``_COS_LUT``/``_SIN_LUT``, and the
+bank's padded code table ``_code_ext`` (n_ch, 1023 + 2*_pad) with ``_pad`` chips
+of wrap-around on each side; the fixed-point code phase passed to the kernel is
+``floor((code_phase + _pad) * 2**32)``.
 """
 
 import math
@@ -78,6 +86,7 @@ COLUMNS = ("I_P", "I_E", "I_L", "Q_P", "Q_E", "Q_L", "I_VE", "I_VL", "Q_VE", "Q_
 # status codes in n_samples
 NOT_READY = 0
 BEHIND_BUFFER = -1
+INVALID_NCO = -2
 
 
 def _carrier_lut():
@@ -202,6 +211,20 @@ def _integrate_channel(buf, is_complex, off, n, code_ext, cp_fix0, cstep, ph0, p
 
 
 @njit(cache=True)
+def _period_samples(code_phase, dp):
+    """Samples k >= 0 with code_phase + k*dp < 1023 (at least 1).
+
+    A sample within 1e-9 sample of the period end counts as the next period's
+    first, so that exact rates (e.g. fs = 4 MHz, code phase 0) give exactly
+    fs/1000 samples despite float round-off in (1023 - cp)/dp.
+    """
+    n = np.int64(np.ceil((CA_LEN - code_phase) / dp - 1e-9))
+    if n < 1:
+        n = 1
+    return n
+
+
+@njit(cache=True)
 def _step_bank(buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_ptr,
                code_phase, code_rate, carr_phase, carr_freq, fs, tap_off, sigma_arm,
                out, t_start, n_samples):
@@ -221,9 +244,11 @@ def _step_bank(buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_
         if not active[ch]:
             continue
         dp = code_rate[ch] / fs
-        n = np.int64(np.ceil((CA_LEN - code_phase[ch]) / dp))
-        if n < 1:
-            n = 1
+        if not (dp > 0.0 and dp < 1e6 and np.isfinite(code_phase[ch]) and np.isfinite(carr_freq[ch])
+                and np.isfinite(carr_phase[ch])):
+            n_samples[ch] = -2
+            continue
+        n = _period_samples(code_phase[ch], dp)
         off = sample_ptr[ch] - buf_start
         if off < 0:
             n_samples[ch] = -1
@@ -247,8 +272,8 @@ def _step_bank(buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_
                 cq = 8 + (t - 3)
             out[ch, ci] = acc[t] * scale
             out[ch, cq] = acc[n_taps + t] * scale
-        # advance the NCOs exactly (float64)
-        code_phase[ch] = code_phase[ch] + n * dp - CA_LEN
+        # advance the NCOs exactly (float64); -1e-9-sample round-off is clamped to 0
+        code_phase[ch] = max(code_phase[ch] + n * dp - CA_LEN, 0.0)
         ph = carr_phase[ch] + n * (carr_freq[ch] / fs)
         carr_phase[ch] = ph - np.floor(ph)
         sample_ptr[ch] = sample_ptr[ch] + n
@@ -385,14 +410,17 @@ class CorrelatorBank:
             self._set_code(ch, int(prn))
         self.code_phase[ch] = float(code_phase_chips) % CA_LEN
         self.code_rate[ch] = float(code_rate_from_doppler(doppler_hz))
+        if CA_LEN - self.code_phase[ch] < 1e-9 * self.code_rate[ch] / self.fs_hz:
+            self.code_phase[ch] = 0.0          # within round-off of a period start: it is the start
         self.carr_freq[ch] = self.if_hz + float(doppler_hz)
         self.carr_phase[ch] = float(carr_phase_cycles) % 1.0
         self.sample_ptr[ch] = int(sample_index)
         self.active[ch] = True
         if align and self.code_phase[ch] > 0.0:
-            dp = self.code_rate[ch] / self.fs_hz
-            n = int(math.ceil((CA_LEN - self.code_phase[ch]) / dp))
+            n = int(_period_samples(self.code_phase[ch], self.code_rate[ch] / self.fs_hz))
             self.advance_to(ch, int(sample_index) + n)
+            if CA_LEN - self.code_phase[ch] < 1e-9:     # round-off just below the period start
+                self.code_phase[ch] = 0.0
 
     def add_channel(self, prn, code_phase_chips, doppler_hz, sample_index, carr_phase_cycles=0.0, align=True):
         """Reuse an inactive channel (or append one) for ``prn``; returns its index."""
@@ -468,8 +496,9 @@ class CorrelatorBank:
         float32); ``noise_sigma_arm`` is a scalar or (n_ch,) array (see
         :func:`estimate_sigma_arm`).  Returns ``(out (n_ch, n_cols),
         t_start_samples (n_ch,), n_samples (n_ch,))``; ``n_samples`` is 0 for a
-        channel not ready (period not complete in the buffer, or inactive) and -1
-        for a channel whose ``sample_ptr`` precedes ``buf_start``.
+        channel not ready (period not complete in the buffer, or inactive), -1
+        for a channel whose ``sample_ptr`` precedes ``buf_start`` and -2 for an
+        invalid NCO state (code_rate <= 0, non-finite phase/frequency).
         """
         b, n_buf, sig = self._prep(buf, noise_sigma_arm)
         out = np.zeros((self.n_ch, self.n_cols))
