@@ -16,6 +16,12 @@ Conventions (all times are GPS system time, seconds of week, unless named otherw
 * ``code_phase_chips = (t_tx_tow · 1.023e6) mod 1023`` — the C/A code phase (chips into the
   current code period) of the signal arriving at ``t_rx``.  Its precision is limited by the
   float64 resolution of a TOW (~6e-11 s ≈ 6e-5 chips).
+* All outputs are functions of the *true* reception time ``t_rx``.  The code phase depends only
+  on the arriving signal (not on the receiver clock): it advances at
+  ``F_CA·(1 − (range_rate − rx_clk_drift)/c)`` chips/s.  The carrier phase is the phase after
+  mixing with the receiver-clock LO, so it contains ``−b/λ``.  A generator whose sample clock is
+  the receiver clock takes sample k at receiver time ``t0 + k/fs``, i.e. true time
+  ``t_rx = t0 + k/fs − b/c``.
 * ``range_rate_mps = d(pseudorange)/d(t_rx)`` exactly (derivative of the light-time solution,
   including the Sagnac rate, the satellite clock drift (scaled by dt_tx/dt_rx) and the receiver
   clock drift ``rx_clk_drift_mps``).
@@ -93,8 +99,9 @@ def visible_prns(ephs, rx_pos_e, week, tow_s, mask_deg, max_count=None, return_e
     """PRNs whose elevation at (week, tow_s) is >= ``mask_deg``, highest elevation first.
 
     ``ephs``: dict prn -> Ephemeris (or an iterable of Ephemeris).  ``mask_deg`` may be negative
-    (a high receiver sees satellites below its local horizon; the Earth is not checked as an
-    occluder beyond the mask — choose the mask accordingly).  Unhealthy ephemerides are skipped.
+    (a high receiver sees satellites below its local horizon); lines of sight that pass through
+    the WGS-84 ellipsoid are always excluded.  Positions are evaluated at ``tow_s − 0.075 s``
+    (nominal signal travel time).  Unhealthy ephemerides are skipped.
     ``max_count`` keeps the highest ones.  With ``return_elev`` returns a list of (prn, elev_deg).
     """
     rx = np.asarray(rx_pos_e, dtype=np.float64).reshape(3)
@@ -114,14 +121,14 @@ def visible_prns(ephs, rx_pos_e, week, tow_s, mask_deg, max_count=None, return_e
 
 
 def _earth_clear(rx, sat):
-    """False when the straight line receiver→satellite passes through the Earth (sphere of
-    radius WGS84_B·0.999 used conservatively)."""
-    d = sat - rx
-    t = -np.dot(rx, d) / np.dot(d, d)
-    if t <= 0.0 or t >= 1.0:
-        return True
-    closest = rx + t * d
-    return np.linalg.norm(closest) > 6356752.0
+    """False when the straight segment receiver→satellite passes through the WGS-84 ellipsoid
+    (tested exactly by scaling z by a/b, which maps the ellipsoid onto a sphere of radius a)."""
+    k = np.array([1.0, 1.0, WGS84_A / WGS84_B])
+    r0 = rx * k
+    d = (sat - rx) * k
+    t = -np.dot(r0, d) / np.dot(d, d)
+    t = min(max(t, 0.0), 1.0)
+    return np.linalg.norm(r0 + t * d) >= WGS84_A - 1.0     # 1 m slack for receivers on the surface
 
 
 WGS84_EP2 = WGS84_E2 / (1.0 - WGS84_E2)     # second eccentricity squared
