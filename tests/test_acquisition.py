@@ -189,3 +189,23 @@ def test_bad_parameters(kwargs, word):
 def test_real_input_needs_if():
     with pytest.raises(ConfigError, match="if_hz"):
         acquire(np.ones(40000, np.float32), 4.0e6, 0.0, False, prns=[1])
+
+
+def test_predicted_doppler_matches_range_rate():
+    """Assisted-mode centres: Doppler = -d(pseudorange)/dt / lambda (finite difference, nominal constellation)."""
+    from ultratight.constants import LAMBDA_L1
+    from ultratight.ins.earth import llh_to_ecef
+    from ultratight.receiver.acquisition import predicted_doppler
+    from ultratight.signals.constellation import nominal_ephemerides
+    from ultratight.signals.geometry import light_time, visible_prns
+    week, tow = 2190, 518400.0
+    ephs = nominal_ephemerides(week, tow)
+    pos = np.asarray(llh_to_ecef(np.radians(40.0), np.radians(3.0), 100.0), dtype=float)
+    vis = visible_prns(ephs, pos, week, tow, 5.0)
+    assert len(vis) >= 4
+    pred = predicted_doppler(ephs, pos, week, tow, prns=vis)
+    for p in vis:
+        lt = light_time(ephs[p], np.stack([pos, pos]), np.zeros((2, 3)), week, np.array([tow - 0.5, tow + 0.5]))
+        rr = float(np.diff(np.asarray(lt["pseudorange_m"]))[0])
+        assert pred[p] == pytest.approx(-rr / LAMBDA_L1, abs=1.0)
+        assert abs(pred[p]) < 6000.0

@@ -81,3 +81,19 @@ def test_pocketsdr_iq_prn18_is_real(shared_data):
         dt = (r.sample_index - r0.sample_index) / fs
         pred = (r0.code_phase_chips + dt * F_CA * (1 + r0.doppler_hz / F_L1)) % CA_LEN
         assert abs((r.code_phase_chips - pred + CA_LEN / 2) % CA_LEN - CA_LEN / 2) < 0.1
+
+
+def test_acquire_from_if_source(shared_data):
+    """The same detections through ultratight.signals.iffile.open_if (IfSource input, iq_conj)."""
+    iffile = pytest.importorskip("ultratight.signals.iffile")
+    p = shared_data / "real-if" / "pocketsdr" / "L1_20211202_084700_4MHz_IQ.bin"
+    if not p.is_file():
+        pytest.skip(f"real IF file not found: {p}")
+    src = iffile.open_if(str(p), fs_hz=4.0e6, if_hz=0.0, fmt="ci8", iq_conj=True)
+    res = acquire(src, pfa=PFA)
+    assert {r.prn for r in res if r.detected} == CASES["iq"][3]
+    x, fs, if_hz, cplx = _load(shared_data, "iq")
+    ref = acquire(x, fs, if_hz, cplx, prns=[26], pfa=PFA)[0]
+    r26 = [r for r in res if r.prn == 26][0]
+    assert r26.metric == pytest.approx(ref.metric, rel=1e-5)
+    assert r26.code_phase_chips == pytest.approx(ref.code_phase_chips, abs=1e-6)
