@@ -10,7 +10,8 @@ from ultratight.ins import error_model as em
 from ultratight.ins.attitude import quat_mult, quat_to_dcm, rotvec_to_quat
 from ultratight.ins.earth import normal_gravity, radii
 from ultratight.ins.imu import apply_errors, imu_errors_from_config, synthesize_imu
-from ultratight.ins.sins import SINS_STATE_LEN, make_state, nav_errors, sins_run, sins_step
+from ultratight.ins.sins import (SINS_STATE_LEN, make_state, nav_errors, sins_run, sins_step, state_from_trajectory,
+                                 state_pos_vel_e)
 from ultratight.ins.trajectory import PAPER_HIGHDYN_RECEIVER, PAPER_HIGHDYN_TRAJECTORY, build_trajectory
 
 
@@ -166,3 +167,21 @@ def test_feedback_restores_truth(paper_imu100):
     em.apply_feedback(x, dx)
     assert np.allclose(x[0:4], T["q_lb"][k], atol=1e-15)
     assert np.allclose(x[4:7], T["vel_l"][k], atol=1e-12) and np.allclose(x[7:10], T["llh"][k], atol=1e-12)
+
+
+def test_turning_vehicle_error_free_and_state_helpers():
+    # 2 g turns at 30 m/s (37.45 deg/s body rate) exercise coning/sculling
+    cfg = {"kind": "turns", "speed0_mps": 30.0, "heading0_deg": 0.0,
+           "segments": [{"t0": 0.0, "turn_rate_dps": 0.0}, {"t0": 10.0, "turn_rate_dps": 37.45},
+                        {"t0": 20.0, "turn_rate_dps": 0.0}, {"t0": 30.0, "turn_rate_dps": -37.45},
+                        {"t0": 40.0, "turn_rate_dps": 0.0, "speed_mps": 20.0}]}
+    tr = build_trajectory(cfg, {"lat_deg": 45.0, "lon_deg": 7.0, "h_m": 200.0}, 60.0)
+    imu = synthesize_imu(tr, 100.0)
+    x0 = state_from_trajectory(tr, 0.0)
+    _, (dp, dv, da) = _free_inertial(imu, x0=x0)
+    assert np.max(np.linalg.norm(dp, axis=1)) < 0.02
+    assert np.max(np.linalg.norm(dv, axis=1)) < 2e-3
+    assert math.degrees(np.max(np.linalg.norm(da, axis=1))) < 1e-6
+    pos, vel = state_pos_vel_e(state_from_trajectory(tr, 25.0))
+    p_ref, v_ref = tr.pos_vel_e(np.array([25.0]))
+    assert np.allclose(pos, p_ref[0], atol=1e-6) and np.allclose(vel, v_ref[0], atol=1e-9)

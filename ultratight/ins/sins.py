@@ -28,7 +28,7 @@ import numpy as np
 from numba import njit
 
 from ultratight.constants import OMEGA_E
-from ultratight.ins.earth import gravity_nu, radii
+from ultratight.ins.earth import dcm_ecef_from_enu, gravity_nu, llh_to_ecef, radii
 
 # state layout
 Q = slice(0, 4)          # q_lb (scalar first)
@@ -195,6 +195,20 @@ def sins_run_final(x0, dtheta, dv, dt):
     for k in range(dtheta.shape[0]):
         sins_step(x, dtheta[k], dv[k], dt)
     return x
+
+
+@njit(cache=True)
+def state_pos_vel_e(x):
+    """ECEF position and velocity (m, m/s) of a SINS state (for the outer loop / NCO aiding)."""
+    pos = llh_to_ecef(x[7], x[8], x[9])
+    C = dcm_ecef_from_enu(x[7], x[8])
+    return pos, C @ x[4:7].copy()
+
+
+def state_from_trajectory(traj, t=0.0):
+    """SINS state equal to the trajectory truth at time t (s since start)."""
+    k = traj.kinematics(np.array([float(t)]))
+    return make_state(k["q_lb"][0], k["vel_l"][0], k["llh"][0])
 
 
 # ------------------------------------------------------------------ error metrics vs truth
