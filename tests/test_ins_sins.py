@@ -185,3 +185,18 @@ def test_turning_vehicle_error_free_and_state_helpers():
     pos, vel = state_pos_vel_e(state_from_trajectory(tr, 25.0))
     p_ref, v_ref = tr.pos_vel_e(np.array([25.0]))
     assert np.allclose(pos, p_ref[0], atol=1e-6) and np.allclose(vel, v_ref[0], atol=1e-9)
+
+
+def test_feedback_and_reset_bias_accumulation():
+    x = make_state(np.array([1.0, 0, 0, 0]), np.zeros(3), np.array([0.5, 1.0, 10.0]))
+    dx = np.zeros(em.N17)
+    dx[em.BG] = [1e-6, 2e-6, 3e-6]
+    dx[em.BA] = [1e-3, 0.0, -1e-3]
+    dx[em.POS] = [0.0, 0.0, 2.0]
+    dx[em.CLK], dx[em.DRIFT] = 5.0, 0.1
+    bias = np.zeros(6)
+    em.feedback_and_reset(x, dx, bias)
+    assert np.allclose(bias, [1e-6, 2e-6, 3e-6, 1e-3, 0.0, -1e-3]) and x[9] == pytest.approx(8.0)
+    assert not np.any(dx[:em.N15]) and dx[em.CLK] == 5.0 and dx[em.DRIFT] == 0.1
+    a, b = em.compensate_increments(np.full(3, 1e-5), np.full(3, 0.1), bias[:3], bias[3:], 0.01)
+    assert np.allclose(a, 1e-5 - bias[:3] * 0.01) and np.allclose(b, 0.1 - bias[3:] * 0.01)

@@ -201,6 +201,16 @@ def apply_feedback(x_sins, dx):
     x_sins[7:10] -= dx[POS]
 
 
+def feedback_and_reset(x_sins, dx, bias_est):
+    """Closed-loop reset: apply ATT/VEL/POS to the SINS state, add BG/BA to ``bias_est``
+    (array [bg (3), ba (3)], rad/s and m/s^2, in place) and zero those 15 error states in ``dx``
+    (in place).  Clock states (17-state model) are left in ``dx``."""
+    apply_feedback(x_sins, dx)
+    bias_est[0:3] += dx[BG]
+    bias_est[3:6] += dx[BA]
+    dx[0:N15] = 0.0
+
+
 def compensate_increments(dtheta, dv, bg, ba, dt):
     """Remove estimated biases (rad/s, m/s^2) from increments: returns (dtheta - bg dt, dv - ba dt)."""
     return dtheta - np.asarray(bg) * dt, dv - np.asarray(ba) * dt
