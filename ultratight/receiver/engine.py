@@ -41,6 +41,7 @@ import time
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
+from numba import njit
 
 from ultratight.constants import C, CA_LEN, CHIP_M, F_CA, F_L1, LAMBDA_L1, T_CA
 from ultratight.errors import ConfigError, InputFileError
@@ -51,6 +52,7 @@ DEFAULT_METHOD = "dlb-rackf"
 MODE_INNER = 0
 MODE_COMBINED = 1
 MODE_OUTER = 2
+MODE_COAST = 3      # signal lost: NCO on the outer-loop aiding only, prefilter restarted on return
 
 # process noise of the aided prefilters (same for the three DLB methods; densities of eq. 2)
 DLB_PREFILTER_Q = {
@@ -60,6 +62,129 @@ DLB_PREFILTER_Q = {
     "q_f": 1.0,          # rad^2/s^3: aiding error drift (INS velocity / clock-drift error rate)
     "q_a": 10.0,         # rad^2/s^5: residual LOS jerk after aiding (IMU-CIC timing residuals)
 }
+
+
+@njit(cache=True)
+def _wipe_bits(bits, t0_ms, ms, out):
+    """Assisted data bit of the code period starting at transmit millisecond ms (per channel);
+    advances ms by one period."""
+    nb = bits.shape[1]
+    for c in range(bits.shape[0]):
+        k = (ms[c] - t0_ms[c]) // 20
+        if k < 0:
+            k = 0
+        if k > nb - 1:
+            k = nb - 1
+        out[c] = bits[c, k]
+        ms[c] += 1
+
+
+@njit(cache=True)
+def _epoch_post(k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, ring_t, ring_cp, ring_r, ring_f, ring_k,
+                imu_dt, t_next_upd, acc, rec_t, rec_f, rec_cp, rec_a, rec_mode, mode_now,
+                aid_grid, n_filled, sample_ptr, half_period_s, aid_out):
+    """Per-epoch bookkeeping for all channels in one compiled call.
+
+    Records the estimates (NCO + prefilter at the interval start), forms the residuals against
+    the exact SINS predictions (ring of 100 Hz predictions, linear in between), accumulates
+    them in the decimator window (acc rows: n, code, doppler, P_tautau, P_ff, amplitude) and
+    interpolates the 1 kHz outer-loop Doppler aiding at the middle of each channel's next
+    interval.
+    """
+    two_pi = 2.0 * math.pi
+    n_ch = t_start.shape[0]
+    ring_n = ring_t.shape[0]
+    i1 = (ring_k - 1) % ring_n
+    t_last = ring_t[i1]
+    half = 0.5 * CA_LEN
+    for c in range(n_ch):
+        tk = t_start[c] / fs
+        f_meas = f0[c] - if_hz + x_post[c, 3] / two_pi
+        cp_meas = cp0[c] + x_post[c, 1]
+        rec_t[k_ep, c] = tk
+        rec_f[k_ep, c] = f_meas
+        rec_cp[k_ep, c] = cp_meas % CA_LEN
+        rec_a[k_ep, c] = x_post[c, 0]
+        rec_mode[k_ep, c] = mode_now[c]
+        back = int(math.floor((t_last - tk) / imu_dt)) + 1
+        if back < 1:
+            back = 1
+        if back > ring_n - 2:
+            back = ring_n - 2
+        ia = (ring_k - 1 - back) % ring_n
+        ib = (ia + 1) % ring_n
+        ta = ring_t[ia]
+        w = (tk - ta) / imu_dt
+        cp_pred = ring_cp[ia, c] + ring_r[ia, c] * (tk - ta)
+        f_pred = ring_f[ia, c] + w * (ring_f[ib, c] - ring_f[ia, c])
+        r_cp = (cp_meas - cp_pred + half) % CA_LEN - half
+        r_f = f_meas - f_pred
+        if tk < t_next_upd:
+            acc[0, c] += 1.0
+            acc[1, c] += r_cp
+            acc[2, c] += r_f
+            acc[3, c] += P[c, 1, 1]
+            acc[4, c] += P[c, 3, 3]
+            acc[5, c] += x_post[c, 0]
+        u = (sample_ptr[c] / fs + half_period_s) * 1000.0
+        j = int(math.floor(u))
+        if j < 0:
+            j = 0
+        if j > n_filled - 2:
+            j = n_filled - 2
+        fr = u - j
+        aid_out[c] = aid_grid[j, c] * (1.0 - fr) + aid_grid[j + 1, c] * fr
+
+
+@njit(cache=True)
+def _lock_monitor(out, D, win_i, win_c, sums_i, sums_c, ptr, count, present, thr_off, thr_on, events, phase):
+    """Per-channel signal/lock monitor on the wiped prompt (unit noise per arm).
+
+    Sliding window of W epochs: while ``present``, the mean in-phase prompt ``mean(I_P D)``
+    (coherent: the carrier loop keeps the phase) below ``thr_off`` declares the signal lost;
+    while absent, the coherent magnitude ``|mean((I_P + j Q_P) D)|`` above ``thr_on`` declares
+    it back (``phase`` = its angle, for the restart).  ``events[c]``: 0 none, -1 lost, +1 regained.
+    """
+    W = win_i.shape[1]
+    k = ptr[0]
+    for c in range(out.shape[0]):
+        vi = out[c, 0] * D[c]
+        vq = out[c, 3] * D[c]
+        sums_i[c] += vi - win_i[c, k]
+        sums_c[c] += complex(vi, vq) - win_c[c, k]
+        win_i[c, k] = vi
+        win_c[c, k] = complex(vi, vq)
+        events[c] = 0
+        if count[c] < W:
+            count[c] += 1
+            continue
+        if present[c]:
+            if sums_i[c].real / W < thr_off:
+                present[c] = False
+                events[c] = -1
+        else:
+            m = sums_c[c] / W
+            if abs(m) > thr_on:
+                present[c] = True
+                events[c] = 1
+                phase[c] = math.atan2(m.imag, m.real)
+                # restart the window so the next decision uses post-restart data only
+                count[c] = 0
+    ptr[0] = (k + 1) % W
+
+
+NOISE_JUMP_LOG = math.log(1.5)     # front-end noise level change that rescales the amplitude
+
+
+class _ZeroState:
+    """Stand-in prefilter bank with zero errors: the inner loop then applies only the aiding."""
+
+    def __init__(self, n_ch):
+        self.x = np.zeros((n_ch, 5))
+        self.active = np.ones(n_ch, dtype=np.bool_)
+
+    def correct(self, dx):
+        self.x[:] = 0.0
 
 
 def check_method(method):
@@ -88,6 +213,12 @@ class EngineOptions:
     amp_min: float = 0.15                # channels below this amplitude estimate skip the update
     gate_sigma: float = 5.0
     clock_q_drift: float = 1e-4          # (m/s)^2/s clock drift random walk in the tight filter
+    phase_init_ms: int = 0               # startup coherent phase initialisation window (0: off)
+    lock_window_ms: int = 200            # signal/lock monitor window
+    lock_off_dbhz: float = 13.0          # coast (outer loop only) below this C/N0 (in-phase estimate)
+    lock_on_dbhz: float = 16.5           # restart the prefilter above this C/N0 (coherent magnitude)
+    cn0_min_dbhz: float = 10.0           # floor of the re-initialised amplitude
+    reinit_sigma_f_hz: float = 0.5       # frequency 1-sigma after a phase (re)initialisation
     startup: dict = field(default_factory=dict)   # StartupErrors overrides
 
     def as_dict(self):
@@ -306,12 +437,34 @@ class UltratightEngine:
         # ---- decimator accumulators (window of the tight filter)
         t_upd_step = 1.0 / opt.tight_rate_hz
         t_next_upd = t_upd_step
-        acc_n = np.zeros(n_ch)
-        acc_cp = np.zeros(n_ch)
-        acc_f = np.zeros(n_ch)
-        acc_pt = np.zeros(n_ch)
-        acc_pf = np.zeros(n_ch)
-        acc_a = np.zeros(n_ch)
+        acc = np.zeros((6, n_ch))          # decimator window sums: n, code, doppler, Ptt, Pff, amp
+        D = np.ones(n_ch)
+        aid = np.zeros(n_ch)
+        ms = np.asarray(ms, dtype=np.int64).copy()
+        sig_prev = np.full(n_ch, np.nan)
+        init_left = opt.phase_init_ms if inner is not None else 0
+        init_acc = np.zeros(n_ch, dtype=np.complex128)
+        zero_state = _ZeroState(n_ch)
+        W = int(opt.lock_window_ms)
+        lm_i = np.zeros((n_ch, W))
+        lm_c = np.zeros((n_ch, W), dtype=np.complex128)
+        lm_si = np.zeros(n_ch)
+        lm_sc = np.zeros(n_ch, dtype=np.complex128)
+        lm_ptr = np.zeros(1, dtype=np.int64)
+        lm_count = np.zeros(n_ch, dtype=np.int64)
+        present = np.ones(n_ch, dtype=np.bool_)
+        lm_events = np.zeros(n_ch, dtype=np.int64)
+        lm_phase = np.zeros(n_ch)
+        thr_off = float(np.sqrt(2.0 * 10 ** (opt.lock_off_dbhz / 10.0) * T_CA))
+        thr_on = float(np.sqrt(2.0 * 10 ** (opt.lock_on_dbhz / 10.0) * T_CA))
+        n_lost_events = 0
+        n_regained = 0
+        xp_view = np.zeros((n_ch, 5))
+        coast_any = False
+        n_noise_jumps = 0
+        n_phase_inits = 0
+        cp0 = np.zeros(n_ch)
+        f0 = np.zeros(n_ch)
 
         # ---- IF buffer
         blk = int(round(opt.block_ms * 1e-3 * fs))
@@ -370,70 +523,84 @@ class UltratightEngine:
 
             # ---- correlate one period per channel
             tw = time.perf_counter()
-            cp0 = bank.code_phase.copy()
-            f0 = bank.carr_freq.copy()
-            bidx = np.minimum(sp // blk, n_blocks - 1)
-            sig = sigma_blk[bidx]
+            cp0[:] = bank.code_phase
+            f0[:] = bank.carr_freq
+            sig = sigma_blk[np.minimum(sp // blk, n_blocks - 1)]
+            if k_ep == 0:
+                sig_prev[:] = sig
             out, t_start, n_s = bank.step(buf, buf_start, sig)
-            if np.any(n_s <= 0):
+            if n_s.min() <= 0:
                 raise InputFileError(f"{self.src.path}: correlator could not integrate channels "
                                      f"{np.flatnonzero(n_s <= 0).tolist()} (buffer management)")
             timing["correlate"] += time.perf_counter() - tw
             tw = time.perf_counter()
-            D = wipe.signs(ms)
-            ms += 1
-            z = out[:, :6]
-            pref.step(z, bits=D)
-            xp = pref.x_post
-            tk = t_start / fs
-            f_meas = f0 - self.if_hz + xp[:, 3] / two_pi
-            cp_meas = cp0 + xp[:, 1]
-            rec_t[k_ep] = tk
-            rec_f[k_ep] = f_meas
-            rec_cp[k_ep] = np.mod(cp_meas, CA_LEN)
-            rec_a[k_ep] = xp[:, 0]
-            rec_mode[k_ep] = mode_now
-
-            # ---- residuals vs the exact SINS predictions (linear between SINS epochs)
-            i1 = (ring_k - 1) % ring_n
-            t_last = ring_t[i1]
-            # index of the SINS epoch just before tk (SINS is ahead of the correlator)
-            back = np.floor((t_last - tk) / imu_dt).astype(np.int64) + 1
-            back = np.clip(back, 1, ring_n - 1)
-            ia = (ring_k - 1 - back) % ring_n
-            ib = (ia + 1) % ring_n
-            ta = ring_t[ia]
-            w = (tk - ta) / imu_dt
-            cp_pred = ring_cp[ia, rows] + ring_r[ia, rows] * (tk - ta)
-            f_pred = ring_f[ia, rows] + w * (ring_f[ib, rows] - ring_f[ia, rows])
-            r_cp = np.mod(cp_meas - cp_pred + 0.5 * CA_LEN, CA_LEN) - 0.5 * CA_LEN
-            r_f = f_meas - f_pred
-            win = tk < t_next_upd
-            acc_n += win
-            acc_cp += np.where(win, r_cp, 0.0)
-            acc_f += np.where(win, r_f, 0.0)
-            acc_a += np.where(win, xp[:, 0], 0.0)
-            Pd = pref.P
-            acc_pt += np.where(win, Pd[:, 1, 1], 0.0)
-            acc_pf += np.where(win, Pd[:, 3, 3], 0.0)
-
-            # ---- NCO commands for the next interval
-            t_next_mid = (bank.sample_ptr + 0.5 * fs * T_CA) / fs
-            u = t_next_mid * 1000.0
-            j = np.floor(u).astype(np.int64)
-            j = np.clip(j, 0, outer.n_filled - 2)
-            fr = u - j
-            aid = outer.aid_doppler[j, rows] * (1.0 - fr) + outer.aid_doppler[j + 1, rows] * fr
+            _wipe_bits(wipe.bits, wipe.t0_ms, ms, D)
             if inner is not None:
-                inner.apply(pref, bank, aid_doppler_hz=aid, use_aid=use_aid)
+                # front-end noise level changes (jamming / the scenario's noise events): the
+                # signal power is unchanged, so the normalised amplitude scales by sigma_old/sigma_new
+                ratio = sig_prev / sig
+                jump = np.abs(np.log(ratio)) > NOISE_JUMP_LOG
+                if jump.any():
+                    pref.x[jump, 0] *= ratio[jump]
+                    pref.P[jump, 0, :] *= ratio[jump, None]
+                    pref.P[jump, :, 0] *= ratio[jump, None]
+                    if np.any(ratio[jump] > 1.0):       # noise dropped: re-initialise the carrier phase
+                        init_left = opt.phase_init_ms
+                        init_acc[:] = 0.0
+                    n_noise_jumps += 1
+                sig_prev[:] = sig
+            if init_left > 0:
+                # carrier-phase (re)initialisation: NCOs aided only, coherent sum of wiped prompts
+                init_acc += (out[:, 0] + 1j * out[:, 3]) * D
+                init_left -= 1
+                if init_left == 0:
+                    self._phase_init(pref, bank, init_acc, opt.phase_init_ms)
+                    n_phase_inits += 1
+                pref.x_post[:, 1:] = 0.0
             else:
-                self._outer_only_nco(bank, pref, aid, t_next_mid, ins, outer)
+                pref.step(out, bits=D)
+            xp_rec = pref.x_post
+            if inner is not None:
+                _lock_monitor(out, D, lm_i, lm_c, lm_si, lm_sc, lm_ptr, lm_count, present, thr_off, thr_on,
+                              lm_events, lm_phase)
+                if lm_events.any():
+                    lost = lm_events < 0
+                    back = lm_events > 0
+                    n_lost_events += int(lost.sum())
+                    if back.any():
+                        n_regained += int(back.sum())
+                        self._restart_channels(pref, bank, np.flatnonzero(back), lm_phase, lm_sc, W)
+                    coast_any = not present.all()
+                if coast_any:
+                    # coasting channels: the prefilter neither steers the NCO nor enters the estimate
+                    xp_view[:] = pref.x_post
+                    xp_view[~present, 1:] = 0.0
+                    xp_rec = xp_view
+                    mode_now = np.where(present, np.where(use_aid, MODE_COMBINED, MODE_INNER),
+                                        MODE_COAST).astype(np.int8)
+            _epoch_post(k_ep, t_start.astype(np.float64), fs, self.if_hz, f0, cp0, xp_rec, pref.P,
+                        ring_t, ring_cp, ring_r, ring_f, ring_k, imu_dt, t_next_upd, acc, rec_t, rec_f,
+                        rec_cp, rec_a, rec_mode, mode_now, outer.aid_doppler, outer.n_filled,
+                        bank.sample_ptr, 0.5 * T_CA, aid)
+            if inner is not None:
+                if init_left > 0:
+                    inner.apply(zero_state, bank, aid_doppler_hz=aid, use_aid=np.ones(n_ch, dtype=bool))
+                elif coast_any:
+                    zero_state.x[:] = pref.x
+                    zero_state.x[~present] = 0.0
+                    inner.apply(zero_state, bank, aid_doppler_hz=aid, use_aid=use_aid | ~present)
+                    pref.x[present] = zero_state.x[present]
+                else:
+                    inner.apply(pref, bank, aid_doppler_hz=aid, use_aid=use_aid)
+            else:
+                self._outer_only_nco(bank, pref, aid, ins, outer)
             timing["prefilter"] += time.perf_counter() - tw
 
             # ---- tight filter update at the decimated rate, once every channel passed t_next_upd
-            if tk.min() >= t_next_upd:
+            if t_start.min() >= t_next_upd * fs:
                 tw = time.perf_counter()
                 t_u = t_next_upd
+                acc_n, acc_cp, acc_f, acc_pt, acc_pf, acc_a = acc
                 ok = acc_n > 0
                 nn = np.maximum(acc_n, 1)
                 m_cp = acc_cp / nn
@@ -444,7 +611,7 @@ class UltratightEngine:
                 var_pr = CHIP_M ** 2 * (acc_pt / nn) * opt.meas_corr_factor + opt.pr_sigma_floor_m ** 2
                 var_prr = (LAMBDA_L1 / two_pi) ** 2 * (acc_pf / nn) * opt.meas_corr_factor \
                     + opt.prr_sigma_floor_mps ** 2
-                valid = ok & (m_a > opt.amp_min)
+                valid = ok & (m_a > opt.amp_min) & present
                 pos_e, vel_e, C_el = ins.pos_vel_e()
                 lat, lon, h = ins.llh
                 rm, rn = radii(lat)
@@ -465,24 +632,22 @@ class UltratightEngine:
                     dfp = pr_fix["doppler_hz"] - ring_f[i1]
                     ring_cp += dcp
                     ring_f += dfp
+                    if inner is not None:
+                        outer.offset_hz += dfp   # double loop: corrections do not jump the NCOs
                     ring_r[i1] = pr_fix["code_rate_cps"]
                     vel_e_prev = vel_e.copy()
                 sig_dopp = tightmod.doppler_sigma_hz(tf.P, los_l, LAMBDA_L1)
                 if inner is not None:
                     use_aid = (sig_dopp < opt.arbitration_sigma_hz)
-                    mode_now = np.where(use_aid, MODE_COMBINED, MODE_INNER).astype(np.int8)
+                    mode_now = np.where(present, np.where(use_aid, MODE_COMBINED, MODE_INNER),
+                                        MODE_COAST).astype(np.int8)
                 nav["t"].append(t_u)
                 nav["pos_e"].append(pos_e.copy())
                 nav["vel_e"].append(vel_e.copy())
                 nav["clk"].append([ins.clk_b, ins.clk_d])
                 nav["sig"].append(sig_dopp.copy())
                 # start the next window with the epochs already past t_next_upd
-                acc_n[:] = 0
-                acc_cp[:] = 0
-                acc_f[:] = 0
-                acc_pt[:] = 0
-                acc_pf[:] = 0
-                acc_a[:] = 0
+                acc[:] = 0.0
                 t_next_upd += t_upd_step
                 timing["tight"] += time.perf_counter() - tw
             k_ep += 1
@@ -498,6 +663,10 @@ class UltratightEngine:
             "n_tight_updates": tf.n_updates,
             "n_tight_rejected": tf.n_rejected,
             "n_feedback": n_feedback,
+            "n_noise_jumps": n_noise_jumps,
+            "n_phase_inits": n_phase_inits,
+            "n_lock_lost_events": n_lost_events,
+            "n_prefilter_restarts": n_regained,
             "timing_s": timing,
             "prefilter": pref.describe() if hasattr(pref, "describe") else {},
             "prefilter_resets": np.asarray(getattr(pref, "n_resets", np.zeros(n_ch))).tolist(),
@@ -514,7 +683,50 @@ class UltratightEngine:
             nav_sigma_doppler_hz=np.asarray(nav["sig"]).reshape(-1, n_ch), runtime_s=runtime,
             duration_s=n * T_CA, info=info)
 
-    def _outer_only_nco(self, bank, pref, aid, t_next_mid, ins, outer):
+    def _phase_init(self, pref, bank, acc, n):
+        """End of a carrier-phase (re)initialisation window of ``n`` epochs: rotate the carrier
+        NCO by the phase of the coherent sum of the wiped prompts and restart the prefilters
+        from it (amplitude from |sum|/n, bias-corrected for the unit noise per arm)."""
+        from ultratight.fusion.prefilter import default_initial_covariance
+        phi = np.angle(acc)
+        a2 = np.abs(acc) ** 2 / n ** 2 - 2.0 / n
+        a_min = float(np.sqrt(2.0 * 10 ** (self.opt.cn0_min_dbhz / 10.0) * T_CA))
+        amp = np.sqrt(np.maximum(a2, a_min ** 2))
+        bank.carr_phase[:] = np.mod(bank.carr_phase + phi / (2.0 * math.pi), 1.0)
+        n_ch = len(self.prns)
+        x0 = np.zeros((n_ch, 5))
+        x0[:, 0] = amp
+        P0 = np.zeros((n_ch, 5, 5))
+        base = default_initial_covariance(self.opt.cn0_init_dbhz, T_CA)
+        for c in range(n_ch):
+            P0[c] = base
+            snr = amp[c] * math.sqrt(n)          # amplitude SNR of the coherent sum (unit noise per arm)
+            P0[c, 0, 0] = (0.3 * amp[c]) ** 2
+            P0[c, 1, 1] = pref.P[c, 1, 1] if np.isfinite(pref.P[c, 1, 1]) else 0.01 ** 2
+            P0[c, 2, 2] = min((1.0 / max(snr, 1e-3)) ** 2 + 0.05, (math.pi / 2) ** 2)
+            P0[c, 3, 3] = (2 * math.pi * self.opt.reinit_sigma_f_hz) ** 2
+            P0[c, 4, 4] = (2 * math.pi * 2.0) ** 2
+        pref.reset(np.arange(n_ch), x0=x0, P0=P0)
+
+    def _restart_channels(self, pref, bank, chans, phase, sums_c, W):
+        """Signal back after coasting: rotate the carrier NCO by the coherent phase and restart
+        the channel's prefilter (amplitude from the coherent magnitude, startup-like covariance)."""
+        from ultratight.fusion.prefilter import default_initial_covariance
+        base = default_initial_covariance(self.opt.cn0_init_dbhz, T_CA)
+        x0 = np.zeros((len(chans), 5))
+        P0 = np.zeros((len(chans), 5, 5))
+        for i, c in enumerate(chans):
+            bank.carr_phase[c] = (bank.carr_phase[c] + phase[c] / (2.0 * math.pi)) % 1.0
+            x0[i, 0] = abs(sums_c[c]) / W
+            P0[i] = base
+            P0[i, 0, 0] = (0.3 * x0[i, 0]) ** 2
+            P0[i, 1, 1] = max(pref.P[c, 1, 1], 0.01 ** 2)
+            P0[i, 2, 2] = 0.5 ** 2
+            P0[i, 3, 3] = (2 * math.pi * self.opt.reinit_sigma_f_hz) ** 2
+            P0[i, 4, 4] = (2 * math.pi * 2.0) ** 2
+        pref.reset(chans, x0=x0, P0=P0)
+
+    def _outer_only_nco(self, bank, pref, aid, ins, outer):
         raise NotImplementedError
 
 

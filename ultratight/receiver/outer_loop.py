@@ -23,7 +23,10 @@ strictly causal: the SINS never needs IMU data past the current correlator epoch
 step.
 """
 
+import math
+
 import numpy as np
+from numba import njit
 
 from ultratight.constants import C, CA_LEN, F_CA, F_L1, LAMBDA_L1, OMEGA_E
 from ultratight.errors import ConfigError
@@ -92,14 +95,128 @@ def _rot_z(theta, v):
     return out
 
 
+@njit(cache=True)
+def _herm(tab_p, tab_v, i, k, s, h, out_p, out_v):
+    """Cubic Hermite position/velocity of row i at node k, fraction s (numba)."""
+    s2 = s * s
+    s3 = s2 * s
+    h00 = 2 * s3 - 3 * s2 + 1
+    h10 = s3 - 2 * s2 + s
+    h01 = -2 * s3 + 3 * s2
+    h11 = s3 - s2
+    d00 = 6 * s2 - 6 * s
+    d10 = 3 * s2 - 4 * s + 1
+    d11 = 3 * s2 - 2 * s
+    for a in range(tab_p.shape[2]):
+        p0 = tab_p[i, k, a]
+        p1 = tab_p[i, k + 1, a]
+        v0 = tab_v[i, k, a] * h
+        v1 = tab_v[i, k + 1, a] * h
+        out_p[a] = h00 * p0 + h10 * v0 + h01 * p1 + h11 * v1
+        out_v[a] = (d00 * p0 + d10 * v0 - d00 * p1 + d11 * v1) / h
+
+
+@njit(cache=True)
+def _solve_all(t0, h, n, pos, vel, clk, clkd, rx, rv, t_rx, bias, drift, iters, tau,
+               out_pr, out_prdot, out_cp, out_ttx, out_los):
+    """Light-time solution for every row of the table (same equations as geometry.light_time)."""
+    nch = pos.shape[0]
+    p = np.empty(3)
+    v = np.empty(3)
+    c2 = np.empty(1)
+    cd2 = np.empty(1)
+    for i in range(nch):
+        ta = tau[i]
+        for _ in range(iters):
+            u = (t_rx - ta - t0) / h
+            k = int(math.floor(u))
+            if k < 0:
+                k = 0
+            if k > n - 2:
+                k = n - 2
+            _herm(pos, vel, i, k, u - k, h, p, v)
+            th = OMEGA_E * ta
+            c, sn = math.cos(th), math.sin(th)
+            dx = c * p[0] + sn * p[1] - rx[0]
+            dy = -sn * p[0] + c * p[1] - rx[1]
+            dz = p[2] - rx[2]
+            ta = math.sqrt(dx * dx + dy * dy + dz * dz) / C
+        tau[i] = ta
+        t_tx = t_rx - ta
+        u = (t_tx - t0) / h
+        k = int(math.floor(u))
+        if k < 0:
+            k = 0
+        if k > n - 2:
+            k = n - 2
+        s = u - k
+        _herm(pos, vel, i, k, s, h, p, v)
+        # clock (Hermite with the drift)
+        s2 = s * s
+        s3 = s2 * s
+        ck = (2 * s3 - 3 * s2 + 1) * clk[i, k] + (s3 - 2 * s2 + s) * clkd[i, k] * h \
+            + (-2 * s3 + 3 * s2) * clk[i, k + 1] + (s3 - s2) * clkd[i, k + 1] * h
+        ckd = ((6 * s2 - 6 * s) * clk[i, k] + (3 * s2 - 4 * s + 1) * clkd[i, k] * h
+               - (6 * s2 - 6 * s) * clk[i, k + 1] + (3 * s2 - 2 * s) * clkd[i, k + 1] * h) / h
+        th = OMEGA_E * ta
+        c, sn = math.cos(th), math.sin(th)
+        pr0 = c * p[0] + sn * p[1]
+        pr1 = -sn * p[0] + c * p[1]
+        pr2 = p[2]
+        vr0 = c * v[0] + sn * v[1]
+        vr1 = -sn * v[0] + c * v[1]
+        vr2 = v[2]
+        # d/dtheta R3(theta) r = R3(theta) (y, -x, 0)
+        dp0 = c * p[1] + sn * (-p[0])
+        dp1 = -sn * p[1] + c * (-p[0])
+        dx = pr0 - rx[0]
+        dy = pr1 - rx[1]
+        dz = pr2 - rx[2]
+        rng = math.sqrt(dx * dx + dy * dy + dz * dz)
+        l0, l1, l2 = dx / rng, dy / rng, dz / rng
+        a_term = l0 * (vr0 - rv[0]) + l1 * (vr1 - rv[1]) + l2 * (vr2 - rv[2])
+        b_term = l0 * (vr0 - OMEGA_E * dp0) + l1 * (vr1 - OMEGA_E * dp1) + l2 * vr2
+        rng_dot = a_term / (1.0 + b_term / C)
+        tau_dot = rng_dot / C
+        out_pr[i] = rng + bias - C * ck
+        out_prdot[i] = rng_dot + drift - C * ckd * (1.0 - tau_dot)
+        t_sv = t_tx + ck
+        out_ttx[i] = t_sv
+        cpv = (t_sv * F_CA) % CA_LEN
+        out_cp[i] = cpv
+        out_los[i, 0] = l0
+        out_los[i, 1] = l1
+        out_los[i, 2] = l2
+
+
 class MultiLightTime:
-    """All-channel light-time solution (same equations as ``geometry.light_time``)."""
+    """All-channel light-time solution (same equations as ``geometry.light_time``, numba)."""
 
     def __init__(self, table):
         self.table = table
         self.tau = np.full(len(table.prns), NOMINAL_TAU_S)
+        n = len(table.prns)
+        self._pr = np.empty(n)
+        self._prd = np.empty(n)
+        self._cp = np.empty(n)
+        self._ttx = np.empty(n)
+        self._los = np.empty((n, 3))
 
     def solve(self, rx_pos_e, rx_vel_e, t_rx_true_tow, clk_bias_m=0.0, clk_drift_mps=0.0, iters=LT_ITER):
+        tb = self.table
+        _solve_all(tb.t0, tb.h, tb.n, tb.pos, tb.vel, tb.clk, tb.clk_dot,
+                   np.ascontiguousarray(rx_pos_e, dtype=np.float64),
+                   np.ascontiguousarray(rx_vel_e, dtype=np.float64), float(t_rx_true_tow),
+                   float(clk_bias_m), float(clk_drift_mps), int(iters), self.tau,
+                   self._pr, self._prd, self._cp, self._ttx, self._los)
+        doppler = -self._prd / LAMBDA_L1
+        return {
+            "pseudorange_m": self._pr.copy(), "range_rate_mps": self._prd.copy(), "doppler_hz": doppler,
+            "code_phase_chips": self._cp.copy(), "code_rate_cps": F_CA * (1.0 + doppler / F_L1),
+            "t_tx_tow": self._ttx.copy(), "los_e": self._los.copy(),
+        }
+
+    def solve_numpy(self, rx_pos_e, rx_vel_e, t_rx_true_tow, clk_bias_m=0.0, clk_drift_mps=0.0, iters=LT_ITER):
         rx = np.asarray(rx_pos_e, dtype=float)
         rv = np.asarray(rx_vel_e, dtype=float)
         t_rx = float(t_rx_true_tow)
@@ -166,6 +283,9 @@ class OuterLoop:
         self.aid_doppler = np.full((n_out, n_ch), np.nan)
         self.aid_code_rate = np.full((n_out, n_ch), np.nan)
         self.n_filled = 0          # aid arrays are valid on out-grid indices [j0, n_filled)
+        # Doppler offset removed from the aiding stream (the double loop books the tight-filter
+        # corrections here so that only the SINS *dynamics* reach the NCO increments)
+        self.offset_hz = np.zeros(n_ch)
         self.j0 = None
 
     def predict(self, t, pos_e, vel_e, clk_bias_m, clk_drift_mps):
@@ -183,7 +303,7 @@ class OuterLoop:
         p = np.asarray(pos_e) + np.asarray(vel_e) * lead + 0.5 * np.asarray(acc_e) * lead * lead
         v = np.asarray(vel_e) + np.asarray(acc_e) * lead
         pr = self.predict(t_s + lead, p, v, clk_bias_m + clk_drift_mps * lead, clk_drift_mps)
-        x = np.stack([pr["doppler_hz"], pr["code_rate_cps"] - F_CA], axis=0)   # (2, n_ch)
+        x = np.stack([pr["doppler_hz"] - self.offset_hz, pr["code_rate_cps"] - F_CA], axis=0)   # (2, n_ch)
         y = self.interp.push(x)                                              # (2, n_ch, ratio)
         j_start = int(round((t_s + 1.0 / self.rate_hz) * self.out_rate_hz))
         if self.j0 is None:
@@ -200,7 +320,7 @@ class OuterLoop:
         """Fill the interpolator's history with the current prediction (start-up, no transient)."""
         lead = self.delay_s + 1.0 / self.rate_hz
         pr = self.predict(t_s + lead, pos_e, vel_e, clk_bias_m, clk_drift_mps)
-        x = np.stack([pr["doppler_hz"], pr["code_rate_cps"] - F_CA], axis=0)
+        x = np.stack([pr["doppler_hz"] - self.offset_hz, pr["code_rate_cps"] - F_CA], axis=0)
         self.interp.prime(x)
 
 
