@@ -108,3 +108,23 @@ def test_scalar_time_gives_one_row(nav):
     assert pos.shape == (1, 3) and vel.shape == (1, 3) and clk.shape == (1,) and drift.shape == (1,)
     r = np.linalg.norm(pos[0])
     assert 2.55e7 < r < 2.70e7
+
+
+def test_gpstime_helpers():
+    from ultratight.signals.gpstime import (datetime_to_gps, full_week, normalize, wrap_week_diff,
+                                            week_of_nearby)
+    assert datetime_to_gps(2022, 1, 1) == (2190, 518400.0)       # per the data README
+    assert datetime_to_gps(1980, 1, 6) == (0, 0.0)
+    assert wrap_week_diff(302401.0) == -302399.0
+    assert wrap_week_diff(-302401.0) == 302399.0
+    assert wrap_week_diff(100.0) == 100.0
+    assert np.allclose(wrap_week_diff(np.array([604000.0, -604000.0])), [-800.0, 800.0])
+    assert normalize(2190, 604800.0 + 5.0) == (2191, 5.0)
+    assert normalize(2191, -12.0) == (2190, 604788.0)
+    # 10-bit week: 2190 % 1024 = 142
+    assert full_week(142, 2190) == 2190
+    assert full_week(142, 2190 + 400) == 2190
+    assert full_week(1023, 2048) == 2047                          # just before the 2nd rollover
+    assert full_week(0, 2047) == 2048
+    assert week_of_nearby(2190, 604000.0, 100.0) == 2191
+    assert week_of_nearby(2191, 100.0, 604000.0) == 2190

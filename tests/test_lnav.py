@@ -216,3 +216,38 @@ def test_week_rollover_in_stream(eph):
     assert dec.ephemeris.week == WEEK
     # the same stream through nav_bits with a negative TOW in the following week
     assert np.array_equal(nav_bits(e, WEEK + 1, -12.0, 300 * 6), s)
+
+
+def test_polarity_flip_midstream_is_followed(eph):
+    s = nav_bits(eph, WEEK, TOW0, 300 * 7)
+    r = np.concatenate((s[:900], -s[900:]))                  # half-cycle slip at a subframe edge
+    dec = decode_bits(r.astype(float) * 0.7, prn=7, ref_week=WEEK)     # soft symbols
+    assert [sf.inverted for sf in dec.subframes][:6] == [False] * 3 + [True] * 3
+    assert [sf.tow_s for sf in dec.subframes][:6] == list(TOW0 + 6.0 * np.arange(6))
+    assert dec.polarity_flips == 1
+    assert dec.ephemeris == quantise(eph)
+
+
+def test_almanac_page_structure(eph):
+    from ultratight.signals.lnav import _get
+    alm = {3: eph.copy(prn=3)}
+    def frame_start(page):                       # first frame start after TOW0 showing `page`
+        k = int(TOW0 // 30)
+        return 30.0 * (k + (page - 1 - k) % 25)
+    tow = frame_start(3) + 24.0                  # subframe 5 of the frame showing page 3
+    bits = encode_subframe(5, eph, tow, almanac=alm)
+    dec = decode_bits(np.concatenate([bits, encode_subframe(1, eph, tow + 6.0)]))
+    sf = dec.subframes[0]
+    assert sf.ok and sf.sf_id == 5 and sf.page == 3
+    v = 0
+    for w in sf.words[2:]:
+        v = (v << 24) | w
+    assert _get(v, 192, 0, 2) == 1 and _get(v, 192, 2, 6) == 3          # data ID 01, SV ID 3
+    assert abs(_get(v, 192, 8, 16) * 2 ** -21 - eph.e) <= 2 ** -22
+    assert abs(_get(v, 192, 72, 24) * 2 ** -11 - eph.sqrt_a) <= 2 ** -12
+    assert abs((_get(v, 192, 32, 16, True) * 2 ** -19 + 0.30) * PI - eph.i0) <= 2 ** -20 * PI
+    # subframe 4 page 18 carries SV ID 56; subframe 5 page 25 SV ID 51 (Table 20-V)
+    t18 = frame_start(18) + 18.0
+    b4 = encode_subframe(4, eph, t18)
+    d4 = decode_bits(np.concatenate([b4, encode_subframe(5, eph, t18 + 6.0)])).subframes[0]
+    assert d4.ok and d4.page == 18 and (d4.words[2] >> 16) & 0x3F == 56

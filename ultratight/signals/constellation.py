@@ -25,9 +25,7 @@ Propagation model (deterministic, project-defined):
 
 import math
 
-import numpy as np
-
-from ultratight.constants import GM, OMEGA_E, SECONDS_PER_WEEK
+from ultratight.constants import GM, OMEGA_E
 from ultratight.signals.ephemeris import Ephemeris
 from ultratight.signals.gpstime import datetime_to_gps, normalize, to_seconds
 
@@ -105,7 +103,3 @@ def nominal_ephemerides(week, tow_s, prns=None):
 def repeat_period_s():
     """Period after which the nominal constellation geometry in ECEF repeats (two orbits)."""
     return 2.0 * 2.0 * math.pi / math.sqrt(GM / SEMI_MAJOR_AXIS_M ** 3)
-
-
-__all__ = ["SLOTS", "ALL_SLOTS", "slot_of_prn", "nominal_ephemeris", "nominal_ephemerides",
-           "repeat_period_s", "SECONDS_PER_WEEK", "np"]

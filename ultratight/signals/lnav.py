@@ -22,7 +22,7 @@ of Table 20-V and, for subframe 5 pages 1–24, the almanac of PRN = page when `
 prn -> Ephemeris) holds it; otherwise the page content is the alternating 1/0 filler pattern.
 """
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -393,7 +393,9 @@ class LnavDecoder:
     ``inverted`` (polarity), ``tow_s`` (start TOW of the latest subframe), ``week`` (full week from
     subframe 1, resolved with ``ref_week``; default the 2048-week era), ``ephemeris`` (latest
     complete subframe 1–3 set with matching IODC/IODE, else None), ``bad_words`` (list of
-    (start_bit, word_number) of every word that failed parity), ``subframes`` (all decoded).
+    (start_bit, word_number) of every word that failed parity), ``subframes`` (all decoded),
+    ``polarity_flips`` (times the polarity changed while locked: the expected preamble appeared
+    complemented with good TLM/HOW parity, as after a Costas half-cycle slip).
     """
 
     def __init__(self, prn=0, ref_week=None):
@@ -409,12 +411,19 @@ class LnavDecoder:
         self.bad_words = []
         self.subframes = []
         self._sf = {}
+        self.polarity_flips = 0
 
     # -- helpers
-    def _tlm_how_ok(self, b, i, inv):
+    def _tlm_how_ok(self, b, i, inv, prev_zero=False):
+        """TLM and HOW parity (and preamble, subframe ID, TOW range) at i with polarity inv.
+        D29*, D30* of the TLM are read from the stream, or taken as 0 (their design value: word 10
+        ends in 00) when ``prev_zero`` or at the stream start."""
         if i + 2 * WORD_BITS > len(b):
             return None
-        d29s, d30s = (int(b[i - 2]) ^ inv, int(b[i - 1]) ^ inv) if i >= 2 else (0, 0)
+        if i >= 2 and not prev_zero:
+            d29s, d30s = int(b[i - 2]) ^ inv, int(b[i - 1]) ^ inv
+        else:
+            d29s, d30s = 0, 0
         w1 = _word_int(b, i) ^ (0x3FFFFFFF if inv else 0)
         ok1, d1 = check_word(w1, d29s, d30s)
         w2 = _word_int(b, i + WORD_BITS) ^ (0x3FFFFFFF if inv else 0)
@@ -423,6 +432,10 @@ class LnavDecoder:
             return False
         sf_id = (d2 >> 2) & 0x7
         return 1 <= sf_id <= 5 and (d2 >> 7) < 100800
+
+    @staticmethod
+    def _preamble_at(b, i, inv):
+        return (_word_int(b, i) ^ (0x3FFFFFFF if inv else 0)) >> 22 == 0b10001011
 
     def _how_word(self, b, i, inv):
         """Source bits of the HOW at subframe start i if its parity holds, else None."""
@@ -483,6 +496,11 @@ class LnavDecoder:
                 self.buf = b[drop:]
                 self.buf_offset += drop
                 return out
+            inv = int(self.inverted)
+            if not self._preamble_at(b, i, inv) and self._preamble_at(b, i, 1 - inv) and \
+                    self._tlm_how_ok(b, i, 1 - inv, prev_zero=True):
+                self.inverted = not self.inverted     # half-cycle slip of the carrier loop
+                self.polarity_flips += 1
             sf = self._decode_at(b, i, int(self.inverted))
             if sf is None:                          # lost lock: search again after this point
                 self.sync = None
