@@ -28,7 +28,10 @@ coherent: p = p0 + F_CA t + (F_CA/F_L1) (theta(t) - theta(0)).
 Outer-loop aiding (optional): the Doppler prediction for the middle of each
 interval is the true (dynamics-only) Doppler plus an error
 ``bias_hz + scale_err * (f(t) - f(0))`` per channel — an outer loop that knows
-the dynamics up to a scale error (a slightly wrong SINS) and an offset.
+the dynamics up to a scale error (a slightly wrong SINS) and an offset — taken
+``aid_delay_s`` late (the outer loop's latency, e.g. the CIC interpolator's
+group delay), which turns every jerk of the truth into a residual acceleration
+step J * delay for the inner loop (a dynamics mismatch).
 
 Use :func:`run_closed_loop` to drive any prefilter bank (``step``/``x``/``x_post``)
 and the inner-loop law (:class:`ultratight.fusion.innerloop.InnerLoop`), logging
@@ -81,6 +84,7 @@ class SimScenario:
     q_f_clk: float = 0.0                               # rad^2/s^3
     aid_bias_hz: np.ndarray | float = 0.0
     aid_scale_err: np.ndarray | float = 0.0
+    aid_delay_s: float = 0.0                           # outer-loop latency (e.g. the CIC group delay)
     data_bits: bool = True
 
     def n_epochs(self):
@@ -182,6 +186,12 @@ def make_truth(sc: SimScenario, rng: np.random.Generator) -> Truth:
     bias = _per_ch(sc.aid_bias_hz, n, "aid_bias_hz")
     serr = _per_ch(sc.aid_scale_err, n, "aid_scale_err")
     fdyn_mid = (theta_dyn[1:] - theta_dyn[:-1]) / T
+    if sc.aid_delay_s:
+        if not sc.aid_delay_s > 0:
+            raise ConfigError(f"corrsim: aid_delay_s={sc.aid_delay_s!r} must be >= 0")
+        # the outer loop reports the Doppler of aid_delay_s ago (linear interpolation)
+        td = np.maximum(tm - sc.aid_delay_s, tm[0])
+        fdyn_mid = np.stack([np.interp(td, tm, fdyn_mid[:, c]) for c in range(n)], axis=1)
     aid = fdyn_mid + bias[None, :] + serr[None, :] * (fdyn_mid - f0[None, :])
     return Truth(t=t, theta=theta_true, freq=freq_true, acc=acc_c, jerk=jerk_c, freq_dyn=freq_dyn,
                  amp=amp, noise_factor=nf, bits=bits, aid_hz=aid, freq_mid=freq_mid)

@@ -104,7 +104,7 @@ MEAS_NAMES = ("I_P", "I_E", "I_L", "Q_P", "Q_E", "Q_L")
 KINDS = ("ckf", "ukf", "rackf")
 _KIND_CODE = {"ckf": 0, "ukf": 1, "rackf": 2}
 ROBUST_MODES = ("period", "every")
-ADAPTIVE_STATS = ("window", "epoch")
+ADAPTIVE_STATS = ("epoch", "window", "mean")   # iprm[2] = index
 
 # status flags (bit field, per channel, per epoch)
 FLAG_DIVERGED = 1        # non-finite / blown-up covariance -> channel reset
@@ -123,7 +123,7 @@ DEFAULT_Q = {
     "q_tau": 1e-6,        # chips^2 / s: code-carrier divergence
     "q_phi": 0.1,         # rad^2 / s: clock phase noise (white frequency)
     "q_f": 40.0,          # rad^2 / s^3: clock frequency random walk (TCXO class)
-    "q_a": 1000.0,        # rad^2 / s^5: residual line-of-sight jerk after outer-loop aiding
+    "q_a": 10.0,          # rad^2 / s^5: residual line-of-sight jerk after outer-loop aiding (well aided)
 }
 
 
@@ -375,7 +375,9 @@ def _predict(xc, Pc, Phi, Qd, tmpv, tmpm):
             Pc[j, i] = acc
 
 
-N_PRM = 16
+N_PRM = 20
+NACC_FIX = 7          # accumulator columns before the innovation sums
+NACC = NACC_FIX + NZ  # per-channel accumulator width
 N_W1 = 28
 N_W2 = 8
 
@@ -383,7 +385,7 @@ N_W2 = 8
 @njit(cache=True)
 def _layout(n):
     """Offsets of the packed float buffer: x, P, xpost, x0, P0, innov, nis, theta, acc, Phi, Qd, R, prm, W1, W2."""
-    sizes = (n * NX, n * NX * NX, n * NX, n * NX, n * NX * NX, n * NZ, n, n, n * 6,
+    sizes = (n * NX, n * NX * NX, n * NX, n * NX, n * NX * NX, n * NZ, n, n, n * NACC,
              NX * NX, NX * NX, NZ * NZ, N_PRM, N_W1 * NZ, N_W2 * NZ * NZ)
     offs = np.empty(len(sizes) + 1, dtype=np.int64)
     o = 0
@@ -410,7 +412,7 @@ def _bank_step_packed(kind, fbuf, ibuf, z, bits):
     innov = fbuf[o[5]:o[6]].reshape((n, NZ))
     nis = fbuf[o[6]:o[7]]
     theta = fbuf[o[7]:o[8]]
-    acc = fbuf[o[8]:o[9]].reshape((n, 6))
+    acc = fbuf[o[8]:o[9]].reshape((n, NACC))
     Phi = fbuf[o[9]:o[10]].reshape((NX, NX))
     Qd = fbuf[o[10]:o[11]].reshape((NX, NX))
     R = fbuf[o[11]:o[12]].reshape((NZ, NZ))
@@ -453,7 +455,11 @@ def _bank_step(kind, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, prm, iprm
     ut_scale = prm[8]
     do_corr = iprm[0] != 0
     robust_every = iprm[1] != 0
-    windowed = iprm[2] != 0
+    win_mode = iprm[2]
+    windowed = win_mode != 0
+    ksig = prm[14]
+    min_win = prm[15]
+    phi_var_max = prm[16]
     plim = prm[9:14]
     # work views
     pts = W1[0:11, 0:NX]
@@ -556,19 +562,40 @@ def _bank_step(kind, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, prm, iprm
                         e_full += r[a] * r[a]
                         e_expl += Pzz0[a, a] + 2.0 * zhat[a] * zhat[a]
                         trr += R[a, a]
+                        acc[c, NACC_FIX + a] += D * r[a] / gam[a]   # bit-wiped, winsorised innovation sum
                     acc[c, 0] += trp
                     acc[c, 1] += rr
                     acc[c, 2] += e_full
                     acc[c, 3] += e_expl
                     acc[c, 4] += trr
+                    acc[c, 6] += 1.0
                     if do_corr:
+                        cnt = acc[c, 6]
                         trp = acc[c, 0]
-                        rr = acc[c, 1]
+                        if win_mode == 2:
+                            # energy of the window-mean innovation, scaled to a sum of epochs
+                            rr = 0.0
+                            for a in range(NZ):
+                                rr += acc[c, NACC_FIX + a] * acc[c, NACC_FIX + a]
+                        else:
+                            rr = acc[c, 1]
+                        # significance margin of a chi-square sum with 6 N degrees of freedom
+                        # (the window-mean statistic |sum r|^2 has only 6 degrees of freedom)
+                        marg = 1.0 + ksig * math.sqrt(2.0 / (NZ * cnt))
+                        marg_th = 1.0 + ksig * math.sqrt(2.0 / NZ) if win_mode == 2 else marg
+                        if cnt < min_win:
+                            rr = 0.0                 # too few epochs: no adaptation
+                        elif rr <= marg_th * trp:
+                            rr = 0.0
                         # residual energy no state error can explain -> measurement noise scale
                         lam_new = (acc[c, 2] - acc[c, 3]) / acc[c, 4]
-                        acc[c, 5] = lam_new if lam_new > 1.0 else 1.0
-                        for a in range(5):
-                            acc[c, a] = 0.0
+                        if cnt >= min_win and lam_new > marg:
+                            acc[c, 5] = lam_new
+                        else:
+                            acc[c, 5] = 1.0
+                        for a in range(NACC):
+                            if a != 5:
+                                acc[c, a] = 0.0
                 # eqs. 37-38: adaptive factor (correction epochs only)
                 if do_corr and rr > trp:
                     th = trp / rr
@@ -602,6 +629,15 @@ def _bank_step(kind, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, prm, iprm
                 xpost[c, i] = xc[i]
             # eqs. 4-8 (linear dynamics: closed form of the cubature time update)
             _predict(xc, Pc, Phi, Qd, tmpv, tmpm)
+            # phase-uncertainty cap: beyond ~1 rad the Gaussian/cubature picture of a 2pi-periodic
+            # measurement breaks down (the filter would fall into a non-coherent false lock);
+            # scale the phase row/column so the phase sigma stays <= phi_sigma_max
+            vphi = Pc[IPHI, IPHI]
+            if vphi > phi_var_max:
+                g = math.sqrt(phi_var_max / vphi)
+                for j in range(NX):
+                    Pc[IPHI, j] *= g
+                    Pc[j, IPHI] *= g
             for i in range(NX):
                 if not np.isfinite(xc[i]):
                     bad = True
@@ -669,7 +705,8 @@ class PrefilterBank:
     """
 
     def __init__(self, n_ch, kind="rackf", T=T_CA, spacing_chips=1.0, q=None, huber_c=1.5,
-                 correction_period=50, robust_mode="every", adaptive_stat="window", theta_min=1e-3,
+                 correction_period=50, robust_mode="every", adaptive_stat="mean", adapt_ksig=3.0,
+                 theta_min=1e-3, phi_sigma_max=0.8,
                  ukf_alpha=0.5,
                  ukf_beta=2.0, ukf_kappa=0.0, p_limits=None, cn0_dbhz_init=35.0):
         if kind not in _KIND_CODE:
@@ -721,7 +758,7 @@ class PrefilterBank:
         self.innov = fb[o[5]:o[6]].reshape(n_ch, NZ)
         self.nis = fb[o[6]:o[7]]
         self.theta = fb[o[7]:o[8]]
-        self._acc = fb[o[8]:o[9]].reshape(n_ch, 6)
+        self._acc = fb[o[8]:o[9]].reshape(n_ch, NACC)
         self.Phi = fb[o[9]:o[10]].reshape(NX, NX)
         self.Qd = fb[o[10]:o[11]].reshape(NX, NX)
         self.R = fb[o[11]:o[12]].reshape(NZ, NZ)
@@ -732,11 +769,14 @@ class PrefilterBank:
         self.Phi[:] = Phi
         self.Qd[:] = Qd
         self.R[:] = R
-        self._prm[:14] = [self.T, BETA_CODE_CARRIER, dhalf, self.huber_c, self.theta_min,
-                          wm0, wc0, wi, ut_scale, *lim]
+        self._prm[:17] = [self.T, BETA_CODE_CARRIER, dhalf, self.huber_c, self.theta_min,
+                          wm0, wc0, wi, ut_scale, *lim, float(adapt_ksig),
+                          float(max(2, self.correction_period // 2)), float(phi_sigma_max) ** 2]
         self._iprm[1] = 1 if robust_mode == "every" else 0
-        self._iprm[2] = 1 if adaptive_stat == "window" else 0
+        self._iprm[2] = ADAPTIVE_STATS.index(adaptive_stat)
         self._acc[:, 5] = 1.0
+        self.phi_sigma_max = float(phi_sigma_max)
+        self.adapt_ksig = float(adapt_ksig)
         self.innov[:] = np.nan
         self.nis[:] = np.nan
         self.theta[:] = 1.0
