@@ -237,7 +237,7 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
     navs, hists = [], []
     chinfo = []
     for ch, a in enumerate(found):
-        tracker.start_channel(ch, a.prn, a.code_phase_chips, a.doppler_hz, a.sample_index)
+        tracker.start_channel(ch, a.prn, a.code_phase_chips, a.doppler_hz, a.sample_index, a.cn0_dbhz)
         navs.append(ChannelNav(a.prn, ref_week=ref_week))
         hists.append(ChannelHistory(fs))
         chinfo.append({"prn": a.prn, "epochs": 0, "locked_epochs": 0, "losses": 0, "reacquisitions": 0,
@@ -383,7 +383,8 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
                       doppler_range_hz=min(1000.0, 0.45 * fs - abs(last_d)), noncoherent=10,
                       pfa=cfg.acq_pfa, start_sample=int(now_sample))[0]
         if res.detected:
-            tracker.start_channel(ch, info["prn"], res.code_phase_chips, res.doppler_hz, res.sample_index)
+            tracker.start_channel(ch, info["prn"], res.code_phase_chips, res.doppler_hz, res.sample_index,
+                                  res.cn0_dbhz)
             navs[ch].reset()
             info["reacquisitions"] += 1
             info["next_retry"] = None

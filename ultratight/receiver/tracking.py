@@ -27,14 +27,17 @@ trapezoidal integrators; ``w0`` natural frequency in rad/s, phase in cycles, fre
   coherent integration grows to ``coh_ms`` (aligned to bit edges; the effective PLL
   bandwidth is capped at ``max_bnt / T`` to keep the discrete loop stable).
 * C/N0: the outputs have unit noise per arm, so ``E[I_P^2 + Q_P^2] = 2 + 2 C/N0 T``; the
-  estimate over ``cn0_win_ms`` epochs is ``(mean P - 2)/(2 T)``, smoothed exponentially
+  estimate over ``cn0_win_ms`` epochs is ``(mean P - 2)/(2 T)``, smoothed exponentially in dB
   (the moments/M2M4 estimator, which needs no noise reference, is :func:`cn0_m2m4`).
-* Phase-lock indicator ``PLI = LP(I^2 - Q^2) / (LP(I^2 + Q^2) - 2)`` ≈ cos(2 dphi) (noise
-  bias removed with the known unit noise), low-pass time constant ``pli_tau_s``.
+* Phase-lock indicator ``PLI = LP((I^2 - Q^2)/n) / (LP((I^2 + Q^2)/n) - 2)`` ≈ cos(2 dphi) on the
+  coherent sums of ``n`` epochs (noise bias removed with the known unit noise), low-pass time
+  constant ``pli_tau_s``.
 * Loss of lock: C/N0 estimate below ``cn0_lost_dbhz`` for ``lost_s`` -> channel mode LOST and
   deactivated (the pipeline re-acquires it).
-* Bit sync: in track mode, sign changes of 1 ms I_P counted in 20 bins (epoch mod 20); declared
-  when the largest bin leads the second by ``bs_margin`` and holds twice its count.
+* Bit sync: sign changes of 1 ms I_P counted in 20 bins (epoch mod 20); declared when the largest
+  bin leads the second by ``bs_margin`` and holds twice its count (works before phase lock too: a
+  residual beat adds transitions to every bin alike).  Coherent integration then grows to
+  ``coh_ms`` in both modes (the FLL then sees the higher SNR of the longer sums).
 """
 
 import math
@@ -51,7 +54,7 @@ MODE_OFF, MODE_PULL, MODE_TRACK, MODE_LOST = 0, 1, 2, 3
 
 # float state columns (sf)
 (F_DOPP, F_PLL_X, F_PLL_Y, F_DLL_Z, F_PREV_I, F_PREV_Q, F_AIP, F_AQP, F_AIE, F_AQE, F_AIL, F_AQL,
- F_AT, F_CN0_P, F_CN0_T, F_CN0_LIN, F_PLI_N, F_PLI_D, F_PLI, F_BIT_SUM, F_LOCK_T, F_UNLOCK_T,
+ F_AT, F_CN0_P, F_CN0_T, F_CN0_DB, F_PLI_N, F_PLI_D, F_PLI, F_BIT_SUM, F_LOCK_T, F_UNLOCK_T,
  F_LOW_T, F_CARR_ACC, F_LAST_I, F_DLL_ERR, F_PLL_ERR, F_FLL_ERR, F_DLL_U) = range(29)
 N_SF = 29
 # int state columns (si)
@@ -61,7 +64,7 @@ N_SI = 9
 # parameter vector (prm)
 (P_PULL_PLL_BW, P_PULL_FLL_BW, P_PULL_DLL_BW, P_TRK_PLL_BW, P_TRK_FLL_BW, P_TRK_DLL_BW, P_PLL_ORDER,
  P_DLL_ORDER, P_COH_MS, P_SPACING, P_CN0_WIN, P_CN0_LOST, P_LOST_S, P_PLI_LOCK, P_LOCK_S, P_UNLOCK_S,
- P_BS_MARGIN, P_PLI_TAU, P_MAX_BNT, P_CN0_ALPHA, P_DLL_NARROW_COH) = range(21)
+ P_BS_MARGIN, P_PLI_TAU, P_MAX_BNT, P_CN0_ALPHA, P_WEAK_DBHZ) = range(21)
 N_PRM = 21
 
 # record columns: float (rf) and int (ri)
@@ -88,7 +91,7 @@ class TrackingConfig:
     pull_fll_bw_hz: float = 10.0
     pull_dll_bw_hz: float = 2.0
     track_pll_bw_hz: float = 15.0
-    track_fll_bw_hz: float = 2.0
+    track_fll_bw_hz: float = 0.0
     track_dll_bw_hz: float = 1.0
     pll_order: int = 3
     dll_order: int = 1
@@ -101,9 +104,10 @@ class TrackingConfig:
     lock_s: float = 0.1
     unlock_s: float = 0.5
     bs_margin: int = 25
-    pli_tau_s: float = 0.1
+    pli_tau_s: float = 0.25
     max_bnt: float = 0.15
     cn0_alpha: float = 0.3
+    weak_dbhz: float = 32.0         # below: pull in with the tracking PLL bandwidth
 
     def validate(self):
         from ultratight.errors import ConfigError
@@ -132,7 +136,7 @@ class TrackingConfig:
         p[P_COH_MS] = self.coh_ms
         p[P_SPACING] = self.spacing_chips
         p[P_CN0_WIN] = self.cn0_win_ms
-        p[P_CN0_LOST] = 10.0 ** (self.cn0_lost_dbhz / 10.0)
+        p[P_CN0_LOST] = self.cn0_lost_dbhz
         p[P_LOST_S] = self.lost_s
         p[P_PLI_LOCK] = self.pli_lock
         p[P_LOCK_S] = self.lock_s
@@ -141,6 +145,7 @@ class TrackingConfig:
         p[P_PLI_TAU] = self.pli_tau_s
         p[P_MAX_BNT] = self.max_bnt
         p[P_CN0_ALPHA] = self.cn0_alpha
+        p[P_WEAK_DBHZ] = self.weak_dbhz
         return p
 
 
@@ -228,31 +233,16 @@ def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2):
         lin = (sf[ch, F_CN0_P] / nwin - 2.0) / (2.0 * tbar)
         if lin < CN0_FLOOR_LIN:
             lin = CN0_FLOOR_LIN
+        db = 10.0 * math.log10(lin)
         if si[ch, S_CN0_VALID] == 0:
-            sf[ch, F_CN0_LIN] = lin
+            sf[ch, F_CN0_DB] = db
             si[ch, S_CN0_VALID] = 1
         else:
-            sf[ch, F_CN0_LIN] += prm[P_CN0_ALPHA] * (lin - sf[ch, F_CN0_LIN])
+            sf[ch, F_CN0_DB] += prm[P_CN0_ALPHA] * (db - sf[ch, F_CN0_DB])
         sf[ch, F_CN0_P] = 0.0
         sf[ch, F_CN0_T] = 0.0
         si[ch, S_CN0_N] = 0
-    # --- phase lock indicator
-    a = t_ep / prm[P_PLI_TAU]
-    if a > 1.0:
-        a = 1.0
-    sf[ch, F_PLI_N] += a * ((ip * ip - qp * qp) - sf[ch, F_PLI_N])
-    sf[ch, F_PLI_D] += a * (p - sf[ch, F_PLI_D])
-    den = sf[ch, F_PLI_D] - 2.0
-    if den < 0.05:
-        den = 0.05
-    pli = sf[ch, F_PLI_N] / den
-    sf[ch, F_PLI] = pli
-    if pli > prm[P_PLI_LOCK]:
-        sf[ch, F_LOCK_T] += t_ep
-        sf[ch, F_UNLOCK_T] = 0.0
-    else:
-        sf[ch, F_UNLOCK_T] += t_ep
-        sf[ch, F_LOCK_T] = 0.0
+    # --- phase lock indicator: from the coherent sums at each loop update (below)
     if mode == MODE_PULL and sf[ch, F_LOCK_T] >= prm[P_LOCK_S]:
         mode = MODE_TRACK
     elif mode == MODE_TRACK and sf[ch, F_UNLOCK_T] >= prm[P_UNLOCK_S]:
@@ -260,7 +250,7 @@ def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2):
     if mode == MODE_TRACK:
         flags |= FL_PLL_LOCK
     # --- loss of lock (code): C/N0 too low for too long
-    if si[ch, S_CN0_VALID] == 1 and sf[ch, F_CN0_LIN] < prm[P_CN0_LOST]:
+    if si[ch, S_CN0_VALID] == 1 and sf[ch, F_CN0_DB] < prm[P_CN0_LOST]:
         sf[ch, F_LOW_T] += t_ep
     else:
         sf[ch, F_LOW_T] = 0.0
@@ -268,7 +258,7 @@ def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2):
         mode = MODE_LOST
     # --- bit synchronisation (sign-change histogram), in track mode
     bph = si[ch, S_BIT_PHASE]
-    if bph < 0 and mode == MODE_TRACK:
+    if bph < 0 and mode != MODE_LOST:
         if sf[ch, F_LAST_I] != 0.0 and (ip > 0.0) != (sf[ch, F_LAST_I] > 0.0):
             b = epoch % CODE_PER_BIT
             hist[ch, b] += 1
@@ -303,7 +293,7 @@ def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2):
                 bit_soft = sf[ch, F_BIT_SUM]
     # --- coherent accumulation
     coh = 1
-    if mode == MODE_TRACK and bph >= 0:
+    if bph >= 0:
         coh = int(prm[P_COH_MS])
     if coh > 1:
         if (epoch - bph) % coh == 0:
@@ -334,6 +324,24 @@ def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2):
     u = sf[ch, F_DLL_U]
     if do_upd and mode != MODE_LOST:
         flags |= FL_LOOP_UPD
+        # PLI = LP(I^2 - Q^2) / (LP(I^2 + Q^2) - 2 n) on sums of n unit-noise epochs  ~ cos(2 dphi)
+        n_acc = si[ch, S_ACC_N] if coh > 1 else 1
+        a = tc / prm[P_PLI_TAU]
+        if a > 1.0:
+            a = 1.0
+        sf[ch, F_PLI_N] += a * ((cip * cip - cqp * cqp) / n_acc - sf[ch, F_PLI_N])
+        sf[ch, F_PLI_D] += a * ((cip * cip + cqp * cqp) / n_acc - 2.0 - sf[ch, F_PLI_D])
+        den = sf[ch, F_PLI_D]
+        if den < 0.05:
+            den = 0.05
+        pli = sf[ch, F_PLI_N] / den
+        sf[ch, F_PLI] = pli
+        if pli > prm[P_PLI_LOCK]:
+            sf[ch, F_LOCK_T] += tc
+            sf[ch, F_UNLOCK_T] = 0.0
+        else:
+            sf[ch, F_UNLOCK_T] += tc
+            sf[ch, F_LOCK_T] = 0.0
         ep = costas_disc(cip, cqp)
         ef = 0.0
         if si[ch, S_HAVE_PREV] == 1:
@@ -346,6 +354,16 @@ def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2):
             bn_p, bn_f, bn_d = prm[P_TRK_PLL_BW], prm[P_TRK_FLL_BW], prm[P_TRK_DLL_BW]
         else:
             bn_p, bn_f, bn_d = prm[P_PULL_PLL_BW], prm[P_PULL_FLL_BW], prm[P_PULL_DLL_BW]
+        if mode != MODE_TRACK and si[ch, S_CN0_VALID] == 1:
+            # the cross-product FLL's noise variance grows like 1/(C/N0 T)^2 at low SNR and then
+            # drags the PLL off lock: scale the assist bandwidth by the squared per-update SNR
+            # relative to 10 (40 dB-Hz at 1 ms)
+            snr = 10.0 ** (sf[ch, F_CN0_DB] / 10.0) * tc / 10.0
+            if snr < 1.0:
+                bn_f = bn_f * snr * snr
+            # weak signals: pull in with the (narrower) tracking PLL bandwidth
+            if sf[ch, F_CN0_DB] < prm[P_WEAK_DBHZ] and prm[P_TRK_PLL_BW] < bn_p:
+                bn_p = prm[P_TRK_PLL_BW]
         cap = prm[P_MAX_BNT] / tc
         if bn_p > cap:
             bn_p = cap
@@ -429,7 +447,7 @@ def _track_block(buf, is_complex, buf_start, n_buf, stop_sample, code_ext, pad, 
             rec_f[ch, r, R_QE] = o[4]
             rec_f[ch, r, R_IL] = o[2]
             rec_f[ch, r, R_QL] = o[5]
-            rec_f[ch, r, R_CN0] = 10.0 * math.log10(sf[ch, F_CN0_LIN]) if si[ch, S_CN0_VALID] else np.nan
+            rec_f[ch, r, R_CN0] = sf[ch, F_CN0_DB] if si[ch, S_CN0_VALID] else np.nan
             rec_f[ch, r, R_PLI] = sf[ch, F_PLI]
             rec_f[ch, r, R_DLL_ERR] = sf[ch, F_DLL_ERR]
             rec_f[ch, r, R_PLL_ERR] = sf[ch, F_PLL_ERR]
@@ -481,13 +499,16 @@ class TrackingState:
         self.rec_i = np.zeros((n_ch, max_rows, N_RI), dtype=np.int64)
         self.n_rec = np.zeros(n_ch, dtype=np.int64)
 
-    def reset_channel(self, ch, doppler_hz):
-        """(Re)start a channel in pull-in mode with the acquisition Doppler."""
+    def reset_channel(self, ch, doppler_hz, cn0_dbhz=None):
+        """(Re)start a channel in pull-in mode with the acquisition Doppler (and C/N0 when known)."""
         self.sf[ch] = 0.0
         self.si[ch] = 0
         self.hist[ch] = 0
         self.sf[ch, F_DOPP] = doppler_hz
         self.sf[ch, F_PLL_X] = doppler_hz
+        if cn0_dbhz is not None and np.isfinite(cn0_dbhz):
+            self.sf[ch, F_CN0_DB] = cn0_dbhz
+            self.si[ch, S_CN0_VALID] = 1
         self.si[ch, S_MODE] = MODE_PULL
         self.si[ch, S_BIT_PHASE] = -1
 
@@ -495,7 +516,7 @@ class TrackingState:
         return int(self.si[ch, S_MODE])
 
     def cn0_dbhz(self, ch):
-        return 10.0 * math.log10(self.sf[ch, F_CN0_LIN]) if self.si[ch, S_CN0_VALID] else float("nan")
+        return float(self.sf[ch, F_CN0_DB]) if self.si[ch, S_CN0_VALID] else float("nan")
 
 
 class ScalarTracker:
@@ -521,10 +542,10 @@ class ScalarTracker:
     def active(self):
         return self.bank.active
 
-    def start_channel(self, ch, prn, code_phase_chips, doppler_hz, sample_index):
+    def start_channel(self, ch, prn, code_phase_chips, doppler_hz, sample_index, cn0_dbhz=None):
         """Start (or restart) channel ``ch`` from an acquisition result valid at ``sample_index``."""
         self.bank.init_channel(ch, int(prn), code_phase_chips, doppler_hz, int(sample_index), align=True)
-        self.state.reset_channel(ch, float(doppler_hz))
+        self.state.reset_channel(ch, float(doppler_hz), cn0_dbhz)
 
     def stop_channel(self, ch):
         self.bank.active[ch] = False
