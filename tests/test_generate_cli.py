@@ -76,6 +76,7 @@ def test_overrides_dotted_and_nested():
     ("[receiver]\nlat_deg = 1.0\nlon_deg = 1.0\n[[noise_events]]\nt0_s = 3.0\nt1_s = 1.0\nnoise_factor = 2.0\n",
      "noise_events"),
     ("[receiver]\nlat_deg = 1.0\nlon_deg = 1.0\n[nav]\ndata_bits = 'yes'\n", "nav.data_bits"),
+    ("[receiver]\nlat_deg = 1.0\nlon_deg = 1.0\n[frontend]\nformat = 'ci2packed'\nbits = 8\n", "frontend.bits"),
     ("[receiver\n", "invalid TOML"),
 ])
 def test_validation_names_field(tmp_path, text, field):

@@ -156,7 +156,7 @@ def _table(cfg, name):
 def validate(cfg):
     """Check a completed scenario dict; raises ConfigError naming the field."""
     from ultratight.signals.frontend import FrontEnd
-    from ultratight.signals.iffile import FORMATS
+    from ultratight.signals.iffile import FORMATS, check_bits_for_format
 
     _num(cfg, "duration_s", lo=0, lo_open=True)
     _num(cfg, "seed", lo=0, integer=True)
@@ -227,6 +227,7 @@ def validate(cfg):
     if FORMATS[fe["format"]].is_complex != (fe.get("sampling") == "complex"):
         raise ConfigError(f"frontend.format {fe['format']!r} does not match frontend.sampling "
                           f"{fe.get('sampling')!r}")
+    check_bits_for_format(fe["format"], fe["bits"])
     nav = _table(cfg, "nav")
     if not isinstance(nav.get("data_bits"), bool):
         raise ConfigError(f"nav.data_bits must be true or false, got {nav.get('data_bits')!r}")

@@ -51,7 +51,7 @@ from ultratight.errors import ConfigError
 from ultratight.signals.ca_code import ca_code
 from ultratight.signals.corr_model import signal_amplitude
 from ultratight.signals.frontend import FrontEnd
-from ultratight.signals.iffile import FORMATS, IfWriter, get_format
+from ultratight.signals.iffile import FORMATS, IfWriter, check_bits_for_format, get_format
 
 LUT_BITS = 11
 LUT_N = 1 << LUT_BITS
@@ -411,12 +411,7 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
     if spec.is_complex != fe.is_complex:
         raise ConfigError(f"frontend.format {fmt!r} is {'complex' if spec.is_complex else 'real'} but "
                           f"frontend.sampling is {'complex' if fe.is_complex else 'real'}")
-    if spec.packed2 and fe.bits not in (1, 2):
-        raise ConfigError(f"frontend.format {fmt!r} stores 2-bit samples; set frontend.bits = 2 (got {fe.bits})")
-    if spec.dtype.endswith("i1") and fe.bits not in (1, 2, 4, 8):
-        raise ConfigError(f"frontend.format {fmt!r} stores 8-bit samples; frontend.bits must be 1, 2, 4 or 8")
-    if spec.dtype.endswith("i2") and fe.bits == 0:
-        raise ConfigError(f"frontend.format {fmt!r} stores integers; frontend.bits must not be 0")
+    check_bits_for_format(spec.name, fe.bits)
     duration = float(cfg.get("duration_s", 0))
     if not duration > 0:
         raise ConfigError(f"duration_s must be > 0, got {cfg.get('duration_s')}")

@@ -101,6 +101,21 @@ def get_format(name):
         raise FormatError(f"unknown IF sample format {name!r}; expected one of {', '.join(FORMATS)}") from None
 
 
+def check_bits_for_format(fmt, bits, field="frontend"):
+    """ConfigError unless quantiser width ``bits`` (0 = float) can be stored in format ``fmt``."""
+    from ultratight.errors import ConfigError
+
+    spec = get_format(fmt)
+    if spec.packed2 and bits not in (1, 2):
+        raise ConfigError(f"{field}.format {spec.name!r} stores 2-bit samples; {field}.bits must be 1 or 2 "
+                          f"(got {bits})")
+    if spec.dtype.endswith("i1") and bits not in (1, 2, 4, 8):
+        raise ConfigError(f"{field}.format {spec.name!r} stores 8-bit samples; {field}.bits must be 1, 2, 4 "
+                          f"or 8 (got {bits})")
+    if spec.dtype.endswith("i2") and bits == 0:
+        raise ConfigError(f"{field}.format {spec.name!r} stores integers; {field}.bits must not be 0 (float)")
+
+
 def sidecar_path(path):
     return Path(str(path) + ".json")
 
