@@ -11,6 +11,7 @@ ratio is taken to the faster of the two.  Timings are best-of-``--repeat`` (the 
 """
 
 import argparse
+import os
 import platform
 import time
 
@@ -83,7 +84,8 @@ def cpu_name():
     return platform.processor() or "unknown"
 
 
-def bench_minimal(x, fs, repeat):
+def minimal_runner(x, fs):
+    """Closures timing the two minimal kernels over all whole periods of x (one channel)."""
     xf = x.view(np.float32)
     code = ca_code(1).astype(np.float32)
     code_ext = code[(np.arange(CA_LEN + 4) - 2) % CA_LEN]
@@ -92,30 +94,26 @@ def bench_minimal(x, fs, repeat):
     out = np.zeros(6, np.float32)
     n_per = int(fs * 1e-3)
     n_ep = x.shape[0] // n_per
-    dcp = 1.023e6 / fs
-    minimal_epl(xf, n_per, code_ext, 0.0, dcp, 0.0, 1234.0 / fs, cos_t, sin_t, 0.5, out)   # compile
-    best = np.inf
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        for e in range(n_ep):
-            minimal_epl(xf[2 * e * n_per:], n_per, code_ext, 0.0, dcp * 0.999999, 0.1, 1234.0 / fs,
-                        cos_t, sin_t, 0.5, out)
-        best = min(best, time.perf_counter() - t0)
-    rate_float = n_ep * n_per / best / 1e6
+    dcp = 1.023e6 / fs * 0.999999
     one = float(1 << 32)
-    args = (code_ext, np.int64(2 * one), np.int64(dcp * 0.999999 * one), np.int64(0), np.int64(1234.0 / fs * one),
-            cos_t, sin_t, np.int64(0.5 * one), out)
-    minimal_epl_int(xf, n_per, *args)
-    best = np.inf
-    for _ in range(repeat):
-        t0 = time.perf_counter()
+    iargs = (code_ext, np.int64(2 * one), np.int64(dcp * one), np.int64(0), np.int64(1234.0 / fs * one),
+             cos_t, sin_t, np.int64(0.5 * one), out)
+
+    def run_float():
         for e in range(n_ep):
-            minimal_epl_int(xf[2 * e * n_per:], n_per, *args)
-        best = min(best, time.perf_counter() - t0)
-    return rate_float, n_ep * n_per / best / 1e6
+            minimal_epl(xf[2 * e * n_per:], n_per, code_ext, 0.0, dcp, 0.1, 1234.0 / fs, cos_t, sin_t, 0.5, out)
+        return n_ep * n_per
+
+    def run_int():
+        for e in range(n_ep):
+            minimal_epl_int(xf[2 * e * n_per:], n_per, *iargs)
+        return n_ep * n_per
+
+    return run_float, run_int
 
 
-def bench_bank(x, fs, is_complex, n_ch, repeat):
+def bank_runners(x, fs, is_complex, n_ch):
+    """Closures timing the bank with run_epochs (one numba call) and with a step() loop."""
     if_hz = 0.0 if is_complex else 1.0e6
     bank = CorrelatorBank(list(range(1, n_ch + 1)), fs, if_hz, is_complex)
 
@@ -123,27 +121,35 @@ def bench_bank(x, fs, is_complex, n_ch, repeat):
         for ch in range(n_ch):
             bank.init_channel(ch, ch + 1, 37.0 * ch, 500.0 * ch - 2000.0, 0)
 
-    init()
-    bank.run_epochs(x[:100000], 0, 1.0)         # compile / warm
-    best = np.inf
-    nd = None
-    for _ in range(repeat):
+    def run_epochs():
         init()
-        t0 = time.perf_counter()
-        _, _, ns, nd = bank.run_epochs(x, 0, 1.0)
-        best = min(best, time.perf_counter() - t0)
-        n_tot = int(ns.sum())
-    # also the per-epoch Python call pattern (step), as the tracking loops use it
-    init()
-    t0 = time.perf_counter()
-    n_step = 0
-    while True:
-        _, _, ns = bank.step(x, 0, 1.0)
-        if not np.any(ns > 0):
-            break
-        n_step += int(ns.sum())
-    t_step = time.perf_counter() - t0
-    return n_tot / best / n_ch / 1e6 * n_ch, n_step / t_step / 1e6
+        _, _, ns, _ = bank.run_epochs(x, 0, 1.0)
+        return int(ns.sum())
+
+    def run_step():
+        init()
+        n = 0
+        while True:
+            _, _, ns = bank.step(x, 0, 1.0)
+            if not np.any(ns > 0):
+                return n
+            n += int(ns.sum())
+
+    return run_epochs, run_step
+
+
+def best_rates(runners, repeat):
+    """Best-of-repeat rate (M samples/s) of each closure, interleaved so they share the same load."""
+    for r in runners.values():
+        r()                                   # compile / warm up
+    best = {k: np.inf for k in runners}
+    count = {}
+    for _ in range(repeat):
+        for k, r in runners.items():
+            t0 = time.perf_counter()
+            count[k] = r()
+            best[k] = min(best[k], time.perf_counter() - t0)
+    return {k: count[k] / best[k] / 1e6 for k in runners}
 
 
 def main():
@@ -157,18 +163,23 @@ def main():
     n = int(a.fs * a.seconds)
     xc = (rng.standard_normal(n) + 1j * rng.standard_normal(n)).astype(np.complex64)
     xr = rng.standard_normal(n).astype(np.float32)
-    print(f"CPU: {cpu_name()}  (numba single thread; fs = {a.fs / 1e6:.3f} MHz, {a.seconds} s of samples)")
-    ref_f, ref_i = bench_minimal(xc, a.fs, a.repeat)
-    ref = max(ref_f, ref_i)
-    print(f"minimal numba E/P/L kernel (complex), float phase -> LUT:   {ref_f:8.1f} M samples/s")
-    print(f"minimal numba E/P/L kernel (complex), integer accumulators: {ref_i:8.1f} M samples/s")
-    print(f"(ratios below are to the faster minimal kernel, {ref:.1f} M samples/s)")
+    print(f"CPU: {cpu_name()} x {os.cpu_count()}  (numba single thread; fs = {a.fs / 1e6:.3f} MHz, "
+          f"{a.seconds} s of samples; load average {os.getloadavg()[0]:.2f})")
+    runners = {}
+    runners["min_float"], runners["min_int"] = minimal_runner(xc, a.fs)
     for n_ch in a.channels:
         for cplx, x in ((True, xc), (False, xr)):
-            rate, rate_step = bench_bank(x, a.fs, cplx, n_ch, a.repeat)
-            kind = "complex" if cplx else "real   "
-            print(f"CorrelatorBank {n_ch:2d} ch {kind} run_epochs: {rate:8.1f} M channel-samples/s "
-                  f"(ratio to minimal {rate / ref:5.2f});  step() loop: {rate_step:8.1f}")
+            key = f"{n_ch:2d} ch {'complex' if cplx else 'real   '}"
+            runners[key + " run_epochs"], runners[key + " step loop "] = bank_runners(x, a.fs, cplx, n_ch)
+    rates = best_rates(runners, a.repeat)
+    ref = max(rates["min_float"], rates["min_int"])
+    print(f"minimal numba E/P/L kernel (complex), float phases -> LUT:   {rates['min_float']:8.1f} M samples/s")
+    print(f"minimal numba E/P/L kernel (complex), integer accumulators: {rates['min_int']:8.1f} M samples/s")
+    print(f"(ratios are to the faster minimal kernel; bank rates are channel-samples/s per core)")
+    for k, v in rates.items():
+        if k.startswith("min_"):
+            continue
+        print(f"CorrelatorBank {k}: {v:8.1f} M samples/s   ratio {v / ref:5.2f}")
 
 
 if __name__ == "__main__":
