@@ -214,7 +214,7 @@ def read_rinex_nav(path):
         raise InputFileError(f"{path}: cannot read RINEX navigation file: {exc}") from exc
     lines = [ln.rstrip("\r\n").ljust(80) for ln in text.splitlines()]
     version, info, i = _parse_header(lines, path)
-    if version < 2 or version >= 5:
+    if version < 2 or version >= 4:
         raise NavDataError(f"{path}: line 1: field 'version' = {version}, expected 2.x or 3.x")
     ephs = {}
     seen = set()
