@@ -251,3 +251,28 @@ def test_almanac_page_structure(eph):
     b4 = encode_subframe(4, eph, t18)
     d4 = decode_bits(np.concatenate([b4, encode_subframe(5, eph, t18 + 6.0)])).subframes[0]
     assert d4.ok and d4.page == 18 and (d4.words[2] >> 16) & 0x3F == 56
+
+
+def test_random_bit_errors_are_flagged_exactly(eph):
+    rng = np.random.default_rng(11)
+    n_sf = 40
+    clean = nav_bits(eph, WEEK, TOW0, 300 * n_sf)
+    flips = rng.random(clean.size) < 3e-3
+    flips[:600] = False                           # clean start so the decoder locks at bit 0
+    noisy = np.where(flips, -clean, clean)
+    dec = decode_bits(noisy, prn=7, ref_week=WEEK)
+    ref = decode_bits(clean, prn=7, ref_week=WEEK)
+    assert [s.start_bit for s in dec.subframes] == [300 * k for k in range(n_sf)]
+    n_err_words = 0
+    for sf, rs in zip(dec.subframes, ref.subframes):
+        for w in range(10):
+            lo = sf.start_bit + 30 * w
+            errs = int(flips[lo:lo + 30].sum())
+            prev_errs = int(flips[lo - 2:lo].sum()) if lo >= 2 else 0
+            if 0 < errs < 4 and not prev_errs:
+                n_err_words += 1
+                assert (w + 1) in sf.bad_words
+            if errs == 0 and prev_errs == 0:
+                assert (w + 1) not in sf.bad_words
+                assert sf.words[w] == rs.words[w]
+    assert n_err_words > 20
