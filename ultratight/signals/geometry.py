@@ -170,12 +170,16 @@ def _light_time_kernel(p, rx, rv, t_rx, bias_m, drift_mps, out, out3):
             dy = -s * buf[0] + c * buf[1] - rx[k, 1]
             dz = buf[2] - rx[k, 2]
             tau_new = math.sqrt(dx * dx + dy * dy + dz * dz) / C
-            done = abs(tau_new - tau) < LIGHT_TIME_TOL_S
+            delta = tau - tau_new
             tau = tau_new
-            if done:
+            if abs(delta) < LIGHT_TIME_TOL_S:
                 break
+        # buf holds the state at t_rx − τ_old = (t_rx − τ) − δ with |δ| < 1e-12 s: move it to
+        # t_rx − τ to first order (the neglected term is ~acc·δ²/2 < 1e-24 m)
+        for j in range(3):
+            buf[j] += buf[3 + j] * delta
+        buf[6] += buf[7] * delta
         t_tx = t_rx[k] - tau
-        state_scalar(p, t_tx, buf)
         th = OMEGA_E * tau
         c = math.cos(th)
         s = math.sin(th)
