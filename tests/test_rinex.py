@@ -167,3 +167,16 @@ def test_selected_positions_are_continuous_across_toe(nav):
         t = 0.5 * (a.toe + b.toe)
         d = np.linalg.norm(sat_state(a, t)[0] - sat_state(b, t)[0])
         assert d < 10.0
+
+
+def test_wrong_file_type_and_version(rinex_path, tmp_path):
+    def glonass(lines):
+        lines[0] = lines[0][:20] + "G" + lines[0][21:]
+        return lines
+    with pytest.raises(NavDataError, match="line 1: field 'file type'"):
+        read_rinex_nav(_write_variant(rinex_path, tmp_path, glonass))
+    def v4(lines):
+        lines[0] = "     4.00" + lines[0][9:]
+        return lines
+    with pytest.raises(NavDataError, match="version"):
+        read_rinex_nav(_write_variant(rinex_path, tmp_path, v4))

@@ -107,8 +107,8 @@ def _parse_header(lines, path):
     except ValueError:
         raise NavDataError(f"{path}: line 1: field 'version' = {lines[0][:9]!r} is not a number") from None
     ftype = lines[0][20:21]
-    if ftype not in ("N", "G") and not (version >= 3 and ftype == "N"):
-        raise NavDataError(f"{path}: line 1: field 'file type' = {ftype!r}, expected 'N' (navigation)")
+    if ftype != "N":            # RINEX 2 'G' = GLONASS navigation, 'O' = observations, ...
+        raise NavDataError(f"{path}: line 1: field 'file type' = {ftype!r}, expected 'N' (GPS navigation)")
     if version >= 3:
         sys_ = lines[0][40:41]
         if sys_ not in ("G", "M", " "):
