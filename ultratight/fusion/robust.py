@@ -100,7 +100,7 @@ def adaptive_factor(r, Pzz_bar) -> float:
 
 
 def rackf_update(x, P, z, h, R, c: float = 1.5, robust: bool = True, adaptive: bool = True,
-                 theta_min: float = 1e-6, vectorized: bool = False) -> UpdateResult:
+                 theta_min: float = 1e-6, vectorized: bool = False, window=None) -> UpdateResult:
     """RACKF measurement update (seed 000 Algorithm 1 steps 3–7).
 
     Returns an UpdateResult whose ``P`` is the posterior of the adapted prior P⁻/ϑ and whose
@@ -126,7 +126,19 @@ def rackf_update(x, P, z, h, R, c: float = 1.5, robust: bool = True, adaptive: b
         Rbar, gamma = R, np.ones(m)
     Pzz_bar = Pzz0 + Rbar  # eq. 18
     # step 6: adaptive factor (37–38)
-    theta = adaptive_factor(r, Pzz_bar) if adaptive else 1.0
+    if adaptive and window is not None:
+        # strategy 1 of seed 000 §2.3 (sliding window of the last N residual vectors):
+        # mean of the Huber-clipped standardised residuals u = clip(r', −c, c);
+        # tr(P̂_zz) = N·Σ_i (ū_i σ_ri)²  (equals rᵀr for N = 1 without clipping)
+        sig = np.sqrt(np.diag(Pzz))
+        window.append(np.clip(r / sig, -c, c))
+        U = np.array(window)
+        ubar = U.mean(axis=0)
+        tr_hat = U.shape[0] * float(np.sum((ubar * sig) ** 2))
+        tr_p = float(np.trace(Pzz_bar))
+        theta = 1.0 if tr_hat <= tr_p else tr_p / tr_hat
+    else:
+        theta = adaptive_factor(r, Pzz_bar) if adaptive else 1.0
     theta = max(theta, theta_min)
     Pprior = P
     if theta < 1.0:
@@ -148,7 +160,12 @@ class RACKF:
     """
 
     def __init__(self, x0, P0, c: float = 1.5, correction_period: int = 1, robust: bool = True,
-                 adaptive: bool = True, theta_min: float = 1e-6):
+                 adaptive: bool = True, theta_min: float = 1e-6, window: int | None = None):
+        if window is not None and int(window) < 1:
+            raise FilterError(f"window must be None or an integer ≥ 1, got {window}")
+        from collections import deque
+
+        self._window = deque(maxlen=int(window)) if window is not None else None
         if int(correction_period) < 1:
             raise FilterError(f"correction_period must be an integer ≥ 1, got {correction_period}")
         self.x = as_vector("x0", x0)
@@ -170,7 +187,7 @@ class RACKF:
         self.n_updates += 1
         if self.n_updates % self.period == 0:
             res = rackf_update(self.x, self.P, z, h, R, self.c, self.robust, self.adaptive,
-                               self.theta_min, vectorized)
+                               self.theta_min, vectorized, self._window)
         else:
             res = ckf_update(self.x, self.P, z, h, R, vectorized)
             res.info.update(theta=1.0, gamma=np.ones(res.innovation.shape[0]), Rbar=res.S - res.S + R)
