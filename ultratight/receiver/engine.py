@@ -116,6 +116,8 @@ def _epoch_post(k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, ring_t, ring_cp, r
         ta = ring_t[ia]
         w = (tk - ta) / imu_dt
         cp_pred = ring_cp[ia, c] + ring_r[ia, c] * (tk - ta)
+        # the Doppler estimate is the interval mean: compare with the prediction at mid-interval
+        w += half_period_s / imu_dt
         f_pred = ring_f[ia, c] + w * (ring_f[ib, c] - ring_f[ia, c])
         r_cp = (cp_meas - cp_pred + half) % CA_LEN - half
         r_f = f_meas - f_pred
@@ -213,7 +215,7 @@ class EngineOptions:
     amp_min: float = 0.15                # channels below this amplitude estimate skip the update
     gate_sigma: float = 5.0
     clock_q_drift: float = 1e-4          # (m/s)^2/s clock drift random walk in the tight filter
-    phase_init_ms: int = 0               # startup coherent phase initialisation window (0: off)
+    phase_init_ms: int = 40              # startup coherent phase initialisation window (0: off)
     lock_window_ms: int = 200            # signal/lock monitor window
     lock_off_dbhz: float = 13.0          # coast (outer loop only) below this C/N0 (in-phase estimate)
     lock_on_dbhz: float = 16.5           # restart the prefilter above this C/N0 (coherent magnitude)
@@ -376,13 +378,20 @@ class UltratightEngine:
         pr_now = outer.predict(t_sins, pos_e, vel_e, ins.clk_b, ins.clk_d)
         los_l = pr_now["los_e"] @ C_el
         sig_dopp = tightmod.doppler_sigma_hz(tf.P, los_l, LAMBDA_L1)
-        outer.prime(t_sins, pos_e, vel_e, np.zeros(3), ins.clk_b, ins.clk_d)
+        # initial acceleration from the first IMU interval (a trial SINS step on a copy)
+        x_try = ins.x.copy()
+        ins._sins.sins_step(x_try, imu_dth[0], imu_dv[0], float(imu_t[0] - t_sins))
+        from ultratight.ins.earth import dcm_ecef_from_enu as _dcm
+        acc0_e = (_dcm(x_try[7], x_try[8]) @ x_try[4:7] - vel_e) / float(imu_t[0] - t_sins)
+        outer.prime(t_sins, pos_e, vel_e, acc0_e, ins.clk_b, ins.clk_d)
         # aiding for the first SINS interval: direct predictions
         for j in range(outer.ratio + 1):
-            pj = outer.predict(t_sins + j * 1e-3, pos_e, vel_e, ins.clk_b, ins.clk_d)
+            tj = j * 1e-3
+            pj = outer.predict(t_sins + tj, pos_e + vel_e * tj + 0.5 * acc0_e * tj * tj, vel_e + acc0_e * tj,
+                               ins.clk_b + ins.clk_d * tj, ins.clk_d)
             outer.aid_doppler[j] = pj["doppler_hz"]
             outer.aid_code_rate[j] = pj["code_rate_cps"]
-        outer.push(t_sins, pos_e, vel_e, np.zeros(3), ins.clk_b, ins.clk_d)   # covers [10, 20) ms
+        outer.push(t_sins, pos_e, vel_e, acc0_e, ins.clk_b, ins.clk_d)   # covers [10, 20) ms
         # exact predictions at SINS epochs for the residuals: ring of (t, cp, rate, f)
         ring_n = 64
         ring_t = np.full(ring_n, np.nan)
@@ -424,6 +433,19 @@ class UltratightEngine:
                 P_init[ch, 4, 4] = (2 * math.pi * 2.0) ** 2
             pref.reset(rows, P0=P_init)
             inner = InnerLoop(n_ch, T=T_CA, if_hz=self.if_hz)
+
+        # ---- NCO Doppler at the middle of each channel's first interval, aiding history consistent
+        t1 = bank.sample_ptr / fs + 0.5 * T_CA
+        u1 = t1 * 1000.0
+        j1 = np.clip(np.floor(u1).astype(np.int64), 0, outer.n_filled - 2)
+        a1 = outer.aid_doppler[j1, rows] * (1.0 - (u1 - j1)) + outer.aid_doppler[j1 + 1, rows] * (u1 - j1)
+        bank.carr_freq[:] = self.if_hz + a1
+        bank.code_rate[:] = F_CA * (1.0 + a1 / F_L1)
+        if inner is not None:
+            inner.aid_prev[:] = a1
+            inner.have_prev[:] = True
+            if hasattr(inner, "was_aided"):
+                inner.was_aided[:] = True      # the NCOs follow the outer loop from the start
 
         # ---- records
         n_ep_max = int(self.duration_s * 1000.0 * 1.001) + 8

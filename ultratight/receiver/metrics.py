@@ -7,10 +7,9 @@ same instant:
   ``df/(2 pi)`` — the value the tracking loop believes the incoming Doppler is;
 * code-phase estimate = code NCO phase + prefilter code-error estimate ``dtau``.
 
-Both refer to the *middle* of the 1 ms coherent integration (the correlator output measures
-the mean code offset and mean frequency over the interval), so the truth, which the
-generator logs on its own time grid, is interpolated to each channel's integration
-mid-time (``t_mid`` in seconds since the first sample).  Code phases are unwrapped
+The code estimate refers to the start of the 1 ms integration, the Doppler estimate to its
+middle (see :func:`tracking_errors`); the truth, which the generator logs on its own 1 ms
+grid, is interpolated to those instants (seconds since the first sample).  Code phases are unwrapped
 before interpolation and the difference is wrapped to (-511.5, 511.5] chips.
 
 Loss of lock (per channel): the 20 ms (one LNAV bit) running mean of the Doppler error
@@ -80,14 +79,20 @@ def interp_truth(t_truth, y_truth, t_query):
     return out
 
 
-def tracking_errors(t_mid, doppler_est_hz, code_est_chips, t_truth, doppler_truth_hz, code_truth_chips):
+def tracking_errors(t_start, doppler_est_hz, code_est_chips, t_truth, doppler_truth_hz, code_truth_chips,
+                    doppler_offset_s=0.5e-3):
     """Doppler (Hz) and code-phase (chips) tracking errors at the estimate epochs.
 
-    ``t_mid``, ``doppler_est_hz``, ``code_est_chips``: (n_ep, n_ch) estimates and their times
-    (s since the first sample); ``t_truth`` (n_t,), ``*_truth`` (n_t, n_ch) from the truth file.
+    ``t_start``, ``doppler_est_hz``, ``code_est_chips``: (n_ep, n_ch) estimates and the start
+    times of their integrations (s since the first sample); ``t_truth`` (n_t,), ``*_truth``
+    (n_t, n_ch) from the truth file.  The code phase is compared at the interval start (where
+    the code NCO phase and the prefilter's code error refer); the Doppler estimate (constant
+    NCO frequency + the prefilter's frequency error, which the I/Q of eq. 3 measure as the
+    interval mean) is compared with the truth at ``t_start + doppler_offset_s`` (the middle of
+    the 1 ms interval: at 20 g the Doppler moves ~0.5 Hz within half a millisecond).
     """
-    d_true = interp_truth(t_truth, doppler_truth_hz, t_mid)
-    cp_true = interp_truth(t_truth, unwrap_chips(t_truth, code_truth_chips), t_mid)
+    d_true = interp_truth(t_truth, doppler_truth_hz, np.asarray(t_start) + doppler_offset_s)
+    cp_true = interp_truth(t_truth, unwrap_chips(t_truth, code_truth_chips), t_start)
     d_err = np.asarray(doppler_est_hz, dtype=float) - d_true
     c_err = wrap_chips(np.asarray(code_est_chips, dtype=float) - cp_true)
     return d_err, c_err

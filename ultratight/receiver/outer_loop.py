@@ -316,12 +316,20 @@ class OuterLoop:
             self.n_filled = j_end
         return pr
 
-    def prime(self, t_s, pos_e, vel_e, acc_e, clk_bias_m, clk_drift_mps):
-        """Fill the interpolator's history with the current prediction (start-up, no transient)."""
-        lead = self.delay_s + 1.0 / self.rate_hz
-        pr = self.predict(t_s + lead, pos_e, vel_e, clk_bias_m, clk_drift_mps)
-        x = np.stack([pr["doppler_hz"] - self.offset_hz, pr["code_rate_cps"] - F_CA], axis=0)
-        self.interp.prime(x)
+    def prime(self, t_s, pos_e, vel_e, acc_e, clk_bias_m, clk_drift_mps, n_hist=6):
+        """Fill the interpolator's history with the kinematically extrapolated *past* predictions
+        (constant acceleration), so that its output has no start-up transient on a ramp."""
+        if hasattr(self.interp, "prime"):
+            lead = self.delay_s + 1.0 / self.rate_hz
+            p0 = self.predict(t_s + lead - n_hist / self.rate_hz, pos_e, vel_e, clk_bias_m, clk_drift_mps)
+            self.interp.prime(np.stack([p0["doppler_hz"] - self.offset_hz, p0["code_rate_cps"] - F_CA], axis=0))
+        pos_e, vel_e, acc_e = (np.asarray(v, dtype=float) for v in (pos_e, vel_e, acc_e))
+        for k in range(n_hist, 0, -1):
+            tau = self.delay_s + 1.0 / self.rate_hz - k / self.rate_hz
+            p = pos_e + vel_e * tau + 0.5 * acc_e * tau * tau
+            v = vel_e + acc_e * tau
+            pr = self.predict(t_s + tau, p, v, clk_bias_m + clk_drift_mps * tau, clk_drift_mps)
+            self.interp.push(np.stack([pr["doppler_hz"] - self.offset_hz, pr["code_rate_cps"] - F_CA], axis=0))
 
 
 def make_cic(n_ch, ratio, order, in_rate_hz):
