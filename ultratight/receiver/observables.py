@@ -122,3 +122,50 @@ def pseudorange(t_rx, t_tx_sv):
     dt = np.asarray(t_rx, dtype=float) - np.asarray(t_tx_sv, dtype=float)
     dt = np.where(dt > 302400.0, dt - 604800.0, np.where(dt < -302400.0, dt + 604800.0, dt))
     return C * dt
+
+
+class CarrierSmoother:
+    """Hatch filter: carrier-smoothed pseudoranges, per channel.
+
+    ``ps_k = pr_k / M + (M - 1)/M (ps_{k-1} + lambda (phi_k - phi_{k-1}))`` with ``M`` growing by one
+    per epoch up to ``max_epochs`` (``phi`` in cycles with the range sign, as
+    :func:`observe` returns it).  A channel restarts (``M = 1``) when it has no phase lock, a
+    missing value or a code-carrier jump larger than ``reset_m`` (cycle slip / re-acquisition).
+    """
+
+    def __init__(self, n_ch, max_epochs, reset_m=15.0):
+        from ultratight.constants import LAMBDA_L1
+        self.lam = LAMBDA_L1
+        self.max_m = max(1, int(max_epochs))
+        self.reset_m = float(reset_m)
+        self.m = np.zeros(n_ch, dtype=np.int64)
+        self.ps = np.full(n_ch, np.nan)
+        self.phi = np.full(n_ch, np.nan)
+
+    def update(self, pr_m, phi_cycles, lock):
+        pr_m = np.asarray(pr_m, dtype=float)
+        phi = np.asarray(phi_cycles, dtype=float)
+        out = np.full(pr_m.shape, np.nan)
+        for ch in range(pr_m.size):
+            ok = bool(lock[ch]) and np.isfinite(pr_m[ch]) and np.isfinite(phi[ch])
+            if not ok:
+                self.m[ch] = 0
+                continue
+            if self.m[ch] > 0:
+                pred = self.ps[ch] + self.lam * (phi[ch] - self.phi[ch])
+                if abs(pred - pr_m[ch]) > self.reset_m:
+                    self.m[ch] = 0
+            if self.m[ch] == 0:
+                self.ps[ch] = pr_m[ch]
+                self.m[ch] = 1
+            else:
+                m = min(self.m[ch] + 1, self.max_m)
+                self.ps[ch] = pr_m[ch] / m + (m - 1.0) / m * pred
+                self.m[ch] = m
+            self.phi[ch] = phi[ch]
+            out[ch] = self.ps[ch]
+        return out
+
+    def shift(self, delta_m):
+        """Apply a common receiver-time step (clock steering) of ``delta_m`` metres to the state."""
+        self.ps = self.ps + delta_m

@@ -26,15 +26,16 @@ import numpy as np
 from ultratight.constants import C, CA_LEN, LAMBDA_L1, T_CA
 from ultratight.errors import ConfigError, InputFileError, UltratightError
 from ultratight.receiver.navdecode import ChannelNav
-from ultratight.receiver.observables import ChannelHistory, observe, pseudorange
+from ultratight.receiver.observables import CarrierSmoother, ChannelHistory, observe, pseudorange
 from ultratight.receiver.pvt import solve_pvt
 from ultratight.receiver.tracking import (
-    FL_BIT_DONE, FL_PLL_LOCK, MODE_LOST, MODE_TRACK, N_RF, R_BIT, R_CN0, R_CODE_PHASE, R_DOPP,
+    FL_BIT_DONE, FL_BIT_SYNC, FL_PLL_LOCK, MODE_LOST, MODE_TRACK, N_RF, R_BIT, R_CN0, R_CODE_PHASE, R_DOPP, R_IP,
     REC_F_NAMES, REC_I_NAMES, RI_EPOCH, RI_FLAGS, RI_MODE, RI_PTR, S_MODE, ScalarTracker, TrackingConfig)
 
 RX_T0_OFFSET_S = 0.075       # initial guess of the signal travel time
 CLOCK_STEER_S = 1e-3         # re-steer the receiver time when |bias| exceeds this
 SIGMA_SAMPLES = 65536        # samples used per block for the noise-power estimate
+PRE_SYNC_KEEP = 30000        # 1 ms prompts kept per channel before bit sync (for the earliest bits)
 
 
 class NoSignalError(UltratightError):
@@ -56,6 +57,7 @@ class ProcessConfig:
     acq_min_cn0_dbhz: float = 42.0      # declare a detection only at this acquisition C/N0 or above
     doppler_window_s: float = 0.05      # half-width h of the centred Doppler difference
     sigma_pr_m: float = 3.0
+    smoothing_s: float = 100.0          # Hatch-filter window for the pseudoranges (0: none)
     sigma_rr_mps: float = 0.05
     reacquire: bool = True
     reacq_retry_s: float = 1.0
@@ -242,7 +244,9 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
         hists.append(ChannelHistory(fs))
         chinfo.append({"prn": a.prn, "epochs": 0, "locked_epochs": 0, "losses": 0, "reacquisitions": 0,
                        "tow_s": None, "ephemeris_s": None, "cn0_dbhz": None, "tracked": False,
-                       "next_retry": None})
+                       "next_retry": None, "bit_sync": False, "bit_sync_s": None})
+    pre_ip = [[] for _ in range(n_ch)]
+    pre_ep = [[] for _ in range(n_ch)]
     epochs = {}
     if cfg.record_epochs:
         for a in found:
@@ -255,6 +259,7 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
     h_samp = int(round(cfg.doppler_window_s * fs))
     k_obs = int(math.ceil((start_sample + h_samp + 1) / obs_step))
     rx_t0 = None                 # receiver time of sample 0 (s of week)
+    smoother = CarrierSmoother(n_ch, cfg.smoothing_s * cfg.obs_rate_hz)
     last_x = None
     week_known = ref_week
     result = ProcessResult(input_info, acq, [], fixes, observations, out_path=str(out_path) if out_path else None,
@@ -304,6 +309,11 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             for k in ("pseudorange_m", "doppler_hz", "carrier_cycles", "cn0_dbhz", "code_phase_chips"):
                 writer.append(f"observables/{k}", row[k][None, :])
             writer.append("observables/pll_lock", row["pll_lock"][None, :])
+        pr_raw = pr
+        if cfg.smoothing_s > 0:
+            pr = smoother.update(pr, row["carrier_cycles"], row["pll_lock"])
+            if writer is not None:
+                writer.append("observables/pseudorange_smoothed_m", pr[None, :])
         # satellite states
         n = n_ch
         sp = np.full((n, 3), np.nan)
@@ -338,6 +348,7 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
         if last_x is None or abs(sol.clk_bias_m) > CLOCK_STEER_S * C:
             # steer the receiver time scale to GPS time and re-solve on the next epoch
             rx_t0 -= sol.clk_bias_m / C
+            smoother.shift(-sol.clk_bias_m)
             last_x = np.r_[sol.pos_e, 0.0]
             return
         last_x = np.r_[sol.pos_e, sol.clk_bias_m]
@@ -386,6 +397,8 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             tracker.start_channel(ch, info["prn"], res.code_phase_chips, res.doppler_hz, res.sample_index,
                                   res.cn0_dbhz)
             navs[ch].reset()
+            info["bit_sync"] = False
+            pre_ip[ch], pre_ep[ch] = [], []
             info["reacquisitions"] += 1
             info["next_retry"] = None
         else:
@@ -444,6 +457,26 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
                     e["cn0_dbhz"].append(f_ch[:, R_CN0].copy())
                     e["mode"].append(i_ch[:, RI_MODE].copy())
                     e["flags"].append(i_ch[:, RI_FLAGS].copy())
+                if not info["bit_sync"]:
+                    synced = np.flatnonzero(i_ch[:, RI_FLAGS] & FL_BIT_SYNC)
+                    pre_ip[ch].append(f_ch[:, R_IP].copy())
+                    pre_ep[ch].append(i_ch[:, RI_EPOCH].copy())
+                    if synced.size:
+                        info["bit_sync"] = True
+                        info["bit_sync_s"] = (int(i_ch[synced[0], RI_PTR]) - start_sample) / fs
+                        # bits before the sync: sum the buffered 1 ms prompts over whole bits
+                        # ending at the first bit the tracking kernel forms (it starts at the sync epoch)
+                        e1 = int(i_ch[synced[0], RI_EPOCH])
+                        ip_all = np.concatenate(pre_ip[ch])
+                        ep_all = np.concatenate(pre_ep[ch])
+                        starts = e1 - 20 * np.arange((e1 - ep_all[0]) // 20, 0, -1)
+                        if starts.size and np.all(np.diff(ep_all) == 1):
+                            idx = (starts - ep_all[0])[:, None] + np.arange(20)[None, :]
+                            navs[ch].feed(ip_all[idx].sum(axis=1), starts, e1)
+                        pre_ip[ch], pre_ep[ch] = [], []
+                    elif sum(a.size for a in pre_ip[ch]) > PRE_SYNC_KEEP:
+                        pre_ip[ch].pop(0)
+                        pre_ep[ch].pop(0)
                 bits = np.flatnonzero(i_ch[:, RI_FLAGS] & FL_BIT_DONE)
                 if bits.size:
                     now_ep = int(i_ch[-1, RI_EPOCH])

@@ -92,7 +92,7 @@ class TrackingConfig:
     pull_dll_bw_hz: float = 2.0
     track_pll_bw_hz: float = 15.0
     track_fll_bw_hz: float = 0.0
-    track_dll_bw_hz: float = 1.0
+    track_dll_bw_hz: float = 0.5
     pll_order: int = 3
     dll_order: int = 1
     coh_ms: int = 1                 # coherent integration after bit sync (1, 2, 4, 5, 10 or 20)
