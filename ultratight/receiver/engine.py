@@ -59,8 +59,8 @@ DLB_PREFILTER_Q = {
     "q_amp": 2.5e-3,     # amplitude random walk
     "q_tau": 1e-8,       # chips^2/s: code-carrier divergence (none in the simulation: small)
     "q_phi": 0.01,       # rad^2/s
-    "q_f": 1.0,          # rad^2/s^3: aiding error drift (INS velocity / clock-drift error rate)
-    "q_a": 10.0,         # rad^2/s^5: residual LOS jerk after aiding (IMU-CIC timing residuals)
+    "q_f": 0.1,          # rad^2/s^3: aiding error drift (INS velocity / clock-drift error rate)
+    "q_a": 0.1,          # rad^2/s^5: residual LOS jerk after aiding (CIC/extrapolation residuals)
 }
 
 
@@ -214,6 +214,7 @@ class EngineOptions:
     meas_corr_factor: float = 10.0       # inflation of prefilter variances (correlated outputs)
     amp_min: float = 0.15                # channels below this amplitude estimate skip the update
     gate_sigma: float = 5.0
+    code_sigma_margin_chips: float = 0.002   # added to the hot-start code sigma of the prefilters
     clock_q_drift: float = 1e-4          # (m/s)^2/s clock drift random walk in the tight filter
     phase_init_ms: int = 40              # startup coherent phase initialisation window (0: off)
     lock_window_ms: int = 200            # signal/lock monitor window
@@ -411,6 +412,8 @@ class UltratightEngine:
 
         ring_put(t_sins, pr_now)
         vel_e_prev = vel_e.copy()
+        acc_e_prev = acc0_e.copy()
+        have_acc = True
 
         # ---- prefilters + inner loop
         if self.method == "pb-kf-utc":
@@ -428,7 +431,7 @@ class UltratightEngine:
             base = default_initial_covariance(opt.cn0_init_dbhz, T_CA)
             for ch in range(n_ch):
                 P_init[ch] = base
-                P_init[ch, 1, 1] = (3.0 * sig_code_chips[ch] + 0.01) ** 2
+                P_init[ch, 1, 1] = (sig_code_chips[ch] + opt.code_sigma_margin_chips) ** 2
                 P_init[ch, 3, 3] = (2 * math.pi * (3.0 * sig_dopp[ch] + 0.5)) ** 2
                 P_init[ch, 4, 4] = (2 * math.pi * 2.0) ** 2
             pref.reset(rows, P0=P_init)
@@ -482,6 +485,8 @@ class UltratightEngine:
         n_lost_events = 0
         n_regained = 0
         xp_view = np.zeros((n_ch, 5))
+        off_ring = np.zeros((W, n_ch))      # carrier NCO minus aiding (inner-loop offset) history
+        rollback = np.zeros(n_ch)
         coast_any = False
         n_noise_jumps = 0
         n_phase_inits = 0
@@ -538,9 +543,13 @@ class UltratightEngine:
                 k_imu += 1
                 pos_e, vel_e, C_el = ins.pos_vel_e()
                 acc_e = (vel_e - vel_e_prev) / dt
+                jerk_e = (acc_e - acc_e_prev) / dt if have_acc else np.zeros(3)
+                acc_e_prev = acc_e
+                have_acc = True
                 vel_e_prev = vel_e
                 ring_put(t_sins, outer.predict(t_sins, pos_e, vel_e, ins.clk_b, ins.clk_d))
-                outer.push(t_sins, pos_e, vel_e, acc_e, ins.clk_b, ins.clk_d)
+                # kinematics at the middle of the last interval -> extrapolate from there
+                outer.push(t_sins, pos_e, vel_e, acc_e + 0.5 * dt * jerk_e, ins.clk_b, ins.clk_d, jerk_e)
             timing["sins_outer"] += time.perf_counter() - tw
 
             # ---- correlate one period per channel
@@ -589,6 +598,12 @@ class UltratightEngine:
                     lost = lm_events < 0
                     back = lm_events > 0
                     n_lost_events += int(lost.sum())
+                    if lost.any():
+                        # roll the carrier NCO's inner-loop offset back to its value before the
+                        # monitor window (the prefilter fitted noise while the loss was building up)
+                        old = off_ring[lm_ptr[0] % W]
+                        cur = bank.carr_freq - self.if_hz - aid
+                        rollback[lost] = (old - cur)[lost]
                     if back.any():
                         n_regained += int(back.sum())
                         self._restart_channels(pref, bank, np.flatnonzero(back), lm_phase, lm_sc, W)
@@ -616,6 +631,12 @@ class UltratightEngine:
                     inner.apply(pref, bank, aid_doppler_hz=aid, use_aid=use_aid)
             else:
                 self._outer_only_nco(bank, pref, aid, ins, outer)
+            if inner is not None:
+                if rollback.any():
+                    bank.carr_freq += rollback
+                    bank.code_rate[:] = F_CA * (1.0 + (bank.carr_freq - self.if_hz) / F_L1)
+                    rollback[:] = 0.0
+                off_ring[k_ep % W] = bank.carr_freq - self.if_hz - aid
             timing["prefilter"] += time.perf_counter() - tw
 
             # ---- tight filter update at the decimated rate, once every channel passed t_next_upd
@@ -742,7 +763,7 @@ class UltratightEngine:
             x0[i, 0] = abs(sums_c[c]) / W
             P0[i] = base
             P0[i, 0, 0] = (0.3 * x0[i, 0]) ** 2
-            P0[i, 1, 1] = max(pref.P[c, 1, 1], 0.01 ** 2)
+            P0[i, 1, 1] = pref.P[c, 1, 1] + self.opt.code_sigma_margin_chips ** 2
             P0[i, 2, 2] = 0.5 ** 2
             P0[i, 3, 3] = (2 * math.pi * self.opt.reinit_sigma_f_hz) ** 2
             P0[i, 4, 4] = (2 * math.pi * 2.0) ** 2

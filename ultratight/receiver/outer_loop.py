@@ -17,7 +17,7 @@ equation is ``tow0 + t - b/c`` (``b`` = receiver clock bias estimate, m).
 
 CIC latency.  A CIC interpolator of order N and rate R delays its input by a known group delay
 D (s).  The value pushed at SINS epoch ``t_s`` is therefore the prediction for
-``t_s + D + 1/rate`` (kinematic extrapolation with the SINS acceleration), so that the 1 kHz
+``t_s + D + 1/rate`` (kinematic extrapolation with the SINS acceleration and jerk), so that the 1 kHz
 samples that come out after the push at ``t_s`` cover ``[t_s + 1/rate, t_s + 2/rate)`` —
 strictly causal: the SINS never needs IMU data past the current correlator epoch + one SINS
 step.
@@ -293,15 +293,17 @@ class OuterLoop:
         t_true = self.tow0 + t - clk_bias_m / C
         return self.lt.solve(pos_e, vel_e, t_true, clk_bias_m, clk_drift_mps)
 
-    def push(self, t_s, pos_e, vel_e, acc_e, clk_bias_m, clk_drift_mps):
+    def push(self, t_s, pos_e, vel_e, acc_e, clk_bias_m, clk_drift_mps, jerk_e=None):
         """Feed the SINS state of epoch ``t_s``; appends 1 kHz aiding samples.
 
         The prediction is made for ``t_s + lead`` with ``lead = delay + 1/rate`` by kinematic
         extrapolation so the emerging 1 kHz samples refer to ``[t_s + 1/rate, t_s + 2/rate)``.
         """
         lead = self.delay_s + 1.0 / self.rate_hz
-        p = np.asarray(pos_e) + np.asarray(vel_e) * lead + 0.5 * np.asarray(acc_e) * lead * lead
-        v = np.asarray(vel_e) + np.asarray(acc_e) * lead
+        j = np.zeros(3) if jerk_e is None else np.asarray(jerk_e)
+        p = np.asarray(pos_e) + np.asarray(vel_e) * lead + 0.5 * np.asarray(acc_e) * lead * lead \
+            + j * lead ** 3 / 6.0
+        v = np.asarray(vel_e) + np.asarray(acc_e) * lead + 0.5 * j * lead * lead
         pr = self.predict(t_s + lead, p, v, clk_bias_m + clk_drift_mps * lead, clk_drift_mps)
         x = np.stack([pr["doppler_hz"] - self.offset_hz, pr["code_rate_cps"] - F_CA], axis=0)   # (2, n_ch)
         y = self.interp.push(x)                                              # (2, n_ch, ratio)
