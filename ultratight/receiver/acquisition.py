@@ -74,6 +74,7 @@ from fractions import Fraction
 
 import numpy as np
 import scipy.fft
+from scipy.ndimage import median_filter
 from scipy.special import gammainccinv
 
 from ultratight.constants import CA_LEN, F_CA, F_L1
@@ -102,6 +103,7 @@ class AcqResult:
     doppler_coarse_hz: float = math.nan
     n_doppler_bins: int = 0
     k_eff: float = math.nan    # effective non-coherent sums of the noise cells (<= noncoherent)
+    n_excised_bins: int = 0    # spectral bins zeroed as CW interference
 
 
 def _check_int(name, value, lo, hi):
@@ -184,16 +186,18 @@ def cell_threshold(pfa, n_cells, noncoherent):
     """Metric threshold (peak / noise floor) for a per-search false-alarm probability ``pfa``.
 
     Per-cell probability ``1 - (1 - pfa)**(1/n_cells)``; metric of a noise cell
-    ``chi2(2K)/(2K)`` with ``K = noncoherent``.
+    ``chi2(2K)/(2K)`` with ``K = noncoherent`` (scalar or array: one threshold per value).
     """
     pfa_cell = -math.expm1(math.log1p(-pfa) / n_cells)
     # chi2.isf(p, 2K) / (2K) = gammainccinv(K, p) / K  (scipy.stats is slow to import)
-    return float(gammainccinv(noncoherent, pfa_cell) / noncoherent)
+    k = np.asarray(noncoherent, dtype=float)
+    thr = gammainccinv(k, pfa_cell) / k
+    return float(thr) if thr.ndim == 0 else thr
 
 
 def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=None, doppler_range_hz=10e3,
             doppler_center_hz=0.0, coherent_ms=1, noncoherent=10, pfa=1e-3, bin_fraction=Fraction(2, 3),
-            start_sample=0, exclude_chips=2.0, refine=True, decimate_to_hz=4.0e6, workers=-1):
+            start_sample=0, exclude_chips=2.0, refine=True, decimate_to_hz=4.0e6, excise_cw=True, workers=-1):
     """Search PRNs for GPS L1 C/A signals; returns a list of :class:`AcqResult` (one per PRN, in order).
 
     Parameters
@@ -214,6 +218,8 @@ def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=Non
     refine : fine Doppler, code phase and C/N0 for detected PRNs.
     decimate_to_hz : when fs >= 2 * decimate_to_hz, the search runs on the baseband signal summed over
         D = floor(fs / decimate_to_hz) samples (boxcar low-pass, loss < 0.5 dB); None or 0 disables.
+    excise_cw : zero narrowband-interference bins of the block spectra before correlating
+        (see :func:`_excise_cw`); the count is reported in ``AcqResult.n_excised_bins``.
     workers : scipy.fft worker threads (-1: all cores).
     """
     coherent_ms = _check_int("coherent_ms", coherent_ms, 1, MAX_COHERENT_MS)
@@ -283,9 +289,14 @@ def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=Non
         else:
             mix = np.exp(-2j * np.pi * (r / q_den) * n_idx / n_coh).astype(np.complex64)
             base.append(scipy.fft.fft(blocks * mix, axis=1, workers=workers))
+    n_excised = 0
+    if excise_cw:
+        for b in base:
+            n_excised = max(n_excised, _excise_cw(b))
     code_spec = _code_spectra(fs_s, n_coh, coherent_ms)
     period = fs_s * coherent_ms * 1e-3           # samples per coherent_ms code periods (may be fractional)
     exclude = int(math.ceil(exclude_chips * fs_s / F_CA))
+    n_fold = min(n_coh, int(math.ceil(fs_s * 1e-3)))   # lags in one code period
     results = []
     for prn in prns:
         j_lo = math.ceil((ctr_hz[prn] - rng_hz[prn]) / step - 1e-9)
@@ -293,22 +304,30 @@ def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=Non
         js = np.arange(j_lo, j_hi + 1)
         surf = _search_surface(base, code_spec[prn - 1], js, p_num, q_den, noncoherent, n_coh, period,
                                step, workers)
-        jrow, m = np.unravel_index(int(np.argmax(surf)), surf.shape)
-        peak = float(surf[jrow, m])
-        lag = (np.arange(n_coh) - m + n_coh // 2) % n_coh - n_coh // 2
-        keep = np.abs(lag) > exclude
-        noise_cells = surf[:, keep]
-        floor_ = float(noise_cells.mean(dtype=np.float64))
-        metric = peak / floor_
-        # effective number of non-coherent sums from the cells' own dispersion (moment matching)
-        disp = float(noise_cells.var(dtype=np.float64)) / floor_ ** 2
-        k_eff = float(min(noncoherent, 1.0 / disp)) if disp > 0 else float(noncoherent)
+        # one code period of lags suffices (longer blocks repeat the same lags)
+        surf = surf[:, :n_fold]
+        self_r2 = _self_sidelobes(code_spec[prn - 1], n_fold)
         n_cells = surf.size
-        thr = cell_threshold(float(pfa), n_cells, k_eff)
+        # candidate: the raw peak; statistics per Doppler row (CFAR along the code dimension)
+        jrow, m = np.unravel_index(int(np.argmax(surf)), surf.shape)
+        floors, k_rows, thr_rows = _row_statistics(surf, jrow, m, exclude, noncoherent, float(pfa), n_cells,
+                                                   self_r2)
+        # the cell farthest above its row's threshold decides: at the raw peak's code phase it is
+        # the same signal (kept at the raw peak); elsewhere the raw peak sat in a row raised by
+        # interference and that cell becomes the candidate
+        j2, m2 = np.unravel_index(int(np.argmax(surf / (floors * thr_rows)[:, None])), surf.shape)
+        if abs((m2 - m + n_fold // 2) % n_fold - n_fold // 2) > exclude:
+            jrow, m = j2, m2
+            floors, k_rows, thr_rows = _row_statistics(surf, jrow, m, exclude, noncoherent, float(pfa),
+                                                       n_cells, self_r2)
+        peak = float(surf[jrow, m])
+        metric = peak / float(floors[jrow])
+        thr = float(thr_rows[jrow])
+        k_eff = float(k_rows[jrow])
         # parabolic interpolation (Doppler, lag)
         dj = _parabolic(surf[jrow - 1, m] if jrow > 0 else None, peak,
                         surf[jrow + 1, m] if jrow + 1 < surf.shape[0] else None)
-        dm = _parabolic(surf[jrow, (m - 1) % n_coh], peak, surf[jrow, (m + 1) % n_coh])
+        dm = _parabolic(surf[jrow, (m - 1) % n_fold], peak, surf[jrow, (m + 1) % n_fold])
         fd_coarse = float(js[jrow] * step)
         fd = fd_coarse + dj * step
         code_phase = (-(m + dm) * F_CA / fs_s) % CA_LEN
@@ -320,8 +339,62 @@ def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=Non
         results.append(AcqResult(prn=prn, doppler_hz=float(fd), code_phase_chips=float(code_phase),
                                  cn0_dbhz=float(cn0), metric=metric, detected=bool(detected), threshold=thr,
                                  sample_index=int(start_sample), doppler_coarse_hz=fd_coarse,
-                                 n_doppler_bins=int(js.size), k_eff=k_eff))
+                                 n_doppler_bins=int(js.size), k_eff=k_eff, n_excised_bins=n_excised))
     return results
+
+
+def _excise_cw(spec, p_false=1e-4, max_fraction=0.1, halfwidth=1):
+    """Zero narrowband (CW) interference bins in the block spectra ``spec`` (K, N) in place.
+
+    A bin is interference when its power averaged over the K blocks exceeds the local median
+    level (running median over ~N/40 bins, which follows the front-end filter's shape) by the
+    factor for which a noise-only bin (``Gamma(K)`` distributed) exceeds it with probability
+    ``p_false``; it is zeroed with ``halfwidth`` neighbours.  Nothing is excised when those bins
+    would hold more than ``max_fraction`` of the energy: the input is then not noise-dominated
+    (e.g. a noise-free simulation, whose own code lines would be flagged).  Returns the number of
+    bins zeroed.
+    """
+    k, n = spec.shape
+    pw = (spec.real ** 2 + spec.imag ** 2).mean(axis=0)
+    win = max(9, (n // 40) | 1)
+    local = median_filter(pw, size=win, mode="wrap")
+    ratio = gammainccinv(k, p_false) / gammainccinv(k, 0.5)
+    hit = pw > ratio * np.maximum(local, np.finfo(np.float32).tiny)
+    if not np.any(hit):
+        return 0
+    for d in range(1, halfwidth + 1):
+        hit = hit | np.roll(hit, d) | np.roll(hit, -d)
+    if pw[hit].sum() > max_fraction * pw.sum():
+        return 0
+    spec[:, hit] = 0.0
+    return int(hit.sum())
+
+
+def _self_sidelobes(cspec, n_fold):
+    """Squared normalised circular autocorrelation R(l)^2 of the sampled local code (first n_fold lags)."""
+    ac = scipy.fft.ifft((cspec.real.astype(np.float64) ** 2 + cspec.imag.astype(np.float64) ** 2)).real
+    return (ac[:n_fold] / ac[0]) ** 2
+
+
+def _row_statistics(surf, jrow, m, exclude, noncoherent, pfa, n_cells, self_r2):
+    """Per-Doppler-row noise floor, effective sums K_eff and threshold.
+
+    Cells within ``exclude`` lags of ``m`` are left out.  In the candidate's own row the
+    candidate's code autocorrelation sidelobes (``(peak - floor) * R(l - m)^2``, deterministic,
+    known from the code) are subtracted first: they are the signal, not noise.
+    """
+    n = surf.shape[1]
+    lag = (np.arange(n) - m + n // 2) % n - n // 2
+    keep = np.abs(lag) > exclude
+    cells = surf[:, keep].astype(np.float64)
+    row = cells[jrow]
+    p_sig = max(float(surf[jrow, m]) - float(row.mean()), 0.0)
+    cells[jrow] = row - p_sig * np.roll(self_r2, m)[keep]
+    floors = cells.mean(axis=1)
+    floors = np.maximum(floors, 1e-30 * max(float(surf.max()), 1e-300))
+    disp = cells.var(axis=1) / floors ** 2
+    k_rows = np.minimum(float(noncoherent), 1.0 / np.maximum(disp, 1e-12))
+    return floors, k_rows, cell_threshold(pfa, n_cells, k_rows)
 
 
 def _sigma_arm(x, is_complex):
