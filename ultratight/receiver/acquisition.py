@@ -28,25 +28,40 @@ Detection statistics
 --------------------
 Under noise only, each ``Y_k`` is circular complex Gaussian, ``|Y_k|^2`` is
 exponential and ``S`` is ``E[S]/(2K) * chi2(2K)`` (chi-square with 2K degrees of
-freedom).  The noise floor ``E[S]`` is estimated as the mean of ``S`` over all
-cells except those within ``+-exclude_chips`` (default 2 chips) of the peak's
-code phase, in every Doppler bin.  The metric is ``peak / noise_floor``; under
-H0 a single cell's metric is ``chi2(2K)/(2K)``, of variance ``1/K``.
+freedom); a cell's ``S / E[S]`` is ``chi2(2K)/(2K)``, of variance ``1/K``.
+Only one code period of lags is kept (for ``coherent_ms > 1`` the circular
+correlation repeats every period).
 
-Real recordings are not pure white noise: the cross-correlation of strong
-satellites with the searched code repeats identically in every block (it does
-not average down non-coherently), and noise-free synthetic files contain *only*
-such cross-correlation.  The cells then have a larger dispersion than ``1/K``.
-The threshold therefore uses an effective number of sums ``K_eff = min(K,
-1/v)``, ``v`` = variance of ``S/noise_floor`` over the noise cells (moment
-matching of a scaled chi-square, Satterthwaite); for white noise
-``K_eff ~= K`` and the test is the textbook one.
+Noise floor, per Doppler row (cell-averaging CFAR along the code dimension): the
+mean of the row's cells outside ``+-exclude_chips`` (default 2 chips) of the
+candidate's code phase.  Per row because real recordings are not white: CW and
+1-ms-periodic interference (the pocketsdr front end has both) correlate with the
+periodic code only in Doppler rows at particular offsets (e.g. whole kHz), and
+the cross-correlation of strong satellites concentrates near their Dopplers.
+In the candidate's own row its code autocorrelation sidelobes
+``(peak - floor) * R(l - m)^2`` (deterministic, ``R`` from the sampled code) are
+subtracted before the statistics: they are signal, not noise.
 
-The search covers ``M = n_doppler * N`` cells per PRN; with a false-alarm
+Structured interference repeats identically in every block (it does not average
+down non-coherently), so the cells disperse more than ``1/K``.  Each row's
+threshold uses an effective number of sums ``K_eff = min(K, 1/v)``, ``v`` = the
+variance of ``S/floor`` over the row's noise cells (moment matching of a scaled
+chi-square, Satterthwaite); for white noise ``K_eff ~= K``, the textbook test.
+
+The search covers ``M = n_doppler * n_lags`` cells per PRN; with a false-alarm
 probability ``pfa`` per PRN search the per-cell probability is
 ``1 - (1 - pfa)**(1/M)`` (Sidak: cells treated as independent, conservative
-since neighbouring cells are correlated) and the threshold is
-``chi2.isf(pfa_cell, 2*K_eff) / (2*K_eff)`` (:func:`cell_threshold`).
+since neighbouring cells are correlated) and a row's threshold is
+``chi2.isf(pfa_cell, 2*K_eff) / (2*K_eff)`` (:func:`cell_threshold`).  The
+candidate is the raw peak of ``S``, unless the cell farthest above its row's
+threshold lies at another code phase (the raw peak then sat in a row raised by
+interference).  ``metric = S(candidate) / floor(row)`` is compared with that
+row's threshold.
+
+CW excision: before correlating, spectral bins of the blocks whose power
+exceeds the local median level by the factor a noise-only bin exceeds with
+probability 1e-4 are zeroed (unless they would hold > 10 % of the energy, i.e.
+the input is not noise-dominated, as in a noise-free simulation).
 
 Refinement and C/N0 (detected PRNs)
 -----------------------------------
