@@ -209,3 +209,22 @@ def test_predicted_doppler_matches_range_rate():
         rr = float(np.diff(np.asarray(lt["pseudorange_m"]))[0])
         assert pred[p] == pytest.approx(-rr / LAMBDA_L1, abs=1.0)
         assert abs(pred[p]) < 6000.0
+
+
+def test_cw_interference_is_excised():
+    """A CW tone as strong as the whole noise: excised, the signal is still found, no false alarm."""
+    rng = np.random.default_rng(15)
+    fs = 4.0e6
+    n = int(fs * 0.011)
+    x = make_signal([(3, 2345.6, 512.3, 42.0)], fs, n, rng)
+    t = np.arange(n) / fs
+    x = (x + 1.0 * np.exp(2j * np.pi * 300000.0 * t)).astype(np.complex64)   # tone power = noise power
+    res = acquire(x, fs, 0.0, True, prns=[3, 4, 5, 6], coherent_ms=1, noncoherent=10)
+    assert [r.detected for r in res] == [True, False, False, False]
+    assert 1 <= res[0].n_excised_bins <= 40          # the tone and its leakage in the 1/3-bin-mixed spectra
+    assert abs(res[0].doppler_hz - 2345.6) < 30.0
+    assert abs(code_err(res[0].code_phase_chips, 512.3)) < 0.06
+    # C/N0 from the cleaned signal: the tone does not count as noise (it would bias C/N0 by -1.8 dB)
+    a2 = float(amplitude_from_cn0(42.0, 1e-3)) ** 2
+    sd_db = 10 / math.log(10) * math.sqrt((4 + 4 * a2) / 10) / a2
+    assert res[0].cn0_dbhz == pytest.approx(42.0, abs=3 * sd_db + 0.3)

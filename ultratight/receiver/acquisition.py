@@ -60,8 +60,8 @@ row's threshold.
 
 CW excision: before correlating, spectral bins of the blocks whose power
 exceeds the local median level by the factor a noise-only bin exceeds with
-probability 1e-4 are zeroed (unless they would hold > 10 % of the energy, i.e.
-the input is not noise-dominated, as in a noise-free simulation).
+probability 1e-4 are zeroed with one neighbour each side (unless more than 5 % of
+the bins are flagged: that is not narrowband interference).
 
 Refinement and C/N0 (detected PRNs)
 -----------------------------------
@@ -305,9 +305,14 @@ def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=Non
             mix = np.exp(-2j * np.pi * (r / q_den) * n_idx / n_coh).astype(np.complex64)
             base.append(scipy.fft.fft(blocks * mix, axis=1, workers=workers))
     n_excised = 0
+    xs_ref, sigma_ref = xs, sigma_dec
     if excise_cw:
         for b in base:
             n_excised = max(n_excised, _excise_cw(b))
+        if n_excised:
+            # refinement and C/N0 on the cleaned signal (the unmixed blocks' excised spectra)
+            xs_ref = scipy.fft.ifft(base[0], axis=1, workers=workers).ravel().astype(np.complex64)
+            sigma_ref = _sigma_arm(xs_ref, True)
     code_spec = _code_spectra(fs_s, n_coh, coherent_ms)
     period = fs_s * coherent_ms * 1e-3           # samples per coherent_ms code periods (may be fractional)
     exclude = int(math.ceil(exclude_chips * fs_s / F_CA))
@@ -349,7 +354,7 @@ def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=Non
         detected = metric > thr
         cn0 = math.nan
         if detected and refine:
-            fd, code_phase, cn0 = _refine(xs, fs_s, prn, fd, code_phase, sigma_dec)
+            fd, code_phase, cn0 = _refine(xs_ref, fs_s, prn, fd, code_phase, sigma_ref)
         code_phase = (code_phase - t_centre_chips) % CA_LEN
         results.append(AcqResult(prn=prn, doppler_hz=float(fd), code_phase_chips=float(code_phase),
                                  cn0_dbhz=float(cn0), metric=metric, detected=bool(detected), threshold=thr,
@@ -358,16 +363,15 @@ def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=Non
     return results
 
 
-def _excise_cw(spec, p_false=1e-4, max_fraction=0.1, halfwidth=1):
+def _excise_cw(spec, p_false=1e-4, max_bin_fraction=0.05, halfwidth=1):
     """Zero narrowband (CW) interference bins in the block spectra ``spec`` (K, N) in place.
 
     A bin is interference when its power averaged over the K blocks exceeds the local median
     level (running median over ~N/40 bins, which follows the front-end filter's shape) by the
     factor for which a noise-only bin (``Gamma(K)`` distributed) exceeds it with probability
-    ``p_false``; it is zeroed with ``halfwidth`` neighbours.  Nothing is excised when those bins
-    would hold more than ``max_fraction`` of the energy: the input is then not noise-dominated
-    (e.g. a noise-free simulation, whose own code lines would be flagged).  Returns the number of
-    bins zeroed.
+    ``p_false``; it is zeroed with ``halfwidth`` neighbours.  Nothing is excised when more than
+    ``max_bin_fraction`` of the bins are flagged: that is not narrowband interference (zeroing
+    it would remove the band).  Returns the number of bins zeroed.
     """
     k, n = spec.shape
     pw = (spec.real ** 2 + spec.imag ** 2).mean(axis=0)
@@ -379,7 +383,7 @@ def _excise_cw(spec, p_false=1e-4, max_fraction=0.1, halfwidth=1):
         return 0
     for d in range(1, halfwidth + 1):
         hit = hit | np.roll(hit, d) | np.roll(hit, -d)
-    if pw[hit].sum() > max_fraction * pw.sum():
+    if hit.mean() > max_bin_fraction:
         return 0
     spec[:, hit] = 0.0
     return int(hit.sum())
