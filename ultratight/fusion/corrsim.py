@@ -249,7 +249,8 @@ class CorrSim:
     """Epoch-by-epoch correlator-level simulator for a closed loop.
 
     ``nco`` (SimNco) is the loop's NCO; :meth:`outputs` returns z for the current
-    epoch k, :meth:`advance` moves truth and NCO to the next epoch.
+    epoch k and advances the NCO over the interval (as the correlator does);
+    :meth:`advance` moves the truth to the next epoch.
     """
 
     def __init__(self, sc: SimScenario, rng: np.random.Generator, truth: Truth | None = None,
@@ -291,26 +292,31 @@ class CorrSim:
         return self._chunk[k - self._chunk_k0]
 
     def outputs(self):
-        """z (n_ch, 6) for epoch k; also fills ``err`` = [dtau0, dphi0, df_mean] (true - NCO)."""
+        """z (n_ch, 6) for epoch k; also fills ``err`` = [dtau0, dphi0, df_mean] (true - NCO).
+
+        Like the correlator bank, the NCO is then advanced to the end of the interval
+        (its arrays describe the start of the next interval, where the inner loop acts).
+        """
         k = self.k
         tr = self.truth
         noise = self._noise(k) * tr.noise_factor[k][:, None]
+        nco = self.nco
         _epoch_outputs(tr.theta[k], tr.freq[k], tr.acc[k], tr.jerk[k], self.p_true,
-                       self.nco.carr_phase, self.nco.carr_freq, self.nco.code_phase, self.nco.code_rate,
+                       nco.carr_phase, nco.carr_freq, nco.code_phase, nco.code_rate,
                        tr.amp[k], tr.bits[k], self.T, self.dhalf, GL_NODES, GL_WEIGHTS,
                        F_CA / F_L1, F_CA, noise, self._z, self.err)
-        return self._z
-
-    def advance(self):
-        """Advance truth and NCO by one epoch (both code phases reduced by one code period)."""
-        k = self.k
-        tr = self.truth
         T = self.T
-        nco = self.nco
-        self.p_true = self.p_true + F_CA * T + (F_CA / F_L1) * (tr.theta[k + 1] - tr.theta[k]) - CA_LEN
         nco.code_phase += nco.code_rate * T - CA_LEN
         ph = nco.carr_phase + nco.carr_freq * T
         nco.carr_phase[:] = ph - np.floor(ph)
+        return self._z
+
+    def advance(self):
+        """Advance the truth by one epoch (code phase reduced by one code period, like the NCO)."""
+        k = self.k
+        tr = self.truth
+        T = self.T
+        self.p_true = self.p_true + F_CA * T + (F_CA / F_L1) * (tr.theta[k + 1] - tr.theta[k]) - CA_LEN
         self.k += 1
 
 
@@ -338,6 +344,10 @@ def run_closed_loop(sc: SimScenario, bank, rng: np.random.Generator, law=None, a
         law = InnerLoop(n, T=T)
     sim.init_nco(**(init_err or {}))
     tr = sim.truth
+    if aiding:
+        # the NCO starts on the interval-0 Doppler: the aiding history starts there too
+        rate0 = (tr.aid_hz[1] - tr.aid_hz[0]) / sim.T if N > 1 else np.zeros(n)
+        law.prime_aiding(bank, tr.aid_hz[0], rate0)
     log = {k: np.zeros((N, n)) for k in ("dopp_true_hz", "dopp_est_hz", "code_err_chips", "nco_dopp_err_hz",
                                          "true_dtau", "true_dphi", "nis", "theta", "amp_est")}
     log["flags"] = np.zeros((N, n), dtype=np.int64)

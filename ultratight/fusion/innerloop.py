@@ -2,37 +2,40 @@
 
 Every epoch, after the prefilter bank has predicted the tracking errors for
 the start of the next integration interval (``bank.x``, rows
-``[A, dtau, dphi, df, da]``, all *true minus NCO*), each channel's code and
-carrier NCOs are moved by the estimated errors and the applied part is removed
-from the state (error-state feedback)::
+``[A, dtau, dphi, df, da]``, all *true minus NCO*, the NCO frequency being
+constant within an interval), each channel's code and carrier NCOs are moved
+by the estimated errors and the applied part is removed from the state
+(error-state feedback)::
 
-    carrier frequency  f_new = f_old + k_f (df + da T/2) / 2pi          (inner correction)
-                                     + use_aid (aid_now - aid_prev)    (outer-loop feed-forward)
-    carrier phase      phi  += k_phi dphi / 2pi                         (cycles)
-    code phase         p    += k_tau dtau                               (chips)
-    code rate          r     = F_CA (1 + (f_new - IF) / F_L1)           (carrier aiding of the code)
+    carrier frequency  f   += k_f (df + k_da da T/2) / 2pi       (Hz)
+    carrier phase      phi += k_phi dphi / 2pi                  (cycles)
+    code phase         p   += k_tau dtau                        (chips)
+    code rate          r    = F_CA (1 + (f - IF) / F_L1)        (carrier aiding of the code)
+    dx = [0, k_tau dtau, k_phi dphi, k_f (df + k_da da T/2), 0],    x <- x - dx
 
-``da T/2`` centres the (constant) NCO frequency on the interval: with a
-carrier acceleration ``da`` the mean frequency error over the next interval is
-then zero.  The code NCO rate is always slaved to the carrier NCO Doppler
-(code and carrier aid each other: the carrier sets the code rate, the code
-phase error is corrected from dtau), which is what makes the model's
-``d dtau/dt = beta df`` hold.  The state change is then
+``da T/2`` centres the constant NCO frequency on the next interval (with a
+carrier acceleration ``da`` the mean frequency error over it is then zero).
+The code NCO rate is always slaved to the carrier NCO Doppler (code and
+carrier aid each other: the carrier sets the code rate, the code phase error
+is corrected from dtau), which is what makes the model's ``d dtau/dt = beta df``
+hold.  ``da`` itself is never fed back (the NCO has no rate term): it is the
+line-of-sight acceleration relative to the piecewise-constant NCO and acts
+through the predicted ``df`` every epoch.
 
-    dx = [0, k_tau dtau, k_phi dphi, k_f (df + k_da da T/2), 0]      x <- x - dx
-
-The outer loop enters as a feed-forward of its predicted Doppler *increments*
-(``aid_now - aid_prev``, Hz; ``aid_now`` should be the prediction for the
-middle of the next interval).  An aiding increment stands for the change of the
-*true* Doppler over the epoch, so it is not booked into ``df``: while
-``use_aid`` holds, the NCO follows the outer-loop dynamics and the error
-acceleration ``da`` is only the residual (aiding error) dynamics.  When the
-arbitration clears ``use_aid`` for a channel, its NCO keeps its frequency and
-the inner loop alone steers it; the NCO's lost rate is then added to ``da``
-(``+2pi (aid_now - aid_prev)/T``), and removed again when aiding resumes.
-Switching is continuous (no frequency jump).  The carrier
-acceleration ``da`` is not fed back (the NCO has no rate term): it stays in the
-state and acts through ``df`` every epoch.
+Outer loop (aiding): its Doppler prediction ``aid`` (Hz, for the middle of the
+next interval) enters as a *known input* to the error dynamics: the change of
+the outer loop's Doppler rate, ``2pi (rate_k - rate_{k-1})`` with
+``rate_k = (aid_k - aid_{k-1})/T``, is added to ``da`` every epoch while
+``use_aid`` holds (:meth:`InnerLoop.prime_aiding` injects the initial rate).
+The prefilter then only has to estimate the *residual* dynamics (aiding
+error), and the NCO command is "outer prediction + inner correction" through
+the predicted state.  When the arbitration clears ``use_aid`` for a channel the
+injection stops and the inner loop alone estimates the dynamics (its ``da``
+keeps the last value: no jump); when aiding resumes the history restarts
+(the first rate change is taken after two aided epochs).  (A direct NCO
+feed-forward of the aiding increments would also need the state to be
+told about the within-interval frequency ramp; injecting into ``da`` keeps
+the model exact.)
 
 ``code_phase`` is not wrapped: the correlator bank integrates to the end of the
 current code period from whatever (slightly negative or > 0) code phase it
@@ -61,8 +64,11 @@ TWO_PI = 2.0 * math.pi
 
 @njit(cache=True)
 def _feedback_kernel(x, active, code_phase, code_rate, carr_phase, carr_freq, aid_now, aid_prev,
-                     use_aid, was_aided, prm, dx):
-    """prm = [T, if_hz, k_tau, k_phi, k_f, k_da, f_ca, f_l1]."""
+                     rate_prev, hist, use_aid, prm, dx):
+    """prm = [T, if_hz, k_tau, k_phi, k_f, k_da, f_ca, f_l1].
+
+    hist[c]: 0 = no aiding history, 1 = previous aiding value known, 2 = previous rate known.
+    """
     T = prm[0]
     if_hz = prm[1]
     k_tau = prm[2]
@@ -77,24 +83,24 @@ def _feedback_kernel(x, active, code_phase, code_rate, carr_phase, carr_freq, ai
             dx[c, i] = 0.0
         if not active[c]:
             continue
+        # outer-loop aiding: its Doppler rate is a known input to the error acceleration
+        if use_aid[c] and aid_now[c] == aid_now[c]:
+            if hist[c] >= 1:
+                rate = (aid_now[c] - aid_prev[c]) / T
+                if hist[c] >= 2:
+                    d_in = TWO_PI * (rate - rate_prev[c])
+                    x[c, IDA] += d_in
+                    dx[c, IDA] = -d_in
+                rate_prev[c] = rate
+                hist[c] = 2
+            else:
+                hist[c] = 1
+            aid_prev[c] = aid_now[c]
+        else:
+            hist[c] = 0
         f_old = carr_freq[c]
-        u_f = k_f * (x[c, IF] + k_da * x[c, IDA] * 0.5 * T)      # rad/s, inner correction
+        u_f = k_f * (x[c, IF] + k_da * x[c, IDA] * 0.5 * T)      # rad/s
         f_new = f_old + u_f / TWO_PI
-        d_aid = aid_now[c] - aid_prev[c]
-        if not (d_aid == d_aid):          # no aiding history -> no increment
-            d_aid = 0.0
-        if use_aid[c]:
-            # outer-loop feed-forward: models the true Doppler change, not booked into df
-            f_new += d_aid
-            if not was_aided[c]:
-                # the NCO starts following the outer loop: the error acceleration loses it
-                x[c, IDA] -= TWO_PI * d_aid / T
-                dx[c, IDA] = TWO_PI * d_aid / T
-        elif was_aided[c]:
-            # the NCO stops following the outer loop: its rate returns to the error acceleration
-            x[c, IDA] += TWO_PI * d_aid / T
-            dx[c, IDA] = -TWO_PI * d_aid / T
-        was_aided[c] = use_aid[c]
         carr_freq[c] = f_new
         dphi = k_phi * x[c, IPHI]
         ph = carr_phase[c] + dphi / TWO_PI
@@ -117,8 +123,8 @@ class InnerLoop:
     ``k_f`` in [0, 1] (1 = full error-state feedback every epoch), ``k_da`` (1: centre the
     frequency on the next interval using the acceleration estimate).
 
-    ``apply(bank, nco, aid_doppler_hz=None, use_aid=None)``: ``bank`` has ``x`` (n_ch, 5),
-    ``active`` and ``correct(dx)``; ``nco`` has float arrays ``code_phase``, ``code_rate``,
+    ``apply(bank, nco, aid_doppler_hz=None, use_aid=None)``: ``bank`` has ``x`` (n_ch, 5)
+    (modified in place) and ``active``; ``nco`` has float arrays ``code_phase``, ``code_rate``,
     ``carr_phase``, ``carr_freq`` (a CorrelatorBank or corrsim.SimNco).  ``aid_doppler_hz``
     (n_ch,) is the outer loop's Doppler prediction for the next interval (None: no aiding);
     ``use_aid`` (n_ch,) bool is the arbitration mask (None: aid every channel when aiding is
@@ -130,53 +136,50 @@ class InnerLoop:
             if not (0.0 <= g <= 1.0):
                 raise FilterError(f"InnerLoop {name}={g!r}: expected a gain in [0, 1]")
         self.n_ch = int(n_ch)
+        self.T = float(T)
         self.prm = np.array([float(T), float(if_hz), k_tau, k_phi, k_f, k_da, F_CA, F_L1])
         self.aid_prev = np.zeros(self.n_ch)
-        self.have_prev = np.zeros(self.n_ch, dtype=np.bool_)
-        self.was_aided = np.zeros(self.n_ch, dtype=np.bool_)
+        self.rate_prev = np.zeros(self.n_ch)
+        self.hist = np.zeros(self.n_ch, dtype=np.int64)
         self.dx = np.zeros((self.n_ch, NX))
-        self._zeros = np.zeros(self.n_ch)
+        self._nan = np.full(self.n_ch, np.nan)
         self._false = np.zeros(self.n_ch, dtype=np.bool_)
-        self._mask = np.zeros(self.n_ch, dtype=np.bool_)
+        self._true = np.ones(self.n_ch, dtype=np.bool_)
+
+    def prime_aiding(self, bank, aid_doppler_hz, aid_rate_hzps, channels=None):
+        """Start aiding channels whose NCO was started on the outer-loop Doppler: the aiding
+        history starts here and the outer loop's Doppler rate (Hz/s) is injected into da."""
+        ch = np.arange(self.n_ch) if channels is None else np.atleast_1d(np.asarray(channels))
+        self.aid_prev[ch] = np.broadcast_to(np.asarray(aid_doppler_hz, dtype=float), (self.n_ch,))[ch]
+        self.rate_prev[ch] = np.broadcast_to(np.asarray(aid_rate_hzps, dtype=float), (self.n_ch,))[ch]
+        self.hist[ch] = 2
+        bank.x[ch, IDA] += TWO_PI * self.rate_prev[ch]
 
     def reset_aiding(self, channels=None):
-        """Forget the previous aiding value (e.g. after a channel (re)start)."""
+        """Forget the aiding history (e.g. after a channel (re)start)."""
         if channels is None:
-            self.have_prev[:] = False
+            self.hist[:] = 0
         else:
-            self.have_prev[np.asarray(channels)] = False
+            self.hist[np.asarray(channels)] = 0
 
     def apply(self, bank, nco, aid_doppler_hz=None, use_aid=None):
         x = bank.x
-        if x.shape != (self.n_ch, NX):
-            raise FilterError(f"InnerLoop.apply: state must have shape ({self.n_ch}, {NX}), got {x.shape}")
         if aid_doppler_hz is None:
-            aid_now = self._zeros
+            aid_now = self._nan
             mask = self._false
         else:
-            aid_now = np.asarray(aid_doppler_hz, dtype=np.float64)
-            if aid_now.shape != (self.n_ch,):
-                raise FilterError(f"InnerLoop.apply: aid_doppler_hz must have shape ({self.n_ch},), "
-                                  f"got {aid_now.shape}")
+            aid_now = aid_doppler_hz
             if use_aid is None:
-                mask = self._mask
-                mask[:] = True
+                mask = self._true
             else:
-                mask = np.asarray(use_aid, dtype=np.bool_)
-                if mask.shape != (self.n_ch,):
-                    raise FilterError(f"InnerLoop.apply: use_aid must have shape ({self.n_ch},)")
-            # first aiding value of a channel: no increment yet
-            if not self.have_prev.all():
-                first = ~self.have_prev
-                self.aid_prev[first] = aid_now[first]
-                self.have_prev[:] = True
-            bad = mask & ~np.isfinite(aid_now)
-            if bad.any():
-                raise FilterError(f"InnerLoop.apply: non-finite aiding Doppler on channels {np.flatnonzero(bad)}")
-        _feedback_kernel(x, bank.active, nco.code_phase, nco.code_rate, nco.carr_phase, nco.carr_freq,
-                         aid_now, self.aid_prev, mask, self.was_aided, self.prm, self.dx)
-        if aid_doppler_hz is not None:
-            self.aid_prev[:] = aid_now
+                mask = use_aid
+            if aid_now.shape != (self.n_ch,) or mask.shape != (self.n_ch,):
+                raise FilterError(f"InnerLoop.apply: aid_doppler_hz and use_aid must have shape ({self.n_ch},)")
+        active = getattr(bank, "_active_i", None)
+        if active is None:
+            active = bank.active
+        _feedback_kernel(x, active, nco.code_phase, nco.code_rate, nco.carr_phase, nco.carr_freq,
+                         aid_now, self.aid_prev, self.rate_prev, self.hist, mask, self.prm, self.dx)
         if hasattr(bank, "note_correction"):
             bank.note_correction(self.dx)
         return self.dx
