@@ -80,7 +80,7 @@ def _wipe_bits(bits, t0_ms, ms, out):
 
 
 @njit(cache=True)
-def _epoch_post(k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, ring_t, ring_cp, ring_r, ring_f, ring_k,
+def _epoch_post(k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, i_ptau, i_pf, ring_t, ring_cp, ring_r, ring_f, ring_k,
                 imu_dt, t_next_upd, acc, rec_t, rec_f, rec_cp, rec_a, rec_mode, mode_now,
                 aid_grid, n_filled, sample_ptr, half_period_s, aid_out):
     """Per-epoch bookkeeping for all channels in one compiled call.
@@ -99,7 +99,8 @@ def _epoch_post(k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, ring_t, ring_cp, r
     half = 0.5 * CA_LEN
     for c in range(n_ch):
         tk = t_start[c] / fs
-        f_meas = f0[c] - if_hz + x_post[c, 3] / two_pi
+        # Doppler estimate for the middle of the interval: NCO + df + da T/2 (state at the start)
+        f_meas = f0[c] - if_hz + (x_post[c, 3] + x_post[c, 4] * half_period_s) / two_pi
         cp_meas = cp0[c] + x_post[c, 1]
         rec_t[k_ep, c] = tk
         rec_f[k_ep, c] = f_meas
@@ -125,8 +126,8 @@ def _epoch_post(k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, ring_t, ring_cp, r
             acc[0, c] += 1.0
             acc[1, c] += r_cp
             acc[2, c] += r_f
-            acc[3, c] += P[c, 1, 1]
-            acc[4, c] += P[c, 3, 3]
+            acc[3, c] += P[c, i_ptau, i_ptau]
+            acc[4, c] += P[c, i_pf, i_pf]
             acc[5, c] += x_post[c, 0]
         u = (sample_ptr[c] / fs + half_period_s) * 1000.0
         j = int(math.floor(u))
@@ -175,18 +176,20 @@ def _lock_monitor(out, D, win_i, win_c, sums_i, sums_c, ptr, count, present, thr
     ptr[0] = (k + 1) % W
 
 
-NOISE_JUMP_LOG = math.log(1.5)     # front-end noise level change that rescales the amplitude
 
 
-class _ZeroState:
-    """Stand-in prefilter bank with zero errors: the inner loop then applies only the aiding."""
+class _BankProxy:
+    """The prefilter bank seen by the inner-loop law with some channels masked inactive
+    (channels whose NCO follows the outer-loop aiding alone this epoch)."""
 
-    def __init__(self, n_ch):
-        self.x = np.zeros((n_ch, 5))
-        self.active = np.ones(n_ch, dtype=np.bool_)
+    def __init__(self, bank):
+        self._bank = bank
+        self.x = bank.x
+        self.active = bank.active.copy()
 
-    def correct(self, dx):
-        self.x[:] = 0.0
+    def note_correction(self, dx):
+        if hasattr(self._bank, "note_correction"):
+            self._bank.note_correction(dx)
 
 
 def check_method(method):
@@ -222,6 +225,7 @@ class EngineOptions:
     lock_on_dbhz: float = 16.5           # restart the prefilter above this C/N0 (coherent magnitude)
     cn0_min_dbhz: float = 10.0           # floor of the re-initialised amplitude
     reinit_sigma_f_hz: float = 0.5       # frequency 1-sigma after a phase (re)initialisation
+    reinit_sigma_a_hzps: float = 2.0     # Doppler-rate 1-sigma after a (re)initialisation (aided)
     startup: dict = field(default_factory=dict)   # StartupErrors overrides
 
     def as_dict(self):
@@ -418,8 +422,9 @@ class UltratightEngine:
         # ---- prefilters + inner loop
         if self.method == "pb-kf-utc":
             from ultratight.fusion import pbkf
-            pref = pbkf.make_bank(n_ch) if hasattr(pbkf, "make_bank") else pbkf.PbkfBank(n_ch)
-            inner = None
+            pref = pbkf.PbKfBank(n_ch, cn0_dbhz_init=opt.cn0_init_dbhz)
+            pref.reset(rows)
+            inner = InnerLoop(n_ch, T=T_CA, if_hz=self.if_hz)
         else:
             from ultratight.fusion.prefilter import PrefilterBank, default_initial_covariance
             kind = self.method.split("-", 1)[1]
@@ -444,11 +449,10 @@ class UltratightEngine:
         a1 = outer.aid_doppler[j1, rows] * (1.0 - (u1 - j1)) + outer.aid_doppler[j1 + 1, rows] * (u1 - j1)
         bank.carr_freq[:] = self.if_hz + a1
         bank.code_rate[:] = F_CA * (1.0 + a1 / F_L1)
-        if inner is not None:
-            inner.aid_prev[:] = a1
-            inner.have_prev[:] = True
-            if hasattr(inner, "was_aided"):
-                inner.was_aided[:] = True      # the NCOs follow the outer loop from the start
+        aid_prev_ff = a1.copy()
+        if opt.phase_init_ms <= 0:
+            rate1 = (self._aid_at(outer, t1 + T_CA) - a1) / T_CA
+            inner.prime_aiding(pref, a1 - rate1 * T_CA, rate1)
 
         # ---- records
         n_ep_max = int(self.duration_s * 1000.0 * 1.001) + 8
@@ -466,10 +470,11 @@ class UltratightEngine:
         D = np.ones(n_ch)
         aid = np.zeros(n_ch)
         ms = np.asarray(ms, dtype=np.int64).copy()
-        sig_prev = np.full(n_ch, np.nan)
-        init_left = opt.phase_init_ms if inner is not None else 0
+        init_left = int(opt.phase_init_ms)
+        proxy = _BankProxy(pref)
+        i_ptau, i_pf = (0, 2) if self.method == "pb-kf-utc" else (1, 3)
+        mode_aided = MODE_OUTER if self.method == "pb-kf-utc" else MODE_COMBINED
         init_acc = np.zeros(n_ch, dtype=np.complex128)
-        zero_state = _ZeroState(n_ch)
         W = int(opt.lock_window_ms)
         lm_i = np.zeros((n_ch, W))
         lm_c = np.zeros((n_ch, W), dtype=np.complex128)
@@ -488,7 +493,6 @@ class UltratightEngine:
         off_ring = np.zeros((W, n_ch))      # carrier NCO minus aiding (inner-loop offset) history
         rollback = np.zeros(n_ch)
         coast_any = False
-        n_noise_jumps = 0
         n_phase_inits = 0
         cp0 = np.zeros(n_ch)
         f0 = np.zeros(n_ch)
@@ -557,8 +561,6 @@ class UltratightEngine:
             cp0[:] = bank.code_phase
             f0[:] = bank.carr_freq
             sig = sigma_blk[np.minimum(sp // blk, n_blocks - 1)]
-            if k_ep == 0:
-                sig_prev[:] = sig
             out, t_start, n_s = bank.step(buf, buf_start, sig)
             if n_s.min() <= 0:
                 raise InputFileError(f"{self.src.path}: correlator could not integrate channels "
@@ -566,77 +568,72 @@ class UltratightEngine:
             timing["correlate"] += time.perf_counter() - tw
             tw = time.perf_counter()
             _wipe_bits(wipe.bits, wipe.t0_ms, ms, D)
-            if inner is not None:
-                # front-end noise level changes (jamming / the scenario's noise events): the
-                # signal power is unchanged, so the normalised amplitude scales by sigma_old/sigma_new
-                ratio = sig_prev / sig
-                jump = np.abs(np.log(ratio)) > NOISE_JUMP_LOG
-                if jump.any():
-                    pref.x[jump, 0] *= ratio[jump]
-                    pref.P[jump, 0, :] *= ratio[jump, None]
-                    pref.P[jump, :, 0] *= ratio[jump, None]
-                    if np.any(ratio[jump] > 1.0):       # noise dropped: re-initialise the carrier phase
-                        init_left = opt.phase_init_ms
-                        init_acc[:] = 0.0
-                    n_noise_jumps += 1
-                sig_prev[:] = sig
-            if init_left > 0:
-                # carrier-phase (re)initialisation: NCOs aided only, coherent sum of wiped prompts
+            restart = None
+            init_now = init_left > 0
+            if init_now:
+                # carrier-phase initialisation: NCOs on the aiding only, coherent sum of wiped prompts
                 init_acc += (out[:, 0] + 1j * out[:, 3]) * D
                 init_left -= 1
                 if init_left == 0:
-                    self._phase_init(pref, bank, init_acc, opt.phase_init_ms)
+                    restart = rows
+                    restart_phase = np.angle(init_acc)
+                    restart_amp = np.abs(init_acc) / opt.phase_init_ms
                     n_phase_inits += 1
-                pref.x_post[:, 1:] = 0.0
             else:
                 pref.step(out, bits=D)
-            xp_rec = pref.x_post
-            if inner is not None:
                 _lock_monitor(out, D, lm_i, lm_c, lm_si, lm_sc, lm_ptr, lm_count, present, thr_off, thr_on,
                               lm_events, lm_phase)
                 if lm_events.any():
                     lost = lm_events < 0
                     back = lm_events > 0
-                    n_lost_events += int(lost.sum())
                     if lost.any():
+                        n_lost_events += int(lost.sum())
                         # roll the carrier NCO's inner-loop offset back to its value before the
-                        # monitor window (the prefilter fitted noise while the loss was building up)
+                        # monitor window (the prefilter fitted noise while the loss built up)
                         old = off_ring[lm_ptr[0] % W]
                         cur = bank.carr_freq - self.if_hz - aid
                         rollback[lost] = (old - cur)[lost]
                     if back.any():
                         n_regained += int(back.sum())
-                        self._restart_channels(pref, bank, np.flatnonzero(back), lm_phase, lm_sc, W)
+                        restart = np.flatnonzero(back)
+                        restart_phase = lm_phase
+                        restart_amp = np.abs(lm_sc) / W
                     coast_any = not present.all()
-                if coast_any:
-                    # coasting channels: the prefilter neither steers the NCO nor enters the estimate
-                    xp_view[:] = pref.x_post
-                    xp_view[~present, 1:] = 0.0
-                    xp_rec = xp_view
-                    mode_now = np.where(present, np.where(use_aid, MODE_COMBINED, MODE_INNER),
+                    mode_now = np.where(present, np.where(use_aid, mode_aided, MODE_INNER),
                                         MODE_COAST).astype(np.int8)
-            _epoch_post(k_ep, t_start.astype(np.float64), fs, self.if_hz, f0, cp0, xp_rec, pref.P,
+            ff_any = init_now or coast_any           # channels whose NCO follows the aiding only
+            if ff_any:
+                ff = np.ones(n_ch, dtype=bool) if init_now else ~present
+                xp_view[:] = pref.x_post
+                xp_view[ff, 1:] = 0.0
+                xp_rec = xp_view
+            else:
+                xp_rec = pref.x_post
+            _epoch_post(k_ep, t_start.astype(np.float64), fs, self.if_hz, f0, cp0, xp_rec, pref.P, i_ptau, i_pf,
                         ring_t, ring_cp, ring_r, ring_f, ring_k, imu_dt, t_next_upd, acc, rec_t, rec_f,
                         rec_cp, rec_a, rec_mode, mode_now, outer.aid_doppler, outer.n_filled,
                         bank.sample_ptr, 0.5 * T_CA, aid)
-            if inner is not None:
-                if init_left > 0:
-                    inner.apply(zero_state, bank, aid_doppler_hz=aid, use_aid=np.ones(n_ch, dtype=bool))
-                elif coast_any:
-                    zero_state.x[:] = pref.x
-                    zero_state.x[~present] = 0.0
-                    inner.apply(zero_state, bank, aid_doppler_hz=aid, use_aid=use_aid | ~present)
-                    pref.x[present] = zero_state.x[present]
-                else:
-                    inner.apply(pref, bank, aid_doppler_hz=aid, use_aid=use_aid)
+            # ---- NCO commands for the next interval
+            if restart is not None:
+                rate = (self._aid_at(outer, bank.sample_ptr / fs + 1.5 * T_CA) - aid) / T_CA
+                self._restart_channels(pref, inner, bank, restart, restart_phase, restart_amp, aid, rate)
+                if init_now:
+                    ff_any = False
+                    init_now = False
+            if ff_any:
+                d_aid = np.where(ff, aid - aid_prev_ff, 0.0)
+                bank.carr_freq += d_aid
+                bank.code_rate[ff] = F_CA * (1.0 + (bank.carr_freq[ff] - self.if_hz) / F_L1)
+                proxy.active = pref.active & ~ff
+                inner.apply(proxy, bank, aid_doppler_hz=aid, use_aid=use_aid)
             else:
-                self._outer_only_nco(bank, pref, aid, ins, outer)
-            if inner is not None:
-                if rollback.any():
-                    bank.carr_freq += rollback
-                    bank.code_rate[:] = F_CA * (1.0 + (bank.carr_freq - self.if_hz) / F_L1)
-                    rollback[:] = 0.0
-                off_ring[k_ep % W] = bank.carr_freq - self.if_hz - aid
+                inner.apply(pref, bank, aid_doppler_hz=aid, use_aid=use_aid)
+            aid_prev_ff[:] = aid
+            if rollback.any():
+                bank.carr_freq += rollback
+                bank.code_rate[:] = F_CA * (1.0 + (bank.carr_freq - self.if_hz) / F_L1)
+                rollback[:] = 0.0
+            off_ring[k_ep % W] = bank.carr_freq - self.if_hz - aid
             timing["prefilter"] += time.perf_counter() - tw
 
             # ---- tight filter update at the decimated rate, once every channel passed t_next_upd
@@ -675,15 +672,15 @@ class UltratightEngine:
                     dfp = pr_fix["doppler_hz"] - ring_f[i1]
                     ring_cp += dcp
                     ring_f += dfp
-                    if inner is not None:
+                    if self.method != "pb-kf-utc":
                         outer.offset_hz += dfp   # double loop: corrections do not jump the NCOs
                     ring_r[i1] = pr_fix["code_rate_cps"]
                     vel_e_prev = vel_e.copy()
                 sig_dopp = tightmod.doppler_sigma_hz(tf.P, los_l, LAMBDA_L1)
-                if inner is not None:
+                if self.method != "pb-kf-utc":
                     use_aid = (sig_dopp < opt.arbitration_sigma_hz)
-                    mode_now = np.where(present, np.where(use_aid, MODE_COMBINED, MODE_INNER),
-                                        MODE_COAST).astype(np.int8)
+                mode_now = np.where(present, np.where(use_aid, mode_aided, MODE_INNER),
+                                    MODE_COAST).astype(np.int8)
                 nav["t"].append(t_u)
                 nav["pos_e"].append(pos_e.copy())
                 nav["vel_e"].append(vel_e.copy())
@@ -706,7 +703,6 @@ class UltratightEngine:
             "n_tight_updates": tf.n_updates,
             "n_tight_rejected": tf.n_rejected,
             "n_feedback": n_feedback,
-            "n_noise_jumps": n_noise_jumps,
             "n_phase_inits": n_phase_inits,
             "n_lock_lost_events": n_lost_events,
             "n_prefilter_restarts": n_regained,
@@ -726,51 +722,39 @@ class UltratightEngine:
             nav_sigma_doppler_hz=np.asarray(nav["sig"]).reshape(-1, n_ch), runtime_s=runtime,
             duration_s=n * T_CA, info=info)
 
-    def _phase_init(self, pref, bank, acc, n):
-        """End of a carrier-phase (re)initialisation window of ``n`` epochs: rotate the carrier
-        NCO by the phase of the coherent sum of the wiped prompts and restart the prefilters
-        from it (amplitude from |sum|/n, bias-corrected for the unit noise per arm)."""
-        from ultratight.fusion.prefilter import default_initial_covariance
-        phi = np.angle(acc)
-        a2 = np.abs(acc) ** 2 / n ** 2 - 2.0 / n
+    @staticmethod
+    def _aid_at(outer, t):
+        u = np.asarray(t) * 1000.0
+        j = np.clip(np.floor(u).astype(np.int64), 0, outer.n_filled - 2)
+        r = np.arange(u.shape[0])
+        return outer.aid_doppler[j, r] * (1.0 - (u - j)) + outer.aid_doppler[j + 1, r] * (u - j)
+
+    def _restart_channels(self, pref, inner, bank, chans, phase, amp, aid, rate):
+        """(Re)start channels' prefilters on a coherent carrier-phase estimate: rotate the carrier
+        NCO by the phase of the coherent sum of the wiped prompts, restart the prefilter
+        (amplitude from the coherent magnitude, startup-like covariance) and hand the aiding
+        history to the inner loop (outer-loop Doppler rate injected into the acceleration state)."""
+        chans = np.atleast_1d(np.asarray(chans))
         a_min = float(np.sqrt(2.0 * 10 ** (self.opt.cn0_min_dbhz / 10.0) * T_CA))
-        amp = np.sqrt(np.maximum(a2, a_min ** 2))
-        bank.carr_phase[:] = np.mod(bank.carr_phase + phi / (2.0 * math.pi), 1.0)
-        n_ch = len(self.prns)
-        x0 = np.zeros((n_ch, 5))
-        x0[:, 0] = amp
-        P0 = np.zeros((n_ch, 5, 5))
-        base = default_initial_covariance(self.opt.cn0_init_dbhz, T_CA)
-        for c in range(n_ch):
-            P0[c] = base
-            snr = amp[c] * math.sqrt(n)          # amplitude SNR of the coherent sum (unit noise per arm)
-            P0[c, 0, 0] = (0.3 * amp[c]) ** 2
-            P0[c, 1, 1] = pref.P[c, 1, 1] if np.isfinite(pref.P[c, 1, 1]) else 0.01 ** 2
-            P0[c, 2, 2] = min((1.0 / max(snr, 1e-3)) ** 2 + 0.05, (math.pi / 2) ** 2)
-            P0[c, 3, 3] = (2 * math.pi * self.opt.reinit_sigma_f_hz) ** 2
-            P0[c, 4, 4] = (2 * math.pi * 2.0) ** 2
-        pref.reset(np.arange(n_ch), x0=x0, P0=P0)
-
-    def _restart_channels(self, pref, bank, chans, phase, sums_c, W):
-        """Signal back after coasting: rotate the carrier NCO by the coherent phase and restart
-        the channel's prefilter (amplitude from the coherent magnitude, startup-like covariance)."""
-        from ultratight.fusion.prefilter import default_initial_covariance
-        base = default_initial_covariance(self.opt.cn0_init_dbhz, T_CA)
-        x0 = np.zeros((len(chans), 5))
-        P0 = np.zeros((len(chans), 5, 5))
-        for i, c in enumerate(chans):
+        for c in chans:
             bank.carr_phase[c] = (bank.carr_phase[c] + phase[c] / (2.0 * math.pi)) % 1.0
-            x0[i, 0] = abs(sums_c[c]) / W
-            P0[i] = base
-            P0[i, 0, 0] = (0.3 * x0[i, 0]) ** 2
-            P0[i, 1, 1] = pref.P[c, 1, 1] + self.opt.code_sigma_margin_chips ** 2
-            P0[i, 2, 2] = 0.5 ** 2
-            P0[i, 3, 3] = (2 * math.pi * self.opt.reinit_sigma_f_hz) ** 2
-            P0[i, 4, 4] = (2 * math.pi * 2.0) ** 2
-        pref.reset(chans, x0=x0, P0=P0)
-
-    def _outer_only_nco(self, bank, pref, aid, ins, outer):
-        raise NotImplementedError
+        x0 = np.zeros((len(chans), 5))
+        x0[:, 0] = np.maximum(amp[chans], a_min)
+        if self.method == "pb-kf-utc":
+            pref.reset(chans, x0=x0)
+        else:
+            from ultratight.fusion.prefilter import default_initial_covariance
+            base = default_initial_covariance(self.opt.cn0_init_dbhz, T_CA)
+            P0 = np.zeros((len(chans), 5, 5))
+            for i, c in enumerate(chans):
+                P0[i] = base
+                P0[i, 0, 0] = (0.3 * x0[i, 0]) ** 2
+                P0[i, 1, 1] = pref.P[c, 1, 1] + self.opt.code_sigma_margin_chips ** 2
+                P0[i, 2, 2] = 0.5 ** 2
+                P0[i, 3, 3] = (2 * math.pi * self.opt.reinit_sigma_f_hz) ** 2
+                P0[i, 4, 4] = (2 * math.pi * self.opt.reinit_sigma_a_hzps) ** 2
+            pref.reset(chans, x0=x0, P0=P0)
+        inner.prime_aiding(pref, aid - rate * T_CA, rate, channels=chans)
 
 
 def ring_los(outer, pos_e, vel_e, ins, t):
