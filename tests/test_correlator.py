@@ -72,7 +72,7 @@ def test_matches_numpy_reference(complex_sampling, fs, if_hz):
         assert t0[0] == start and ns[0] == n_ref
         got = out[0, cols]
         rel = np.linalg.norm(got - ref) / np.linalg.norm(ref)
-        assert rel < 1.5e-4, (epoch, rel)
+        assert rel < 1e-4, (epoch, rel)          # observed ~5e-6
         start += n_ref
     assert bank.sample_ptr[0] == start
     # the state advanced exactly: code phase continues from the start of the next period
