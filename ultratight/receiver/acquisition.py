@@ -275,7 +275,7 @@ def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=Non
 
     sigma_arm = _sigma_arm(x, is_complex)
     xb = _to_baseband(x, fs_hz, if_hz, is_complex)
-    # high sampling rates: boxcar low-pass + decimation by D for the search (refinement uses full rate)
+    # high sampling rates: boxcar low-pass + decimation by D for the search and the refinement
     dec = int(fs_hz // decimate_to_hz) if (decimate_to_hz and fs_hz >= 2.0 * decimate_to_hz) else 1
     fs_s = fs_hz / dec
     n_s = int(round(fs_s * coherent_ms * 1e-3))
