@@ -490,6 +490,7 @@ class UltratightEngine:
         n_lost_events = 0
         n_regained = 0
         xp_view = np.zeros((n_ch, 5))
+        present_prev = np.ones(n_ch, dtype=np.bool_)
         off_ring = np.zeros((W, n_ch))      # carrier NCO minus aiding (inner-loop offset) history
         rollback = np.zeros(n_ch)
         coast_any = False
@@ -581,6 +582,7 @@ class UltratightEngine:
                     n_phase_inits += 1
             else:
                 pref.step(out, bits=D)
+                present_prev[:] = present
                 _lock_monitor(out, D, lm_i, lm_c, lm_si, lm_sc, lm_ptr, lm_count, present, thr_off, thr_on,
                               lm_events, lm_phase)
                 if lm_events.any():
@@ -601,11 +603,11 @@ class UltratightEngine:
                     coast_any = not present.all()
                     mode_now = np.where(present, np.where(use_aid, mode_aided, MODE_INNER),
                                         MODE_COAST).astype(np.int8)
-            ff_any = init_now or coast_any           # channels whose NCO follows the aiding only
+            ff_any = init_now or coast_any or restart is not None   # NCO on the aiding only
             if ff_any:
                 ff = np.ones(n_ch, dtype=bool) if init_now else ~present
                 xp_view[:] = pref.x_post
-                xp_view[ff, 1:] = 0.0
+                xp_view[ff | ~present_prev, 1:] = 0.0     # (a channel restarting now: estimate = NCO)
                 xp_rec = xp_view
             else:
                 xp_rec = pref.x_post
