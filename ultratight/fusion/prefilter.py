@@ -58,13 +58,31 @@ Filters
 * RACKF (Algorithm 1): on correction epochs (every ``correction_period``
   epochs, default 50 = 50 ms): points (eq. 40, theta = 1) -> z_hat, P_zz
   (eqs. 11–13) -> Huber equivalent noise R_bar (eqs. 18–23) -> adaptive factor
-  theta (eq. 37 with tr(P^_zz) = r^T r, eq. 38) -> if theta < 1 redraw points
-  with sqrt(1/theta) S (eq. 40) and redo eqs. 11, 12, 18 -> update (14–17) with
-  P/theta as the prior covariance.  Between correction epochs the update is a
-  plain CKF (``robust_mode="period"``, the paper's scheme) or a CKF with the
-  (cheap) Huber step every epoch (``robust_mode="every"``; the adaptive factor
-  stays on the correction period).
+  theta (eq. 37) -> if theta < 1 redraw points with sqrt(1/theta) S (eq. 40)
+  and redo eqs. 11, 12, 18 -> update (14–17) with P/theta as the prior
+  covariance.  ``robust_mode="every"`` (default) applies the cheap Huber step
+  at every epoch and the adaptive factor on correction epochs;
+  ``robust_mode="period"`` (the paper's scheme) uses a plain CKF update between
+  correction epochs.
 
+  Deviations, measured on the correlator-level simulator at 20 dB-Hz (see
+  docs/prefilter.md): (1) ``adaptive_stat``: the paper estimates tr(P^_zz) from
+  the current epoch alone, r^T r (eq. 38; ``"epoch"``).  With six outputs at an
+  SNR of 0.1 per epoch that statistic is almost pure noise: theta < 1 on ~40 %
+  of correction epochs, and with measurement outliers r^T r grows like the
+  square of the outlier while the Huber-inflated tr(P_zz) grows only linearly,
+  so theta collapses and P/theta throws the filter out of lock.  The default
+  ``"mean"`` uses the bit-wiped, Huber-winsorised innovations accumulated over
+  the correction period, tr(P^_zz) = |sum_k D_k r_k / gamma_k|^2 compared with
+  sum_k tr(P_zz,k) (both sums over the window), and applies eq. 37 only when
+  the excess is significant (chi-square margin ``adapt_ksig`` sigma, 6 degrees
+  of freedom); ``"window"`` uses the windowed winsorised energy instead.
+  (2) A held measurement-noise scale ``lam`` (R <- lam R for the next period):
+  the part of the window's innovation energy that no state error can explain
+  (more than tr(P_zz0) + 2 |z_hat|^2 per epoch) is attributed to measurement
+  noise when significant — the robust part's answer to a sustained noise
+  increase (noise x20), where the per-output Huber factor |r'|/c alone inflates
+  the variance ~10x for a 400x variance increase.
 Huber equivalent noise (eqs. 20–21, SPEC §3): with standardised residuals
 r'_i = r_i / sqrt((P_zz)_ii) and gamma_i = max(1, |r'_i| / c), the equivalent
 weights shrink the weight of element (i, j) by 1/gamma_ij with gamma_ii =
@@ -75,7 +93,11 @@ of R_bar fails the bifactor form R_bar_ij = R_ij sqrt(gamma_i gamma_j) (always
 PD) is used instead.
 
 Guards: Cholesky with a pivot floor (relative 1e-12) and explicit
-symmetrisation; theta >= theta_min (default 1e-3); a channel whose state or
+symmetrisation; theta >= theta_min (default 1e-3); the phase standard deviation
+is capped at ``phi_sigma_max`` (default 0.8 rad) after each prediction — beyond
+~1 rad the Gaussian picture of a 2pi-periodic measurement breaks down and the
+filter falls into a non-coherent "false lock" (observed at 20 dB-Hz after any
+covariance inflation; the cap applies equally to CKF, UKF and RACKF); a channel whose state or
 covariance becomes non-finite or whose covariance exceeds the blow-up limits
 is flagged (``diverged``), counted (``n_resets``) and re-initialised to its
 initial state — the bank never returns NaN.
@@ -692,9 +714,12 @@ class PrefilterBank:
     q : dict overriding DEFAULT_Q (continuous process noise densities, eq. 2).
     huber_c : Huber constant c (SPEC §3: 1.3–2.0).
     correction_period : RACKF robust-adaptive correction period in epochs (50 = 50 ms).
-    robust_mode : "period" (paper: Huber + adaptive only on correction epochs) or
-        "every" (Huber every epoch, adaptive factor on correction epochs).
+    robust_mode : "every" (default: Huber every epoch, adaptive factor on correction epochs)
+        or "period" (paper: Huber + adaptive only on correction epochs, plain CKF between).
+    adaptive_stat : "mean" (default), "window" or "epoch" (paper-literal eq. 38), see above.
+    adapt_ksig : significance margin (sigmas) of the windowed statistics.
     theta_min : lower bound of the adaptive factor.
+    phi_sigma_max : cap of the phase standard deviation (rad), all kinds.
     ukf_alpha, ukf_beta, ukf_kappa : UKF scaled sigma-point parameters.
     p_limits : per-state covariance-diagonal limits beyond which a channel is declared diverged.
 
