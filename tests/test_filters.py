@@ -240,3 +240,19 @@ def test_consistent_filter_does_not_flag():
         filt.predict(np.eye(1), np.eye(1) * 0.01)
         filt.update(np.array([xt + rng.standard_normal()]), np.eye(1), np.eye(1))
     assert not filt.diverged
+
+
+def test_filter_wrapper_srckf_matches_ckf():
+    rng = np.random.default_rng(4)
+    x0 = np.array([200.0, 50.0, -2.0, 3.0])
+    P0 = np.diag([20.0, 20.0, 1.0, 1.0])
+    a = F.Filter("srckf", x0, P0)
+    b = F.Filter("ckf", x0, P0)
+    for _ in range(10):
+        z = h_rb(x0) + np.sqrt(np.diag(R_RB)) * rng.standard_normal(2)
+        for flt in (a, b):
+            flt.predict(f_cv, Q_CV)
+            flt.update(z, h_rb, R_RB)
+    np.testing.assert_allclose(a.x, b.x, atol=1e-9)
+    np.testing.assert_allclose(a.S @ a.S.T, b.P, atol=1e-9)
+    assert not a.diverged and not b.diverged

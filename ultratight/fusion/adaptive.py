@@ -7,10 +7,13 @@
    Joseph covariance with R̂.  Until the window is full the nominal Q₀, R₀ are used.
 2. Improved AKF, IAKF (seed 001 §3, eqs. 16–26) – :class:`IAKF`
    R from the geometry: G = (H_SIᵀ H_SI)⁻¹ with H_SI = [e_j, 1] the line-of-sight rows of the
-   corrected-SINS position (17–19), GDOP = sqrt(tr G) (20); with the windowed correction covariance
-   P_Δx̂ = K P̂_ε Kᵀ (13): R(ρ) = [P_Δx̂(δx)+P_Δx̂(δy)+P_Δx̂(δz)+P_Δx̂(δt_u)]/GDOP² and
-   R(ρ̇) = [P_Δx̂(δv_E)+P_Δx̂(δv_N)+P_Δx̂(δv_U)+P_Δx̂(δt_ru)]/GDOP_ENU² (25); the trace of G is
-   invariant under the ECEF→ENU rotation, so GDOP_ENU = GDOP for the same geometry.
+   corrected-SINS position (17–19), GDOP = sqrt(tr G) (20); σ² = [sum of the four position/clock
+   error variances]/GDOP² (24–25), the same for rates with GDOP_ENU (the trace of G is invariant
+   under the ECEF→ENU rotation, so GDOP_ENU = GDOP for the same geometry).  The four variances
+   come either from E(M Mᵀ), M = (AᵀA)⁻¹Aᵀ ε the least-squares solution of the windowed
+   innovations (eqs. 21–22, ``r_source="lsq"``, default), or from the diagonal of the windowed
+   correction covariance P_Δx̂ = K P̂_ε Kᵀ (eq. 13, ``r_source="correction"``, the paper's
+   wording, which collapses R̂ when the prior is tight).
    Q̂ = (1/N) Σ_{i=k−N+1..k} (Δx̂_i Δx̂_iᵀ + P_i − Φ P_{i−1} Φᵀ) (26), Δx̂_i = K_i ε_i (12).
    R̂ feeds the next update (it needs this update's gain).  Both Q̂ and R̂ are guarded PD.
 3. Adaptive fading factor (AFF) and adaptive fading matrix (AFM) for UKF/AUKF (seed 002) –
@@ -172,11 +175,10 @@ class IAKF:
     directly; likewise for rates); "correction" takes it from P_Δx̂ = K P̂_ε Kᵀ (eq. 13, the
     paper's "结合式(13)").  The latter is the paper's literal wording but collapses R̂ when the
     prior is tight (K → 0), see docs/filters.md.
-    ``diagonal_q`` keeps only the diagonal of Q̂ (off by default, as in the paper).
     """
 
     def __init__(self, x0, P0, Q0, R0, pr_rows, prr_rows, pos_clk_idx, vel_drift_idx,
-                 window: int = 20, adapt_q: bool = True, adapt_r: bool = True, diagonal_q: bool = False,
+                 window: int = 20, adapt_q: bool = True, adapt_r: bool = True,
                  floor: float = 1e-12, r_source: str = "lsq"):
         if int(window) < 1:
             raise FilterError(f"window must be an integer ≥ 1, got {window}")
@@ -199,7 +201,7 @@ class IAKF:
         self.N = int(window)
         self.eps = deque(maxlen=self.N)
         self.qterms = deque(maxlen=self.N)
-        self.adapt_q, self.adapt_r, self.diagonal_q = adapt_q, adapt_r, diagonal_q
+        self.adapt_q, self.adapt_r = adapt_q, adapt_r
         self.floor = floor
         self._Phi = np.eye(n)
         self._P_prev = self.P.copy()
@@ -267,8 +269,6 @@ class IAKF:
         self.qterms.append(np.outer(dx, dx) + self.P - self._Phi @ self._P_prev @ self._Phi.T)
         if len(self.qterms) == self.N and self.adapt_q:
             Qh = sum(self.qterms) / self.N  # eq. 26
-            if self.diagonal_q:
-                Qh = np.diag(np.maximum(np.diag(Qh), self.floor))
             self.Q = nearest_pd(Qh, _floor(Qh, 1e-9, self.floor))
         check_state(self.x, self.P, "IAKF.update")
         res = UpdateResult(self.x, self.P, eps, S, K, _nis(eps, S), H @ (self.x - dx), Pp @ H.T)

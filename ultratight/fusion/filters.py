@@ -529,6 +529,7 @@ class Filter:
         self.raise_on_divergence = raise_on_divergence
         self.diverged = False
         self.last: UpdateResult | None = None
+        self.S = cholesky_lower(self.P, "P0") if kind == "srckf" else None  # square root (SRCKF)
 
     def _fail(self, exc: Exception):
         self.diverged = True
@@ -548,8 +549,9 @@ class Filter:
             elif self.kind == "ckf":
                 x, P = ckf_predict(self.x, self.P, f, Q)
             else:
-                x, S = srckf_predict(self.x, cholesky_lower(self.P), f, cholesky_lower(Q, "Q"))
+                x, S = srckf_predict(self.x, self.S, f, cholesky_lower(as_matrix("Q", Q, self.P.shape), "Q"))
                 P = S @ S.T
+                self.S = S
         except DivergenceError as exc:
             self._fail(exc)
             return self.x, self.P
@@ -569,7 +571,7 @@ class Filter:
             elif self.kind == "ckf":
                 res = ckf_update(self.x, self.P, z, h, R)
             else:
-                res = srckf_update(self.x, cholesky_lower(self.P), z, h, cholesky_lower(check_covariance("R", R), "R"))
+                res = srckf_update(self.x, self.S, z, h, cholesky_lower(check_covariance("R", R), "R"))
             self.monitor.update(res.nis, res.innovation.shape[0])
         except DivergenceError as exc:
             self._fail(exc)
@@ -578,4 +580,6 @@ class Filter:
             self._fail(DivergenceError(f"NIS beyond bound for {self.monitor.count} consecutive updates"))
             return None
         self.x, self.P, self.last = res.x, res.P, res
+        if self.kind == "srckf":
+            self.S = res.sqrt_P
         return res

@@ -190,7 +190,7 @@ class RACKF:
                                self.theta_min, vectorized, self._window)
         else:
             res = ckf_update(self.x, self.P, z, h, R, vectorized)
-            res.info.update(theta=1.0, gamma=np.ones(res.innovation.shape[0]), Rbar=res.S - res.S + R)
+            res.info.update(theta=1.0, gamma=np.ones(res.innovation.shape[0]), Rbar=np.asarray(R, dtype=float))
         self.x, self.P, self.last = res.x, res.P, res
         return res
 
