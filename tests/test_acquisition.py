@@ -228,3 +228,31 @@ def test_cw_interference_is_excised():
     a2 = float(amplitude_from_cn0(42.0, 1e-3)) ** 2
     sd_db = 10 / math.log(10) * math.sqrt((4 + 4 * a2) / 10) / a2
     assert res[0].cn0_dbhz == pytest.approx(42.0, abs=3 * sd_db + 0.3)
+
+
+@pytest.mark.parametrize("frontend", [
+    {"frontend.bits": 2},
+    {"frontend.sampling": "real", "frontend.if_hz": 4.092e6, "frontend.fs_hz": 16.368e6,
+     "frontend.format": "i8", "frontend.bits": 2},
+])
+def test_generator_scenario_truth(tmp_path, frontend):
+    """The project's IF generator (2-bit, all visible satellites at 40 dB-Hz): the detected set is the
+    truth set and Doppler / code phase match the logged truth at sample 0."""
+    h5py = pytest.importorskip("h5py")
+    scen = pytest.importorskip("ultratight.receiver.scenario_config")
+    gen = pytest.importorskip("ultratight.signals.generator")
+    iffile = pytest.importorskip("ultratight.signals.iffile")
+    cfg = scen.load_scenario("static-open-sky", {"duration_s": 0.012, "satellites.cn0_dbhz": 40.0, **frontend})
+    paths = gen.generate(cfg, tmp_path, "acq", seed=3, progress=False)
+    res = acquire(iffile.open_if(paths["if"]))
+    with h5py.File(paths["truth"], "r") as f:
+        prns = [int(p) for p in f.attrs["prn"]]
+        cp_true = f["code_phase_chips"][0]
+        fd_true = f["doppler_hz"][0]
+    assert {r.prn for r in res if r.detected} == set(prns)
+    for r in res:
+        if r.prn in prns:
+            k = prns.index(r.prn)
+            assert abs(r.doppler_hz - fd_true[k]) < 40.0, (r.prn, r.doppler_hz, fd_true[k])
+            assert abs(code_err(r.code_phase_chips, cp_true[k])) < 0.08, (r.prn, r.code_phase_chips, cp_true[k])
+            assert 36.0 < r.cn0_dbhz < 42.0                 # 40 dB-Hz minus the 2-bit loss, +- noise

@@ -71,7 +71,8 @@ Refinement and C/N0 (detected PRNs)
    ``angle(sum z_{i+1} conj(z_i)) / (2*pi*T_sub)`` (unambiguous +-500 Hz,
    insensitive to data-bit flips, which only flip single products).
 3. At the fine frequency the normalised power ``|z_i|^2`` (corr_model scaling,
-   unit noise per arm) is evaluated on a 0.05-chip grid of code offsets; the
+   unit noise per arm) is evaluated on a 0.05-chip grid of code offsets (+-0.5 chip,
+   at the input rate when the search was decimated); the
    best offset refines the code phase and ``C/N0 = (mean|z|^2 - 2) / (2*T_sub)``.
 
 Outputs
@@ -100,7 +101,7 @@ from ultratight.signals.corr_model import noise_sigma_arm
 MAX_COHERENT_MS = 10
 _T_SUB = 1e-3              # sub-block length for fine Doppler / C/N0 (s)
 _FINE_CODE_STEP = 0.05     # chips
-_FINE_CODE_SPAN = 0.75     # +- chips around the coarse code phase
+_FINE_CODE_SPAN = 0.5      # +- chips around the coarse code phase (coarse error < 0.25 chip)
 _CHUNK_ELEMS = 1 << 22     # complex elements per IFFT batch
 
 
@@ -231,8 +232,9 @@ def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=Non
     start_sample : absolute index of the first sample used.
     exclude_chips : half-width (chips) of the code-phase region around the peak left out of the noise floor.
     refine : fine Doppler, code phase and C/N0 for detected PRNs.
-    decimate_to_hz : when fs >= 2 * decimate_to_hz, the search runs on the baseband signal summed over
-        D = floor(fs / decimate_to_hz) samples (boxcar low-pass, loss < 0.5 dB); None or 0 disables.
+    decimate_to_hz : when fs >= 2 * decimate_to_hz, the search and refinement run on the baseband
+        signal low-passed and decimated by D = floor(fs / decimate_to_hz) (scipy.signal.resample_poly,
+        Kaiser FIR); None or 0 disables.
     excise_cw : zero narrowband-interference bins of the block spectra before correlating
         (see :func:`_excise_cw`); the count is reported in ``AcqResult.n_excised_bins``.
     workers : scipy.fft worker threads (-1: all cores).
@@ -275,13 +277,16 @@ def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=Non
 
     sigma_arm = _sigma_arm(x, is_complex)
     xb = _to_baseband(x, fs_hz, if_hz, is_complex)
-    # high sampling rates: boxcar low-pass + decimation by D for the search and the refinement
+    # high sampling rates: low-pass + decimation by D for the search and the refinement
     dec = int(fs_hz // decimate_to_hz) if (decimate_to_hz and fs_hz >= 2.0 * decimate_to_hz) else 1
     fs_s = fs_hz / dec
     n_s = int(round(fs_s * coherent_ms * 1e-3))
     if dec > 1:
-        n_use = (n_needed // dec // n_s) * n_s * dec
-        xs = xb[:n_use].reshape(-1, dec).sum(axis=1)
+        # polyphase FIR low-pass (Kaiser) + decimation; output sample j is input sample j*D (delay
+        # compensated).  A boxcar is not enough: for real IF the mixing image at -2*IF can alias
+        # onto the signal band (e.g. IF = fs/4, D = 4 puts it at 0 Hz) and bias the code phase.
+        from scipy.signal import resample_poly
+        xs = resample_poly(xb, 1, dec).astype(np.complex64)
         xs = xs[:n_s * noncoherent]
         if xs.shape[0] < n_s * noncoherent:
             raise ConfigError("acquire: block too short after decimation")
@@ -289,8 +294,7 @@ def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=Non
         xs = xb
     blocks = xs.reshape(noncoherent, n_s)
     sigma_dec = sigma_arm if dec == 1 else _sigma_arm(xs, True)
-    # a decimated sample j averages input samples j*D .. j*D+D-1, centred (D-1)/2 samples later
-    t_centre_chips = 0.5 * (dec - 1) * F_CA / fs_hz
+    t_centre_chips = 0.0
     n_coh = n_s
     fft_bin = fs_s / n_coh
     step = float(frac) * fft_bin
@@ -354,7 +358,14 @@ def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=Non
         detected = metric > thr
         cn0 = math.nan
         if detected and refine:
-            fd, code_phase, cn0 = _refine(xs_ref, fs_s, prn, fd, code_phase, sigma_ref)
+            if dec > 1:
+                # full rate: the low-passed decimated signal, correlated with a point-sampled replica
+                # at a rate commensurate with the chip rate (e.g. 4.092 MHz), biases the code phase
+                # by up to half a decimated sample; C/N0 then follows the correlator's sample-power
+                # convention at the input rate
+                fd, code_phase, cn0 = _refine(xb, fs_hz, prn, fd, code_phase, sigma_arm)
+            else:
+                fd, code_phase, cn0 = _refine(xs_ref, fs_s, prn, fd, code_phase, sigma_ref)
         code_phase = (code_phase - t_centre_chips) % CA_LEN
         results.append(AcqResult(prn=prn, doppler_hz=float(fd), code_phase_chips=float(code_phase),
                                  cn0_dbhz=float(cn0), metric=metric, detected=bool(detected), threshold=thr,
