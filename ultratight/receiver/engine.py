@@ -762,3 +762,167 @@ class UltratightEngine:
 def ring_los(outer, pos_e, vel_e, ins, t):
     """Unit lines of sight (ECEF) at the current SINS state."""
     return outer.predict(t, pos_e, vel_e, ins.clk_b, ins.clk_d)["los_e"]
+
+
+# ---------------------------------------------------------------------------------------
+# recorded data: IF file + IMU file
+# ---------------------------------------------------------------------------------------
+IMU_IF_TOLERANCE_S = 1e-3      # largest accepted IMU/IF start-time mismatch
+
+
+def _imu_start_tow(imu):
+    """GPS time (week, tow) of the IMU's t = 0, when the file says (None otherwise)."""
+    meta = getattr(imu, "meta", None) or {}
+    if "start_tow_s" in meta:
+        return meta.get("start_week"), float(meta["start_tow_s"])
+    cfg = meta.get("config_json")
+    if isinstance(cfg, str):
+        import json
+        try:
+            cfg = json.loads(cfg)
+        except ValueError:
+            cfg = None
+    if isinstance(cfg, dict) and isinstance(cfg.get("time"), dict) and "tow_s" in cfg["time"]:
+        return cfg["time"].get("week"), float(cfg["time"]["tow_s"])
+    return None
+
+
+def check_imu_if_alignment(src, imu, if_path="IF file", imu_path="IMU file", tol_s=IMU_IF_TOLERANCE_S):
+    """Check that the IMU data can drive the SINS over the IF record; returns the usable duration.
+
+    * stamps: finite, strictly increasing, no gaps (also checked by the IMU readers);
+    * the IMU time axis starts at the first IF sample: ``t0 == 0`` and, when the IMU file carries
+      a GPS start time, it equals the IF start time within ``tol_s``;
+    * the IMU covers at least one SINS step of the IF record.
+    Raises InputFileError naming the file and the offending values.
+    """
+    t = np.asarray(imu.t, dtype=float)
+    if t.size < 2 or not np.all(np.isfinite(t)):
+        raise InputFileError(f"{imu_path}: IMU time stamps missing or not finite")
+    d = np.diff(t)
+    if np.any(d <= 0):
+        i = int(np.flatnonzero(d <= 0)[0]) + 1
+        raise InputFileError(f"{imu_path}: sample {i}: out-of-order or duplicate time stamp t = {t[i]!r} s "
+                             f"(previous {t[i - 1]!r} s)")
+    dt = 1.0 / float(imu.rate_hz)
+    if np.any(np.abs(d - dt) > 0.25 * dt):
+        i = int(np.flatnonzero(np.abs(d - dt) > 0.25 * dt)[0]) + 1
+        raise InputFileError(f"{imu_path}: sample {i}: interval {d[i - 1]:.6g} s at t = {t[i]!r} s differs from "
+                             f"the nominal {dt:.6g} s ({imu.rate_hz} Hz): gap or irregular sampling")
+    t0 = float(getattr(imu, "t0", t[0] - dt))
+    if abs(t0) > tol_s:
+        raise InputFileError(f"{imu_path}: IMU time axis starts at t0 = {t0:.6g} s but must start at the first IF "
+                             f"sample (t0 = 0 within {tol_s} s); IMU/IF time offset {t0:.6g} s")
+    st = _imu_start_tow(imu)
+    if st is not None and src.start_tow_s is not None:
+        w_imu, tow_imu = st
+        off = tow_imu - float(src.start_tow_s)
+        if w_imu is not None and src.start_week is not None:
+            off += (int(w_imu) - int(src.start_week)) * 604800.0
+        if abs(off) > tol_s:
+            raise InputFileError(f"{imu_path}: IMU starts at GPS TOW {tow_imu:.6f} s but {if_path} starts at "
+                                 f"{float(src.start_tow_s):.6f} s: IMU/IF time offset {off:+.6f} s "
+                                 f"(tolerance {tol_s} s)")
+    usable = min(src.duration_s, float(t[-1]))
+    if usable < 2 * dt:
+        raise InputFileError(f"{imu_path}: IMU data end at t = {t[-1]:.6g} s; they must cover the IF record "
+                             f"({src.duration_s:.6g} s)")
+    return usable
+
+
+def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None, nav_path=None, prns=None,
+                            init_state=None, options=None, duration_s=None, seed=0, startup_errors=None):
+    """Run the ultra-tight engine on a recorded IF file and an IMU file (HDF5 or CSV).
+
+    * ``meta``: sidecar/ION metadata for the IF file (default ``IFFILE.json``); the IF start time
+      (``start_week``/``start_tow_s``) is required.
+    * Ephemerides: ``nav_path`` (RINEX) or, for generator files, the sidecar's scenario
+      (nominal constellation).  PRNs: ``prns`` or the sidecar's list.
+    * Initial INS state: ``init_state`` dict (``llh``, ``vel_l``, ``q_lb``, ``clk_bias_m``,
+      ``clk_drift_mps``) or, for generator files, the IMU file's truth at t0 perturbed by
+      ``startup_errors`` (seeded by ``seed``) — the hot start never uses the truth itself.
+    * Time alignment is checked by :func:`check_imu_if_alignment` (gaps, out-of-order stamps,
+      IMU/IF offset -> InputFileError).
+    Returns an :class:`EngineResult`.
+    """
+    from pathlib import Path
+    from ultratight.ins.imu import read_imu_csv, read_imu_h5
+    from ultratight.receiver.startup import StartupErrors, perturb_state
+    from ultratight.signals.iffile import open_if
+    check_method(method)
+    if method == "scalar":
+        raise ConfigError("method 'scalar' is the scalar receiver: use `ultratight process` without --mode ultratight")
+    src = open_if(if_path, meta=meta)
+    if src.start_tow_s is None or src.start_week is None:
+        raise InputFileError(f"{if_path}: the IF start time (start_week, start_tow_s) is unknown; "
+                             "give it in the sidecar/metadata")
+    imu_path = Path(imu_path)
+    imu = read_imu_csv(imu_path) if imu_path.suffix.lower() == ".csv" else read_imu_h5(imu_path)
+    usable = check_imu_if_alignment(src, imu, if_path, imu_path)
+    dur = usable if duration_s is None else min(float(duration_s), usable)
+    side = src.meta or {}
+    gen_cfg = side.get("generator") if isinstance(side.get("generator"), dict) else None
+    week, tow0 = int(src.start_week), float(src.start_tow_s)
+    if nav_path is not None:
+        from ultratight.signals.rinex import read_rinex_nav
+        nav = read_rinex_nav(nav_path)
+        ephs = {}
+        for prn in sorted(nav.ephemerides):
+            try:
+                e = nav.select(prn, week, tow0)
+            except Exception:  # noqa: BLE001 - PRN without a usable ephemeris
+                continue
+            if e is not None:
+                ephs[prn] = e
+    elif gen_cfg is not None and gen_cfg.get("satellites", {}).get("source", "nominal") == "nominal":
+        from ultratight.signals.constellation import nominal_ephemerides
+        ephs = nominal_ephemerides(week, tow0)
+    else:
+        raise ConfigError(f"{if_path}: no ephemerides: give a RINEX navigation file (--ephemeris)")
+    if prns is None:
+        prns = side.get("prn")
+    if not prns:
+        raise ConfigError(f"{if_path}: no PRN list in the sidecar: give the PRNs to track (--prn)")
+    missing = [p for p in prns if p not in ephs]
+    if missing:
+        raise ConfigError(f"no ephemeris for PRN {missing}")
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7]))
+    if init_state is None:
+        tr = getattr(imu, "truth", None)
+        if not tr or "llh" not in tr:
+            raise ConfigError(f"{imu_path}: no initial INS state: give init_state (position, velocity, attitude)")
+        rcv = (gen_cfg or {}).get("receiver", {})
+        truth0 = {"llh": np.asarray(tr["llh"][0]), "vel_l": np.asarray(tr["vel_l"][0]),
+                  "q_lb": np.asarray(tr["q_lb"][0]), "clk_bias_m": float(rcv.get("clock_bias_m", 0.0)),
+                  "clk_drift_mps": float(rcv.get("clock_drift_mps", 0.0))}
+        init_state = perturb_state(truth0, startup_errors or StartupErrors(), rng)
+    eng = UltratightEngine(src, imu, ephs, [int(p) for p in prns], week, tow0, method=method,
+                           options=options, init_state=init_state, rng=rng, duration_s=dur)
+    return eng.run()
+
+
+def write_result_h5(path, res, extra_attrs=None):
+    """Write an :class:`EngineResult` to HDF5 (temporary name, then rename; schema in docs/ultratight.md)."""
+    import json
+    import os
+    from pathlib import Path
+    import h5py
+    from ultratight import __version__
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    with h5py.File(tmp, "w") as f:
+        f.attrs["schema"] = "ultratight engine result v1 (docs/ultratight.md)"
+        f.attrs["version"] = __version__
+        f.attrs["method"] = res.method
+        f.attrs["prn"] = np.asarray(res.prns, dtype=np.int64)
+        f.attrs["runtime_s"] = float(res.runtime_s)
+        f.attrs["duration_s"] = float(res.duration_s)
+        f.attrs["info_json"] = json.dumps(res.info, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+        for k, v in (extra_attrs or {}).items():
+            f.attrs[k] = v
+        for k, v in (("t_start_s", res.t_start), ("doppler_hz", res.doppler_hz),
+                     ("code_phase_chips", res.code_phase_chips), ("amplitude", res.amp), ("mode", res.mode),
+                     ("nav_t_s", res.nav_t), ("nav_pos_e", res.nav_pos_e), ("nav_vel_e", res.nav_vel_e),
+                     ("nav_clk", res.nav_clk), ("nav_sigma_doppler_hz", res.nav_sigma_doppler_hz)):
+            f.create_dataset(k, data=np.asarray(v), compression="gzip", compression_opts=1)
+    os.replace(tmp, path)
