@@ -341,3 +341,44 @@ def test_rackf_reconverges_faster_than_ckf_after_jerk():
         assert steady < 0.4
         settle[kind] = _settle_time(log, 5.0, 8.0, 2.0 * steady)
     assert settle["rackf"] < settle["ckf"]
+
+
+def test_unknown_bits_decision_directed_at_30dbhz():
+    """Bits unknown (decided from the data): tracks at 30 dB-Hz; at 20 dB-Hz the 1 ms bit
+    decisions are wrong ~1/3 of the time and the engine must wipe known/decoded bits."""
+    sc = _scenario(3.0)
+    sc.cn0_dbhz = 30.0
+    truth = make_truth(sc, np.random.default_rng(1))
+    for kind in ("ckf", "rackf"):
+        bank = pf.PrefilterBank(sc.n_ch, kind=kind, cn0_dbhz_init=30.0)
+        bank.reset(np.arange(sc.n_ch))
+        log = run_closed_loop(sc, bank, np.random.default_rng(2), truth=truth, bits_known=False,
+                              init_err=dict(code_err_chips=0.05, phase_err_rad=0.2, freq_err_hz=2.0))
+        m = log["t"] >= 1.5
+        assert np.all(rms(log["dopp_err_hz"][m]) < 0.4)
+        assert np.all(rms(log["code_err_chips"][m]) < 0.03)
+
+
+@pytest.mark.slow
+def test_acceptance_monte_carlo():
+    """The benchmarks/acceptance_prefilter.py criteria over 5 seeds (about 25 s)."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "acceptance_prefilter.py"
+    spec = importlib.util.spec_from_file_location("acceptance_prefilter", path)
+    acc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(acc)
+    for seed in range(1, 6):
+        burst, settle = {}, {}
+        for kind in ("ckf", "ukf", "rackf"):
+            la = acc.run(kind, acc.scenario(11.0, noise=True), seed)
+            t = la["t"]
+            burst[kind] = float(np.mean(rms(la["dopp_err_hz"][(t >= 3.0) & (t < 8.0)])))
+            assert np.all(rms(la["dopp_err_hz"][(t >= 1.5) & (t < 3.0)]) < 1.0)     # converged (as fast test)
+            lb = acc.run(kind, acc.scenario(8.0, jerk=True), seed)
+            tb = lb["t"]
+            st = float(np.mean(rms(lb["dopp_err_hz"][(tb >= 1.5) & (tb < 4.0)])))
+            settle[kind] = acc.settle_time(lb, 5.0, 8.0, 2.0 * st)
+        assert burst["rackf"] <= 0.5 * burst["ckf"]
+        assert settle["rackf"] < settle["ckf"]
