@@ -854,8 +854,10 @@ class PrefilterBank:
 
     @property
     def active(self):
-        """Per-channel active mask (a copy; change it with set_active / reset / deactivate)."""
-        return self._active_i != 0
+        """Per-channel active mask (read-only copy; change it with set_active / reset)."""
+        a = self._active_i != 0
+        a.flags.writeable = False
+        return a
 
     def set_active(self, mask):
         m = np.asarray(mask, dtype=np.bool_)
