@@ -3,7 +3,8 @@
     python benchmarks/bench_prefilter.py [--quick] [--json OUT.json] [--n-ch 12]
 
 Figures (per filter kind, 12 channels, 20 dB-Hz measurements from the correlator-level
-simulator, closed loop via the inner-loop law so the filters stay in their working regime):
+simulator with the NCO on the truth; the code/phase estimates are zeroed after each epoch as a
+cheap stand-in for the feedback, so the filters stay in their working regime):
 * ``kernel_us_per_epoch``: the numba kernel alone (one call = one epoch, all channels),
   median over repetitions of ``--epochs`` calls;
 * ``step_us_per_epoch``: ``PrefilterBank.step`` (input checks + kernel);

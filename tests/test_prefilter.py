@@ -382,3 +382,24 @@ def test_acceptance_monte_carlo():
             settle[kind] = acc.settle_time(lb, 5.0, 8.0, 2.0 * st)
         assert burst["rackf"] <= 0.5 * burst["ckf"]
         assert settle["rackf"] < settle["ckf"]
+
+
+def test_stateless_feedback_equals_innerloop_without_aiding():
+    from ultratight.fusion.innerloop import apply_feedback
+
+    rng = np.random.default_rng(3)
+    x = rng.standard_normal((3, 5)) * [0.1, 0.05, 0.3, 10.0, 30.0]
+    ncos = [SimNco(3), SimNco(3)]
+    for n in ncos:
+        n.carr_freq[:] = [100.0, -20.0, 5.0]
+    b = pf.PrefilterBank(3, kind="ckf")
+    b.reset([0, 2])
+    b.x[:] = x
+    dx1 = InnerLoop(3, T=T).apply(b, ncos[0]).copy()
+    x2 = x.copy()
+    dx2 = apply_feedback(x2, np.array([True, False, True]), ncos[1].code_phase, ncos[1].code_rate,
+                         ncos[1].carr_phase, ncos[1].carr_freq, T=T)
+    np.testing.assert_allclose(dx1, dx2)
+    np.testing.assert_allclose(b.x, x2)
+    np.testing.assert_allclose(ncos[0].carr_freq, ncos[1].carr_freq)
+    np.testing.assert_allclose(x2[1], x[1])            # inactive channel untouched

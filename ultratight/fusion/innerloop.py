@@ -116,6 +116,21 @@ def _feedback_kernel(x, active, code_phase, code_rate, carr_phase, carr_freq, ai
         x[c, IF] -= u_f
 
 
+def apply_feedback(x, active, code_phase, code_rate, carr_phase, carr_freq, T=T_CA, if_hz=0.0,
+                   k_tau=1.0, k_phi=1.0, k_f=1.0, k_da=1.0):
+    """Stateless form of the law without outer-loop aiding: moves the NCO arrays (in place)
+    by the predicted errors ``x`` (n_ch, 5) of the ``active`` channels, removes the applied part
+    from ``x`` (in place) and returns the state change dx (n_ch, 5).  With aiding use
+    :class:`InnerLoop` (it keeps the aiding history)."""
+    n = x.shape[0]
+    prm = np.array([float(T), float(if_hz), k_tau, k_phi, k_f, k_da, F_CA, F_L1])
+    dx = np.zeros((n, NX))
+    nan = np.full(n, np.nan)
+    _feedback_kernel(x, np.asarray(active), code_phase, code_rate, carr_phase, carr_freq, nan, nan.copy(),
+                     np.zeros(n), np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.bool_), prm, dx)
+    return dx
+
+
 class InnerLoop:
     """Inner-loop feedback law for ``n_ch`` channels (see module docstring).
 
