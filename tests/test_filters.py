@@ -256,3 +256,21 @@ def test_filter_wrapper_srckf_matches_ckf():
     np.testing.assert_allclose(a.x, b.x, atol=1e-9)
     np.testing.assert_allclose(a.S @ a.S.T, b.P, atol=1e-9)
     assert not a.diverged and not b.diverged
+
+
+def test_vectorized_callables_give_same_result():
+    x = np.array([200.0, 50.0, -2.0, 3.0])
+    P = np.diag([20.0, 20.0, 1.0, 1.0])
+    z = np.array([206.0, 0.25])
+
+    def h_vec(X):
+        return np.c_[np.hypot(X[:, 0], X[:, 1]), np.arctan2(X[:, 1], X[:, 0])]
+
+    for pred, upd in ((F.ckf_predict, F.ckf_update), (F.ukf_predict, F.ukf_update)):
+        a = pred(x, P, f_cv, Q_CV)
+        b = pred(x, P, lambda X: X @ A_CV.T, Q_CV, vectorized=True)
+        np.testing.assert_allclose(a[1], b[1], atol=1e-12)
+        ra = upd(a[0], a[1], z, h_rb, R_RB)
+        rb = upd(b[0], b[1], z, h_vec, R_RB, vectorized=True)
+        np.testing.assert_allclose(ra.x, rb.x, atol=1e-12)
+        np.testing.assert_allclose(ra.P, rb.P, atol=1e-12)
