@@ -226,6 +226,7 @@ class EngineOptions:
     cn0_min_dbhz: float = 10.0           # floor of the re-initialised amplitude
     reinit_sigma_f_hz: float = 0.5       # frequency 1-sigma after a phase (re)initialisation
     reinit_sigma_a_hzps: float = 2.0     # Doppler-rate 1-sigma after a (re)initialisation (aided)
+    prefilter_kwargs: dict = field(default_factory=dict)   # extra PrefilterBank parameters
     startup: dict = field(default_factory=dict)   # StartupErrors overrides
 
     def as_dict(self):
@@ -430,7 +431,7 @@ class UltratightEngine:
             kind = self.method.split("-", 1)[1]
             pref = PrefilterBank(n_ch, kind=kind, q=opt.prefilter_q, huber_c=opt.huber_c,
                                  correction_period=opt.rackf_period, robust_mode=opt.robust_mode,
-                                 cn0_dbhz_init=opt.cn0_init_dbhz)
+                                 cn0_dbhz_init=opt.cn0_init_dbhz, **opt.prefilter_kwargs)
             sig_code_chips = tightmod.code_sigma_m(tf.P, los_l, M_pos) / CHIP_M
             P_init = np.zeros((n_ch, 5, 5))
             base = default_initial_covariance(opt.cn0_init_dbhz, T_CA)
@@ -683,7 +684,7 @@ class UltratightEngine:
                     use_aid = (sig_dopp < opt.arbitration_sigma_hz)
                 mode_now = np.where(present, np.where(use_aid, mode_aided, MODE_INNER),
                                     MODE_COAST).astype(np.int8)
-                nav["t"].append(t_u)
+                nav["t"].append(t_sins)      # the SINS state logged is at t_sins (>= t_u)
                 nav["pos_e"].append(pos_e.copy())
                 nav["vel_e"].append(vel_e.copy())
                 nav["clk"].append([ins.clk_b, ins.clk_d])
