@@ -274,3 +274,25 @@ def test_vectorized_callables_give_same_result():
         rb = upd(b[0], b[1], z, h_vec, R_RB, vectorized=True)
         np.testing.assert_allclose(ra.x, rb.x, atol=1e-12)
         np.testing.assert_allclose(ra.P, rb.P, atol=1e-12)
+
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(min_value=0, max_value=10_000), st.integers(1, 5), st.integers(1, 4))
+def test_update_keeps_covariance_symmetric_pd_and_not_larger(seed, n, m):
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((n, n))
+    P = A @ A.T + 1e-3 * np.eye(n)
+    B = rng.standard_normal((m, m))
+    R = B @ B.T + 1e-3 * np.eye(m)
+    H = rng.standard_normal((m, n))
+    x = rng.standard_normal(n)
+    z = rng.standard_normal(m)
+    for res in (F.kf_update(x, P, z, H, R), F.ckf_update(x, P, z, lambda v: H @ v, R)):
+        assert np.array_equal(res.P, res.P.T)
+        assert np.linalg.eigvalsh(res.P).min() > 0
+        # information never increases the covariance: P⁻ − P⁺ is PSD
+        assert np.linalg.eigvalsh(P - res.P).min() > -1e-9 * np.abs(P).max()

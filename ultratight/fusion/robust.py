@@ -157,6 +157,12 @@ class RACKF:
     Corrections (Huber R̄ and the adaptive factor ϑ) are applied on every ``correction_period``-th
     update (updates number period, 2·period, …); the others are plain CKF updates
     (SPEC §1: the paper uses 50 ms at 1 kHz, i.e. ``correction_period = 50``).
+
+    ``window=None`` (default) is the paper's Algorithm 1 with the single-residual tr(P̂_zz) = rᵀr
+    (eq. 38).  ``window=N`` uses the paper's alternative strategy 1: the mean of the last N
+    Huber-clipped standardised residual vectors of the correction steps,
+    tr(P̂_zz) = N·Σ_i (ū_i σ_ri)², which does not mistake a white noise burst for a dynamics
+    change (see docs/filters.md for the measured difference).
     """
 
     def __init__(self, x0, P0, c: float = 1.5, correction_period: int = 1, robust: bool = True,
