@@ -170,10 +170,27 @@ def summarize(t, doppler_err, code_err, segments=SEGMENTS_S, channel=0, epoch_s=
     }
 
 
-def _fmt(v, nd):
+def _fmt(v, nd, missing="-"):
     if v is None or not np.isfinite(v):
-        return "\\".rjust(8)
+        return missing.rjust(8)
     return f"{v:8.{nd}f}"
+
+
+def _num(v):
+    return float("nan") if v is None else float(v)
+
+
+def json_clean(o):
+    """Replace NaN/inf by None recursively (strict JSON)."""
+    if isinstance(o, dict):
+        return {k: json_clean(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [json_clean(v) for v in o]
+    if isinstance(o, (float, np.floating)):
+        return float(o) if np.isfinite(o) else None
+    if isinstance(o, np.integer):
+        return int(o)
+    return o
 
 
 def format_tables(method_results, segments=SEGMENTS_S, paper=True):
@@ -192,13 +209,14 @@ def format_tables(method_results, segments=SEGMENTS_S, paper=True):
                       f"{'method':12s}{seg_lbl}" + (f"  | {seg_lbl}" if paper else "")]
         for m, r in method_results.items():
             div = r.get("segment_diverged", [False] * len(segments))
-            vals = ["\\".rjust(8) if div[i] and key == "doppler_rms_hz" else _fmt(r[key][i], nd)
-                    for i in range(len(segments))]
+            vals = [("\\" if div[i] else "-").rjust(8) if not np.isfinite(_num(r[key][i])) else
+                    (_fmt(r[key][i], nd) + ("\\" if div[i] else "")) for i in range(len(segments))]
             row = f"{m:12s}" + "  ".join(vals)
             if paper and m in PAPER_TABLE3:
-                row += "  | " + "  ".join(_fmt(v, nd) for v in PAPER_TABLE3[m][key])
+                row += "  | " + "  ".join(_fmt(v, nd, "\\") for v in PAPER_TABLE3[m][key])
             lines.append(row)
-    lines += ["", "Lock and run time" + ("  | paper Table 4 (s)" if paper else ""),
+    lines += ["", "A trailing '\\' marks a segment in which some channel lost lock ('\\' alone: no value).",
+              "", "Lock and run time" + ("  | paper Table 4 (s)" if paper else ""),
               f"{'method':12s}{'lost ch':>8s}{'run s':>9s}{'x realtime':>11s}"]
     for m, r in method_results.items():
         row = (f"{m:12s}{r.get('lock_lost_channels', 0):8d}{r.get('runtime_s', float('nan')):9.2f}"

@@ -118,7 +118,6 @@ def run_method(paths, cfg, method, seed, options=None, startup_errors=None, dura
     errs = startup_errors or StartupErrors()
     init = perturb_state(truth_initial_state(cfg), errs, rng)
     if method == "scalar":
-        from ultratight.receiver.scalar_adapter import run_scalar
         res = run_scalar(src, truth["prn"], ephs, truth["week"], truth["tow0_s"], init, duration_s)
     else:
         eng = UltratightEngine(src, imu, ephs, truth["prn"], truth["week"], truth["tow0_s"], method=method,
@@ -126,6 +125,60 @@ def run_method(paths, cfg, method, seed, options=None, startup_errors=None, dura
                                duration_s=duration_s)
         res = eng.run()
     return res, truth
+
+
+def run_scalar(src, prns, ephs, week, tow0, init, duration_s=None, block_ms=100):
+    """Helper F's scalar tracking loops (no INS) from the same hot-start predictions; returns an
+    EngineResult-like record of the per-epoch NCO Doppler and code phase."""
+    import time as _time
+    from ultratight.ins.earth import dcm_ecef_from_enu, llh_to_ecef
+    from ultratight.receiver.correlator import estimate_sigma_arm
+    from ultratight.receiver.engine import EngineResult
+    from ultratight.receiver.startup import predict_channels
+    from ultratight.receiver.tracking import REC_F_NAMES, REC_I_NAMES, ScalarTracker
+    t0 = _time.perf_counter()
+    n_ch = len(prns)
+    fs = src.fs_hz
+    lat, lon, h = init["llh"]
+    pos = np.array(llh_to_ecef(lat, lon, h))
+    vel = dcm_ecef_from_enu(lat, lon) @ np.asarray(init["vel_l"])
+    pr = predict_channels(ephs, prns, week, tow0, pos, vel, init["clk_bias_m"], init["clk_drift_mps"])
+    trk = ScalarTracker(n_ch, fs, src.if_hz, src.is_complex, max_rows=block_ms + 8)
+    for ch, prn in enumerate(prns):
+        trk.start_channel(ch, prn, pr["code_phase_chips"][ch], pr["doppler_hz"][ch], 0, 20.0)
+    dur = src.duration_s if duration_s is None else min(duration_s, src.duration_s)
+    n_total = int(dur * fs)
+    blk = int(round(block_ms * 1e-3 * fs))
+    i_cp, i_f = REC_F_NAMES.index("code_phase_chips"), REC_F_NAMES.index("doppler_hz")
+    i_s = REC_I_NAMES.index("sample_index")
+    rows_t, rows_f, rows_c = [[] for _ in range(n_ch)], [[] for _ in range(n_ch)], [[] for _ in range(n_ch)]
+    start = 0
+    while start < n_total:
+        lo = trk.next_needed_sample()
+        if lo is None:
+            break
+        lo = min(lo, start)
+        buf = src.read(lo, start + blk - lo)
+        if buf.shape[0] == 0:
+            break
+        sig = estimate_sigma_arm(src.read(start, min(blk, n_total - start)), src.is_complex)
+        rf, ri, nr = trk.run(buf, lo, sig, stop_sample=min(start + blk, n_total))
+        for ch in range(n_ch):
+            k = nr[ch]
+            rows_t[ch].append(ri[ch, :k, i_s] / fs)
+            rows_f[ch].append(rf[ch, :k, i_f])
+            rows_c[ch].append(rf[ch, :k, i_cp])
+        start += blk
+    n = min(sum(len(x) for x in rows_t[ch]) for ch in range(n_ch))
+    cat = lambda rows: np.stack([np.concatenate(r)[:n] for r in rows], axis=1)  # noqa: E731
+    t = cat(rows_t)
+    empty = np.zeros((0, 3))
+    return EngineResult(method="scalar", prns=list(prns), t_start=t, doppler_hz=cat(rows_f),
+                        code_phase_chips=np.mod(cat(rows_c), 1023.0), amp=np.full(t.shape, np.nan),
+                        mode=np.zeros(t.shape, dtype=np.int8), nav_t=np.zeros(0), nav_pos_e=empty,
+                        nav_vel_e=empty, nav_clk=np.zeros((0, 2)), nav_sigma_doppler_hz=np.zeros((0, n_ch)),
+                        runtime_s=_time.perf_counter() - t0, duration_s=n * 1e-3,
+                        info={"pipeline": "helper F ScalarTracker (FLL-assisted PLL, DLL), no INS"})
 
 
 def errors_vs_truth(res, truth):
@@ -153,7 +206,7 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     dur = float(cfg["duration_s"])
-    segs = M.segments_for(dur)
+    segs = M.SEGMENTS_S
     per = {m: [] for m in methods}
     raw = {}
     for r in range(int(runs)):
@@ -187,7 +240,7 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
           "per_run": per, "version": __version__, "paper_table3": M.PAPER_TABLE3, "paper_table4_s": M.PAPER_TABLE4_S}
     mpath = out / "metrics.json"
     tmp = out / "metrics.json.tmp"
-    tmp.write_text(json.dumps(js, indent=2, default=float))
+    tmp.write_text(json.dumps(M.json_clean(js), indent=2))
     os.replace(tmp, mpath)
     hpath = out / "results.h5"
     write_results_h5(hpath, cfg, raw, methods, runs, base_seed)
@@ -197,7 +250,7 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
     text = M.format_tables(agg, segs) + "\n" + (
         f"\n{runs} run(s), seeds {base_seed}..{base_seed + runs - 1}; RMS over all channels and runs; "
         "'\\' = lock lost (diverged) in that segment.")
-    return {"json": {k: js[k] for k in ("scenario", "seed", "runs", "methods")}, "text": text,
+    return {"json": M.json_clean({k: js[k] for k in ("scenario", "seed", "runs", "methods")}), "text": text,
             "metrics_path": str(mpath), "h5_path": str(hpath), "figures": figs}
 
 
