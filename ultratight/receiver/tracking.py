@@ -44,7 +44,7 @@ import math
 from dataclasses import dataclass, asdict
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from ultratight.constants import CA_LEN, F_CA, F_L1, CODE_PER_BIT
 from ultratight.receiver.correlator import _integrate_channel, _COS_LUT, _SIN_LUT
@@ -387,14 +387,10 @@ def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2):
 
 
 @njit(cache=True)
-def _track_block(buf, is_complex, buf_start, n_buf, stop_sample, code_ext, pad, active, sample_ptr,
-                 code_phase, code_rate, carr_phase, carr_freq, fs, if_hz, tap_off, sigma_arm,
-                 sf, si, hist, prm, rec_f, rec_i, n_rec):
-    """Closed-loop tracking of every active channel over the buffer (see module docstring).
-
-    A channel stops when its next period would pass the buffer end or ``stop_sample``, or when its
-    record rows are full; ``n_rec[ch]`` counts the rows written (appended after existing ones)."""
-    n_ch = code_phase.shape[0]
+def _track_channel(ch, buf, is_complex, buf_start, n_buf, stop_sample, code_ext, pad, active, sample_ptr,
+                   code_phase, code_rate, carr_phase, carr_freq, fs, if_hz, tap_off, sigma_arm,
+                   sf, si, hist, prm, rec_f, rec_i, n_rec):
+    """Closed-loop tracking of channel ``ch`` through the buffer (see :func:`_track_block`)."""
     n_taps = tap_off.shape[0]
     tap_fix = np.empty(n_taps, dtype=np.int64)
     for t in range(n_taps):
@@ -403,61 +399,85 @@ def _track_block(buf, is_complex, buf_start, n_buf, stop_sample, code_ext, pad, 
     o = np.zeros(6)
     tmp2 = np.zeros(2)
     max_rows = rec_f.shape[1]
-    for ch in range(n_ch):
-        while active[ch] and n_rec[ch] < max_rows:
-            dp = code_rate[ch] / fs
-            n = np.int64(np.ceil((CA_LEN - code_phase[ch]) / dp))
-            if n < 1:
-                n = 1
-            off = sample_ptr[ch] - buf_start
-            if off < 0 or off + n > n_buf or sample_ptr[ch] + n > stop_sample:
-                break
-            cp_fix0 = np.int64(np.floor((code_phase[ch] + pad) * 4294967296.0))
-            cstep = np.int64(np.floor(dp * 4294967296.0 + 0.5))
-            frac = carr_phase[ch] - np.floor(carr_phase[ch])
-            ph0 = np.int64(np.floor(frac * 4294967296.0))
-            phstep = np.int64(np.floor(carr_freq[ch] / fs * 4294967296.0 + 0.5))
-            _integrate_channel(buf, is_complex, off, n, code_ext[ch], cp_fix0, cstep, ph0, phstep,
-                               tap_fix, _COS_LUT, _SIN_LUT, acc)
-            scale = 1.0 / (sigma_arm[ch] * np.sqrt(n))
-            for t in range(3):
-                o[t] = acc[t] * scale
-                o[3 + t] = acc[n_taps + t] * scale
-            r = n_rec[ch]
-            rec_i[ch, r, RI_PTR] = sample_ptr[ch]
-            rec_i[ch, r, RI_N] = n
-            rec_i[ch, r, RI_EPOCH] = si[ch, S_EPOCH]
-            rec_f[ch, r, R_CODE_PHASE] = code_phase[ch]
-            rec_f[ch, r, R_CODE_RATE] = code_rate[ch]
-            rec_f[ch, r, R_CARR_ACC] = sf[ch, F_CARR_ACC]
-            rec_f[ch, r, R_DOPP] = carr_freq[ch] - if_hz
-            # advance NCOs exactly (as the correlator bank does)
-            code_phase[ch] = code_phase[ch] + n * dp - CA_LEN
-            ph = carr_phase[ch] + n * (carr_freq[ch] / fs)
-            carr_phase[ch] = ph - np.floor(ph)
-            sf[ch, F_CARR_ACC] += n * ((carr_freq[ch] - if_hz) / fs)
-            sample_ptr[ch] = sample_ptr[ch] + n
-            t_ep = n / fs
-            dopp, u, flags, bit_soft = _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2)
-            carr_freq[ch] = if_hz + dopp
-            code_rate[ch] = F_CA * (1.0 + dopp / F_L1) + u
-            rec_f[ch, r, R_IP] = o[0]
-            rec_f[ch, r, R_QP] = o[3]
-            rec_f[ch, r, R_IE] = o[1]
-            rec_f[ch, r, R_QE] = o[4]
-            rec_f[ch, r, R_IL] = o[2]
-            rec_f[ch, r, R_QL] = o[5]
-            rec_f[ch, r, R_CN0] = sf[ch, F_CN0_DB] if si[ch, S_CN0_VALID] else np.nan
-            rec_f[ch, r, R_PLI] = sf[ch, F_PLI]
-            rec_f[ch, r, R_DLL_ERR] = sf[ch, F_DLL_ERR]
-            rec_f[ch, r, R_PLL_ERR] = sf[ch, F_PLL_ERR]
-            rec_f[ch, r, R_FLL_ERR] = sf[ch, F_FLL_ERR]
-            rec_f[ch, r, R_BIT] = bit_soft
-            rec_i[ch, r, RI_MODE] = si[ch, S_MODE]
-            rec_i[ch, r, RI_FLAGS] = flags
-            n_rec[ch] = r + 1
-            if si[ch, S_MODE] == MODE_LOST:
-                active[ch] = False
+    while active[ch] and n_rec[ch] < max_rows:
+        dp = code_rate[ch] / fs
+        n = np.int64(np.ceil((CA_LEN - code_phase[ch]) / dp))
+        if n < 1:
+            n = 1
+        off = sample_ptr[ch] - buf_start
+        if off < 0 or off + n > n_buf or sample_ptr[ch] + n > stop_sample:
+            break
+        cp_fix0 = np.int64(np.floor((code_phase[ch] + pad) * 4294967296.0))
+        cstep = np.int64(np.floor(dp * 4294967296.0 + 0.5))
+        frac = carr_phase[ch] - np.floor(carr_phase[ch])
+        ph0 = np.int64(np.floor(frac * 4294967296.0))
+        phstep = np.int64(np.floor(carr_freq[ch] / fs * 4294967296.0 + 0.5))
+        _integrate_channel(buf, is_complex, off, n, code_ext[ch], cp_fix0, cstep, ph0, phstep,
+                           tap_fix, _COS_LUT, _SIN_LUT, acc)
+        scale = 1.0 / (sigma_arm[ch] * np.sqrt(n))
+        for t in range(3):
+            o[t] = acc[t] * scale
+            o[3 + t] = acc[n_taps + t] * scale
+        r = n_rec[ch]
+        rec_i[ch, r, RI_PTR] = sample_ptr[ch]
+        rec_i[ch, r, RI_N] = n
+        rec_i[ch, r, RI_EPOCH] = si[ch, S_EPOCH]
+        rec_f[ch, r, R_CODE_PHASE] = code_phase[ch]
+        rec_f[ch, r, R_CODE_RATE] = code_rate[ch]
+        rec_f[ch, r, R_CARR_ACC] = sf[ch, F_CARR_ACC]
+        rec_f[ch, r, R_DOPP] = carr_freq[ch] - if_hz
+        # advance NCOs exactly (as the correlator bank does)
+        code_phase[ch] = code_phase[ch] + n * dp - CA_LEN
+        ph = carr_phase[ch] + n * (carr_freq[ch] / fs)
+        carr_phase[ch] = ph - np.floor(ph)
+        sf[ch, F_CARR_ACC] += n * ((carr_freq[ch] - if_hz) / fs)
+        sample_ptr[ch] = sample_ptr[ch] + n
+        t_ep = n / fs
+        dopp, u, flags, bit_soft = _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2)
+        carr_freq[ch] = if_hz + dopp
+        code_rate[ch] = F_CA * (1.0 + dopp / F_L1) + u
+        rec_f[ch, r, R_IP] = o[0]
+        rec_f[ch, r, R_QP] = o[3]
+        rec_f[ch, r, R_IE] = o[1]
+        rec_f[ch, r, R_QE] = o[4]
+        rec_f[ch, r, R_IL] = o[2]
+        rec_f[ch, r, R_QL] = o[5]
+        rec_f[ch, r, R_CN0] = sf[ch, F_CN0_DB] if si[ch, S_CN0_VALID] else np.nan
+        rec_f[ch, r, R_PLI] = sf[ch, F_PLI]
+        rec_f[ch, r, R_DLL_ERR] = sf[ch, F_DLL_ERR]
+        rec_f[ch, r, R_PLL_ERR] = sf[ch, F_PLL_ERR]
+        rec_f[ch, r, R_FLL_ERR] = sf[ch, F_FLL_ERR]
+        rec_f[ch, r, R_BIT] = bit_soft
+        rec_i[ch, r, RI_MODE] = si[ch, S_MODE]
+        rec_i[ch, r, RI_FLAGS] = flags
+        n_rec[ch] = r + 1
+        if si[ch, S_MODE] == MODE_LOST:
+            active[ch] = False
+
+
+@njit(cache=True)
+def _track_block(buf, is_complex, buf_start, n_buf, stop_sample, code_ext, pad, active, sample_ptr,
+                 code_phase, code_rate, carr_phase, carr_freq, fs, if_hz, tap_off, sigma_arm,
+                 sf, si, hist, prm, rec_f, rec_i, n_rec):
+    """Closed-loop tracking of every active channel over the buffer (see module docstring).
+
+    A channel stops when its next period would pass the buffer end or ``stop_sample``, or when its
+    record rows are full; ``n_rec[ch]`` counts the rows written (appended after existing ones)."""
+    for ch in range(code_phase.shape[0]):
+        _track_channel(ch, buf, is_complex, buf_start, n_buf, stop_sample, code_ext, pad, active, sample_ptr,
+                       code_phase, code_rate, carr_phase, carr_freq, fs, if_hz, tap_off, sigma_arm,
+                       sf, si, hist, prm, rec_f, rec_i, n_rec)
+
+
+@njit(cache=True, parallel=True)
+def _track_block_par(buf, is_complex, buf_start, n_buf, stop_sample, code_ext, pad, active, sample_ptr,
+                     code_phase, code_rate, carr_phase, carr_freq, fs, if_hz, tap_off, sigma_arm,
+                     sf, si, hist, prm, rec_f, rec_i, n_rec):
+    """:func:`_track_block` with channels spread over threads (channels are independent)."""
+    for ch in prange(code_phase.shape[0]):
+        _track_channel(ch, buf, is_complex, buf_start, n_buf, stop_sample, code_ext, pad, active, sample_ptr,
+                       code_phase, code_rate, carr_phase, carr_freq, fs, if_hz, tap_off, sigma_arm,
+                       sf, si, hist, prm, rec_f, rec_i, n_rec)
 
 
 # ------------------------------------------------------------------------------ estimators (numpy)
@@ -527,8 +547,9 @@ class ScalarTracker:
     ``(rec_f (n_ch, rows, N_RF), rec_i (n_ch, rows, N_RI), n_rec (n_ch,))`` (copies).
     """
 
-    def __init__(self, n_ch, fs_hz, if_hz, is_complex, config=None, max_rows=256):
+    def __init__(self, n_ch, fs_hz, if_hz, is_complex, config=None, max_rows=256, parallel=False):
         from ultratight.receiver.correlator import CorrelatorBank
+        self.parallel = bool(parallel) and n_ch > 1
         self.config = config or TrackingConfig()
         self.bank = CorrelatorBank([1] * n_ch, fs_hz, if_hz, is_complex,
                                    spacing_chips=self.config.spacing_chips)
@@ -568,7 +589,8 @@ class ScalarTracker:
         stop = np.int64(buf_start + n_buf if stop_sample is None else stop_sample)
         sig = np.broadcast_to(np.asarray(sigma_arm, dtype=float), (self.n_ch,)).copy()
         st.n_rec[:] = 0
-        _track_block(raw, self.is_complex, np.int64(buf_start), np.int64(n_buf), stop, b._code_ext,
+        fn = _track_block_par if self.parallel else _track_block
+        fn(raw, self.is_complex, np.int64(buf_start), np.int64(n_buf), stop, b._code_ext,
                      b._pad, b.active, b.sample_ptr, b.code_phase, b.code_rate, b.carr_phase, b.carr_freq,
                      self.fs_hz, self.if_hz, b.tap_offsets_chips, sig, st.sf, st.si, st.hist, st.prm,
                      st.rec_f, st.rec_i, st.n_rec)

@@ -40,8 +40,13 @@ def add_arguments(p):
     p.add_argument("--coh-ms", type=int, default=1, metavar="MS",
                    help="coherent integration after bit sync: 1, 2, 4, 5, 10 or 20 ms (default 1)")
     p.add_argument("--pll-bw", type=float, default=None, metavar="HZ", help="PLL noise bandwidth in track mode")
-    p.add_argument("--acq-min-cn0", type=float, default=42.0, metavar="DBHZ",
-                   help="declare an acquisition only at this C/N0 or above (default 42 dB-Hz)")
+    p.add_argument("--acq-min-cn0", type=float, default=37.0, metavar="DBHZ",
+                   help="declare an acquisition only when its peak C/N0, 10 log10((metric-1)/T_coh), reaches "
+                        "this (default 37 dB-Hz; 0 keeps every detection passing the false-alarm test)")
+    p.add_argument("--acq-coherent", type=int, default=10, metavar="MS",
+                   help="acquisition coherent integration, 1-10 ms (default 10, cut to the file length)")
+    p.add_argument("--acq-noncoherent", type=int, default=1, metavar="K",
+                   help="acquisition non-coherent sums (default 1; raise for weak signals)")
     p.add_argument("--doppler-range", type=float, default=10e3, metavar="HZ",
                    help="acquisition Doppler search half-width (default 10 kHz)")
     p.add_argument("--mask", type=float, default=5.0, metavar="DEG", help="elevation mask (default 5 deg)")
@@ -101,6 +106,7 @@ def run(args):
     cfg = ProcessConfig(n_channels=args.channels, prns=_prn_list(args.prn) if args.prn else None,
                         duration_s=args.duration, start_s=args.start, obs_rate_hz=args.obs_rate,
                         mask_deg=args.mask, acq_min_cn0_dbhz=args.acq_min_cn0,
+                        acq_coherent_ms=args.acq_coherent, acq_noncoherent=args.acq_noncoherent,
                         doppler_range_hz=args.doppler_range, tracking=tcfg)
     eph = None
     if args.ephemeris:
@@ -122,6 +128,8 @@ def run(args):
                   file=sys.stderr)
         raise
     summ = _clean(res.summary())
+    for w in res.warnings:
+        print(f"ultratight process: warning: {w}", file=sys.stderr)
     if args.json:
         print(json.dumps(summ, default=_jsonable))
     else:
