@@ -35,6 +35,7 @@ from ultratight.receiver.tracking import (
 RX_T0_OFFSET_S = 0.075       # initial guess of the signal travel time
 CLOCK_STEER_S = 1e-3         # re-steer the receiver time when |bias| exceeds this
 SIGMA_SAMPLES = 65536        # samples used per block for the noise-power estimate
+RELEASE_EVERY = 20           # blocks between releases of the processed part of the file mapping
 MIRROR_RATIO = 0.1           # see _spectrum_check
 PRE_SYNC_KEEP = 30000        # 1 ms prompts kept per channel before bit sync (for the earliest bits)
 
@@ -439,6 +440,7 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             info["next_retry"] = now_sample + int(cfg.reacq_retry_s * fs)
 
     complete = False
+    n_blocks_done = 0
     try:
         write_acq()
         while True:
@@ -471,6 +473,9 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             if not sigma_arm > 0:
                 sigma_arm = 1.0
             rf, ri, nr = tracker.run(buf, s, sigma_arm, stop_sample=stop)
+            n_blocks_done += 1
+            if n_blocks_done % RELEASE_EVERY == 0:
+                _release_pages(source, s - margin)
             for ch in range(n_ch):
                 m = int(nr[ch])
                 if m == 0:
@@ -580,6 +585,35 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             if kml_path:
                 write_kml(kml_path, fixes)
     return result
+
+
+def _release_pages(source, upto_sample):
+    """Drop the already-processed part of a memory-mapped IF file from this process's resident set.
+
+    Pages of a read-only file mapping stay resident (and count in RSS) after they were read, so
+    without this the peak RSS would grow with the file length.  ``madvise(MADV_DONTNEED)`` unmaps
+    them (the page cache keeps them).  Uses the reader's memmap (``IfSource._mm``); a reader
+    without one is left alone."""
+    import mmap as _mmap
+    mm = getattr(source, "_mm", None)
+    raw = getattr(mm, "_mmap", None)
+    if raw is None or not hasattr(raw, "madvise") or not hasattr(_mmap, "MADV_DONTNEED"):
+        return
+    spec = getattr(source, "spec", None)
+    if spec is None:
+        return
+    if getattr(spec, "packed2", False):
+        nbytes = int(upto_sample) // spec.samples_per_byte
+    else:
+        nbytes = int(upto_sample) * spec.bytes_per_sample
+    offset = getattr(mm, "offset", 0) or 0
+    end = (offset + nbytes) // _mmap.PAGESIZE * _mmap.PAGESIZE
+    if end <= 0:
+        return
+    try:
+        raw.madvise(_mmap.MADV_DONTNEED, 0, min(end, len(raw)))
+    except (OSError, ValueError):
+        pass
 
 
 def _spectrum_check(hists, tracker, input_info, min_doppler_hz=800.0):

@@ -1,0 +1,125 @@
+"""Benchmark ``ultratight process`` (the scalar receiver) end to end.
+
+    python benchmarks/bench_process.py [--quick] [--json OUT.json] [--duration S] [--fs HZ] [--workdir DIR]
+
+Generates (once, cached in ``--workdir``) a static-open-sky file of ``--duration`` seconds
+(60 s; 10 s with ``--quick``) of complex int8 I/Q at ``--fs`` (2.6 MHz by default; the scenario's
+native 4 MHz with ``--fs 4e6``), then runs the receiver with 8 channels in fresh subprocesses:
+
+* ``realtime_factor``: wall time / signal time of the full run (acquisition, numba cache load,
+  tracking, decoding, PVT, HDF5 output included; goal <= 0.1 on the 2-core reference machine);
+  ``cpu_realtime_factor``: the same with the process's CPU time (user + system), which does not
+  depend on what else the machine is running;
+* ``maxrss_*_mb``: peak resident set size (``resource.getrusage(RUSAGE_SELF).ru_maxrss`` of the
+  child) for a 10 s cut and for the full file: memory must not grow with the run length
+  (goal: equal within 10 %);
+* the fixes and the position / velocity error against the generator's truth (full run).
+"""
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+CHILD = r"""
+import json, resource, sys, time
+import numpy as np, h5py
+from ultratight.receiver.process import ProcessConfig, process
+from ultratight.signals.iffile import open_if
+path, truth, dur, out = sys.argv[1], sys.argv[2], float(sys.argv[3]), sys.argv[4]
+t0 = time.perf_counter()
+r0 = resource.getrusage(resource.RUSAGE_SELF)
+res = process(open_if(path), ProcessConfig(n_channels=8, duration_s=dur), out_path=out)
+wall = time.perf_counter() - t0
+r1 = resource.getrusage(resource.RUSAGE_SELF)
+cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
+d = {"wall_s": wall, "cpu_s": cpu, "cpu_realtime_factor": cpu / res.signal_s, "signal_s": res.signal_s, "realtime_factor": wall / res.signal_s,
+     "fixes": len(res.fixes), "first_fix_s": res.first_fix_s, "tracked": len([c for c in res.channels if c["tracked"]]),
+     "maxrss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
+if res.fixes:
+    T = h5py.File(truth, "r")
+    P = np.array([f["pos_e"] for f in res.fixes]); V = np.array([f["vel_e"] for f in res.fixes])
+    d["pos_err_rms_m"] = float(np.sqrt(np.mean(np.sum((P - T["pos_e"][0]) ** 2, axis=1))))
+    d["vel_err_rms_mps"] = float(np.sqrt(np.mean(np.sum((V - T["vel_e"][0]) ** 2, axis=1))))
+print(json.dumps(d))
+"""
+
+
+def machine():
+    cpu = platform.processor()
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    return {"cpu": cpu, "cores": os.cpu_count(), "platform": platform.platform(),
+            "python": platform.python_version(), "load_avg_1m": os.getloadavg()[0]}
+
+
+def ensure_file(workdir, duration, fs):
+    stem = Path(workdir) / f"static-open-sky-{int(duration)}s-{fs / 1e6:g}MHz"
+    meta = Path(str(stem) + ".ci8.json")
+    if not meta.is_file():
+        subprocess.run([sys.executable, "-m", "ultratight.receiver.cli", "generate", "static-open-sky",
+                        "--duration", str(duration), "--fs", str(fs), "--format", "ci8", "--out", str(stem),
+                        "--no-progress", "--json"], check=True, capture_output=True, text=True)
+    return str(stem) + ".ci8", str(stem) + ".truth.h5"
+
+
+def run_child(path, truth, duration, out):
+    r = subprocess.run([sys.executable, "-c", CHILD, path, truth, str(duration), out],
+                       capture_output=True, text=True, check=True)
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--json", default=None)
+    ap.add_argument("--duration", type=float, default=None)
+    ap.add_argument("--fs", type=float, default=2.6e6)
+    ap.add_argument("--workdir", default=os.path.join(tempfile.gettempdir(), "ultratight-bench-process"))
+    args = ap.parse_args()
+    duration = args.duration or (10.0 if args.quick else 60.0)
+    os.makedirs(args.workdir, exist_ok=True)
+    t0 = time.perf_counter()
+    path, truth = ensure_file(args.workdir, duration, args.fs)
+    t_gen = time.perf_counter() - t0
+    out = os.path.join(args.workdir, "bench_out.h5")
+    # warm the numba cache so that the figures show steady-state behaviour
+    run_child(path, truth, 1.0, out)
+    full = run_child(path, truth, duration, out)
+    short = run_child(path, truth, min(10.0, duration), out)
+    rep = {
+        "machine": machine(),
+        "fs_hz": args.fs, "format": "ci8", "channels": 8, "duration_s": duration,
+        "generate_s": round(t_gen, 2),
+        "realtime_factor": round(full["realtime_factor"], 4),
+        "wall_s": round(full["wall_s"], 2),
+        "cpu_s": round(full["cpu_s"], 2),
+        "cpu_realtime_factor": round(full["cpu_realtime_factor"], 4),
+        "signal_s": full["signal_s"],
+        "fixes": full["fixes"], "first_fix_s": full["first_fix_s"], "tracked": full["tracked"],
+        "pos_err_rms_m": full.get("pos_err_rms_m"), "vel_err_rms_mps": full.get("vel_err_rms_mps"),
+        "maxrss_10s_mb": round(short["maxrss_mb"], 1),
+        f"maxrss_{int(duration)}s_mb": round(full["maxrss_mb"], 1),
+        "maxrss_ratio": round(full["maxrss_mb"] / short["maxrss_mb"], 3),
+        "realtime_factor_10s": round(short["realtime_factor"], 4),
+    }
+    txt = json.dumps(rep, indent=1)
+    print(txt)
+    if args.json:
+        with open(args.json, "w") as f:
+            f.write(txt)
+
+
+if __name__ == "__main__":
+    main()
