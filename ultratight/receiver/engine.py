@@ -208,7 +208,8 @@ class EngineOptions:
     prefilter_q: dict = field(default_factory=lambda: dict(DLB_PREFILTER_Q))
     rackf_period: int = 50               # RACKF robust-adaptive correction period, epochs
     huber_c: float = 1.5
-    robust_mode: str = "period"
+    robust_mode: str = "every"           # RACKF: Huber step every epoch, adaptive factor every period
+    rackf_kwargs: dict = field(default_factory=lambda: {"adaptive_stat": "window"})
     cn0_init_dbhz: float = 25.0          # assumed C/N0 for the prefilters' initial amplitude
     block_ms: int = 10                   # IF read block (noise estimate granularity)
     cic_order: int = 3
@@ -220,6 +221,7 @@ class EngineOptions:
     code_sigma_margin_chips: float = 0.002   # added to the hot-start code sigma of the prefilters
     clock_q_drift: float = 1e-4          # (m/s)^2/s clock drift random walk in the tight filter
     phase_init_ms: int = 40              # startup coherent phase initialisation window (0: off)
+    lock_monitor: bool = False           # coast/restart logic (off: the prefilters ride through fades)
     lock_window_ms: int = 200            # signal/lock monitor window
     lock_off_dbhz: float = 13.0          # coast (outer loop only) below this C/N0 (in-phase estimate)
     lock_on_dbhz: float = 16.5           # restart the prefilter above this C/N0 (coherent magnitude)
@@ -431,7 +433,8 @@ class UltratightEngine:
             kind = self.method.split("-", 1)[1]
             pref = PrefilterBank(n_ch, kind=kind, q=opt.prefilter_q, huber_c=opt.huber_c,
                                  correction_period=opt.rackf_period, robust_mode=opt.robust_mode,
-                                 cn0_dbhz_init=opt.cn0_init_dbhz, **opt.prefilter_kwargs)
+                                 cn0_dbhz_init=opt.cn0_init_dbhz,
+                                 **(dict(opt.rackf_kwargs) if kind == "rackf" else {}), **opt.prefilter_kwargs)
             sig_code_chips = tightmod.code_sigma_m(tf.P, los_l, M_pos) / CHIP_M
             P_init = np.zeros((n_ch, 5, 5))
             base = default_initial_covariance(opt.cn0_init_dbhz, T_CA)
@@ -584,9 +587,10 @@ class UltratightEngine:
             else:
                 pref.step(out, bits=D)
                 present_prev[:] = present
-                _lock_monitor(out, D, lm_i, lm_c, lm_si, lm_sc, lm_ptr, lm_count, present, thr_off, thr_on,
-                              lm_events, lm_phase)
-                if lm_events.any():
+                if opt.lock_monitor:
+                    _lock_monitor(out, D, lm_i, lm_c, lm_si, lm_sc, lm_ptr, lm_count, present, thr_off, thr_on,
+                                  lm_events, lm_phase)
+                if opt.lock_monitor and lm_events.any():
                     lost = lm_events < 0
                     back = lm_events > 0
                     if lost.any():
