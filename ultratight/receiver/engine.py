@@ -98,7 +98,7 @@ def _epoch_post(k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, i_ptau, i_pf, ring
     t_last = ring_t[i1]
     half = 0.5 * CA_LEN
     for c in range(n_ch):
-        tk = t_start[c] / fs
+        tk = float(t_start[c]) / fs
         # Doppler estimate for the middle of the interval: NCO + df + da T/2 (state at the start)
         f_meas = f0[c] - if_hz + (x_post[c, 3] + x_post[c, 4] * half_period_s) / two_pi
         cp_meas = cp0[c] + x_post[c, 1]
@@ -616,7 +616,7 @@ class UltratightEngine:
                 xp_rec = xp_view
             else:
                 xp_rec = pref.x_post
-            _epoch_post(k_ep, t_start.astype(np.float64), fs, self.if_hz, f0, cp0, xp_rec, pref.P, i_ptau, i_pf,
+            _epoch_post(k_ep, t_start, fs, self.if_hz, f0, cp0, xp_rec, pref.P, i_ptau, i_pf,
                         ring_t, ring_cp, ring_r, ring_f, ring_k, imu_dt, t_next_upd, acc, rec_t, rec_f,
                         rec_cp, rec_a, rec_mode, mode_now, outer.aid_doppler, outer.n_filled,
                         bank.sample_ptr, 0.5 * T_CA, aid)
@@ -636,11 +636,12 @@ class UltratightEngine:
             else:
                 inner.apply(pref, bank, aid_doppler_hz=aid, use_aid=use_aid)
             aid_prev_ff[:] = aid
-            if rollback.any():
-                bank.carr_freq += rollback
-                bank.code_rate[:] = F_CA * (1.0 + (bank.carr_freq - self.if_hz) / F_L1)
-                rollback[:] = 0.0
-            off_ring[k_ep % W] = bank.carr_freq - self.if_hz - aid
+            if opt.lock_monitor:
+                if rollback.any():
+                    bank.carr_freq += rollback
+                    bank.code_rate[:] = F_CA * (1.0 + (bank.carr_freq - self.if_hz) / F_L1)
+                    rollback[:] = 0.0
+                off_ring[k_ep % W] = bank.carr_freq - self.if_hz - aid
             timing["prefilter"] += time.perf_counter() - tw
 
             # ---- tight filter update at the decimated rate, once every channel passed t_next_upd
