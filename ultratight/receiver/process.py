@@ -35,6 +35,7 @@ from ultratight.receiver.tracking import (
 RX_T0_OFFSET_S = 0.075       # initial guess of the signal travel time
 CLOCK_STEER_S = 1e-3         # re-steer the receiver time when |bias| exceeds this
 SIGMA_SAMPLES = 65536        # samples used per block for the noise-power estimate
+STAGE2_HZ = 400.0            # half-width of the declared (long coherent) search around stage 1
 RELEASE_EVERY = 20           # blocks between releases of the processed part of the file mapping
 MIRROR_RATIO = 0.1           # see _spectrum_check
 PRE_SYNC_KEEP = 30000        # 1 ms prompts kept per channel before bit sync (for the earliest bits)
@@ -203,16 +204,28 @@ def _acquire(source, cfg, start_sample):
     coh = max(1, min(int(cfg.acq_coherent_ms), avail_ms))
     nc = max(1, min(int(cfg.acq_noncoherent), avail_ms // coh))
     prns = cfg.prns if cfg.prns else None
-    res = acquire(source, prns=prns, doppler_range_hz=cfg.doppler_range_hz, coherent_ms=coh, noncoherent=nc,
-                  pfa=cfg.acq_pfa, start_sample=start_sample)
-    # second look one coherent block later: a data-bit edge can cancel one 10 ms block, never both
-    # (edges are 20 ms apart); keep the stronger look per PRN
     n_blk = int(round(coh * nc * 1e-3 * source.fs_hz))
     looks = cfg.acq_looks if cfg.acq_looks is not None else (2 if avail_ms >= 1000 else 1)
-    if looks > 1 and avail_ms >= 2 * coh * nc:
-        res2 = acquire(source, prns=prns, doppler_range_hz=cfg.doppler_range_hz, coherent_ms=coh,
-                       noncoherent=nc, pfa=cfg.acq_pfa, start_sample=start_sample + n_blk)
-        res = [b if b.metric > a.metric else a for a, b in zip(res, res2)]
+    looks = 2 if (looks > 1 and avail_ms >= 2 * coh * nc) else 1
+    # stage 1: cheap full search (1 ms coherent, up to 10 non-coherent): candidate PRNs and Dopplers
+    nc1 = max(1, min(avail_ms, 10 if nc == 1 else coh * nc))     # same data span for weak-signal settings
+    res = acquire(source, prns=prns, doppler_range_hz=cfg.doppler_range_hz, coherent_ms=1, noncoherent=nc1,
+                  pfa=cfg.acq_pfa, start_sample=start_sample)
+    if coh > 1 or nc != nc1:
+        # stage 2: the declared search (coh ms coherent) only for the candidates, in a window of
+        # +-STAGE2_HZ around their stage-1 Doppler; a second look one block later for long files
+        # (a data-bit edge can cancel one 10 ms block, never two consecutive ones: edges are 20 ms apart)
+        cand = [a.prn for a in res if a.detected]
+        if cand:
+            ctr = {a.prn: a.doppler_hz for a in res if a.detected}
+            best = None
+            for look in range(looks):
+                r2 = acquire(source, prns=cand, doppler_center_hz=ctr, doppler_range_hz=STAGE2_HZ,
+                             coherent_ms=coh, noncoherent=nc, pfa=cfg.acq_pfa,
+                             start_sample=start_sample + look * n_blk)
+                best = r2 if best is None else [b2 if b2.metric > b1.metric else b1 for b1, b2 in zip(best, r2)]
+            by_prn = {a.prn: a for a in best}
+            res = [by_prn.get(a.prn, a) for a in res]
     for a in res:
         a.peak_cn0_dbhz = 10.0 * math.log10(max(a.metric - 1.0, 1e-12) / (coh * 1e-3))
         a.coherent_ms = coh

@@ -35,7 +35,8 @@ trapezoidal integrators; ``w0`` natural frequency in rad/s, phase in cycles, fre
 * Loss of lock: C/N0 estimate below ``cn0_lost_dbhz`` for ``lost_s`` -> channel mode LOST and
   deactivated (the pipeline re-acquires it).
 * Bit sync: sign changes of 1 ms I_P counted in 20 bins (epoch mod 20); declared when the largest
-  bin leads the second by ``bs_margin`` and holds twice its count (works before phase lock too: a
+  bin leads the second by ``bs_margin`` and stands 6 sigma above the mean of the others (Poisson
+  noise transitions; works before phase lock too: a
   residual beat adds transitions to every bin alike).  Coherent integration then grows to
   ``coh_ms`` in both modes (the FLL then sees the higher SNR of the longer sums).
 """
@@ -64,8 +65,8 @@ N_SI = 9
 # parameter vector (prm)
 (P_PULL_PLL_BW, P_PULL_FLL_BW, P_PULL_DLL_BW, P_TRK_PLL_BW, P_TRK_FLL_BW, P_TRK_DLL_BW, P_PLL_ORDER,
  P_DLL_ORDER, P_COH_MS, P_SPACING, P_CN0_WIN, P_CN0_LOST, P_LOST_S, P_PLI_LOCK, P_LOCK_S, P_UNLOCK_S,
- P_BS_MARGIN, P_PLI_TAU, P_MAX_BNT, P_CN0_ALPHA, P_WEAK_DBHZ) = range(21)
-N_PRM = 21
+ P_BS_MARGIN, P_PLI_TAU, P_MAX_BNT, P_CN0_ALPHA, P_WEAK_DBHZ, P_PULL_COH_MS) = range(22)
+N_PRM = 22
 
 # record columns: float (rf) and int (ri)
 (R_CODE_PHASE, R_CODE_RATE, R_CARR_ACC, R_DOPP, R_IP, R_QP, R_IE, R_QE, R_IL, R_QL, R_CN0, R_PLI,
@@ -107,7 +108,8 @@ class TrackingConfig:
     pli_tau_s: float = 0.25
     max_bnt: float = 0.15
     cn0_alpha: float = 0.3
-    weak_dbhz: float = 32.0         # below: pull in with the tracking PLL bandwidth
+    weak_dbhz: float = 32.0         # below: pull in with the tracking PLL bandwidth ...
+    weak_coh_ms: int = 5            # ... and coherent sums of this length before bit sync
 
     def validate(self):
         from ultratight.errors import ConfigError
@@ -146,6 +148,7 @@ class TrackingConfig:
         p[P_MAX_BNT] = self.max_bnt
         p[P_CN0_ALPHA] = self.cn0_alpha
         p[P_WEAK_DBHZ] = self.weak_dbhz
+        p[P_PULL_COH_MS] = self.weak_coh_ms
         return p
 
 
@@ -274,7 +277,10 @@ def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2):
                     kbest = k
                 elif h > m2:
                     m2 = h
-            if m1 - m2 >= prm[P_BS_MARGIN] and m1 >= 2 * m2:
+            # the other bins collect noise transitions (Poisson, mean mu): the edge bin must stand
+            # 6 sigma above them and lead the runner-up by the margin
+            mu = (si[ch, S_NTRANS] - m1) / (CODE_PER_BIT - 1.0)
+            if m1 - m2 >= prm[P_BS_MARGIN] and m1 - mu >= 6.0 * math.sqrt(max(mu, 1.0)):
                 bph = kbest
                 si[ch, S_BIT_PHASE] = bph
                 si[ch, S_BIT_N] = -1      # wait for the next bit edge
@@ -293,10 +299,16 @@ def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2):
                 bit_soft = sf[ch, F_BIT_SUM]
     # --- coherent accumulation
     coh = 1
+    ref = 0
     if bph >= 0:
         coh = int(prm[P_COH_MS])
+        ref = bph
+    elif si[ch, S_CN0_VALID] == 1 and sf[ch, F_CN0_DB] < prm[P_WEAK_DBHZ]:
+        # weak signal before bit sync: short coherent sums (a bit edge spoils at most one of them)
+        # give the FLL/PLL a usable SNR per update
+        coh = int(prm[P_PULL_COH_MS])
     if coh > 1:
-        if (epoch - bph) % coh == 0:
+        if (epoch - ref) % coh == 0:
             sf[ch, F_AIP] = 0.0
             sf[ch, F_AQP] = 0.0
             sf[ch, F_AIE] = 0.0
