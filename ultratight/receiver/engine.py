@@ -162,7 +162,7 @@ def _lock_monitor(out, D, win_i, win_c, sums_i, sums_c, ptr, count, present, thr
             count[c] += 1
             continue
         if present[c]:
-            if sums_i[c].real / W < thr_off:
+            if abs(sums_i[c].real) / W < thr_off:
                 present[c] = False
                 events[c] = -1
         else:
@@ -659,7 +659,7 @@ class UltratightEngine:
                 var_pr = CHIP_M ** 2 * (acc_pt / nn) * opt.meas_corr_factor + opt.pr_sigma_floor_m ** 2
                 var_prr = (LAMBDA_L1 / two_pi) ** 2 * (acc_pf / nn) * opt.meas_corr_factor \
                     + opt.prr_sigma_floor_mps ** 2
-                valid = ok & (m_a > opt.amp_min) & present
+                valid = ok & (np.abs(m_a) > opt.amp_min) & present   # (A < 0: locked half a cycle off)
                 pos_e, vel_e, C_el = ins.pos_vel_e()
                 lat, lon, h = ins.llh
                 rm, rn = radii(lat)
