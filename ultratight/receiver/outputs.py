@@ -19,6 +19,7 @@ from ultratight.errors import InputFileError
 
 CHUNK_ROWS = 1024
 FLUSH_ROWS = 2048
+FLUSH_PIECES = 50
 
 
 def _tmp_path(path):
@@ -35,7 +36,9 @@ class H5Stream:
             raise InputFileError(f"output directory does not exist: {self.path.parent}")
         self.tmp = _tmp_path(self.path)
         try:
-            self.f = h5py.File(self.tmp, "w")
+            # no raw-data chunk cache: rows are appended once and never re-read, and HDF5's cache
+            # otherwise keeps ~the written volume resident (measured: +64 MB for 80 MB written)
+            self.f = h5py.File(self.tmp, "w", rdcc_nbytes=0)
         except OSError as exc:
             raise InputFileError(f"cannot create output {self.path}: {exc}") from None
         self.f.attrs["version"] = __version__
@@ -53,7 +56,7 @@ class H5Stream:
         lst.append(rows)
         n = self._pending_rows.get(name, 0) + rows.shape[0]
         self._pending_rows[name] = n
-        if n >= FLUSH_ROWS:
+        if n >= FLUSH_ROWS or len(lst) >= FLUSH_PIECES:
             self._flush(name)
 
     def _flush(self, name):

@@ -409,7 +409,7 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
                "n_used": int(sol.used.sum()), "raim_ok": sol.raim_ok,
                "excluded_prn": [chinfo[j]["prn"] for j in sol.excluded],
                "used_prn": [chinfo[j]["prn"] for j in np.flatnonzero(sol.used)],
-               "cov_pos_clk": sol.cov_pos_clk, "cov_vel_drift": sol.cov_vel_drift}
+               "sigma_pos_m": float(np.sqrt(np.trace(sol.cov_pos_clk[:3, :3])))}
         fixes.append(fix)
         if writer is not None:
             writer.append("pvt/t_s", np.array([fix["t_s"]]))
