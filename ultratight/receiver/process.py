@@ -208,10 +208,16 @@ def _acquire(source, cfg, start_sample):
     looks = cfg.acq_looks if cfg.acq_looks is not None else (2 if avail_ms >= 1000 else 1)
     looks = 2 if (looks > 1 and avail_ms >= 2 * coh * nc) else 1
     # stage 1: cheap full search (1 ms coherent, up to 10 non-coherent): candidate PRNs and Dopplers
-    nc1 = max(1, min(avail_ms, 10 if nc == 1 else coh * nc))     # same data span for weak-signal settings
-    res = acquire(source, prns=prns, doppler_range_hz=cfg.doppler_range_hz, coherent_ms=1, noncoherent=nc1,
-                  pfa=cfg.acq_pfa, start_sample=start_sample)
-    if coh > 1 or nc != nc1:
+    if nc > 1:
+        # weak-signal settings: the full search at the requested integration (a 1 ms first stage
+        # would lose the coherent gain)
+        res = acquire(source, prns=prns, doppler_range_hz=cfg.doppler_range_hz, coherent_ms=coh,
+                      noncoherent=nc, pfa=cfg.acq_pfa, start_sample=start_sample)
+    else:
+        nc1 = max(1, min(avail_ms, 10))
+        res = acquire(source, prns=prns, doppler_range_hz=cfg.doppler_range_hz, coherent_ms=1,
+                      noncoherent=nc1, pfa=cfg.acq_pfa, start_sample=start_sample)
+    if nc == 1 and coh > 1:
         # stage 2: the declared search (coh ms coherent) only for the candidates, in a window of
         # +-STAGE2_HZ around their stage-1 Doppler; a second look one block later for long files
         # (a data-bit edge can cancel one 10 ms block, never two consecutive ones: edges are 20 ms apart)
@@ -233,12 +239,28 @@ def _acquire(source, cfg, start_sample):
     return res
 
 
+def _assisted(a, start_sample):
+    """An acquisition-like record from an assistance dict (prn, doppler_hz, code_phase_chips,
+    sample_index, optional cn0_dbhz)."""
+    from ultratight.receiver.acquisition import AcqResult
+    cn0 = float(a.get("cn0_dbhz", math.nan))
+    r = AcqResult(prn=int(a["prn"]), doppler_hz=float(a["doppler_hz"]), code_phase_chips=float(a["code_phase_chips"]),
+                  cn0_dbhz=cn0, metric=math.inf, detected=True, threshold=0.0,
+                  sample_index=int(a.get("sample_index", start_sample)))
+    r.peak_cn0_dbhz = cn0
+    r.coherent_ms = 0
+    r.noncoherent = 0
+    return r
+
+
 def process(source, config=None, ephemerides=None, out_path=None, csv_path=None, kml_path=None,
-            progress=False, run_config=None):
+            progress=False, run_config=None, assist=None):
     """Run the scalar receiver on ``source`` (IfSource or path); returns a :class:`ProcessResult`.
 
     ``ephemerides``: None (decode from the signal), a RINEX :class:`NavData` or dict prn ->
-    Ephemeris.  ``out_path``: HDF5 output (schema in docs/process.md).  KeyboardInterrupt stops
+    Ephemeris.  ``assist``: optional list of dicts (prn, doppler_hz, code_phase_chips, sample_index,
+    cn0_dbhz) replacing the acquisition (warm start, e.g. from a scenario's truth or a prediction).
+    ``out_path``: HDF5 output (schema in docs/process.md).  KeyboardInterrupt stops
     the run, writes a partial output (root attribute ``complete = False``) and re-raises.
     """
     from ultratight.signals.ephemeris import sat_state
@@ -262,7 +284,10 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
                   "n_samples": int(source.n_samples), "start_week": source.start_week,
                   "start_tow_s": source.start_tow_s}
     t_wall0 = time.perf_counter()
-    acq = _acquire(source, cfg, start_sample)
+    if assist is not None:
+        acq = [_assisted(a, start_sample) for a in assist]
+    else:
+        acq = _acquire(source, cfg, start_sample)
     for a in acq:
         if a.detected and not (a.peak_cn0_dbhz >= cfg.acq_min_cn0_dbhz):
             a.weak = True                # passed the false-alarm test, below the C/N0 floor
