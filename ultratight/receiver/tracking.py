@@ -59,14 +59,16 @@ MODE_OFF, MODE_PULL, MODE_TRACK, MODE_LOST = 0, 1, 2, 3
  F_LOW_T, F_CARR_ACC, F_LAST_I, F_DLL_ERR, F_PLL_ERR, F_FLL_ERR, F_DLL_U) = range(29)
 N_SF = 29
 # int state columns (si)
-(S_MODE, S_EPOCH, S_BIT_PHASE, S_NTRANS, S_HAVE_PREV, S_ACC_N, S_CN0_N, S_BIT_N, S_CN0_VALID) = range(9)
-N_SI = 9
+(S_MODE, S_EPOCH, S_BIT_PHASE, S_NTRANS, S_HAVE_PREV, S_ACC_N, S_CN0_N, S_BIT_N, S_CN0_VALID,
+ S_ACC_COH) = range(10)
+N_SI = 10
 
 # parameter vector (prm)
 (P_PULL_PLL_BW, P_PULL_FLL_BW, P_PULL_DLL_BW, P_TRK_PLL_BW, P_TRK_FLL_BW, P_TRK_DLL_BW, P_PLL_ORDER,
  P_DLL_ORDER, P_COH_MS, P_SPACING, P_CN0_WIN, P_CN0_LOST, P_LOST_S, P_PLI_LOCK, P_LOCK_S, P_UNLOCK_S,
- P_BS_MARGIN, P_PLI_TAU, P_MAX_BNT, P_CN0_ALPHA, P_WEAK_DBHZ, P_PULL_COH_MS) = range(22)
-N_PRM = 22
+ P_BS_MARGIN, P_PLI_TAU, P_MAX_BNT, P_CN0_ALPHA, P_WEAK_DBHZ, P_PULL_COH_MS, P_WEAK_LONG_COH_MS,
+ P_WEAK_PLL_BW) = range(24)
+N_PRM = 24
 
 # record columns: float (rf) and int (ri)
 (R_CODE_PHASE, R_CODE_RATE, R_CARR_ACC, R_DOPP, R_IP, R_QP, R_IE, R_QE, R_IL, R_QL, R_CN0, R_PLI,
@@ -108,12 +110,14 @@ class TrackingConfig:
     pli_tau_s: float = 0.25
     max_bnt: float = 0.15
     cn0_alpha: float = 0.3
-    weak_dbhz: float = 32.0         # below: pull in with the tracking PLL bandwidth ...
-    weak_coh_ms: int = 5            # ... and coherent sums of this length before bit sync
+    weak_dbhz: float = 32.0         # C/N0 below which a channel counts as weak: ...
+    weak_coh_ms: int = 5            # ... coherent sums of this length before bit sync,
+    weak_long_coh_ms: int = 20      # ... bit-synchronised sums of this length after bit sync,
+    weak_pll_bw_hz: float = 5.0     # ... and at most this PLL bandwidth
 
     def validate(self):
         from ultratight.errors import ConfigError
-        if self.coh_ms not in (1, 2, 4, 5, 10, 20):
+        if self.coh_ms not in (1, 2, 4, 5, 10, 20) or self.weak_long_coh_ms not in (1, 2, 4, 5, 10, 20):
             raise ConfigError(f"tracking coh_ms must be one of 1, 2, 4, 5, 10, 20 (divides a 20 ms bit), "
                               f"got {self.coh_ms}")
         if self.pll_order not in (2, 3) or self.dll_order not in (1, 2):
@@ -149,6 +153,8 @@ class TrackingConfig:
         p[P_CN0_ALPHA] = self.cn0_alpha
         p[P_WEAK_DBHZ] = self.weak_dbhz
         p[P_PULL_COH_MS] = self.weak_coh_ms
+        p[P_WEAK_LONG_COH_MS] = self.weak_long_coh_ms
+        p[P_WEAK_PLL_BW] = self.weak_pll_bw_hz
         return p
 
 
@@ -300,10 +306,13 @@ def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2):
     # --- coherent accumulation
     coh = 1
     ref = 0
+    weak = si[ch, S_CN0_VALID] == 1 and sf[ch, F_CN0_DB] < prm[P_WEAK_DBHZ]
     if bph >= 0:
         coh = int(prm[P_COH_MS])
         ref = bph
-    elif si[ch, S_CN0_VALID] == 1 and sf[ch, F_CN0_DB] < prm[P_WEAK_DBHZ]:
+        if weak and prm[P_WEAK_LONG_COH_MS] > coh:
+            coh = int(prm[P_WEAK_LONG_COH_MS])     # bit-synchronised long integration for weak signals
+    elif weak:
         # weak signal before bit sync: short coherent sums (a bit edge spoils at most one of them)
         # give the FLL/PLL a usable SNR per update
         coh = int(prm[P_PULL_COH_MS])
@@ -317,6 +326,11 @@ def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2):
             sf[ch, F_AQL] = 0.0
             sf[ch, F_AT] = 0.0
             si[ch, S_ACC_N] = 0
+            si[ch, S_ACC_COH] = coh
+        elif si[ch, S_ACC_COH] != coh:
+            # the integration length changed mid-way: no update until the next boundary
+            si[ch, S_ACC_N] = -(1 << 30)
+            si[ch, S_ACC_COH] = coh
         sf[ch, F_AIP] += ip
         sf[ch, F_AQP] += qp
         sf[ch, F_AIE] += ie
@@ -373,9 +387,8 @@ def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2):
             snr = 10.0 ** (sf[ch, F_CN0_DB] / 10.0) * tc / 10.0
             if snr < 1.0:
                 bn_f = bn_f * snr * snr
-            # weak signals: pull in with the (narrower) tracking PLL bandwidth
-            if sf[ch, F_CN0_DB] < prm[P_WEAK_DBHZ] and prm[P_TRK_PLL_BW] < bn_p:
-                bn_p = prm[P_TRK_PLL_BW]
+        if weak and bn_p > prm[P_WEAK_PLL_BW]:
+            bn_p = prm[P_WEAK_PLL_BW]
         cap = prm[P_MAX_BNT] / tc
         if bn_p > cap:
             bn_p = cap
