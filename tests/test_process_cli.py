@@ -223,3 +223,110 @@ def test_noise_only_file_reports_no_satellites(tmp_path, capsys):
     code, o, err = run_cli([str(f), "--fs", "4e6", "--format", "ci8", "--out", str(out), "--prn", "1-3"], capsys)
     assert code == 2 and "no satellites acquired" in err and "fs 4e+06 Hz" in err
     assert not out.exists()
+
+
+# ------------------------------------------------------------------------------ acceptance (slow)
+def _generate(tmp, scenario, *flags):
+    r = subprocess.run([sys.executable, "-m", "ultratight.receiver.cli", "generate", scenario, "--out",
+                        str(tmp / "g"), "--no-progress", "--json", *flags], capture_output=True, text=True,
+                       timeout=1800)
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout)["files"]
+
+
+def earliest_ephemeris_time(truth, n_channels=4):
+    """Receive time (s) at which subframes 1, 2 and 3 - each a whole 6 s occurrence transmitted
+    after the file start - have all arrived on ``n_channels`` satellites (from the truth's
+    per-satellite transmit times: subframe k of a 30 s frame starts at TOW = 30 j + 6 (k - 1))."""
+    t, ttx = truth["t_s"][:], truth["t_tx_tow_s"][:]
+    done = []
+    for k in range(ttx.shape[1]):
+        ends = []
+        for sf in (1, 2, 3):
+            s0 = np.ceil(ttx[0, k] / 6.0) * 6.0
+            while int(round(s0 / 6.0)) % 5 != sf - 1:
+                s0 += 6.0
+            ends.append(s0 + 6.0)
+        te = max(ends)
+        done.append(float(np.interp(te, ttx[:, k], t)) if te <= ttx[-1, k] else np.inf)
+    return sorted(done)[n_channels - 1]
+
+
+def _fix_errors(res, truth):
+    tsi = truth["sample_index"][:]
+    s = np.array([f["sample_index"] for f in res.fixes])
+    P = np.array([f["pos_e"] for f in res.fixes])
+    V = np.array([f["vel_e"] for f in res.fixes])
+    Pt = np.stack([np.interp(s, tsi, truth["pos_e"][:, i]) for i in range(3)], axis=1)
+    Vt = np.stack([np.interp(s, tsi, truth["vel_e"][:, i]) for i in range(3)], axis=1)
+    return (np.sqrt(np.mean(np.sum((P - Pt) ** 2, axis=1))), np.sqrt(np.mean(np.sum((V - Vt) ** 2, axis=1))))
+
+
+@pytest.mark.slow
+def test_acceptance_static_60s_everything_from_the_signal(tmp_path):
+    from ultratight.receiver.process import ProcessConfig, process
+    from ultratight.signals.iffile import open_if
+    files = _generate(tmp_path, "static-open-sky")
+    truth = h5py.File(files["truth"], "r")
+    res = process(open_if(files["if"]), ProcessConfig())
+    t_eph = earliest_ephemeris_time(truth)
+    pos_rms, vel_rms = _fix_errors(res, truth)
+    print(f"\nstatic 60 s: earliest subframes 1-3 on 4 channels {t_eph:.3f} s, first fix {res.first_fix_s} s, "
+          f"{len(res.fixes)} fixes, position RMS {pos_rms:.3f} m, velocity RMS {vel_rms:.4f} m/s, "
+          f"real-time factor {res.realtime_factor:.3f}")
+    assert res.first_fix_s <= t_eph + 2.0
+    assert pos_rms <= 2.0 and vel_rms <= 0.05
+
+
+@pytest.mark.slow
+def test_acceptance_vehicle_turns(tmp_path):
+    from ultratight.receiver.process import ProcessConfig, process
+    from ultratight.receiver.tracking import FL_PLL_LOCK
+    from ultratight.signals.iffile import open_if
+    files = _generate(tmp_path, "vehicle-turns")
+    truth = h5py.File(files["truth"], "r")
+    res = process(open_if(files["if"]), ProcessConfig(n_channels=12, record_epochs=True))
+    pos_rms, vel_rms = _fix_errors(res, truth)
+    fs = truth.attrs["fs_hz"]
+    worst = min(np.mean(e["flags"][e["sample_index"] > fs] & FL_PLL_LOCK > 0) for e in res.epochs.values())
+    print(f"\nvehicle-turns: {len(res.channels)} channels, losses {sum(c['losses'] for c in res.channels)}, "
+          f"worst phase-lock fraction after 1 s {worst:.4f}, position RMS {pos_rms:.3f} m, "
+          f"velocity RMS {vel_rms:.4f} m/s")
+    assert len(res.channels) == len(truth.attrs["prn"])
+    assert all(c["losses"] == 0 and c["reacquisitions"] == 0 for c in res.channels)
+    assert worst == 1.0
+    assert pos_rms <= 5.0
+
+
+@pytest.mark.parametrize("cn0", [28.0])
+@pytest.mark.slow
+def test_acceptance_sensitivity_static(tmp_path, cn0):
+    """Tracking sensitivity: warm start from the truth (Doppler +10 Hz, code +0.25 chip), 60 s."""
+    from ultratight.receiver.process import ProcessConfig, process
+    from ultratight.receiver.tracking import FL_PLL_LOCK
+    from ultratight.signals.constellation import nominal_ephemerides
+    from ultratight.signals.iffile import open_if
+    files = _generate(tmp_path, "static-open-sky", "--cn0", str(cn0), "--fs", "2.6e6")
+    T = h5py.File(files["truth"], "r")
+    prns = [int(p) for p in T.attrs["prn"]]
+    tsi = T["sample_index"][:]
+    assist = [dict(prn=p, doppler_hz=float(T["doppler_hz"][0, k]) + 10.0,
+                   code_phase_chips=float(T["code_phase_chips"][0, k]) + 0.25, sample_index=int(tsi[0]),
+                   cn0_dbhz=cn0) for k, p in enumerate(prns)]
+    res = process(open_if(files["if"]), ProcessConfig(n_channels=len(prns), record_epochs=True),
+                  ephemerides=nominal_ephemerides(int(T.attrs["week"]), float(T.attrs["tow0_s"])), assist=assist)
+    fs = T.attrs["fs_hz"]
+    for c in res.channels:
+        e = res.epochs[c["prn"]]
+        k = prns.index(c["prn"])
+        late = e["sample_index"] > 5 * fs
+        s = e["sample_index"][late]
+        j = np.searchsorted(tsi, s, side="right") - 1
+        rate = 1.023e6 * (1 + T["doppler_hz"][j, k] / 1575.42e6)
+        cp = (T["code_phase_chips"][j, k] + (s - tsi[j]) * rate / fs) % CA_LEN
+        err = (e["code_phase_chips"][late] - cp + CA_LEN / 2) % CA_LEN - CA_LEN / 2
+        lock = np.mean(e["flags"][late] & FL_PLL_LOCK > 0)
+        print(f"\n{cn0} dB-Hz PRN {c['prn']}: losses {c['losses']}, lock {lock:.3f}, code RMS "
+              f"{np.sqrt(np.mean(err ** 2)):.3f} chip, C/N0 est {c['cn0_dbhz']}, bit sync {c['bit_sync_s']}")
+        assert c["losses"] == 0 and e["sample_index"][-1] > 59.9 * fs
+        assert lock > 0.95 and np.sqrt(np.mean(err ** 2)) < 0.05
