@@ -225,6 +225,35 @@ def test_noise_only_file_reports_no_satellites(tmp_path, capsys):
     assert not out.exists()
 
 
+def test_loss_of_lock_and_reacquisition(tmp_path):
+    """A signal that vanishes for 1.5 s: the channel is declared lost, then re-acquired and tracked."""
+    import math
+    from ultratight.receiver.process import ProcessConfig, process
+    from ultratight.signals.iffile import open_if, write_if
+    from ultratight.signals.ca_code import ca_code
+    fs, dur = 2.6e6, 5.0
+    rng = np.random.default_rng(3)
+    n = int(fs * dur)
+    t = np.arange(n) / fs
+    theta = 0.1 + 1200.0 * t
+    p = 50.0 + 1.023e6 * t + (1.023e6 / 1575.42e6) * (theta - 0.1)
+    amp = np.full(n, math.sqrt(2 * 10 ** 4.5 / fs), dtype=np.float32)
+    amp[int(1.0 * fs):int(2.5 * fs)] = 0.0
+    x = amp * ca_code(5).astype(np.float32)[np.floor(p).astype(np.int64) % CA_LEN] * np.exp(2j * np.pi * theta)
+    x = x + rng.normal(size=n) + 1j * rng.normal(size=n)
+    f = tmp_path / "gap.cf32"
+    write_if(f, (x * 8).astype(np.complex64), "cf32", fs)
+    res = process(open_if(f), ProcessConfig(prns=[5, 6], record_epochs=True))
+    c = res.channels[0]
+    assert c["prn"] == 5 and c["losses"] >= 1 and c["reacquisitions"] >= 1
+    e = res.epochs[5]
+    last = e["sample_index"] > 4.0 * fs          # re-acquired on the 1 s retry after 2.5 s, then pull-in
+    assert last.sum() > 900 and np.all(e["mode"][last] == 2)
+    truth = (p[e["sample_index"][last]] % CA_LEN)
+    err = (e["code_phase_chips"][last] - truth + CA_LEN / 2) % CA_LEN - CA_LEN / 2
+    assert np.sqrt(np.mean(err ** 2)) < 0.03
+
+
 # ------------------------------------------------------------------------------ acceptance (slow)
 def _generate(tmp, scenario, *flags):
     r = subprocess.run([sys.executable, "-m", "ultratight.receiver.cli", "generate", scenario, "--out",
