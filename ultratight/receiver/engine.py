@@ -82,7 +82,7 @@ def _wipe_bits(bits, t0_ms, ms, out):
 @njit(cache=True)
 def _epoch_post(k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, i_ptau, i_pf, ring_t, ring_cp, ring_r, ring_f, ring_k,
                 imu_dt, t_next_upd, acc, rec_t, rec_f, rec_cp, rec_a, rec_mode, mode_now,
-                aid_grid, n_filled, sample_ptr, half_period_s, aid_out):
+                aid_grid, n_filled, sample_ptr, half_period_s, aid_out, aid_dt=0.0):
     """Per-epoch bookkeeping for all channels in one compiled call.
 
     Records the estimates (NCO + prefilter at the interval start), forms the residuals against
@@ -129,7 +129,7 @@ def _epoch_post(k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, i_ptau, i_pf, ring
             acc[3, c] += P[c, i_ptau, i_ptau]
             acc[4, c] += P[c, i_pf, i_pf]
             acc[5, c] += x_post[c, 0]
-        u = (sample_ptr[c] / fs + half_period_s) * 1000.0
+        u = (sample_ptr[c] / fs + half_period_s + aid_dt) * 1000.0
         j = int(math.floor(u))
         if j < 0:
             j = 0
@@ -221,6 +221,7 @@ class EngineOptions:
     code_sigma_margin_chips: float = 0.002   # added to the hot-start code sigma of the prefilters
     clock_q_drift: float = 1e-4          # (m/s)^2/s clock drift random walk in the tight filter
     phase_init_ms: int = 40              # startup coherent phase initialisation window (0: off)
+    aid_time_offset_s: float = 0.5e-3    # aiding sampled at next-interval middle + this (see docs)
     lock_monitor: bool = False           # coast/restart logic (off: the prefilters ride through fades)
     lock_window_ms: int = 200            # signal/lock monitor window
     lock_off_dbhz: float = 13.0          # coast (outer loop only) below this C/N0 (in-phase estimate)
@@ -619,7 +620,7 @@ class UltratightEngine:
             _epoch_post(k_ep, t_start, fs, self.if_hz, f0, cp0, xp_rec, pref.P, i_ptau, i_pf,
                         ring_t, ring_cp, ring_r, ring_f, ring_k, imu_dt, t_next_upd, acc, rec_t, rec_f,
                         rec_cp, rec_a, rec_mode, mode_now, outer.aid_doppler, outer.n_filled,
-                        bank.sample_ptr, 0.5 * T_CA, aid)
+                        bank.sample_ptr, 0.5 * T_CA, aid, opt.aid_time_offset_s)
             # ---- NCO commands for the next interval
             if restart is not None:
                 rate = (self._aid_at(outer, bank.sample_ptr / fs + 1.5 * T_CA) - aid) / T_CA
