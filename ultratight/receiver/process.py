@@ -247,7 +247,7 @@ def _assisted(a, start_sample):
     r = AcqResult(prn=int(a["prn"]), doppler_hz=float(a["doppler_hz"]), code_phase_chips=float(a["code_phase_chips"]),
                   cn0_dbhz=cn0, metric=math.inf, detected=True, threshold=0.0,
                   sample_index=int(a.get("sample_index", start_sample)))
-    r.peak_cn0_dbhz = cn0
+    r.peak_cn0_dbhz = math.inf        # assisted channels are not subject to the acquisition C/N0 floor
     r.coherent_ms = 0
     r.noncoherent = 0
     return r
