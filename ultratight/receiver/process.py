@@ -52,7 +52,7 @@ class ProcessConfig:
     duration_s: float | None = None
     start_s: float = 0.0
     obs_rate_hz: float = 10.0
-    block_ms: int = 100
+    block_ms: int = 200
     mask_deg: float = 5.0
     doppler_range_hz: float = 10e3
     acq_coherent_ms: int = 10           # coherent FFT search length (cut to the file length)
