@@ -149,6 +149,33 @@ def test_cli_json_generated_short(gen9, capsys):
     assert 0 < d["realtime_factor"] and d["signal_s"] == pytest.approx(2.0, abs=0.01)
 
 
+def test_cli_with_rinex_ephemeris(tmp_path, rinex_path, capsys):
+    """Satellites from the real broadcast ephemeris; the receiver gets the same RINEX via --ephemeris."""
+    import tomllib
+    from importlib import resources
+    src = resources.files("ultratight") / "data" / "scenarios" / "static-open-sky.toml"
+    text = src.read_text().replace('source = "nominal"', 'source = "rinex"')
+    assert tomllib.loads(text)["satellites"]["source"] == "rinex"
+    scen = tmp_path / "rinex-sky.toml"
+    scen.write_text(text)
+    r = subprocess.run([sys.executable, "-m", "ultratight.receiver.cli", "generate", str(scen), "--duration", "9",
+                        "--fs", "2.6e6", "--out", str(tmp_path / "r9"), "--no-progress", "--json"],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    files = json.loads(r.stdout)["files"]
+    truth = h5py.File(files["truth"], "r")
+    prns = ",".join(str(int(p)) for p in truth.attrs["prn"])
+    code, out, err = run_cli([files["if"], "--ephemeris", str(rinex_path), "--json", "--channels", "12",
+                              "--prn", prns], capsys)
+    assert code == 0, err
+    d = json.loads(out)
+    assert d["fixes"] >= 10
+    err_m = np.linalg.norm(np.array(d["position_ecef_m"]) - truth["pos_e"][0])
+    assert err_m < 5.0
+    lat, lon, h = d["position_llh"]
+    assert abs(lat - 41.275) < 1e-4 and abs(lon - 1.987) < 1e-4 and abs(h - 50.0) < 10.0
+
+
 def test_interrupt_leaves_valid_partial_output(gen9, tmp_path, capsys, monkeypatch):
     from ultratight.receiver import tracking
     calls = {"n": 0}
