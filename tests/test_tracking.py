@@ -126,6 +126,34 @@ def test_discriminators_closed_form():
             e = 1 - abs(dtau - d / 2)
             l = 1 - abs(dtau + d / 2)
             assert tk.dll_disc(e, 0.0, l, 0.0, d) == pytest.approx(dtau)
+    # dot-product (1 chip): exact on the triangle, any carrier phase
+    for dtau in (-0.4, -0.1, 0.0, 0.25, 0.45):
+        e, l, pr = 1 - abs(dtau - 0.5), 1 - abs(dtau + 0.5), 1 - abs(dtau)
+        for phi in (0.0, 1.0, 2.5):
+            c, s_ = math.cos(phi), math.sin(phi)
+            assert tk.dll_disc_dot((e - l) * c, (e - l) * s_, pr * c, pr * s_) == pytest.approx(dtau)
+
+
+def test_prompt_el_kernel_matches_three_tap_kernel():
+    from ultratight.receiver.correlator import _COS_LUT, _SIN_LUT, _integrate_channel
+    rng = np.random.default_rng(4)
+    pad = 3
+    code = ca_code(9).astype(np.float32)
+    code_ext = code[(np.arange(CA_LEN + 2 * pad) - pad) % CA_LEN]
+    p_half, el_half = tk.half_chip_tables(9, pad)
+    for fs, n in ((2.6e6, 2600), (4e6, 4000)):
+        x = rng.normal(size=2 * n).astype(np.float32)
+        dp = F_CA * (1 + 1234.0 / F_L1) / fs
+        cp0 = np.int64(np.floor((0.37 + pad) * 2 ** 32))
+        cst = np.int64(np.floor(dp * 2 ** 32 + 0.5))
+        ph0, phs = np.int64(123456789), np.int64(np.floor(1234.0 / fs * 2 ** 32))
+        a3, a2 = np.zeros(6), np.zeros(6)
+        taps = np.array([0, 2 ** 31, -2 ** 31], dtype=np.int64)
+        _integrate_channel(x, True, 0, n, code_ext, cp0, cst, ph0, phs, taps, _COS_LUT, _SIN_LUT, a3)
+        tk._integrate_pel(x, True, 0, n, p_half, el_half, cp0, cst, ph0, phs, _COS_LUT, _SIN_LUT, a2)
+        assert a2[0] == pytest.approx(a3[0], rel=1e-5) and a2[3] == pytest.approx(a3[3], rel=1e-5)
+        assert a2[1] == pytest.approx(a3[1] - a3[2], rel=1e-4, abs=1e-3)
+        assert a2[4] == pytest.approx(a3[4] - a3[5], rel=1e-4, abs=1e-3)
 
 
 def test_cn0_estimators_against_model():
