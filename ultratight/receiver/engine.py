@@ -222,13 +222,14 @@ class EngineOptions:
     clock_q_drift: float = 1e-4          # (m/s)^2/s clock drift random walk in the tight filter
     phase_init_ms: int = 40              # startup coherent phase initialisation window (0: off)
     aid_time_offset_s: float = 0.5e-3    # aiding sampled at next-interval middle + this (see docs)
-    lock_monitor: bool = False           # coast/restart logic (off: the prefilters ride through fades)
-    lock_window_ms: int = 200            # signal/lock monitor window
-    lock_off_dbhz: float = 13.0          # coast (outer loop only) below this C/N0 (in-phase estimate)
+    monitor_gates_tight: bool = True     # signal monitor keeps fading channels out of the tight filter
+    lock_monitor: bool = True            # coast/restart logic on fades and losses of lock
+    lock_window_ms: int = 300            # signal/lock monitor window
+    lock_off_dbhz: float = 10.0          # coast (outer loop only) below this C/N0 (in-phase estimate)
     lock_on_dbhz: float = 16.5           # restart the prefilter above this C/N0 (coherent magnitude)
     cn0_min_dbhz: float = 10.0           # floor of the re-initialised amplitude
-    reinit_sigma_f_hz: float = 0.5       # frequency 1-sigma after a phase (re)initialisation
-    reinit_sigma_a_hzps: float = 2.0     # Doppler-rate 1-sigma after a (re)initialisation (aided)
+    reinit_sigma_f_hz: float = 0.3       # frequency 1-sigma after a phase (re)initialisation
+    reinit_sigma_a_hzps: float = 0.3     # Doppler-rate 1-sigma after a (re)initialisation (aided)
     prefilter_kwargs: dict = field(default_factory=dict)   # extra PrefilterBank parameters
     startup: dict = field(default_factory=dict)   # StartupErrors overrides
 
@@ -496,6 +497,8 @@ class UltratightEngine:
         n_regained = 0
         xp_view = np.zeros((n_ch, 5))
         present_prev = np.ones(n_ch, dtype=np.bool_)
+        gate_ok = np.ones(n_ch, dtype=np.bool_)
+        restart_mask = np.zeros(n_ch, dtype=np.bool_)
         off_ring = np.zeros((W, n_ch))      # carrier NCO minus aiding (inner-loop offset) history
         rollback = np.zeros(n_ch)
         coast_any = False
@@ -588,9 +591,15 @@ class UltratightEngine:
             else:
                 pref.step(out, bits=D)
                 present_prev[:] = present
-                if opt.lock_monitor:
+                if opt.lock_monitor or opt.monitor_gates_tight:
                     _lock_monitor(out, D, lm_i, lm_c, lm_si, lm_sc, lm_ptr, lm_count, present, thr_off, thr_on,
                                   lm_events, lm_phase)
+                    if not opt.lock_monitor:
+                        # monitor used only to keep fading channels out of the tight filter
+                        gate_ok[:] = present
+                        present[:] = True
+                        np.logical_or(lm_events > 0, False, out=restart_mask)
+                        lm_events[:] = 0
                 if opt.lock_monitor and lm_events.any():
                     lost = lm_events < 0
                     back = lm_events > 0
@@ -660,7 +669,7 @@ class UltratightEngine:
                 var_pr = CHIP_M ** 2 * (acc_pt / nn) * opt.meas_corr_factor + opt.pr_sigma_floor_m ** 2
                 var_prr = (LAMBDA_L1 / two_pi) ** 2 * (acc_pf / nn) * opt.meas_corr_factor \
                     + opt.prr_sigma_floor_mps ** 2
-                valid = ok & (np.abs(m_a) > opt.amp_min) & present   # (A < 0: locked half a cycle off)
+                valid = ok & (np.abs(m_a) > opt.amp_min) & present & gate_ok   # (A < 0: half a cycle off)
                 pos_e, vel_e, C_el = ins.pos_vel_e()
                 lat, lon, h = ins.llh
                 rm, rn = radii(lat)
