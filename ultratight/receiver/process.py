@@ -183,6 +183,10 @@ def _eph_lookup(ephemerides):
     return lambda prn, week, tow: ephemerides.get(int(prn))
 
 
+def _peak_cn0(metric, coh_ms):
+    return 10.0 * math.log10(max(metric - 1.0, 1e-12) / (coh_ms * 1e-3))
+
+
 def _acquire(source, cfg, start_sample):
     """Cold-start search; each result gets ``peak_cn0_dbhz = 10 log10((metric - 1) / T_coh)``.
 
@@ -224,16 +228,22 @@ def _acquire(source, cfg, start_sample):
         cand = [a.prn for a in res if a.detected]
         if cand:
             ctr = {a.prn: a.doppler_hz for a in res if a.detected}
-            best = None
+            by_prn = {}
             for look in range(looks):
                 r2 = acquire(source, prns=cand, doppler_center_hz=ctr, doppler_range_hz=STAGE2_HZ,
                              coherent_ms=coh, noncoherent=nc, pfa=cfg.acq_pfa,
                              start_sample=start_sample + look * n_blk)
-                best = r2 if best is None else [b2 if b2.metric > b1.metric else b1 for b1, b2 in zip(best, r2)]
-            by_prn = {a.prn: a for a in best}
+                for b in r2:
+                    if b.prn not in by_prn or b.metric > by_prn[b.prn].metric:
+                        by_prn[b.prn] = b
+                # the next look only for candidates still short of the declaration floor
+                cand = [p for p in cand if not (by_prn[p].detected and
+                                                _peak_cn0(by_prn[p].metric, coh) >= cfg.acq_min_cn0_dbhz)]
+                if not cand:
+                    break
             res = [by_prn.get(a.prn, a) for a in res]
     for a in res:
-        a.peak_cn0_dbhz = 10.0 * math.log10(max(a.metric - 1.0, 1e-12) / (coh * 1e-3))
+        a.peak_cn0_dbhz = _peak_cn0(a.metric, coh)
         a.coherent_ms = coh
         a.noncoherent = nc
     return res
