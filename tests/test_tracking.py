@@ -140,7 +140,7 @@ def test_prompt_el_kernel_matches_three_tap_kernel():
     pad = 3
     code = ca_code(9).astype(np.float32)
     code_ext = code[(np.arange(CA_LEN + 2 * pad) - pad) % CA_LEN]
-    p_half, el_half = tk.half_chip_tables(9, pad)
+    tab = tk.half_chip_tables(9, pad)
     for fs, n in ((2.6e6, 2600), (4e6, 4000)):
         x = rng.normal(size=2 * n).astype(np.float32)
         dp = F_CA * (1 + 1234.0 / F_L1) / fs
@@ -150,7 +150,7 @@ def test_prompt_el_kernel_matches_three_tap_kernel():
         a3, a2 = np.zeros(6), np.zeros(6)
         taps = np.array([0, 2 ** 31, -2 ** 31], dtype=np.int64)
         _integrate_channel(x, True, 0, n, code_ext, cp0, cst, ph0, phs, taps, _COS_LUT, _SIN_LUT, a3)
-        tk._integrate_pel(x, True, 0, n, p_half, el_half, cp0, cst, ph0, phs, _COS_LUT, _SIN_LUT, a2)
+        tk._integrate_pel(x, True, 0, n, tab, cp0, cst, ph0, phs, tk._CS_LUT, a2)
         assert a2[0] == pytest.approx(a3[0], rel=1e-5) and a2[3] == pytest.approx(a3[3], rel=1e-5)
         assert a2[1] == pytest.approx(a3[1] - a3[2], rel=1e-4, abs=1e-3)
         assert a2[4] == pytest.approx(a3[4] - a3[5], rel=1e-4, abs=1e-3)

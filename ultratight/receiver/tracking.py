@@ -430,15 +430,15 @@ def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2):
 
 
 @njit(cache=True)
-def _integrate_pel(buf, is_complex, off, n, p_half, el_half, cp_fix0, cstep, ph0, phstep,
-                   cos_lut, sin_lut, acc):
+def _integrate_pel(buf, is_complex, off, n, tab, cp_fix0, cstep, ph0, phstep, lut, acc):
     """Prompt and early-minus-late (1 chip spacing) sums in one pass.
 
     With taps at +-1/2 chip, the prompt chip and the E-L code value are both functions of the
     half-chip index ``h = floor(2 p)`` of the replica phase: ``P = c(h >> 1)``,
-    ``E - L = c((h + 1) >> 1) - c((h - 1) >> 1)``; both come from tables indexed by ``h`` (one
-    index, two loads, four multiply-adds per sample instead of three code look-ups and six).
-    ``acc`` receives [I_P, I_EL, 0, Q_P, Q_EL, 0] (raw sums)."""
+    ``E - L = c((h + 1) >> 1) - c((h - 1) >> 1)``; both come from one interleaved table
+    ``tab[2h], tab[2h+1]`` (one index, four multiply-adds per sample instead of three code look-ups
+    and six).  ``lut`` interleaves the correlator's cos/sin tables.  ``acc`` receives
+    [I_P, I_EL, 0, Q_P, Q_EL, 0] (raw sums)."""
     shift = 32 - LUT_BITS
     mask = LUT_SIZE - 1
     cp = cp_fix0
@@ -459,14 +459,14 @@ def _integrate_pel(buf, is_complex, off, n, p_half, el_half, cp_fix0, cstep, ph0
                 j = 2 * (off + kk)
                 xr = buf[j]
                 xi = buf[j + 1]
-                li = (ph >> shift) & mask
-                c = cos_lut[li]
-                sn = sin_lut[li]
+                li = 2 * ((ph >> shift) & mask)
+                c = lut[li]
+                sn = lut[li + 1]
                 bi = xr * c + xi * sn
                 bq = xi * c - xr * sn
-                h = cp >> 31
-                cP = p_half[h]
-                cD = el_half[h]
+                h = 2 * (cp >> 31)
+                cP = tab[h]
+                cD = tab[h + 1]
                 ip += bi * cP
                 qp += bq * cP
                 idl += bi * cD
@@ -476,12 +476,12 @@ def _integrate_pel(buf, is_complex, off, n, p_half, el_half, cp_fix0, cstep, ph0
         else:
             for kk in range(k, kend):
                 xr = buf[off + kk]
-                li = (ph >> shift) & mask
-                bi = xr * cos_lut[li]
-                bq = -xr * sin_lut[li]
-                h = cp >> 31
-                cP = p_half[h]
-                cD = el_half[h]
+                li = 2 * ((ph >> shift) & mask)
+                bi = xr * lut[li]
+                bq = -xr * lut[li + 1]
+                h = 2 * (cp >> 31)
+                cP = tab[h]
+                cD = tab[h + 1]
                 ip += bi * cP
                 qp += bq * cP
                 idl += bi * cD
@@ -501,16 +501,25 @@ def _integrate_pel(buf, is_complex, off, n, p_half, el_half, cp_fix0, cstep, ph0
     acc[5] = 0.0
 
 
+_CS_LUT = np.empty(2 * LUT_SIZE, dtype=np.float32)
+_CS_LUT[0::2] = _COS_LUT
+_CS_LUT[1::2] = _SIN_LUT
+
+
 def half_chip_tables(prn, pad):
-    """(p_half, el_half) float32 tables over half-chip indices of the padded code (see _integrate_pel)."""
+    """Interleaved [P, E-L] float32 table over half-chip indices of the padded code (see _integrate_pel)."""
     from ultratight.signals.ca_code import ca_code
     code = ca_code(int(prn)).astype(np.float32)
     nh = 2 * (CA_LEN + 2 * pad)
     h = np.arange(nh)
-    chip = lambda i: code[(i - pad) % CA_LEN]           # noqa: E731 - padded chip i (i counts from -pad)
-    p_half = chip(h >> 1)
-    el_half = chip((h + 1) >> 1) - chip((h - 1) >> 1)
-    return p_half.astype(np.float32), el_half.astype(np.float32)
+
+    def chip(i):                      # padded chip i (i counts from -pad)
+        return code[(i - pad) % CA_LEN]
+
+    tab = np.empty(2 * nh, dtype=np.float32)
+    tab[0::2] = chip(h >> 1)
+    tab[1::2] = chip((h + 1) >> 1) - chip((h - 1) >> 1)
+    return tab
 
 
 @njit(cache=True)
@@ -540,8 +549,7 @@ def _track_channel(ch, buf, is_complex, buf_start, n_buf, stop_sample, code_ext,
         ph0 = np.int64(np.floor(frac * 4294967296.0))
         phstep = np.int64(np.floor(carr_freq[ch] / fs * 4294967296.0 + 0.5))
         if prm[P_PEL] > 0.0:
-            _integrate_pel(buf, is_complex, off, n, half_tab[ch, 0], half_tab[ch, 1], cp_fix0, cstep, ph0,
-                           phstep, _COS_LUT, _SIN_LUT, acc)
+            _integrate_pel(buf, is_complex, off, n, half_tab[ch], cp_fix0, cstep, ph0, phstep, _CS_LUT, acc)
         else:
             _integrate_channel(buf, is_complex, off, n, code_ext[ch], cp_fix0, cstep, ph0, phstep,
                                tap_fix, _COS_LUT, _SIN_LUT, acc)
@@ -690,7 +698,7 @@ class ScalarTracker:
         self.is_complex = bool(is_complex)
         self.n_ch = n_ch
         nh = 2 * (CA_LEN + 2 * self.bank._pad)
-        self.half_tab = np.zeros((n_ch, 2, nh), dtype=np.float32)
+        self.half_tab = np.zeros((n_ch, 2 * nh), dtype=np.float32)
 
     @property
     def active(self):
@@ -699,7 +707,7 @@ class ScalarTracker:
     def start_channel(self, ch, prn, code_phase_chips, doppler_hz, sample_index, cn0_dbhz=None):
         """Start (or restart) channel ``ch`` from an acquisition result valid at ``sample_index``."""
         self.bank.init_channel(ch, int(prn), code_phase_chips, doppler_hz, int(sample_index), align=True)
-        self.half_tab[ch, 0], self.half_tab[ch, 1] = half_chip_tables(prn, self.bank._pad)
+        self.half_tab[ch] = half_chip_tables(prn, self.bank._pad)
         self.state.reset_channel(ch, float(doppler_hz), cn0_dbhz)
 
     def stop_channel(self, ch):
