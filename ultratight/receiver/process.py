@@ -471,6 +471,7 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             return
         n_need = int(fs * 1e-3 * 10) + 1
         if now_sample + n_need >= stop:
+            info["next_retry"] = stop          # nothing left to search
             return
         last_d = float(tracker.state.sf[ch, 0])
         res = acquire(source, prns=[info["prn"]], doppler_center_hz=last_d,
