@@ -228,6 +228,9 @@ def test_loss_of_lock_detected():
     t_lost = (ri[-1, RI_PTR] + 2600) / FS
     # C/N0 window 100 ms + smoothing + lost_s 0.5 s after the signal stops at 1.0 s
     assert 1.4 < t_lost < 2.2
+    # the phase-lock flag (which gates observables) drops well before the channel is declared lost
+    after = ri[:, RI_PTR] > 1.6 * FS
+    assert after.any() and not np.any(ri[after, RI_FLAGS] & FL_PLL_LOCK)
 
 
 def test_long_coherent_integration_at_low_cn0():

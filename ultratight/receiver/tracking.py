@@ -84,6 +84,7 @@ REC_I_NAMES = ("sample_index", "n_samples", "epoch", "mode", "flags")
 FL_BIT_DONE, FL_BIT_SYNC, FL_PLL_LOCK, FL_LOOP_UPD = 1, 2, 4, 8
 
 A2, A3, B3 = math.sqrt(2.0), 1.1, 2.4
+PLI_MIN_POWER = 0.1     # LP signal power (A^2 per epoch, ~17 dB-Hz at 1 ms) below which PLI = 0
 CN0_FLOOR_LIN = 1.0     # 0 dB-Hz: reported when the power estimate is at or below the noise
 
 
@@ -271,7 +272,7 @@ def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2):
         mode = MODE_TRACK
     elif mode == MODE_TRACK and sf[ch, F_UNLOCK_T] >= prm[P_UNLOCK_S]:
         mode = MODE_PULL
-    if mode == MODE_TRACK:
+    if mode == MODE_TRACK and (si[ch, S_CN0_VALID] == 0 or sf[ch, F_CN0_DB] >= prm[P_CN0_LOST]):
         flags |= FL_PLL_LOCK
     # --- loss of lock (code): C/N0 too low for too long
     if si[ch, S_CN0_VALID] == 1 and sf[ch, F_CN0_DB] < prm[P_CN0_LOST]:
@@ -373,9 +374,7 @@ def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2):
         sf[ch, F_PLI_N] += a * ((cip * cip - cqp * cqp) / n_acc - sf[ch, F_PLI_N])
         sf[ch, F_PLI_D] += a * ((cip * cip + cqp * cqp) / n_acc - 2.0 - sf[ch, F_PLI_D])
         den = sf[ch, F_PLI_D]
-        if den < 0.05:
-            den = 0.05
-        pli = sf[ch, F_PLI_N] / den
+        pli = sf[ch, F_PLI_N] / den if den > PLI_MIN_POWER else 0.0     # no signal power: no lock
         sf[ch, F_PLI] = pli
         if pli > prm[P_PLI_LOCK]:
             sf[ch, F_LOCK_T] += tc
