@@ -23,13 +23,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ultratight.constants import C, CA_LEN, LAMBDA_L1, T_CA
+from ultratight.constants import C, LAMBDA_L1, T_CA
 from ultratight.errors import ConfigError, InputFileError, UltratightError
 from ultratight.receiver.navdecode import ChannelNav
 from ultratight.receiver.observables import CarrierSmoother, ChannelHistory, observe, pseudorange
 from ultratight.receiver.pvt import solve_pvt
 from ultratight.receiver.tracking import (
-    FL_BIT_DONE, FL_BIT_SYNC, FL_PLL_LOCK, MODE_LOST, MODE_TRACK, N_RF, R_BIT, R_CN0, R_CODE_PHASE, R_DOPP, R_IP,
+    FL_BIT_DONE, FL_BIT_SYNC, FL_PLL_LOCK, MODE_LOST, MODE_TRACK, R_BIT, R_CN0, R_CODE_PHASE, R_DOPP, R_IP,
     REC_F_NAMES, REC_I_NAMES, RI_EPOCH, RI_FLAGS, RI_MODE, RI_PTR, S_MODE, ScalarTracker, TrackingConfig)
 
 RX_T0_OFFSET_S = 0.075       # initial guess of the signal travel time
