@@ -154,7 +154,10 @@ class ProcessResult:
         }
 
 
-TRACK_DTYPE = np.dtype([(n, np.int64) for n in REC_I_NAMES] + [(n, np.float64) for n in REC_F_NAMES])
+_F64_FIELDS = ("code_phase_chips", "code_rate_cps", "carr_acc_cycles", "doppler_hz")
+_SMALL_INT = {"n_samples": np.int32, "mode": np.int8, "flags": np.int8}
+TRACK_DTYPE = np.dtype([(n, _SMALL_INT.get(n, np.int64)) for n in REC_I_NAMES] +
+                       [(n, np.float64 if n in _F64_FIELDS else np.float32) for n in REC_F_NAMES])
 
 
 def tracking_rows(rf, ri):
@@ -414,10 +417,10 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
                 eph = navs[ch].ephemeris
             if eph is None:
                 continue
-            from ultratight.signals.ephemeris import sat_clock
-            dts, _ = sat_clock(eph, ttx[ch])
-            t_gps = ttx[ch] - float(np.ravel(dts)[0])
-            p_, v_, clk, drift = sat_state(eph, t_gps)
+            # state at the satellite-clock time, moved to GPS time t_gps = t_sv - clk (|clk| < 1 ms:
+            # the linear step leaves < 1 um of position error)
+            p_, v_, clk, drift = sat_state(eph, ttx[ch])
+            p_ = p_ - v_ * float(clk[0])
             sp[ch] = p_[0]
             sv[ch] = v_[0]
             prc[ch] = pr[ch] + C * float(clk[0])

@@ -22,6 +22,7 @@ Inputs are already corrected for the satellite clock:
 ``range_rate_mps = -lambda f_D + c d(dt_sat)/dt``.
 """
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -60,6 +61,11 @@ class PvtSolution:
     excluded: list = field(default_factory=list)
     n_iter: int = 0
     message: str = ""
+
+
+@functools.lru_cache(maxsize=256)
+def _chi2_threshold(p_fa, dof):
+    return float(chi2.isf(p_fa, dof))
 
 
 def rotate_sagnac(sat_pos_e, tau_s):
@@ -200,7 +206,7 @@ def solve_pvt(sat_pos_e, pseudorange_m, sat_vel_e=None, range_rate_mps=None, *,
     excluded = []
     stat = float(np.nansum((resid / sigma) ** 2))
     dof = int(mask.sum()) - N_STATE
-    thr = float(chi2.isf(p_fa, dof)) if dof > 0 else float("inf")
+    thr = _chi2_threshold(p_fa, dof) if dof > 0 else float("inf")
     raim_ok = stat <= thr
     if raim and not raim_ok and dof >= 2:
         best = None
@@ -211,7 +217,7 @@ def solve_pvt(sat_pos_e, pseudorange_m, sat_vel_e=None, range_rate_mps=None, *,
             if not ok2:
                 continue
             s2 = float(np.nansum((res2 / sigma) ** 2))
-            t2 = float(chi2.isf(p_fa, dof - 1))
+            t2 = _chi2_threshold(p_fa, dof - 1)
             if s2 <= t2 and (best is None or s2 < best[0]):
                 best = (s2, t2, j, x2, cov2, res2, los2, it2, m2)
         if best is not None:
