@@ -249,3 +249,50 @@ def test_reader_is_streaming_memmap(tmp_path):
 def test_format_table_documented():
     for name in FORMATS:
         assert f"``{name}``" in iffile.__doc__
+
+
+def _mapping_rss_kb(path):
+    """Resident kB of this process's mappings of ``path`` (Linux /proc/self/smaps), or None."""
+    try:
+        lines = open("/proc/self/smaps").read().splitlines()
+    except OSError:
+        return None
+    total, inside = 0, False
+    for ln in lines:
+        parts = ln.split()
+        if parts and "-" in parts[0] and len(parts) >= 5 and not parts[0].endswith(":"):
+            inside = len(parts) >= 6 and parts[-1] == str(path)
+        elif inside and parts[0] == "Rss:":
+            total += int(parts[1])
+    return total
+
+
+@pytest.mark.parametrize("fmt", ["ci8", "i2packed"])
+def test_release_drops_read_pages_and_reads_stay_correct(tmp_path, fmt):
+    rng = np.random.default_rng(5)
+    n = 1 << 20
+    if fmt == "ci8":
+        x = (rng.integers(-100, 100, n) + 1j * rng.integers(-100, 100, n)).astype(np.complex64)
+    else:
+        x = rng.choice(np.array([-3.0, -1.0, 1.0, 3.0], np.float32), n)
+    p = tmp_path / f"rel_{fmt}.bin"
+    write_if(p, x, fmt, 4e6)
+    with open_if(p) as src:
+        assert src.release(0) == 0
+        for s, blk in src.blocks(1 << 16):
+            pass
+        before = _mapping_rss_kb(p.resolve())
+        released = src.release(src.n_samples)
+        nbytes = p.stat().st_size
+        assert nbytes - 4096 < released <= nbytes
+        after = _mapping_rss_kb(p.resolve())
+        if before is not None and before > 0:
+            assert after < 0.1 * before
+        # released samples read back unchanged
+        np.testing.assert_array_equal(src.read(1000, 5000), x[1000:6000])
+        half = src.n_samples // 2
+        got = src.release(half)
+        assert got <= released and got % 4096 == 0
+        np.testing.assert_array_equal(src.read(half - 3, 10), x[half - 3:half + 7])
+    # closed source: nothing to release
+    assert src.release(100) == 0

@@ -527,7 +527,9 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             rf, ri, nr = tracker.run(buf, s, sigma_arm, stop_sample=stop)
             n_blocks_done += 1
             if n_blocks_done % RELEASE_EVERY == 0:
-                _release_pages(source, s - margin)
+                release = getattr(source, "release", None)   # IfSource: keeps RSS flat on long files
+                if release is not None:
+                    release(s - margin)
             for ch in range(n_ch):
                 m = int(nr[ch])
                 if m == 0:
@@ -637,35 +639,6 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             if kml_path:
                 write_kml(kml_path, fixes)
     return result
-
-
-def _release_pages(source, upto_sample):
-    """Drop the already-processed part of a memory-mapped IF file from this process's resident set.
-
-    Pages of a read-only file mapping stay resident (and count in RSS) after they were read, so
-    without this the peak RSS would grow with the file length.  ``madvise(MADV_DONTNEED)`` unmaps
-    them (the page cache keeps them).  Uses the reader's memmap (``IfSource._mm``); a reader
-    without one is left alone."""
-    import mmap as _mmap
-    mm = getattr(source, "_mm", None)
-    raw = getattr(mm, "_mmap", None)
-    if raw is None or not hasattr(raw, "madvise") or not hasattr(_mmap, "MADV_DONTNEED"):
-        return
-    spec = getattr(source, "spec", None)
-    if spec is None:
-        return
-    if getattr(spec, "packed2", False):
-        nbytes = int(upto_sample) // spec.samples_per_byte
-    else:
-        nbytes = int(upto_sample) * spec.bytes_per_sample
-    offset = getattr(mm, "offset", 0) or 0
-    end = (offset + nbytes) // _mmap.PAGESIZE * _mmap.PAGESIZE
-    if end <= 0:
-        return
-    try:
-        raw.madvise(_mmap.MADV_DONTNEED, 0, min(end, len(raw)))
-    except (OSError, ValueError):
-        pass
 
 
 def _spectrum_check(hists, tracker, input_info, min_doppler_hz=800.0):

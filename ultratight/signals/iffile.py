@@ -226,7 +226,8 @@ class IfSource:
 
     Attributes: ``path, fmt, fs_hz, if_hz, is_complex, n_samples, duration_s, start_week,
     start_tow_s, meta`` (the sidecar dict, or ``{}``). ``read`` returns complex64 (complex
-    formats) or float32 (real formats).
+    formats) or float32 (real formats). ``release(upto_sample)`` drops already-read pages from
+    the resident set (call it now and then when streaming through a long file).
     """
 
     def __init__(self, path, fmt, fs_hz, if_hz, iq_conj=False, inversion=False, start_week=None,
@@ -280,6 +281,37 @@ class IfSource:
         if isinstance(mm, np.memmap) and mm._mmap is not None:
             mm._mmap.close()
         self._mm = None
+
+    def release(self, upto_sample):
+        """Drop the mapped pages holding samples ``[0, upto_sample)`` from this process's resident set.
+
+        Pages of a read-only file mapping stay resident (and count in RSS) once read, so a reader
+        streaming through a long file would otherwise grow to the file size. This calls
+        ``madvise(MADV_DONTNEED)`` on the whole pages before ``upto_sample`` (the page cache keeps
+        the data). Later ``read`` calls stay correct, also for released samples (they are read
+        back from the file). Returns the number of bytes released; 0 (and nothing done) when the
+        file is empty or closed, the platform has no ``madvise``, or ``upto_sample <= 0``.
+        """
+        import mmap as _mmap
+
+        raw = getattr(self._mm, "_mmap", None)
+        if raw is None or not hasattr(raw, "madvise") or not hasattr(_mmap, "MADV_DONTNEED"):
+            return 0
+        upto = min(int(upto_sample), self.n_samples)
+        if upto <= 0:
+            return 0
+        spec = self.spec
+        nbytes = upto // spec.samples_per_byte if spec.packed2 else upto * spec.bytes_per_sample
+        # np.memmap maps from the page boundary at or below its offset; here the offset is 0
+        start = int(getattr(self._mm, "offset", 0) or 0)
+        end = min((start + nbytes) // _mmap.PAGESIZE * _mmap.PAGESIZE, len(raw))
+        if end <= 0:
+            return 0
+        try:
+            raw.madvise(_mmap.MADV_DONTNEED, 0, end)
+        except (OSError, ValueError):
+            return 0
+        return end
 
     def __repr__(self):
         return (f"IfSource({str(self.path)!r}, fmt={self.fmt!r}, fs_hz={self.fs_hz}, if_hz={self.if_hz}, "
