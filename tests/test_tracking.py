@@ -135,7 +135,7 @@ def test_discriminators_closed_form():
 
 
 def test_prompt_el_kernel_matches_three_tap_kernel():
-    from ultratight.receiver.correlator import _COS_LUT, _SIN_LUT, _integrate_channel
+    from ultratight.receiver.correlator import COS_LUT, SIN_LUT, integrate_channel
     rng = np.random.default_rng(4)
     pad = 3
     code = ca_code(9).astype(np.float32)
@@ -149,7 +149,7 @@ def test_prompt_el_kernel_matches_three_tap_kernel():
         ph0, phs = np.int64(123456789), np.int64(np.floor(1234.0 / fs * 2 ** 32))
         a3, a2 = np.zeros(6), np.zeros(6)
         taps = np.array([0, 2 ** 31, -2 ** 31], dtype=np.int64)
-        _integrate_channel(x, True, 0, n, code_ext, cp0, cst, ph0, phs, taps, _COS_LUT, _SIN_LUT, a3)
+        integrate_channel(x, True, 0, n, code_ext, cp0, cst, ph0, phs, taps, COS_LUT, SIN_LUT, a3)
         tk._integrate_pel(x, True, 0, n, tab, cp0, cst, ph0, phs, tk._CS_LUT, a2)
         assert a2[0] == pytest.approx(a3[0], rel=1e-5) and a2[3] == pytest.approx(a3[3], rel=1e-5)
         assert a2[1] == pytest.approx(a3[1] - a3[2], rel=1e-4, abs=1e-3)

@@ -52,11 +52,14 @@ Inactive channels report ``n_samples = 0`` and zero outputs.  A channel with an
 invalid NCO state (``code_rate <= 0`` or non-finite phases/frequency) reports
 ``n_samples = -2`` (state unchanged).
 
-Kernel-level API (used by the tracking module for its fused loops; keep stable):
-``_integrate_channel`` (one channel, raw sums), ``_COS_LUT``/``_SIN_LUT``, and the
-bank's padded code table ``_code_ext`` (n_ch, 1023 + 2*_pad) with ``_pad`` chips
-of wrap-around on each side; the fixed-point code phase passed to the kernel is
-``floor((code_phase + _pad) * 2**32)``.
+Kernel-level API (public and stable: the tracking module's fused loops call it):
+:func:`integrate_channel` (one channel, raw sums over ``n`` samples), :func:`period_samples`
+(samples to the end of the current code period), the carrier tables :data:`COS_LUT` /
+:data:`SIN_LUT` (``LUT_SIZE = 2**LUT_BITS`` float32 entries at bin centres, indexed by the top
+``LUT_BITS`` bits of the 32-bit carrier phase), and the bank's padded code table
+:attr:`CorrelatorBank.code_ext` (n_ch, 1023 + 2*pad) with :attr:`CorrelatorBank.pad` chips of
+wrap-around on each side; the fixed-point code phase passed to the kernel is
+``floor((code_phase + pad) * 2**32)``.
 """
 
 import math
@@ -69,7 +72,7 @@ from ultratight.errors import ConfigError
 from ultratight.signals.ca_code import ca_code
 from ultratight.signals.corr_model import noise_sigma_arm as _sigma_arm_from_sigma
 
-LUT_BITS = 14
+LUT_BITS = 14                   # carrier table: 2**LUT_BITS entries, indexed by the top phase bits
 LUT_SIZE = 1 << LUT_BITS
 _PHASE_BITS = 32
 _PHASE_MASK = (1 << _PHASE_BITS) - 1
@@ -94,7 +97,7 @@ def _carrier_lut():
     return np.cos(ang).astype(np.float32), np.sin(ang).astype(np.float32)
 
 
-_COS_LUT, _SIN_LUT = _carrier_lut()
+COS_LUT, SIN_LUT = _carrier_lut()   # cos/sin of 2*pi*(i + 0.5)/LUT_SIZE, float32 (public kernel API)
 
 
 def code_rate_from_doppler(doppler_hz):
@@ -125,11 +128,14 @@ def estimate_sigma_arm(block, is_complex):
 
 
 @njit(cache=True)
-def _integrate_channel(buf, is_complex, off, n, code_ext, cp_fix0, cstep, ph0, phstep,
-                       tap_fix, cos_lut, sin_lut, acc):
+def integrate_channel(buf, is_complex, off, n, code_ext, cp_fix0, cstep, ph0, phstep,
+                      tap_fix, cos_lut, sin_lut, acc):
     """Fused wipe-off + taps for one channel over n samples starting at buffer offset ``off``.
 
     ``buf`` is float32: interleaved I,Q for complex input, plain samples for real.
+    ``code_ext`` is one row of :attr:`CorrelatorBank.code_ext`; ``cp_fix0``/``cstep`` the code
+    phase (``floor((code_phase + pad) * 2**32)``) and its step per sample, ``ph0``/``phstep`` the
+    32-bit carrier phase and step; ``cos_lut``/``sin_lut`` are :data:`COS_LUT`/:data:`SIN_LUT`.
     ``tap_fix[t]`` are the tap offsets in fixed point (code chips * 2**32).
     ``acc`` (2*n_taps,) receives [I_t..., Q_t...] raw sums (float64).
     """
@@ -211,7 +217,7 @@ def _integrate_channel(buf, is_complex, off, n, code_ext, cp_fix0, cstep, ph0, p
 
 
 @njit(cache=True)
-def _period_samples(code_phase, dp):
+def period_samples(code_phase, dp):
     """Samples k >= 0 with code_phase + k*dp < 1023 (at least 1).
 
     A sample within 1e-9 sample of the period end counts as the next period's
@@ -248,7 +254,7 @@ def _step_bank(buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_
                 and np.isfinite(carr_phase[ch])):
             n_samples[ch] = -2
             continue
-        n = _period_samples(code_phase[ch], dp)
+        n = period_samples(code_phase[ch], dp)
         off = sample_ptr[ch] - buf_start
         if off < 0:
             n_samples[ch] = -1
@@ -260,8 +266,8 @@ def _step_bank(buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_
         frac = carr_phase[ch] - np.floor(carr_phase[ch])
         ph0 = np.int64(np.floor(frac * 4294967296.0))
         phstep = np.int64(np.floor(carr_freq[ch] / fs * 4294967296.0 + 0.5))
-        _integrate_channel(buf, is_complex, off, n, code_ext[ch], cp_fix0, cstep, ph0, phstep,
-                           tap_fix, _COS_LUT, _SIN_LUT, acc)
+        integrate_channel(buf, is_complex, off, n, code_ext[ch], cp_fix0, cstep, ph0, phstep,
+                           tap_fix, COS_LUT, SIN_LUT, acc)
         scale = 1.0 / (sigma_arm[ch] * np.sqrt(n))
         for t in range(n_taps):
             if t < 3:
@@ -332,6 +338,10 @@ class CorrelatorBank:
     ``code_phase`` (chips at ``sample_ptr``), ``code_rate`` (chips/s),
     ``carr_phase`` (cycles), ``carr_freq`` (Hz, IF + Doppler), ``sample_ptr``
     (absolute sample index), ``active`` (bool).
+
+    Kernel tables (read-only for callers): ``code_ext`` (n_ch, 1023 + 2*pad) float32 +-1 code of
+    each channel with ``pad`` chips of wrap-around on both sides, ``tap_offsets_chips`` (code
+    offsets of [P, E, L, (VE, VL)]).
     """
 
     def __init__(self, prns, fs_hz, if_hz, is_complex, spacing_chips=1.0, vel_spacing_chips=None):
@@ -369,7 +379,7 @@ class CorrelatorBank:
             taps += [0.5 * vel_spacing_chips, -0.5 * vel_spacing_chips]
         self.tap_offsets_chips = np.array(taps)       # code offsets of [P, E, L, (VE, VL)]
         self.n_cols = 6 if vel_spacing_chips is None else 10
-        self._pad = int(math.ceil(max(abs(t) for t in taps))) + 2
+        self.pad = int(math.ceil(max(abs(t) for t in taps))) + 2
         n_ch = len(prns)
         self.prns = np.array(prns, dtype=np.int64)
         self.code_phase = np.zeros(n_ch)
@@ -378,7 +388,7 @@ class CorrelatorBank:
         self.carr_freq = np.full(n_ch, if_hz)
         self.sample_ptr = np.zeros(n_ch, dtype=np.int64)
         self.active = np.zeros(n_ch, dtype=np.bool_)
-        self._code_ext = np.zeros((n_ch, CA_LEN + 2 * self._pad), dtype=np.float32)
+        self.code_ext = np.zeros((n_ch, CA_LEN + 2 * self.pad), dtype=np.float32)
         for ch, p in enumerate(prns):
             self._set_code(ch, p)
 
@@ -388,8 +398,8 @@ class CorrelatorBank:
 
     def _set_code(self, ch, prn):
         code = ca_code(prn).astype(np.float32)
-        idx = (np.arange(CA_LEN + 2 * self._pad) - self._pad) % CA_LEN
-        self._code_ext[ch] = code[idx]
+        idx = (np.arange(CA_LEN + 2 * self.pad) - self.pad) % CA_LEN
+        self.code_ext[ch] = code[idx]
         self.prns[ch] = prn
 
     def init_channel(self, ch, prn, code_phase_chips, doppler_hz, sample_index, carr_phase_cycles=0.0,
@@ -417,7 +427,7 @@ class CorrelatorBank:
         self.sample_ptr[ch] = int(sample_index)
         self.active[ch] = True
         if align and self.code_phase[ch] > 0.0:
-            n = int(_period_samples(self.code_phase[ch], self.code_rate[ch] / self.fs_hz))
+            n = int(period_samples(self.code_phase[ch], self.code_rate[ch] / self.fs_hz))
             self.advance_to(ch, int(sample_index) + n)
             if CA_LEN - self.code_phase[ch] < 1e-9:     # round-off just below the period start
                 self.code_phase[ch] = 0.0
@@ -446,8 +456,8 @@ class CorrelatorBank:
         self.carr_freq = np.concatenate([self.carr_freq, np.full(k, self.if_hz)])
         self.sample_ptr = np.concatenate([self.sample_ptr, np.zeros(k, dtype=np.int64)])
         self.active = np.concatenate([self.active, np.zeros(k, dtype=np.bool_)])
-        self._code_ext = np.concatenate(
-            [self._code_ext, np.zeros((k, self._code_ext.shape[1]), dtype=np.float32)])
+        self.code_ext = np.concatenate(
+            [self.code_ext, np.zeros((k, self.code_ext.shape[1]), dtype=np.float32)])
         for ch in range(n_old, n_old + k):
             self._set_code(ch, 1)
 
@@ -504,7 +514,7 @@ class CorrelatorBank:
         out = np.zeros((self.n_ch, self.n_cols))
         t_start = np.zeros(self.n_ch, dtype=np.int64)
         n_samples = np.zeros(self.n_ch, dtype=np.int64)
-        _step_bank(b, self.is_complex, int(buf_start), n_buf, self._code_ext, self._pad, self.active,
+        _step_bank(b, self.is_complex, int(buf_start), n_buf, self.code_ext, self.pad, self.active,
                    self.sample_ptr, self.code_phase, self.code_rate, self.carr_phase, self.carr_freq,
                    self.fs_hz, self.tap_offsets_chips, sig, out, t_start, n_samples)
         return out, t_start, n_samples
@@ -522,7 +532,7 @@ class CorrelatorBank:
         out = np.zeros((self.n_ch, max_epochs, self.n_cols))
         t_start = np.zeros((self.n_ch, max_epochs), dtype=np.int64)
         n_samples = np.zeros((self.n_ch, max_epochs), dtype=np.int64)
-        n_done = _run_epochs(b, self.is_complex, int(buf_start), n_buf, self._code_ext, self._pad,
+        n_done = _run_epochs(b, self.is_complex, int(buf_start), n_buf, self.code_ext, self.pad,
                              self.active, self.sample_ptr, self.code_phase, self.code_rate, self.carr_phase,
                              self.carr_freq, self.fs_hz, self.tap_offsets_chips, sig, int(max_epochs),
                              out, t_start, n_samples)

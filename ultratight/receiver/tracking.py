@@ -48,7 +48,8 @@ import numpy as np
 from numba import njit, prange
 
 from ultratight.constants import CA_LEN, F_CA, F_L1, CODE_PER_BIT
-from ultratight.receiver.correlator import LUT_BITS, LUT_SIZE, _COS_LUT, _SIN_LUT, _integrate_channel
+from ultratight.receiver.correlator import (COS_LUT, LUT_BITS, LUT_SIZE, SIN_LUT, integrate_channel,
+                                            period_samples)
 
 # channel modes
 MODE_OFF, MODE_PULL, MODE_TRACK, MODE_LOST = 0, 1, 2, 3
@@ -501,8 +502,8 @@ def _integrate_pel(buf, is_complex, off, n, tab, cp_fix0, cstep, ph0, phstep, lu
 
 
 _CS_LUT = np.empty(2 * LUT_SIZE, dtype=np.float32)
-_CS_LUT[0::2] = _COS_LUT
-_CS_LUT[1::2] = _SIN_LUT
+_CS_LUT[0::2] = COS_LUT
+_CS_LUT[1::2] = SIN_LUT
 
 
 def half_chip_tables(prn, pad):
@@ -536,9 +537,7 @@ def _track_channel(ch, buf, is_complex, buf_start, n_buf, stop_sample, code_ext,
     max_rows = rec_f.shape[1]
     while active[ch] and n_rec[ch] < max_rows:
         dp = code_rate[ch] / fs
-        n = np.int64(np.ceil((CA_LEN - code_phase[ch]) / dp))
-        if n < 1:
-            n = 1
+        n = period_samples(code_phase[ch], dp)
         off = sample_ptr[ch] - buf_start
         if off < 0 or off + n > n_buf or sample_ptr[ch] + n > stop_sample:
             break
@@ -550,8 +549,8 @@ def _track_channel(ch, buf, is_complex, buf_start, n_buf, stop_sample, code_ext,
         if prm[P_PEL] > 0.0:
             _integrate_pel(buf, is_complex, off, n, half_tab[ch], cp_fix0, cstep, ph0, phstep, _CS_LUT, acc)
         else:
-            _integrate_channel(buf, is_complex, off, n, code_ext[ch], cp_fix0, cstep, ph0, phstep,
-                               tap_fix, _COS_LUT, _SIN_LUT, acc)
+            integrate_channel(buf, is_complex, off, n, code_ext[ch], cp_fix0, cstep, ph0, phstep,
+                              tap_fix, COS_LUT, SIN_LUT, acc)
         scale = 1.0 / (sigma_arm[ch] * np.sqrt(n))
         for t in range(3):
             o[t] = acc[t] * scale
@@ -696,7 +695,7 @@ class ScalarTracker:
         self.if_hz = float(if_hz)
         self.is_complex = bool(is_complex)
         self.n_ch = n_ch
-        nh = 2 * (CA_LEN + 2 * self.bank._pad)
+        nh = 2 * (CA_LEN + 2 * self.bank.pad)
         self.half_tab = np.zeros((n_ch, 2 * nh), dtype=np.float32)
 
     @property
@@ -706,7 +705,7 @@ class ScalarTracker:
     def start_channel(self, ch, prn, code_phase_chips, doppler_hz, sample_index, cn0_dbhz=None):
         """Start (or restart) channel ``ch`` from an acquisition result valid at ``sample_index``."""
         self.bank.init_channel(ch, int(prn), code_phase_chips, doppler_hz, int(sample_index), align=True)
-        self.half_tab[ch] = half_chip_tables(prn, self.bank._pad)
+        self.half_tab[ch] = half_chip_tables(prn, self.bank.pad)
         self.state.reset_channel(ch, float(doppler_hz), cn0_dbhz)
 
     def stop_channel(self, ch):
@@ -731,9 +730,9 @@ class ScalarTracker:
         sig = np.broadcast_to(np.asarray(sigma_arm, dtype=float), (self.n_ch,)).copy()
         st.n_rec[:] = 0
         fn = _track_block_par if self.parallel else _track_block
-        fn(raw, self.is_complex, np.int64(buf_start), np.int64(n_buf), stop, b._code_ext,
-                     b._pad, b.active, b.sample_ptr, b.code_phase, b.code_rate, b.carr_phase, b.carr_freq,
-                     self.fs_hz, self.if_hz, b.tap_offsets_chips, sig, st.sf, st.si, st.hist, st.prm,
-                     st.rec_f, st.rec_i, st.n_rec, self.half_tab)
+        fn(raw, self.is_complex, np.int64(buf_start), np.int64(n_buf), stop, b.code_ext,
+           b.pad, b.active, b.sample_ptr, b.code_phase, b.code_rate, b.carr_phase, b.carr_freq,
+           self.fs_hz, self.if_hz, b.tap_offsets_chips, sig, st.sf, st.si, st.hist, st.prm,
+           st.rec_f, st.rec_i, st.n_rec, self.half_tab)
         m = int(st.n_rec.max()) if st.n_rec.size else 0
         return st.rec_f[:, :m].copy(), st.rec_i[:, :m].copy(), st.n_rec.copy()
