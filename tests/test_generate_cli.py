@@ -148,3 +148,48 @@ def test_paper_highdyn_writes_imu_and_trajectory(tmp_path):
     with h5py.File(tmp_path / "ph.truth.h5") as f:
         assert f["code_phase_chips"].shape == (200, 13)
         assert np.all(f["cn0_dbhz"][()] == 20.0)      # the x20 noise event starts at 5 s
+
+
+def test_generate_creates_missing_out_directories(tmp_path):
+    stem = tmp_path / "new" / "deeper" / "run.ci8"
+    rc = main(["generate", "static-open-sky", "--duration", "0.01", "--out", str(stem), "--no-progress"])
+    assert rc == 0
+    assert sorted(p.name for p in stem.parent.iterdir()) == ["run.ci8", "run.ci8.json", "run.truth.h5"]
+    with open_if(stem) as src:
+        assert src.n_samples == 40_000
+    # a path ending in "/" names a directory: files named after the scenario inside it
+    d = tmp_path / "dir_only"
+    rc = main(["generate", "static-open-sky", "--duration", "0.01", "--out", str(d) + "/", "--no-progress"])
+    assert rc == 0
+    assert (d / "static-open-sky.ci8").is_file() and (d / "static-open-sky.truth.h5").is_file()
+
+
+def test_generate_failure_removes_directories_it_created(tmp_path, monkeypatch):
+    import ultratight.signals.generator as g
+
+    def boom(*a):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(g, "_synth_complex", boom)
+    rc = main(["generate", "static-open-sky", "--duration", "0.01", "--out", str(tmp_path / "a" / "b" / "x"),
+               "--no-progress"])
+    assert rc == 130
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_generate_out_parent_is_a_file(tmp_path):
+    (tmp_path / "f").write_text("x")
+    r = _cli("generate", "static-open-sky", "--duration", "0.01", "--out", str(tmp_path / "f" / "run"),
+             "--no-progress")
+    assert r.returncode == 2
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "is not a directory" in lines[0], r.stderr
+
+
+def test_generate_rewrites_existing_stem(tmp_path):
+    out = tmp_path / "r.ci8"
+    for seed in ("1", "2"):
+        assert main(["generate", "static-open-sky", "--duration", "0.01", "--out", str(out), "--seed", seed,
+                     "--no-progress"]) == 0
+    with open_if(out) as src:
+        assert src.meta["generator"]["seed"] == 2

@@ -1,9 +1,10 @@
 """``ultratight generate SCENARIO``: write a sampled-IF file, its sidecar and the truth.
 
-``--out`` is either an existing directory (files are named after the scenario:
-``DIR/<scenario>.<format>``, ``DIR/<scenario>.truth.h5`` ...) or a path stem
-``DIR/STEM`` whose directory exists (``DIR/STEM.<format>``, ``DIR/STEM.truth.h5``; a
-trailing ``.<format>`` extension on STEM is dropped). Default: the current directory.
+``--out`` is either a directory (an existing one, or any path ending in ``/``; files are
+named after the scenario: ``DIR/<scenario>.<format>``, ``DIR/<scenario>.truth.h5`` ...) or a
+path stem ``DIR/STEM`` (``DIR/STEM.<format>``, ``DIR/STEM.truth.h5``; a trailing
+``.<format>`` extension on STEM is dropped). Missing directories are created (and removed
+again if the generation fails before writing anything). Default: the current directory.
 Flags override the scenario's fields; ``--format`` also sets the sampling (real/complex)
 and a matching quantiser width (2-bit formats: 2, float formats: none, 16-bit: 16).
 """
@@ -25,21 +26,50 @@ def add_arguments(p):
 
 
 def _out_location(out, name, fmt_names):
+    """``(directory, stem)`` for ``--out`` (see the module doc); the directory may not exist yet."""
+    import os
     from pathlib import Path
 
-    from ultratight.errors import ConfigError
-
     p = Path(out)
-    if p.is_dir():
+    if p.is_dir() or str(out).endswith((os.sep, "/")):
         return p, name
-    if not p.parent.is_dir():
-        raise ConfigError(f"--out: directory {p.parent} does not exist")
     stem = p.name
     for f in fmt_names:
         if stem.endswith("." + f):
             stem = stem[: -len(f) - 1]
             break
     return p.parent, stem
+
+
+def _make_dirs(d):
+    """Create directory ``d`` and missing parents; returns the ones created (deepest last)."""
+    from pathlib import Path
+
+    from ultratight.errors import ConfigError
+
+    d = Path(d)
+    missing = []
+    q = d
+    while not q.exists():
+        missing.append(q)
+        if q.parent == q:
+            break
+        q = q.parent
+    if q.exists() and not q.is_dir():
+        raise ConfigError(f"--out: {q} is not a directory")
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"--out: cannot create directory {d} ({exc.strerror or exc})") from None
+    return missing[::-1]
+
+
+def _remove_empty_dirs(dirs):
+    for d in reversed(dirs):
+        try:
+            d.rmdir()
+        except OSError:
+            break
 
 
 def format_overrides(fmt):
@@ -79,7 +109,12 @@ def run(args):
 
     from ultratight.signals.generator import generate
 
-    res = generate(cfg, out_dir, stem, seed=cfg["seed"], progress=not args.no_progress)
+    created = _make_dirs(out_dir)
+    try:
+        res = generate(cfg, out_dir, stem, seed=cfg["seed"], progress=not args.no_progress)
+    except BaseException:
+        _remove_empty_dirs(created)     # only directories this run created, and only when empty
+        raise
     summ = res["summary"]
     files = {k: str(v) for k, v in res.items() if k != "summary"}
     if args.json:
