@@ -1,10 +1,30 @@
-"""``ultratight process``: run the scalar receiver on an IF file (acquisition -> tracking -> PVT)."""
+"""``ultratight process``: run the receiver on an IF file.
+
+``--mode scalar`` (default): the scalar receiver (acquisition -> tracking -> LNAV -> PVT).
+``--mode ultratight --imu IMU.h5 [--method M]``: the ultra-tight GPS/INS engine
+(:func:`ultratight.receiver.engine.run_ultratight_on_files`) on the IF file and a recorded IMU
+file (HDF5 or CSV) whose time axis starts at the first IF sample.
+"""
 
 import json
 import math
 import sys
 
-HELP = "run the scalar GPS receiver on an IF file: acquisition, tracking, LNAV decoding, observables, PVT"
+HELP = ("run the GPS receiver on an IF file: scalar (acquisition, tracking, LNAV, PVT) or, with --mode ultratight "
+        "--imu, the ultra-tight GPS/INS engine")
+
+MODES = ("scalar", "ultratight")
+
+
+def _engine_methods():
+    """Ultra-tight methods of the engine (its ``scalar`` entry is this command's scalar mode)."""
+    from ultratight.receiver.engine import METHODS
+    return [m for m in METHODS if m != "scalar"]
+
+
+def _default_method():
+    from ultratight.receiver.engine import DEFAULT_METHOD
+    return DEFAULT_METHOD
 
 
 def _prn_list(text):
@@ -23,6 +43,12 @@ def _prn_list(text):
 
 def add_arguments(p):
     p.add_argument("iffile", metavar="IFFILE", help="IF sample file")
+    p.add_argument("--mode", choices=MODES, default="scalar",
+                   help="scalar receiver (default) or ultratight GPS/INS engine (needs --imu)")
+    p.add_argument("--imu", metavar="IMU", help="IMU file (HDF5 or .csv) for --mode ultratight")
+    methods = _engine_methods()
+    p.add_argument("--method", choices=methods, default=_default_method(),
+                   help=f"ultra-tight method (--mode ultratight): {', '.join(methods)} (default %(default)s)")
     p.add_argument("--meta", metavar="SIDECAR", help="JSON sidecar or ION GNSS SDR metadata XML "
                                                       "(default: IFFILE.json when present)")
     p.add_argument("--fs", type=float, metavar="HZ", help="sampling rate (Hz)")
@@ -82,6 +108,11 @@ def _clean(o):
 
 def run(args):
     from ultratight.errors import ConfigError
+
+    if getattr(args, "mode", "scalar") == "ultratight":
+        return _run_ultratight(args)
+    if getattr(args, "imu", None):
+        raise ConfigError("--imu is only used with --mode ultratight")
     from ultratight.signals.iffile import open_if
     from ultratight.receiver.process import NoSignalError, ProcessConfig, process
     from ultratight.receiver.tracking import TrackingConfig
@@ -134,6 +165,59 @@ def run(args):
         print(json.dumps(summ, default=_jsonable))
     else:
         _print_human(summ)
+    return 0
+
+
+def _run_ultratight(args):
+    """``--mode ultratight``: the engine on IFFILE + IMU; summary on stdout, result HDF5 with --out."""
+    import numpy as np
+
+    from ultratight.errors import ConfigError
+    from ultratight.receiver.engine import run_ultratight_on_files, write_result_h5
+
+    if not args.imu:
+        raise ConfigError("--mode ultratight needs --imu IMU.h5")
+    ignored = [flag for flag, on in (("--fs", args.fs is not None), ("--if", args.if_hz is not None),
+                                     ("--format", args.fmt is not None), ("--iq-conj", args.iq_conj),
+                                     ("--start", args.start != 0.0), ("--csv", args.csv), ("--kml", args.kml))
+               if on]
+    if ignored:
+        raise ConfigError(f"{', '.join(ignored)} not supported with --mode ultratight (the IF parameters come "
+                          "from the sidecar / --meta)")
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise ConfigError(f"--duration must be > 0 s, got {args.duration}")
+    prns = _prn_list(args.prn) if args.prn else None
+    res = run_ultratight_on_files(args.iffile, args.imu, method=args.method, meta=args.meta,
+                                  nav_path=args.ephemeris, prns=prns, duration_s=args.duration)
+    if args.out:
+        write_result_h5(args.out, res)
+    info = res.info or {}
+    mode = np.asarray(res.mode)
+    summ = {
+        "mode": "ultratight",
+        "method": res.method,
+        "prns": [int(p) for p in res.prns],
+        "duration_s": float(res.duration_s),
+        "runtime_s": float(res.runtime_s),
+        "realtime_factor": float(res.duration_s / res.runtime_s) if res.runtime_s > 0 else None,
+        "n_epochs": int(info.get("n_epochs", mode.shape[0])),
+        "n_tight_updates": info.get("n_tight_updates"),
+        "lock_losses": info.get("n_lock_lost_events"),
+        "prefilter_restarts": info.get("n_prefilter_restarts"),
+        "out": args.out,
+    }
+    if args.json:
+        print(json.dumps(_clean(summ), default=_jsonable))
+    else:
+        print(f"ultratight {summ['method']}: PRN {', '.join(str(p) for p in summ['prns'])}")
+        rtf = summ["realtime_factor"]
+        print(f"signal {summ['duration_s']:.2f} s in {summ['runtime_s']:.2f} s "
+              f"(real-time factor {rtf:.3g})" if rtf is not None else
+              f"signal {summ['duration_s']:.2f} s")
+        print(f"tight updates: {summ['n_tight_updates']}, lock losses: {summ['lock_losses']}, "
+              f"prefilter restarts: {summ['prefilter_restarts']}")
+        if args.out:
+            print(f"output: {args.out}")
     return 0
 
 

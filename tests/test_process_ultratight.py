@@ -1,0 +1,111 @@
+"""`ultratight process --mode ultratight`: the engine on a generated IF file + IMU file from the CLI."""
+
+import json
+import subprocess
+import sys
+
+import h5py
+import numpy as np
+import pytest
+
+from ultratight.receiver.cli import main
+
+FS_HZ = 2.046e6       # 2 samples per chip: the lowest rate the correlators take comfortably
+DURATION_S = 3.0
+
+
+def _cli(*args):
+    return subprocess.run([sys.executable, "-m", "ultratight.receiver.cli", *args], capture_output=True,
+                          text=True)
+
+
+def _one_line_error(r):
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert r.returncode == 2, r.stderr
+    assert len(lines) == 1, r.stderr
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def cut(tmp_path_factory):
+    d = tmp_path_factory.mktemp("ph")
+    rc = main(["generate", "paper-highdyn", "--duration", str(DURATION_S), "--fs", str(FS_HZ),
+               "--out", str(d / "ph"), "--no-progress"])
+    assert rc == 0
+    paths = {"if": d / "ph.ci8", "imu": d / "ph.imu.h5", "traj": d / "ph.traj.h5", "truth": d / "ph.truth.h5"}
+    for p in paths.values():
+        assert p.is_file(), p
+    return paths
+
+
+def test_ultratight_mode_json_and_output_against_truth(cut, tmp_path, capsys):
+    out = tmp_path / "res.h5"
+    rc = main(["process", str(cut["if"]), "--mode", "ultratight", "--imu", str(cut["imu"]), "--json",
+               "--out", str(out)])
+    assert rc == 0
+    summ = json.loads(capsys.readouterr().out)
+    side = json.loads((cut["if"].parent / "ph.ci8.json").read_text())
+    assert summ["mode"] == "ultratight" and summ["method"] == "dlb-rackf"     # the default method
+    assert summ["prns"] == side["prn"] and len(summ["prns"]) == 13
+    assert summ["duration_s"] == pytest.approx(DURATION_S, abs=2e-3)
+    assert summ["n_epochs"] == pytest.approx(1000 * DURATION_S, abs=2)
+    assert summ["runtime_s"] > 0
+    assert summ["realtime_factor"] == pytest.approx(summ["duration_s"] / summ["runtime_s"])
+    assert summ["lock_losses"] == 0           # 20 dB-Hz, no noise event in the first 3 s
+    assert summ["n_tight_updates"] >= 20
+    assert summ["out"] == str(out)
+    # the result file: navigation solution against the generator's trajectory truth
+    with h5py.File(out) as f, h5py.File(cut["traj"]) as g, h5py.File(cut["truth"]) as tr:
+        assert f.attrs["method"] == "dlb-rackf"
+        assert list(f.attrs["prn"]) == summ["prns"]
+        t = f["nav_t_s"][()]
+        assert t.size >= summ["n_tight_updates"] and np.allclose(np.diff(t), t[1] - t[0])
+        tt = g["t"][()]
+        pos = np.stack([np.interp(t, tt, g["pos_e"][:, i]) for i in range(3)], axis=1)
+        vel = np.stack([np.interp(t, tt, g["vel_e"][:, i]) for i in range(3)], axis=1)
+        assert np.max(np.linalg.norm(f["nav_pos_e"][()] - pos, axis=1)) < 10.0
+        assert np.max(np.linalg.norm(f["nav_vel_e"][()] - vel, axis=1)) < 0.5
+        # per-channel Doppler estimate against the logged truth (1 ms truth grid, epoch mid-points)
+        t_mid = f["t_start_s"][()] + 0.5e-3
+        d_est = f["doppler_hz"][()]
+        d_true = np.stack([np.interp(t_mid[:, c], tr["t_s"][()], tr["doppler_hz"][:, c])
+                           for c in range(d_est.shape[1])], axis=1)
+        late = t_mid[:, 0] > 1.0
+        assert np.sqrt(np.mean((d_est[late] - d_true[late]) ** 2)) < 5.0
+
+
+def test_ultratight_human_summary_other_method(cut, capsys):
+    rc = main(["process", str(cut["if"]), "--mode", "ultratight", "--imu", str(cut["imu"]), "--method",
+               "dlb-ckf", "--duration", "1", "--prn", "31,20,18,28,21,15"])
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert out.startswith("ultratight dlb-ckf: PRN 31, 20, 18, 28, 21, 15\n")
+    assert "signal 1.00 s in " in out and "lock losses: 0" in out
+
+
+def test_ultratight_needs_imu(cut):
+    msg = _one_line_error(_cli("process", str(cut["if"]), "--mode", "ultratight"))
+    assert "--mode ultratight needs --imu IMU.h5" in msg
+
+
+def test_ultratight_rejects_unknown_method(cut):
+    r = _cli("process", str(cut["if"]), "--mode", "ultratight", "--imu", str(cut["imu"]), "--method", "ekf")
+    assert r.returncode == 2 and "invalid choice: 'ekf'" in r.stderr
+
+
+def test_imu_given_without_ultratight_mode(cut):
+    msg = _one_line_error(_cli("process", str(cut["if"]), "--imu", str(cut["imu"])))
+    assert "--imu is only used with --mode ultratight" in msg
+
+
+def test_ultratight_out_of_order_imu_stamp(cut, tmp_path):
+    from ultratight.ins.imu import read_imu_h5, write_imu_h5
+    imu = read_imu_h5(cut["imu"])
+    k = 57
+    imu.t = imu.t.copy()
+    imu.t[k], imu.t[k + 1] = imu.t[k + 1], imu.t[k]
+    bad = tmp_path / "bad.imu.h5"
+    write_imu_h5(bad, imu)
+    msg = _one_line_error(_cli("process", str(cut["if"]), "--mode", "ultratight", "--imu", str(bad)))
+    assert str(bad) in msg and "out-of-order" in msg
+    assert f"sample {k + 1}:" in msg          # the first stamp not after its predecessor
