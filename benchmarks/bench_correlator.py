@@ -1,6 +1,6 @@
 """Correlator-bank throughput against a minimal numba early/prompt/late kernel (same run, same data).
 
-    python benchmarks/bench_correlator.py [--seconds 1.0] [--channels 1 8] [--repeat 5]
+    python benchmarks/bench_correlator.py [--quick] [--json OUT.json] [--seconds 1.0] [--channels 1 8] [--repeat 5]
 
 Reports M samples/s per channel (channel-samples per second) for the bank (complex and real input)
 and for the minimal kernel, and their ratio.  The minimal kernel is the reference of
@@ -8,11 +8,10 @@ and for the minimal kernel, and their ratio.  The minimal kernel is the referenc
 one channel, complex input, E/P/L in one loop into a 4096-entry cos/sin table, no normalisation or
 NCO bookkeeping, in two flavours (float64 phases with floor, and integer phase accumulators); the
 ratio is taken to the faster of the two.  Timings are best-of-``--repeat`` (the machine is shared).
+``--quick``: 0.25 s of samples, best of 2.
 """
 
 import argparse
-import os
-import platform
 import time
 
 import numpy as np
@@ -21,6 +20,8 @@ from numba import njit
 from ultratight.constants import CA_LEN
 from ultratight.receiver.correlator import CorrelatorBank
 from ultratight.signals.ca_code import ca_code
+
+from _common import add_common_args, finish
 
 LUT = 4096
 
@@ -84,17 +85,6 @@ def minimal_epochs_float(x, n_ep, n, code_ext, dcp, dph, cos_t, sin_t, out):
 def minimal_epochs_int(x, n_ep, n, code_ext, cp0, dcp, ph0, dph, cos_t, sin_t, half, out):
     for e in range(n_ep):
         minimal_epl_int(x[2 * e * n:], n, code_ext, cp0, dcp, ph0, dph, cos_t, sin_t, half, out)
-
-
-def cpu_name():
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def minimal_runner(x, fs):
@@ -165,32 +155,39 @@ def best_rates(runners, repeat):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seconds", type=float, default=1.0)
+    add_common_args(ap)
+    ap.add_argument("--seconds", type=float, default=None, help="seconds of samples (default 1; 0.25 with --quick)")
     ap.add_argument("--fs", type=float, default=4.0e6)
     ap.add_argument("--channels", type=int, nargs="+", default=[1, 8])
-    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--repeat", type=int, default=None, help="best of N (default 5; 2 with --quick)")
     a = ap.parse_args()
+    seconds = a.seconds or (0.25 if a.quick else 1.0)
+    repeat = a.repeat or (2 if a.quick else 5)
     rng = np.random.default_rng(0)
-    n = int(a.fs * a.seconds)
+    n = int(a.fs * seconds)
     xc = (rng.standard_normal(n) + 1j * rng.standard_normal(n)).astype(np.complex64)
     xr = rng.standard_normal(n).astype(np.float32)
-    print(f"CPU: {cpu_name()} x {os.cpu_count()}  (numba single thread; fs = {a.fs / 1e6:.3f} MHz, "
-          f"{a.seconds} s of samples; load average {os.getloadavg()[0]:.2f})")
+    print(f"numba single thread; fs = {a.fs / 1e6:.3f} MHz, {seconds} s of samples, best of {repeat}")
     runners = {}
     runners["min_float"], runners["min_int"] = minimal_runner(xc, a.fs)
     for n_ch in a.channels:
         for cplx, x in ((True, xc), (False, xr)):
             key = f"{n_ch:2d} ch {'complex' if cplx else 'real   '}"
             runners[key + " run_epochs"], runners[key + " step loop "] = bank_runners(x, a.fs, cplx, n_ch)
-    rates = best_rates(runners, a.repeat)
+    rates = best_rates(runners, repeat)
     ref = max(rates["min_float"], rates["min_int"])
     print(f"minimal numba E/P/L kernel (complex), float phases -> LUT:   {rates['min_float']:8.1f} M samples/s")
     print(f"minimal numba E/P/L kernel (complex), integer accumulators: {rates['min_int']:8.1f} M samples/s")
-    print(f"(ratios are to the faster minimal kernel; bank rates are channel-samples/s per core)")
+    print("(ratios are to the faster minimal kernel; bank rates are channel-samples/s per core)")
+    bank = {}
     for k, v in rates.items():
         if k.startswith("min_"):
             continue
         print(f"CorrelatorBank {k}: {v:8.1f} M samples/s   ratio {v / ref:5.2f}")
+        bank[" ".join(k.split())] = {"msamples_per_s": v, "ratio_to_minimal": v / ref}
+    finish(a, {"fs_hz": a.fs, "seconds": seconds, "repeat": repeat, "channels": a.channels,
+               "minimal_float_msamples_per_s": rates["min_float"], "minimal_int_msamples_per_s": rates["min_int"],
+               "reference_msamples_per_s": ref, "bank": bank})
 
 
 if __name__ == "__main__":

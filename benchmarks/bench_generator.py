@@ -14,34 +14,19 @@ Figures:
 """
 
 import argparse
-import json
 import os
-import platform
 import tempfile
 import time
 
 import numpy as np
 
-
-def machine():
-    cpu = platform.processor()
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "platform": platform.platform(),
-            "python": platform.python_version(), "load_avg_1m": os.getloadavg()[0]}
+from _common import add_common_args, finish
 
 
 def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--json", default=None)
-    ap.add_argument("--duration", type=float, default=None)
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_common_args(ap)
+    ap.add_argument("--duration", type=float, default=None, help="end-to-end seconds (default 60; 5 with --quick)")
     args = ap.parse_args()
     duration = args.duration or (5.0 if args.quick else 60.0)
 
@@ -102,7 +87,6 @@ def main():
         size = os.path.getsize(res["if"])
     n_samp = int(round(duration * fs))
     out = {
-        "machine": machine(),
         "satellites": nsat, "fs_hz": fs, "format": cfg["frontend"]["format"],
         "kernel_msat_per_s": kernel_rate,
         "kernel_msat_per_cpu_s": n_ss / c_ker / 1e6,
@@ -116,11 +100,14 @@ def main():
         "end_to_end_realtime_factor": t_e2e / duration,
         "if_file_bytes": size,
     }
-    print(json.dumps(out, indent=1))
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(out, f, indent=1)
-
+    sp = out["split_per_signal_second_s"]
+    print(f"paper-highdyn, {nsat} satellites, {fs / 1e6:g} MHz {out['format']}")
+    print(f"synthesis kernel: {kernel_rate:.1f} M satellite-samples/s ({out['kernel_msat_per_cpu_s']:.1f} per CPU s)")
+    print(f"1 s of signal: geometry {sp['geometry']:.2f} s, kernel {sp['kernel']:.2f} s, noise {sp['noise']:.2f} s, "
+          f"quantise+pack {sp['quantise_pack']:.2f} s")
+    print(f"generate() {duration:g} s: {t_e2e:.1f} s wall, {cpu_e2e:.1f} s CPU, real-time factor "
+          f"{out['end_to_end_realtime_factor']:.2f}, {out['end_to_end_msat_per_s']:.1f} M satellite-samples/s")
+    finish(args, out)
 
 if __name__ == "__main__":
     main()

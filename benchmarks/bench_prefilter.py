@@ -18,31 +18,16 @@ clock figure for comparison.
 """
 
 import argparse
-import json
-import os
-import platform
 import time
 
 import numpy as np
+
+from _common import add_common_args, finish
 
 # CPU time of this thread: robust to other processes competing for the 2 cores (wall time
 # is reported separately as *_wall).
 _clock = time.thread_time
 _wall = time.perf_counter
-
-
-def machine():
-    cpu = platform.processor()
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "platform": platform.platform(),
-            "python": platform.python_version(), "load_avg_1m": os.getloadavg()[0]}
 
 
 def _measurements(n_ch, n_ep, seed=1):
@@ -143,16 +128,15 @@ def bench_innerloop(n_ch, reps, n_ep=2000):
 
 
 def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--json", default=None)
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_common_args(ap)
     ap.add_argument("--n-ch", type=int, default=12)
     ap.add_argument("--epochs", type=int, default=None)
     args = ap.parse_args()
     n_ep = args.epochs or (1000 if args.quick else 5000)
     reps = 3 if args.quick else 5
     Z, bits = _measurements(args.n_ch, n_ep)
-    res = {"machine": machine(), "n_ch": args.n_ch, "epochs": n_ep}
+    res = {"n_ch": args.n_ch, "epochs": n_ep}
     for kind in ("ckf", "ukf", "rackf"):
         res[kind] = bench_kind(kind, Z, bits, reps)
     res["rackf_over_ukf"] = res["rackf"]["kernel_us_per_epoch"] / res["ukf"]["kernel_us_per_epoch"]
@@ -170,12 +154,7 @@ def main():
         print(f"pbkf   step() {res['pbkf']['step_us_per_epoch']:7.2f} us/epoch")
     print(f"RACKF/UKF = {res['rackf_over_ukf']:.2f}, RACKF/CKF = {res['rackf_over_ckf']:.2f}; "
           f"inner loop {res['innerloop_us_per_epoch']:.2f} us/epoch ({args.n_ch} channels)")
-    if args.json:
-        tmp = args.json + ".tmp"
-        with open(tmp, "w") as fh:
-            json.dump(res, fh, indent=2)
-        os.replace(tmp, args.json)
-
+    finish(args, res)
 
 if __name__ == "__main__":
     main()

@@ -3,7 +3,7 @@
     python benchmarks/bench_process.py [--quick] [--json OUT.json] [--duration S] [--fs HZ] [--workdir DIR]
 
 Generates (once, cached in ``--workdir``) a static-open-sky file of ``--duration`` seconds
-(60 s; 10 s with ``--quick``) of complex int8 I/Q at ``--fs`` (2.6 MHz by default; the scenario's
+(60 s; 20 s with ``--quick``, enough for a first fix) of complex int8 I/Q at ``--fs`` (2.6 MHz by default; the scenario's
 native 4 MHz with ``--fs 4e6``), then runs the receiver with 8 channels in fresh subprocesses:
 
 * ``realtime_factor``: wall time / signal time of the full run (acquisition, numba cache load,
@@ -19,12 +19,13 @@ native 4 MHz with ``--fs 4e6``), then runs the receiver with 8 channels in fresh
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+from _common import add_common_args, finish
 
 CHILD = r"""
 import json, resource, sys, time
@@ -50,20 +51,6 @@ print(json.dumps(d))
 """
 
 
-def machine():
-    cpu = platform.processor()
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "platform": platform.platform(),
-            "python": platform.python_version(), "load_avg_1m": os.getloadavg()[0]}
-
-
 def ensure_file(workdir, duration, fs):
     stem = Path(workdir) / f"static-open-sky-{int(duration)}s-{fs / 1e6:g}MHz"
     meta = Path(str(stem) + ".ci8.json")
@@ -81,14 +68,13 @@ def run_child(path, truth, duration, out):
 
 
 def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--json", default=None)
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_common_args(ap)
     ap.add_argument("--duration", type=float, default=None)
     ap.add_argument("--fs", type=float, default=2.6e6)
     ap.add_argument("--workdir", default=os.path.join(tempfile.gettempdir(), "ultratight-bench-process"))
     args = ap.parse_args()
-    duration = args.duration or (10.0 if args.quick else 60.0)
+    duration = args.duration or (20.0 if args.quick else 60.0)
     os.makedirs(args.workdir, exist_ok=True)
     t0 = time.perf_counter()
     path, truth = ensure_file(args.workdir, duration, args.fs)
@@ -99,7 +85,6 @@ def main():
     full = run_child(path, truth, duration, out)
     short = run_child(path, truth, min(10.0, duration), out)
     rep = {
-        "machine": machine(),
         "fs_hz": args.fs, "format": "ci8", "channels": 8, "duration_s": duration,
         "generate_s": round(t_gen, 2),
         "realtime_factor": round(full["realtime_factor"], 4),
@@ -114,12 +99,17 @@ def main():
         "maxrss_ratio": round(full["maxrss_mb"] / short["maxrss_mb"], 3),
         "realtime_factor_10s": round(short["realtime_factor"], 4),
     }
-    txt = json.dumps(rep, indent=1)
-    print(txt)
-    if args.json:
-        with open(args.json, "w") as f:
-            f.write(txt)
-
+    print(f"ultratight process, static-open-sky {duration:g} s, {args.fs / 1e6:g} MHz ci8, 8 channels "
+          f"(fresh process each run)")
+    print(f"real-time factor {rep['realtime_factor']:.3f} (CPU {rep['cpu_realtime_factor']:.3f}; goal <= 0.1); "
+          f"10 s cut {rep['realtime_factor_10s']:.3f}")
+    def g3(v):
+        return "n/a" if v is None else f"{v:.3g}"
+    print(f"fixes {rep['fixes']}, first fix {rep['first_fix_s']} s, tracked {rep['tracked']}, "
+          f"position RMS {g3(rep['pos_err_rms_m'])} m, velocity RMS {g3(rep['vel_err_rms_mps'])} m/s")
+    print(f"peak RSS: 10 s {rep['maxrss_10s_mb']} MB, {int(duration)} s {rep[f'maxrss_{int(duration)}s_mb']} MB "
+          f"(ratio {rep['maxrss_ratio']})")
+    finish(args, rep)
 
 if __name__ == "__main__":
     main()

@@ -22,6 +22,8 @@ import time
 
 import numpy as np
 
+from _common import add_common_args, finish
+
 
 def best(fn, repeat):
     ts = []
@@ -190,22 +192,18 @@ def accuracy():
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true")
+    add_common_args(ap)
     ap.add_argument("--no-accuracy", action="store_true")
     ap.add_argument("--repeat", type=int, default=5)
-    ap.add_argument("--json", default=None)
     args = ap.parse_args()
     out = {"speed": speed(args.quick, args.repeat)}
     if not (args.no_accuracy or args.quick):
         out["accuracy"] = accuracy()
-    text = json.dumps(out, indent=2)
-    print(text)
-    if args.json:
-        with open(args.json + ".tmp", "w") as fh:
-            fh.write(text)
-        import os
-        os.replace(args.json + ".tmp", args.json)
-
+    for k, v in out["speed"].items():
+        print(f"{k:40s} {v:12.4g}" if isinstance(v, (int, float)) else f"{k:40s} {v}")
+    if "accuracy" in out:
+        print(json.dumps(out["accuracy"], indent=2))
+    finish(args, out)
 
 if __name__ == "__main__":
     main()
