@@ -54,7 +54,8 @@ invalid NCO state (``code_rate <= 0`` or non-finite phases/frequency) reports
 
 Kernel-level API (public and stable: the tracking module's fused loops call it):
 :func:`integrate_channel` (one channel, raw sums over ``n`` samples), :func:`period_samples`
-(samples to the end of the current code period), the carrier tables :data:`COS_LUT` /
+(samples to the end of the current code period), :func:`nco_fixed_point` /
+:func:`tap_fixed_point` (the kernel's fixed-point start values and tap offsets), the carrier tables :data:`COS_LUT` /
 :data:`SIN_LUT` (``LUT_SIZE = 2**LUT_BITS`` float32 entries at bin centres, indexed by the top
 ``LUT_BITS`` bits of the 32-bit carrier phase), and the bank's padded code table
 :attr:`CorrelatorBank.code_ext` (n_ch, 1023 + 2*pad) with :attr:`CorrelatorBank.pad` chips of
@@ -231,15 +232,35 @@ def period_samples(code_phase, dp):
 
 
 @njit(cache=True)
+def tap_fixed_point(tap_off):
+    """Tap offsets (chips, float64 array) in the kernel's 32.32 fixed point (int64 array)."""
+    tap_fix = np.empty(tap_off.shape[0], dtype=np.int64)
+    for t in range(tap_off.shape[0]):
+        tap_fix[t] = np.int64(np.floor(tap_off[t] * _CODE_ONE))
+    return tap_fix
+
+
+@njit(cache=True)
+def nco_fixed_point(code_phase, pad, dp, carr_phase, carr_freq, fs):
+    """Kernel start values ``(cp_fix0, cstep, ph0, phstep)`` of :func:`integrate_channel` for a channel
+    whose code phase (chips) is ``code_phase`` with ``dp`` chips per sample, in a code table padded
+    by ``pad`` chips, and whose carrier is at ``carr_phase`` cycles and ``carr_freq`` Hz (fs in Hz)."""
+    cp_fix0 = np.int64(np.floor((code_phase + pad) * _CODE_ONE))
+    cstep = np.int64(np.floor(dp * _CODE_ONE + 0.5))
+    frac = carr_phase - np.floor(carr_phase)
+    ph0 = np.int64(np.floor(frac * _CARR_ONE))
+    phstep = np.int64(np.floor(carr_freq / fs * _CARR_ONE + 0.5))
+    return cp_fix0, cstep, ph0, phstep
+
+
+@njit(cache=True)
 def _step_bank(buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_ptr,
                code_phase, code_rate, carr_phase, carr_freq, fs, tap_off, sigma_arm,
                out, t_start, n_samples):
     """One code period for every active channel (see module docstring)."""
     n_ch = code_phase.shape[0]
     n_taps = tap_off.shape[0]
-    tap_fix = np.empty(n_taps, dtype=np.int64)
-    for t in range(n_taps):
-        tap_fix[t] = np.int64(np.floor(tap_off[t] * 4294967296.0))
+    tap_fix = tap_fixed_point(tap_off)
     acc = np.zeros(2 * n_taps)
     # column of I and Q of tap t: taps 0..2 -> [I_P,I_E,I_L,Q_P,Q_E,Q_L]; 3,4 -> 6..9
     for ch in range(n_ch):
@@ -261,11 +282,7 @@ def _step_bank(buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_
             continue
         if off + n > n_buf:
             continue
-        cp_fix0 = np.int64(np.floor((code_phase[ch] + pad) * 4294967296.0))
-        cstep = np.int64(np.floor(dp * 4294967296.0 + 0.5))
-        frac = carr_phase[ch] - np.floor(carr_phase[ch])
-        ph0 = np.int64(np.floor(frac * 4294967296.0))
-        phstep = np.int64(np.floor(carr_freq[ch] / fs * 4294967296.0 + 0.5))
+        cp_fix0, cstep, ph0, phstep = nco_fixed_point(code_phase[ch], pad, dp, carr_phase[ch], carr_freq[ch], fs)
         integrate_channel(buf, is_complex, off, n, code_ext[ch], cp_fix0, cstep, ph0, phstep,
                            tap_fix, COS_LUT, SIN_LUT, acc)
         scale = 1.0 / (sigma_arm[ch] * np.sqrt(n))

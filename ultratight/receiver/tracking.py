@@ -49,7 +49,7 @@ from numba import njit, prange
 
 from ultratight.constants import CA_LEN, F_CA, F_L1, CODE_PER_BIT
 from ultratight.receiver.correlator import (COS_LUT, LUT_BITS, LUT_SIZE, SIN_LUT, integrate_channel,
-                                            period_samples)
+                                            nco_fixed_point, period_samples, tap_fixed_point)
 
 # channel modes
 MODE_OFF, MODE_PULL, MODE_TRACK, MODE_LOST = 0, 1, 2, 3
@@ -528,9 +528,7 @@ def _track_channel(ch, buf, is_complex, buf_start, n_buf, stop_sample, code_ext,
                    sf, si, hist, prm, rec_f, rec_i, n_rec, half_tab):
     """Closed-loop tracking of channel ``ch`` through the buffer (see :func:`_track_block`)."""
     n_taps = tap_off.shape[0]
-    tap_fix = np.empty(n_taps, dtype=np.int64)
-    for t in range(n_taps):
-        tap_fix[t] = np.int64(np.floor(tap_off[t] * 4294967296.0))
+    tap_fix = tap_fixed_point(tap_off)
     acc = np.zeros(2 * n_taps)
     o = np.zeros(6)
     tmp2 = np.zeros(2)
@@ -541,11 +539,7 @@ def _track_channel(ch, buf, is_complex, buf_start, n_buf, stop_sample, code_ext,
         off = sample_ptr[ch] - buf_start
         if off < 0 or off + n > n_buf or sample_ptr[ch] + n > stop_sample:
             break
-        cp_fix0 = np.int64(np.floor((code_phase[ch] + pad) * 4294967296.0))
-        cstep = np.int64(np.floor(dp * 4294967296.0 + 0.5))
-        frac = carr_phase[ch] - np.floor(carr_phase[ch])
-        ph0 = np.int64(np.floor(frac * 4294967296.0))
-        phstep = np.int64(np.floor(carr_freq[ch] / fs * 4294967296.0 + 0.5))
+        cp_fix0, cstep, ph0, phstep = nco_fixed_point(code_phase[ch], pad, dp, carr_phase[ch], carr_freq[ch], fs)
         if prm[P_PEL] > 0.0:
             _integrate_pel(buf, is_complex, off, n, half_tab[ch], cp_fix0, cstep, ph0, phstep, _CS_LUT, acc)
         else:
