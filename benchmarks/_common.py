@@ -10,7 +10,6 @@ on ``sys.path``).
 """
 
 import json
-import math
 import os
 from pathlib import Path
 
@@ -57,22 +56,13 @@ def _default(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
-def _finite(o):
-    """NaN/inf -> None (strict JSON)."""
-    if isinstance(o, float) and not math.isfinite(o):
-        return None
-    if isinstance(o, dict):
-        return {k: _finite(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_finite(v) for v in o]
-    return o
-
-
 def write_json(path, obj):
     """Write ``obj`` as JSON to ``path`` (temporary name, then rename)."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    text = json.dumps(_finite(json.loads(json.dumps(obj, default=_default))), indent=1)
+    # NaN / inf -> null (strict JSON), numpy scalars and arrays -> Python
+    plain = json.loads(json.dumps(obj, default=_default), parse_constant=lambda _c: None)
+    text = json.dumps(plain, indent=1)
     tmp.write_text(text)
     os.replace(tmp, path)
 
