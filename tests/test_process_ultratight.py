@@ -109,3 +109,13 @@ def test_ultratight_out_of_order_imu_stamp(cut, tmp_path):
     msg = _one_line_error(_cli("process", str(cut["if"]), "--mode", "ultratight", "--imu", str(bad)))
     assert str(bad) in msg and "out-of-order" in msg
     assert f"sample {k + 1}:" in msg          # the first stamp not after its predecessor
+
+
+def test_parser_does_not_import_the_engine():
+    # subcommands' add_arguments must stay cheap: the method choices are resolved lazily
+    code = ("import sys; from ultratight.receiver.cli import build_parser; "
+            "a = build_parser().parse_args(['process', 'x.bin', '--mode', 'ultratight']); "
+            "print(a.method, 'ultratight.receiver.engine' in sys.modules)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == ["None", "False"]

@@ -16,15 +16,20 @@ HELP = ("run the GPS receiver on an IF file: scalar (acquisition, tracking, LNAV
 MODES = ("scalar", "ultratight")
 
 
-def _engine_methods():
-    """Ultra-tight methods of the engine (its ``scalar`` entry is this command's scalar mode)."""
-    from ultratight.receiver.engine import METHODS
-    return [m for m in METHODS if m != "scalar"]
+class _EngineMethods:
+    """The engine's ultra-tight methods (its ``METHODS`` minus ``scalar``, which is this command's
+    scalar mode) as argparse ``choices``, imported only when argparse needs them (a given --method,
+    --help), so that building the CLI parser stays cheap."""
 
+    def _methods(self):
+        from ultratight.receiver.engine import METHODS
+        return [m for m in METHODS if m != "scalar"]
 
-def _default_method():
-    from ultratight.receiver.engine import DEFAULT_METHOD
-    return DEFAULT_METHOD
+    def __iter__(self):
+        return iter(self._methods())
+
+    def __contains__(self, item):
+        return item in self._methods()
 
 
 def _prn_list(text):
@@ -46,9 +51,9 @@ def add_arguments(p):
     p.add_argument("--mode", choices=MODES, default="scalar",
                    help="scalar receiver (default) or ultratight GPS/INS engine (needs --imu)")
     p.add_argument("--imu", metavar="IMU", help="IMU file (HDF5 or .csv) for --mode ultratight")
-    methods = _engine_methods()
-    p.add_argument("--method", choices=methods, default=_default_method(),
-                   help=f"ultra-tight method (--mode ultratight): {', '.join(methods)} (default %(default)s)")
+    p.add_argument("--method", choices=_EngineMethods(), default=None, metavar="METHOD",
+                   help="ultra-tight method (--mode ultratight): %(choices)s (default: the engine's DEFAULT_METHOD, "
+                        "dlb-rackf)")
     p.add_argument("--meta", metavar="SIDECAR", help="JSON sidecar or ION GNSS SDR metadata XML "
                                                       "(default: IFFILE.json when present)")
     p.add_argument("--fs", type=float, metavar="HZ", help="sampling rate (Hz)")
@@ -173,7 +178,7 @@ def _run_ultratight(args):
     import numpy as np
 
     from ultratight.errors import ConfigError
-    from ultratight.receiver.engine import run_ultratight_on_files, write_result_h5
+    from ultratight.receiver.engine import DEFAULT_METHOD, run_ultratight_on_files, write_result_h5
 
     if not args.imu:
         raise ConfigError("--mode ultratight needs --imu IMU.h5")
@@ -187,7 +192,7 @@ def _run_ultratight(args):
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise ConfigError(f"--duration must be > 0 s, got {args.duration}")
     prns = _prn_list(args.prn) if args.prn else None
-    res = run_ultratight_on_files(args.iffile, args.imu, method=args.method, meta=args.meta,
+    res = run_ultratight_on_files(args.iffile, args.imu, method=args.method or DEFAULT_METHOD, meta=args.meta,
                                   nav_path=args.ephemeris, prns=prns, duration_s=args.duration)
     if args.out:
         write_result_h5(args.out, res)
