@@ -129,6 +129,14 @@ ROBUST_MODES = ("period", "every")
 ADAPTIVE_STATS = ("epoch", "window", "mean")   # iprm[2] = index
 
 # status flags (bit field, per channel, per epoch)
+# The max rule of eq. 21 is positive definite only for moderate factors (with the P/E/L taps
+# 0.5-correlated, a single tap's factor g gives det ~ g (1 - g/2)): near g = 2 it is PD but
+# nearly singular, and P_zz = P_zz0 + R_bar inherits a near-null direction -> a gain that moved
+# the code state by ~20 sigma in one epoch (paper-highdyn seed 1, 14.59 s).  Squared Cholesky
+# pivots below this fraction of their diagonal element switch to the bifactor form (R itself:
+# >= 0.67 for 1 chip spacing).
+RB_REL_PIVOT_MIN = 0.1
+
 FLAG_DIVERGED = 1        # non-finite / blown-up covariance -> channel reset
 FLAG_CHOL_GUARD = 2      # a Cholesky pivot had to be floored
 FLAG_THETA = 4           # adaptive factor < 1 applied this epoch (RACKF)
@@ -260,13 +268,14 @@ def _chol(A, L, n):
 
 
 @njit(cache=True)
-def _chol_strict(A, L, n):
-    """Cholesky without floor: False if A is not (numerically) positive definite."""
+def _chol_strict(A, L, n, rel_pivot_min=0.0):
+    """Cholesky without floor: False if A is not (numerically) positive definite, or if a
+    squared pivot falls below ``rel_pivot_min`` times its diagonal element (ill-conditioned)."""
     for j in range(n):
         s = A[j, j]
         for k in range(j):
             s -= L[j, k] * L[j, k]
-        if not (s > 0.0):
+        if not (s > rel_pivot_min * A[j, j]) or not (s > 0.0):
             return False
         d = math.sqrt(s)
         L[j, j] = d
@@ -558,7 +567,7 @@ def _bank_step(kind, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, prm, iprm
                         for b in range(NZ):
                             ga = gam[a] if gam[a] > gam[b] else gam[b]
                             Rb[a, b] = lam * R[a, b] * ga
-                    if not _chol_strict(Rb, Lz, NZ):
+                    if not _chol_strict(Rb, Lz, NZ, RB_REL_PIVOT_MIN):
                         for a in range(NZ):
                             for b in range(NZ):
                                 Rb[a, b] = lam * R[a, b] * math.sqrt(gam[a] * gam[b])

@@ -192,6 +192,28 @@ class _BankProxy:
             self._bank.note_correction(dx)
 
 
+MONITOR_MODES = {
+    "off": {"lock_monitor": False, "monitor_gates_tight": False},    # paper structure (default)
+    "gate": {"lock_monitor": False, "monitor_gates_tight": True},    # only gates tight-filter rows
+    "coast": {"lock_monitor": True, "monitor_gates_tight": True},    # gates, coasts and restarts
+}
+
+
+def monitor_options(mode):
+    """EngineOptions fields of a signal-monitor mode ("off" | "gate" | "coast")."""
+    if mode not in MONITOR_MODES:
+        raise ConfigError(f"unknown signal-monitor mode {mode!r}; expected one of {', '.join(MONITOR_MODES)}")
+    return dict(MONITOR_MODES[mode])
+
+
+def monitor_mode(opt):
+    """The monitor mode name of an EngineOptions."""
+    for k, v in MONITOR_MODES.items():
+        if v == {"lock_monitor": opt.lock_monitor, "monitor_gates_tight": opt.monitor_gates_tight}:
+            return k
+    return "coast-only"
+
+
 def check_method(method):
     if method not in METHODS:
         raise ConfigError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
@@ -222,8 +244,10 @@ class EngineOptions:
     clock_q_drift: float = 1e-4          # (m/s)^2/s clock drift random walk in the tight filter
     phase_init_ms: int = 40              # startup coherent phase initialisation window (0: off)
     aid_time_offset_s: float = 0.5e-3    # aiding sampled at next-interval middle + this (see docs)
-    monitor_gates_tight: bool = True     # signal monitor keeps fading channels out of the tight filter
-    lock_monitor: bool = True            # coast/restart logic on fades and losses of lock
+    # engine-level signal monitor (not part of the paper's structure, off by default: the prefilters
+    # must ride through fades themselves; see docs/ultratight.md "Signal monitor"):
+    monitor_gates_tight: bool = False    # keep fading channels out of the tight filter (NCOs untouched)
+    lock_monitor: bool = False           # coast (NCO on the outer loop alone) / restart on fades
     lock_window_ms: int = 300            # signal/lock monitor window
     lock_off_dbhz: float = 10.0          # coast (outer loop only) below this C/N0 (in-phase estimate)
     lock_on_dbhz: float = 16.5           # restart the prefilter above this C/N0 (coherent magnitude)

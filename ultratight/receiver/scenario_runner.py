@@ -230,13 +230,18 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
                       f"{np.round(summ['code_rms_chips'], 4).tolist()} chip, lost {summ['lock_lost_channels']}, "
                       f"{res.runtime_s:.1f} s ({summ['realtime_factor']:.2f}x real time)", flush=True)
     agg = {m: aggregate(per[m], raw, m, segs, channel) for m in methods}
+    events = _event_windows(cfg, dur)
+    for m in methods:
+        agg[m]["noise_events"] = event_rms(raw, m, events)
+    from ultratight.receiver.engine import EngineOptions, monitor_mode
+    mon = monitor_mode(options or EngineOptions())
     js = {"scenario": cfg.get("name", str(name)), "seed": base_seed, "runs": int(runs), "duration_s": dur,
           "segments_s": [list(x) for x in segs], "channel": channel,
           "methods": {m: {k: agg[m][k] for k in ("doppler_rms_hz", "code_rms_chips", "diverged",
                                                   "lock_lost_channels", "runtime_s", "realtime_factor",
                                                   "doppler_rms_hz_channel", "code_rms_chips_channel",
-                                                  "segment_diverged")}
-                      for m in methods},
+                                                  "segment_diverged", "noise_events")}
+                      for m in methods}, "monitor": mon,
           "per_run": per, "version": __version__, "paper_table3": M.PAPER_TABLE3, "paper_table4_s": M.PAPER_TABLE4_S}
     mpath = out / "metrics.json"
     tmp = out / "metrics.json.tmp"
@@ -250,8 +255,46 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
     text = M.format_tables(agg, segs) + "\n" + (
         f"\n{runs} run(s), seeds {base_seed}..{base_seed + runs - 1}; RMS over all channels and runs; "
         "'\\' = lock lost (diverged) in that segment.")
-    return {"json": M.json_clean({k: js[k] for k in ("scenario", "seed", "runs", "methods")}), "text": text,
+    text += f"\nsignal monitor: {mon}"
+    for m in methods:
+        for ev in agg[m]["noise_events"]:
+            text += (f"\n{m:10s} noise x{ev['noise_factor']:g} over {ev['t0_s']:g}-{ev['t1_s']:g} s: Doppler RMS "
+                     f"{_f(ev['doppler_rms_hz'])} Hz (before: {_f(ev['doppler_rms_hz_before'])} Hz), code RMS "
+                     f"{_f(ev['code_rms_chips'])} chip")
+    return {"json": M.json_clean({k: js[k] for k in ("scenario", "seed", "runs", "monitor", "methods")}),
+            "text": text,
             "metrics_path": str(mpath), "h5_path": str(hpath), "figures": figs}
+
+
+def _f(v):
+    return "-" if v is None or not np.isfinite(v) else f"{v:.4f}"
+
+
+def _event_windows(cfg, dur):
+    """The scenario's noise events clipped to the run: list of (t0, t1, factor)."""
+    out = []
+    for ev in cfg.get("noise_events", []) or []:
+        a, b = float(ev["t0_s"]), min(float(ev["t1_s"]), dur)
+        if b > a:
+            out.append((a, b, float(ev.get("noise_factor", 1.0))))
+    return out
+
+
+def event_rms(raw, method, events):
+    """RMS over all channels and runs of the tracking errors during each noise event and over the
+    same length just before it (the paper's "gross error" window vs the quiet level)."""
+    keys = [k for k in raw if k[1] == method]
+    t = np.concatenate([raw[k][0].t_start for k in keys], axis=0)
+    d = np.concatenate([raw[k][1] for k in keys], axis=0)
+    c = np.concatenate([raw[k][2] for k in keys], axis=0)
+    res = []
+    for a, b, fac in events:
+        pre = (max(0.0, a - (b - a)), a)
+        dr = M.segment_rms(t, d, [(a, b), pre])
+        cr = M.segment_rms(t, c, [(a, b)])
+        res.append({"t0_s": a, "t1_s": b, "noise_factor": fac, "doppler_rms_hz": float(dr[0]),
+                    "doppler_rms_hz_before": float(dr[1]), "code_rms_chips": float(cr[0])})
+    return res
 
 
 def aggregate(summaries, raw, method, segs, channel):
