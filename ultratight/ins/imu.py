@@ -411,13 +411,13 @@ def _check_stamps(t, path, first_row, what="row"):
     if nonpos.size:
         i = int(nonpos[0]) + 1
         kind = "duplicate" if d[i - 1] == 0.0 else "out-of-order"
-        raise InputFileError(f"{path}: {what} {first_row + i}: {kind} time stamp t = {t[i]!r} s "
-                             f"(previous {t[i - 1]!r} s); stamps must increase strictly")
+        raise InputFileError(f"{path}: {what} {first_row + i}: {kind} time stamp t = {float(t[i]):.9g} s "
+                             f"(previous {float(t[i - 1]):.9g} s); stamps must increase strictly")
     med = float(np.median(d))
     gaps = np.nonzero(d > GAP_FACTOR * med)[0]
     if gaps.size:
         i = int(gaps[0]) + 1
-        raise InputFileError(f"{path}: {what} {first_row + i}: gap of {d[i - 1]:.6g} s before t = {t[i]!r} s "
+        raise InputFileError(f"{path}: {what} {first_row + i}: gap of {d[i - 1]:.6g} s before t = {float(t[i]):.9g} s "
                              f"(nominal interval {med:.6g} s); split the file or fill the gap")
     return med
 
