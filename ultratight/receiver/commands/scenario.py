@@ -16,7 +16,7 @@ def add_arguments(parser):
     parser.add_argument("--duration", type=float, default=None, help="cut the scenario to this many seconds")
     parser.add_argument("--fs-hz", type=float, default=None, help="override the front-end sampling rate")
     parser.add_argument("--channel", type=int, default=0, help="channel index for the one-channel table")
-    parser.add_argument("--monitor", default="off", choices=("off", "gate", "coast"),
+    parser.add_argument("--monitor", default="off",
                         help="engine-level signal monitor: off (default, the paper's double loop: the "
                              "prefilters ride through fades), gate (keep fading channels out of the tight "
                              "filter only), coast (also coast fading channels on the outer loop and restart)")
@@ -29,14 +29,19 @@ def run(args):
     import json
     import sys
 
+    from ultratight.errors import ConfigError
     from ultratight.receiver.engine import EngineOptions, monitor_options
     from ultratight.receiver.scenario_runner import run_scenario
+    try:
+        mon = monitor_options(args.monitor)
+    except ConfigError as exc:
+        raise ConfigError(f"--monitor: {exc}") from None
     summary = run_scenario(
         args.scenario,
         methods=[m.strip() for m in args.methods.split(",") if m.strip()],
         runs=args.runs, seed=args.seed, out_dir=args.out, duration_s=args.duration,
         fs_hz=args.fs_hz, channel=args.channel, plots=not args.no_plots,
-        progress=not (args.quiet or args.json), options=EngineOptions(**monitor_options(args.monitor)),
+        progress=not (args.quiet or args.json), options=EngineOptions(**mon),
     )
     if args.json:
         print(json.dumps(summary["json"], indent=2))
