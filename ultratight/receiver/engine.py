@@ -140,6 +140,27 @@ def _epoch_post(k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, i_ptau, i_pf, ring
 
 
 @njit(cache=True)
+def _complex_block_sigma(v):
+    """``sqrt(mean(|x - mean x|^2) / 2)`` of a complex block given as its float32 (re, im) view:
+    the noise std per arm of :func:`ultratight.receiver.correlator.estimate_sigma_arm` for complex
+    input, in one pass without temporaries (two-pass mean removal, float64 sums)."""
+    n = v.shape[0] // 2
+    mr = 0.0
+    mi = 0.0
+    for k in range(n):
+        mr += v[2 * k]
+        mi += v[2 * k + 1]
+    mr /= n
+    mi /= n
+    s = 0.0
+    for k in range(n):
+        a = v[2 * k] - mr
+        b = v[2 * k + 1] - mi
+        s += a * a + b * b
+    return math.sqrt(s / n / 2.0)
+
+
+@njit(cache=True)
 def _lock_monitor(out, D, win_i, win_c, sums_i, sums_c, ptr, count, present, thr_off, thr_on, events, phase):
     """Per-channel signal/lock monitor on the wiped prompt (unit noise per arm).
 
@@ -532,6 +553,7 @@ class UltratightEngine:
 
         # ---- IF buffer
         blk = int(round(opt.block_ms * 1e-3 * fs))
+        fast_sigma = self.src.is_complex
         n_total = int(min(self.src.n_samples, round(self.duration_s * fs)))
         n_blocks = n_total // blk + 2
         sigma_blk = np.full(n_blocks, np.nan)
@@ -547,7 +569,8 @@ class UltratightEngine:
 
         while True:
             sp = bank.sample_ptr
-            hi = int(sp.max()) + per_max
+            sp_max = int(sp.max())
+            hi = sp_max + per_max
             if hi > n_total or k_ep >= n_ep_max:
                 break
             buf_end = buf_start + buf.shape[0]
@@ -562,7 +585,11 @@ class UltratightEngine:
                     if x.shape[0] == 0:
                         break
                     if b_idx < n_blocks:
-                        sigma_blk[b_idx] = estimate_sigma_arm(x, self.src.is_complex)
+                        if fast_sigma and x.dtype == np.complex64 and x.flags.c_contiguous:
+                            sg = _complex_block_sigma(x.view(np.float32))
+                            sigma_blk[b_idx] = sg if sg > 0.0 else estimate_sigma_arm(x, True)
+                        else:
+                            sigma_blk[b_idx] = estimate_sigma_arm(x, self.src.is_complex)
                     new.append(x)
                     buf_end += x.shape[0]
                 del new_start
@@ -572,7 +599,7 @@ class UltratightEngine:
                     break
             # ---- SINS + outer loop run ahead so the aiding of the next interval exists
             tw = time.perf_counter()
-            j_need = int((sp.max() + per_max) / fs * 1000.0) + 2
+            j_need = int((sp_max + per_max) / fs * 1000.0) + 2
             while outer.n_filled <= j_need and k_imu < imu_t.shape[0]:
                 dt = imu_t[k_imu] - t_sins
                 ins.step(imu_dth[k_imu], imu_dv[k_imu], dt)
@@ -614,8 +641,8 @@ class UltratightEngine:
                     n_phase_inits += 1
             else:
                 pref.step(out, bits=D)
-                present_prev[:] = present
                 if opt.lock_monitor or opt.monitor_gates_tight:
+                    present_prev[:] = present
                     _lock_monitor(out, D, lm_i, lm_c, lm_si, lm_sc, lm_ptr, lm_count, present, thr_off, thr_on,
                                   lm_events, lm_phase)
                     if not opt.lock_monitor:
