@@ -55,6 +55,36 @@ def test_agc_loading_2bit_and_8bit():
         assert np.mean(np.abs(y8.real) == 127) < 1e-3
 
 
+def test_fixed_gain_does_not_follow_noise_events():
+    """Fixed gain: the nominal noise sits at noise_lsb/headroom LSB and a x20 noise event raises
+    the sample power x400 (no AGC), still inside the clip level with headroom 20 at 16 bits."""
+    rng = np.random.default_rng(5)
+    n = 400_000
+    fe = FrontEnd(4e6, bits=16, gain_mode="fixed", headroom=20.0)
+    assert fe.lsb_per_sigma == pytest.approx(8191.75 / 20.0)
+    stds = []
+    for sigma in (1.0, 20.0):
+        x = (rng.standard_normal(2 * n).astype(np.float32) * sigma).view(np.complex64)
+        y = fe.quantize_block(x.copy(), sigma)
+        stds.append(float(np.std(y.real)))
+        assert np.mean(np.abs(y.real) == 32767) < 1e-3      # 4-sigma clip of the loudest noise
+    assert stds[0] == pytest.approx(8191.75 / 20.0, rel=0.01)
+    assert stds[1] / stds[0] == pytest.approx(20.0, rel=0.01)
+    # the AGC (default) keeps the level instead
+    agc = FrontEnd(4e6, bits=16)
+    ya = agc.quantize_block((rng.standard_normal(2 * n).astype(np.float32) * 20.0).view(np.complex64), 20.0)
+    assert np.std(ya.real) == pytest.approx(8191.75, rel=0.01)
+    d = FrontEnd.from_config({"fs_hz": 4e6, "gain": "fixed", "headroom": 20.0}).to_dict()
+    assert d["gain"] == "fixed" and d["headroom"] == 20.0
+
+
+def test_gain_mode_validation():
+    with pytest.raises(ConfigError, match="frontend.gain"):
+        FrontEnd(4e6, gain_mode="slow")
+    with pytest.raises(ConfigError, match="frontend.headroom"):
+        FrontEnd(4e6, gain_mode="fixed", headroom=0.5)
+
+
 @pytest.mark.parametrize("bits,loss_db", [(1, 1.96), (2, 0.55), (8, 0.0)])
 def test_quantisation_loss(bits, loss_db):
     """Correlation SNR loss of a weak signal through the quantiser (classic values)."""

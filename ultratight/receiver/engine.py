@@ -255,6 +255,10 @@ class EngineOptions:
     rackf_kwargs: dict = field(default_factory=lambda: {"adaptive_stat": "window"})
     cn0_init_dbhz: float = 25.0          # assumed C/N0 for the prefilters' initial amplitude
     block_ms: int = 10                   # IF read block (noise estimate granularity)
+    # noise-floor estimator: 0 = the estimate of each IF block alone (follows every noise change);
+    # tau > 0 = exponential average of the block variances with this time constant (a slow
+    # noise-floor tracker); inf = calibrated on the first block and then held.
+    noise_tau_s: float = 0.0
     cic_order: int = 3
     pr_sigma_floor_m: float = 3.0        # tight filter pseudorange noise floor
     prr_sigma_floor_mps: float = 0.05    # tight filter pseudorange-rate noise floor
@@ -557,6 +561,12 @@ class UltratightEngine:
         n_total = int(min(self.src.n_samples, round(self.duration_s * fs)))
         n_blocks = n_total // blk + 2
         sigma_blk = np.full(n_blocks, np.nan)
+        tau = float(opt.noise_tau_s)
+        if not (tau >= 0.0):
+            raise ConfigError(f"EngineOptions.noise_tau_s must be >= 0 (0: per block, inf: start-up "
+                              f"calibration), got {opt.noise_tau_s!r}")
+        noise_alpha = 1.0 if tau == 0.0 else min(1.0, blk / fs / tau)
+        noise_var = None
         buf = np.zeros(0, dtype=np.complex64 if self.src.is_complex else np.float32)
         buf_start = 0
         per_max = int(math.ceil(fs * T_CA * 1.001)) + 4
@@ -587,9 +597,14 @@ class UltratightEngine:
                     if b_idx < n_blocks:
                         if fast_sigma and x.dtype == np.complex64 and x.flags.c_contiguous:
                             sg = _complex_block_sigma(x.view(np.float32))
-                            sigma_blk[b_idx] = sg if sg > 0.0 else estimate_sigma_arm(x, True)
+                            sg = sg if sg > 0.0 else estimate_sigma_arm(x, True)
                         else:
-                            sigma_blk[b_idx] = estimate_sigma_arm(x, self.src.is_complex)
+                            sg = estimate_sigma_arm(x, self.src.is_complex)
+                        if noise_alpha < 1.0:
+                            noise_var = sg * sg if noise_var is None else \
+                                noise_var + noise_alpha * (sg * sg - noise_var)
+                            sg = math.sqrt(noise_var)
+                        sigma_blk[b_idx] = sg
                     new.append(x)
                     buf_end += x.shape[0]
                 del new_start
@@ -809,6 +824,12 @@ class UltratightEngine:
             bank.carr_phase[c] = (bank.carr_phase[c] + phase[c] / (2.0 * math.pi)) % 1.0
         x0 = np.zeros((len(chans), 5))
         x0[:, 0] = np.maximum(amp[chans], a_min)
+        # frequency error at the start of the next interval: the NCO still holds the last
+        # interval's aided value while ``aid`` is the aiding of the next one, and the inner law
+        # adds the injected rate (da T/2) itself -> df0 = aid - NCO keeps the channel's Doppler
+        # continuous across the (re)start.  (df0 = 0 started the filter one aiding increment
+        # off -- up to 0.5 Hz at 20 g -- which it then pulled in over ~0.5 s.)
+        x0[:, 3] = 2.0 * math.pi * (aid[chans] - (bank.carr_freq[chans] - self.if_hz))
         if self.method == "pb-kf-utc":
             pref.reset(chans, x0=x0)
         else:

@@ -197,7 +197,8 @@ def format_tables(method_results, segments=SEGMENTS_S, paper=True):
     """Text tables (ours beside the paper's Table 3 / Table 4) for people.
 
     ``method_results``: {method: {"doppler_rms_hz": [..], "code_rms_chips": [..],
-    "segment_diverged": [..], "runtime_s": float, "realtime_factor": float}}.
+    "segment_diverged": [..], "runtime_s": float, "realtime_factor": float}}; the real-time
+    factor is wall-clock seconds per signal second (< 1: faster than real time).
     """
     seg_lbl = "  ".join(f"{a:g}-{b:g}s".rjust(8) for a, b in segments)
     lines = ["Doppler tracking error RMS (Hz), all channels" + ("  | paper Table 3 (one channel)" if paper else ""),
@@ -217,10 +218,10 @@ def format_tables(method_results, segments=SEGMENTS_S, paper=True):
             lines.append(row)
     lines += ["", "A trailing '\\' marks a segment in which some channel lost lock ('\\' alone: no value).",
               "", "Lock and run time" + ("  | paper Table 4 (s)" if paper else ""),
-              f"{'method':12s}{'lost ch':>8s}{'run s':>9s}{'x realtime':>11s}"]
+              f"{'method':12s}{'lost ch':>8s}{'run s':>9s}{'RT factor':>11s}"]
     for m, r in method_results.items():
         row = (f"{m:12s}{r.get('lock_lost_channels', 0):8d}{r.get('runtime_s', float('nan')):9.2f}"
-               f"{r.get('realtime_factor', float('nan')):11.2f}")
+               f"{r.get('realtime_factor', float('nan')):11.3f}")
         if paper and m in PAPER_TABLE4_S:
             row += f"  | {PAPER_TABLE4_S[m]:.4f}"
         lines.append(row)

@@ -20,9 +20,15 @@ Quantiser levels (the integers written to the file)
 Quantisation loss against the configured C/N0 is about 1.96 dB (1 bit),
 0.55 dB (2 bits), ~0.1 dB (4 bits) and negligible at 8 and 16 bits.
 
-AGC: the scale follows the *current* noise std (including noise events that
-multiply it), like a fast hardware AGC, so the quantiser stays loaded; the
-signal-to-noise ratio, not the absolute level, is what a noise event changes.
+Gain (``gain_mode``): ``"agc"`` (default) -- the scale follows the *current* noise std
+(including noise events that multiply it), like a fast hardware AGC, so the quantiser stays
+loaded; the signal-to-noise ratio, not the absolute level, is what a noise event changes, and
+a receiver that normalises by the IF power sees a fade.  ``"fixed"`` -- the gain is set once
+from the nominal noise std (``sigma = 1``) and never follows noise events: the nominal noise
+is scaled to ``noise_lsb(bits) / headroom`` LSB so a noise std up to ``headroom`` x nominal
+still fits the 4-sigma clip level; a noise event then raises the sample power (the
+receiver sees more noise, not a weaker signal).  Use ``ci16`` with fixed gain (8 bits with
+headroom 20 leave only ~1.6 LSB per nominal sigma).
 
 Filter: ``filter_bw_hz > 0`` adds a Butterworth filter (``filter_order``, SOS
 form) designed with :mod:`scipy.signal`: a low-pass of cut-off ``bw/2`` for
@@ -44,6 +50,7 @@ import numpy as np
 from ultratight.errors import ConfigError
 
 SUPPORTED_BITS = (0, 1, 2, 4, 8, 16)
+GAIN_MODES = ("agc", "fixed")
 
 
 def noise_lsb(bits):
@@ -110,6 +117,8 @@ class FrontEnd:
     bits: int = 8
     filter_bw_hz: float = 0.0
     filter_order: int = 4
+    gain_mode: str = "agc"      # "agc" (follows the current noise std) | "fixed" (nominal noise)
+    headroom: float = 1.0       # fixed gain: noise std (x nominal) that still fits the clip level
     _sos: object = field(default=None, init=False, repr=False)
     _zi: object = field(default=None, init=False, repr=False)
     _gain: float = field(default=1.0, init=False, repr=False)
@@ -132,6 +141,11 @@ class FrontEnd:
                     f"frontend.if_hz = {self.if_hz} Hz must lie in (0, fs/2 = {nyq}) Hz for real sampling")
         if self.bits not in SUPPORTED_BITS:
             raise ConfigError(f"frontend.bits must be one of {SUPPORTED_BITS}, got {self.bits!r}")
+        if self.gain_mode not in GAIN_MODES:
+            raise ConfigError(f"frontend.gain must be one of {GAIN_MODES}, got {self.gain_mode!r}")
+        self.headroom = float(self.headroom)
+        if not np.isfinite(self.headroom) or self.headroom < 1.0:
+            raise ConfigError(f"frontend.headroom must be a number >= 1, got {self.headroom}")
         if self.filter_order < 1 or self.filter_order > 12:
             raise ConfigError(f"frontend.filter_order must be in 1..12, got {self.filter_order}")
         if self.filter_bw_hz < 0 or not np.isfinite(self.filter_bw_hz):
@@ -148,7 +162,8 @@ class FrontEnd:
         return cls(fs_hz=fe["fs_hz"], if_hz=fe.get("if_hz", 0.0), is_complex=(sampling == "complex"),
                    inversion=fe.get("inversion", False), bits=int(fe.get("bits", 8)),
                    filter_bw_hz=float(fe.get("filter_bw_hz", 0.0)),
-                   filter_order=int(fe.get("filter_order", 4)))
+                   filter_order=int(fe.get("filter_order", 4)),
+                   gain_mode=fe.get("gain", "agc"), headroom=fe.get("headroom", 1.0))
 
     # -- filter -------------------------------------------------------------------------
     def _design(self):
@@ -201,14 +216,20 @@ class FrontEnd:
     # -- quantiser ----------------------------------------------------------------------
     @property
     def lsb_per_sigma(self):
+        """LSB per unit of *nominal* noise std (fixed gain: reduced by the headroom)."""
+        if self.gain_mode == "fixed":
+            return noise_lsb(self.bits) / self.headroom
         return noise_lsb(self.bits)
 
     def quantize_block(self, x, sigma_now=1.0):
-        """AGC + quantise a filtered block whose current noise std is ``sigma_now``.
+        """Gain + quantise a filtered block whose current noise std is ``sigma_now``.
 
-        ``x`` float32 (real) or complex64; ``sigma_now`` scalar or per-sample array.
-        Returns float32 array (real) or complex64 on the integer level grid.
+        ``x`` float32 (real) or complex64; ``sigma_now`` scalar or per-sample array (the AGC
+        follows it; a fixed gain ignores it). Returns float32 array (real) or complex64 on the
+        integer level grid.
         """
+        if self.gain_mode == "fixed":
+            sigma_now = 1.0
         scale = (self.lsb_per_sigma / np.asarray(sigma_now, dtype=np.float32)).astype(np.float32)
         if np.iscomplexobj(x):
             v = x.view(np.float32).reshape(-1, 2)
@@ -222,4 +243,5 @@ class FrontEnd:
     def to_dict(self):
         return {"fs_hz": self.fs_hz, "if_hz": self.if_hz, "is_complex": self.is_complex,
                 "inversion": self.inversion, "bits": self.bits, "filter_bw_hz": self.filter_bw_hz,
-                "filter_order": self.filter_order, "noise_lsb": self.lsb_per_sigma}
+                "filter_order": self.filter_order, "noise_lsb": self.lsb_per_sigma,
+                "gain": self.gain_mode, "headroom": self.headroom}

@@ -406,6 +406,9 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
     t_start = time.perf_counter()
     fe_cfg = cfg.get("frontend", {})
     fe = FrontEnd.from_config(fe_cfg)
+    if fe.gain_mode == "fixed" and "headroom" not in fe_cfg:
+        # fixed gain without an explicit headroom: the loudest noise event must fit the clip level
+        fe.headroom = max([1.0] + [float(ev["noise_factor"]) for ev in cfg.get("noise_events", []) or []])
     fmt = fe_cfg.get("format", "ci8" if fe.is_complex else "i8")
     spec = get_format(fmt)
     if spec.is_complex != fe.is_complex:

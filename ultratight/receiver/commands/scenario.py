@@ -20,9 +20,29 @@ def add_arguments(parser):
                         help="engine-level signal monitor: off (default, the paper's double loop: the "
                              "prefilters ride through fades), gate (keep fading channels out of the tight "
                              "filter only), coast (also coast fading channels on the outer loop and restart)")
+    parser.add_argument("--noise-tau", type=float, default=None, metavar="S",
+                        help="engine noise-floor estimator time constant in s (default: the engine's, "
+                             "0 = per 10 ms IF block; inf = calibrated at start-up and held)")
+    parser.add_argument("--frontend-gain", choices=("agc", "fixed"), default=None,
+                        help="generator front-end gain: agc (follows noise events) or fixed (nominal noise, "
+                             "headroom for the loudest noise event); default: the scenario's")
+    parser.add_argument("--format", default=None,
+                        help="override the generated IF format (e.g. ci16; sets the matching quantiser bits)")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
     parser.add_argument("--no-plots", action="store_true", help="do not write PNG figures")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
+
+
+def format_overrides(fmt):
+    """Scenario overrides for an IF format: the format, its sampling and a matching quantiser width."""
+    from ultratight.errors import ConfigError
+    from ultratight.signals.iffile import FORMATS
+    if fmt not in FORMATS:
+        raise ConfigError(f"--format: unknown IF sample format {fmt!r}; expected one of {', '.join(FORMATS)}")
+    spec = FORMATS[fmt]
+    bits = 2 if spec.packed2 else 8 if spec.dtype.endswith("i1") else 16 if spec.dtype.endswith("i2") else 0
+    return {"frontend.format": fmt, "frontend.sampling": "complex" if spec.is_complex else "real",
+            "frontend.bits": bits}
 
 
 def run(args):
@@ -36,12 +56,21 @@ def run(args):
         mon = monitor_options(args.monitor)
     except ConfigError as exc:
         raise ConfigError(f"--monitor: {exc}") from None
+    if args.noise_tau is not None:
+        if not args.noise_tau >= 0:
+            raise ConfigError(f"--noise-tau must be >= 0 s (or inf), got {args.noise_tau}")
+        mon["noise_tau_s"] = float(args.noise_tau)
+    overrides = {}
+    if args.frontend_gain is not None:
+        overrides["frontend.gain"] = args.frontend_gain
+    if args.format is not None:
+        overrides.update(format_overrides(args.format))
     summary = run_scenario(
         args.scenario,
         methods=[m.strip() for m in args.methods.split(",") if m.strip()],
         runs=args.runs, seed=args.seed, out_dir=args.out, duration_s=args.duration,
         fs_hz=args.fs_hz, channel=args.channel, plots=not args.no_plots,
-        progress=not (args.quiet or args.json), options=EngineOptions(**mon),
+        progress=not (args.quiet or args.json), options=EngineOptions(**mon), overrides=overrides,
     )
     if args.json:
         print(json.dumps(summary["json"], indent=2))
