@@ -3,13 +3,16 @@ engine-level signal monitor off / gating only / coasting (see docs/ultratight.md
 
     python benchmarks/acceptance_ultratight.py [--seeds 1,2,3,4,5] [--duration 60] [--fs-hz 4e6]
         [--methods dlb-rackf,dlb-ckf,dlb-ukf,pb-kf-utc] [--monitor off,gate,coast] [--data DIR]
-        [--quick] [--json OUT.json]
+        [--frontend-gain agc|fixed] [--format ci16] [--noise-tau S] [--quick] [--json OUT.json]
 
 Every (seed, monitor, method) runs on the same generated IF/IMU/truth (cached under DIR/cache,
 shared with ``ultratight scenario --out DIR``) and the same hot-start draw.  Figures: RMS over
 all channels of the Doppler / code tracking error per window (paper segments, plus 0-5, 5-10
 (noise x20) and 10-20 s), channels that lost lock (metrics.loss_of_lock) and when, run time,
-real-time factor and the engine's timing split (correlation vs prefilter + inner loop).
+real-time factor (wall-clock s per signal s, < 1 = faster than real time) and the engine's
+timing split (correlation vs prefilter + inner loop).  --frontend-gain fixed --format ci16
+--noise-tau inf: fixed-gain front end and a noise floor calibrated at start-up (the noise burst
+then reaches the prefilters as unknown x20 noise, see docs/ultratight.md).
 --quick: one seed, 12 s cut at 2.046 MHz, two methods (< ~1 min with data generation).
 """
 
@@ -31,7 +34,7 @@ MONITORS = {
 }
 
 
-def run(seeds, duration, fs_hz, methods, monitors, data_dir, progress=True):
+def run(seeds, duration, fs_hz, methods, monitors, data_dir, progress=True, overrides=None, engine_kw=None):
     from ultratight.receiver import metrics as M
     from ultratight.receiver.engine import EngineOptions
     from ultratight.receiver.scenario_config import load_scenario
@@ -39,7 +42,7 @@ def run(seeds, duration, fs_hz, methods, monitors, data_dir, progress=True):
 
     # at the scenario's own sampling rate a shorter run is a cut of the 60 s data (shared cache);
     # another rate generates data of the requested duration
-    ov = {}
+    ov = dict(overrides or {})
     if fs_hz is not None:
         ov["frontend.fs_hz"] = float(fs_hz)
         ov["duration_s"] = float(duration)
@@ -53,14 +56,14 @@ def run(seeds, duration, fs_hz, methods, monitors, data_dir, progress=True):
                   flush=True)
         for mon in monitors:
             for m in methods:
-                opt = EngineOptions(**MONITORS[mon])
+                opt = EngineOptions(**MONITORS[mon], **(engine_kw or {}))
                 res, truth = run_method(paths, cfg, m, s, options=opt, duration_s=duration)
                 d, c = errors_vs_truth(res, truth)
                 lost = M.loss_of_lock(res.t_start, d, c)
                 win = {k: (float(M.segment_rms(res.t_start, d, [w])[0]), float(M.segment_rms(res.t_start, c, [w])[0]))
                        for k, w in WINDOWS.items() if w[0] < duration}
                 row = {"seed": s, "monitor": mon, "method": m, "runtime_s": res.runtime_s,
-                       "realtime_factor": res.duration_s / res.runtime_s,
+                       "realtime_factor": res.runtime_s / res.duration_s,
                        "timing_s": res.info["timing_s"], "n_epochs": res.info["n_epochs"],
                        "lost_channels": int(np.sum(np.isfinite(lost))),
                        "first_loss_s": (float(np.nanmin(lost)) if np.isfinite(lost).any() else None),
@@ -124,6 +127,9 @@ def main(argv=None):
     ap.add_argument("--methods", default="dlb-rackf,dlb-ckf,dlb-ukf,pb-kf-utc")
     ap.add_argument("--monitor", default="off,coast")
     ap.add_argument("--data", default="scenario_out")
+    ap.add_argument("--frontend-gain", choices=("agc", "fixed"), default=None)
+    ap.add_argument("--format", default=None, help="IF format override, e.g. ci16")
+    ap.add_argument("--noise-tau", type=float, default=None, help="EngineOptions.noise_tau_s (inf: start-up)")
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
@@ -134,7 +140,14 @@ def main(argv=None):
     if a.quick:
         seeds, duration, fs, methods, monitors = seeds[:1], 12.0, 2.046e6, ["dlb-rackf", "dlb-ckf"], ["off"]
     t0 = time.perf_counter()
-    rows = run(seeds, duration, fs, methods, monitors, a.data)
+    ov = {}
+    if a.frontend_gain:
+        ov["frontend.gain"] = a.frontend_gain
+    if a.format:
+        from ultratight.receiver.commands.scenario import format_overrides
+        ov.update(format_overrides(a.format))
+    ekw = {} if a.noise_tau is None else {"noise_tau_s": a.noise_tau}
+    rows = run(seeds, duration, fs, methods, monitors, a.data, overrides=ov, engine_kw=ekw)
     pool = pooled(rows)
     print(f"\npooled over seeds {seeds}, {duration:g} s, all channels (RMS):")
     for k, v in pool.items():
@@ -143,11 +156,12 @@ def main(argv=None):
         print(f"{k:18s} Doppler " + " ".join(f"{w} {x:.4f}" for w, x in d.items() if x is not None)
               + " | code " + " ".join(f"{w} {x:.4f}" for w, x in c.items() if x is not None and "-" in w
                                       and w in ("0-20", "20-40", "40-60", "5-10"))
-              + f" | lost {v['lost_channels']} | {v['runtime_s']:.1f} s ({v['realtime_factor']:.2f}x)"
+              + f" | lost {v['lost_channels']} | {v['runtime_s']:.1f} s (RT factor {v['realtime_factor']:.3f})"
               + f" | corr {v['correlate_us_per_epoch']:.0f} us/ep, pref+inner {v['prefilter_us_per_epoch']:.0f} us/ep")
     print(f"total wall {time.perf_counter() - t0:.0f} s")
     if a.json:
         js = {"seeds": seeds, "duration_s": duration, "fs_hz": fs, "methods": methods, "monitors": monitors,
+              "overrides": ov, "engine_options": ekw,
               "pooled": pool, "runs": [{k: v for k, v in r.items() if k != "sq"} for r in rows],
               "machine": os.uname().machine, "cpus": os.cpu_count()}
         tmp = a.json + ".tmp"

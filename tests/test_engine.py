@@ -184,3 +184,30 @@ def test_run_on_files_and_bad_inputs(short_run, tmp_path):
                                     t0=imu.t0, meta=shifted))
     with pytest.raises(InputFileError, match="offset"):
         run_ultratight_on_files(paths["if"], tow_off, method="dlb-ckf")
+
+
+def test_noise_floor_estimator_modes():
+    from ultratight.receiver.engine import NoiseFloor
+    blocks = np.array([1.0, 1.0, 20.0, 20.0, 20.0, 1.0])
+    per_block = NoiseFloor(0.0, 0.01)
+    assert [per_block.update(b) for b in blocks] == pytest.approx(blocks)
+    held = NoiseFloor(float("inf"), 0.01)
+    assert [held.update(b) for b in blocks] == pytest.approx(np.ones(6))
+    slow = NoiseFloor(0.04, 0.01)                  # alpha = 1/4 on the variances
+    v, ref = 1.0, []
+    for b in blocks:
+        v = v + 0.25 * (b * b - v)
+        ref.append(np.sqrt(v))
+    assert [slow.update(b) for b in blocks] == pytest.approx(ref, rel=1e-12)
+    with pytest.raises(ConfigError, match="noise_tau_s"):
+        NoiseFloor(-1.0, 0.01)
+
+
+def test_phase_init_handover_keeps_the_doppler_continuous(short_run):
+    """At the end of the 40 ms aided phase initialisation the prefilters take over: the
+    channel Doppler must not step (it stepped by up to one aiding increment, 0.5 Hz at 20 g,
+    while the filter started with df = 0)."""
+    paths, cfg, res, (de, ce) = short_run
+    k = 40                                         # EngineOptions.phase_init_ms
+    jump = np.abs(de[k + 1] - de[k - 2])
+    assert np.max(jump) < 0.03, jump

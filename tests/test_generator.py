@@ -4,9 +4,11 @@ Satellites are stand-in circular-orbit ephemerides built in this file (no depend
 constellation module); the receiver trajectory comes from ultratight.ins.trajectory.
 """
 
+import json
 import math
 import sys
 import types
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -161,6 +163,29 @@ def test_noise_event_lowers_effective_cn0(tmp_path):
             sig = np.sqrt(np.mean(np.abs(noise[sl]) ** 2) / 2)
             est = cn0_estimate(p[sl] / sig)
             assert abs(est - cn0[sl][0]) < 0.6, (sl, est)
+
+
+def test_fixed_gain_keeps_the_noise_burst_in_the_samples(tmp_path):
+    """frontend.gain = "fixed": no AGC, the headroom defaults to the loudest noise event, and
+    the file's sample power rises by factor^2 during the event (the AGC would hold it)."""
+    ev = [{"t0_s": 0.1, "t1_s": 0.2, "noise_factor": 4.0}]
+    fe = {"format": "ci16", "bits": 16, "gain": "fixed"}
+    sats = {"cn0_dbhz": 45.0}
+    res = generate(base_cfg(duration_s=0.2, frontend=fe, noise_events=ev, satellites=sats), tmp_path, "fx",
+                   ephemerides=EPHS[1:2], progress=False)
+    meta = json.loads(Path(res["meta"]).read_text())
+    assert meta["frontend"]["gain"] == "fixed" and meta["frontend"]["headroom"] == 4.0
+    assert meta["frontend"]["noise_lsb"] == pytest.approx(8191.75 / 4.0)
+    agc = generate(base_cfg(duration_s=0.2, frontend={"format": "ci16", "bits": 16}, noise_events=ev,
+                            satellites={"cn0_dbhz": 45.0}),
+                   tmp_path, "agc", ephemerides=EPHS[1:2], progress=False)
+    n = 400_000
+    with open_if(res["if"]) as a, open_if(agc["if"]) as b:
+        pa = [np.mean(np.abs(a.read(s0, n)) ** 2) for s0 in (0, n)]
+        pb = [np.mean(np.abs(b.read(s0, n)) ** 2) for s0 in (0, n)]
+    assert pa[1] / pa[0] == pytest.approx(16.0, rel=0.02)
+    assert pa[0] == pytest.approx(2 * (8191.75 / 4.0) ** 2, rel=0.02)
+    assert pb[1] / pb[0] == pytest.approx(1.0, rel=0.02)
 
 
 def test_real_if_with_inversion(tmp_path):

@@ -241,6 +241,35 @@ def check_method(method):
     return method
 
 
+class NoiseFloor:
+    """Noise-floor estimator that normalises the correlator outputs (noise std per arm).
+
+    Fed with the estimate of every IF block (``block_s`` long) in order, :meth:`update`
+    returns the value to use for that block: ``tau_s = 0`` the block's own estimate (follows
+    every noise change: with an AGC front end a noise burst then looks like a fade with a
+    correct noise model); ``0 < tau_s < inf`` the square root of an exponential average of the
+    block variances, ``v += min(1, block_s / tau_s) (s^2 - v)`` started on the first block (a
+    slow tracker); ``tau_s = inf`` the first block's estimate held (start-up calibration: a
+    noise burst on a fixed-gain front end reaches the prefilters as unknown extra noise).
+    """
+
+    def __init__(self, tau_s, block_s):
+        tau = float(tau_s)
+        if not tau >= 0.0:
+            raise ConfigError(f"EngineOptions.noise_tau_s must be >= 0 s (0: per block, inf: start-up "
+                              f"calibration), got {tau_s!r}")
+        self.alpha = 1.0 if tau == 0.0 else min(1.0, float(block_s) / tau)
+        self.var = None
+
+    def update(self, sigma_block):
+        s2 = float(sigma_block) ** 2
+        if self.var is None or self.alpha >= 1.0:
+            self.var = s2
+        else:
+            self.var += self.alpha * (s2 - self.var)
+        return math.sqrt(self.var)
+
+
 @dataclass
 class EngineOptions:
     """Parameters of the engine (all recorded in the outputs)."""
@@ -561,12 +590,7 @@ class UltratightEngine:
         n_total = int(min(self.src.n_samples, round(self.duration_s * fs)))
         n_blocks = n_total // blk + 2
         sigma_blk = np.full(n_blocks, np.nan)
-        tau = float(opt.noise_tau_s)
-        if not (tau >= 0.0):
-            raise ConfigError(f"EngineOptions.noise_tau_s must be >= 0 (0: per block, inf: start-up "
-                              f"calibration), got {opt.noise_tau_s!r}")
-        noise_alpha = 1.0 if tau == 0.0 else min(1.0, blk / fs / tau)
-        noise_var = None
+        noise_floor = NoiseFloor(opt.noise_tau_s, blk / fs)
         buf = np.zeros(0, dtype=np.complex64 if self.src.is_complex else np.float32)
         buf_start = 0
         per_max = int(math.ceil(fs * T_CA * 1.001)) + 4
@@ -600,11 +624,7 @@ class UltratightEngine:
                             sg = sg if sg > 0.0 else estimate_sigma_arm(x, True)
                         else:
                             sg = estimate_sigma_arm(x, self.src.is_complex)
-                        if noise_alpha < 1.0:
-                            noise_var = sg * sg if noise_var is None else \
-                                noise_var + noise_alpha * (sg * sg - noise_var)
-                            sg = math.sqrt(noise_var)
-                        sigma_blk[b_idx] = sg
+                        sigma_blk[b_idx] = noise_floor.update(sg)
                     new.append(x)
                     buf_end += x.shape[0]
                 del new_start
