@@ -1,9 +1,6 @@
 """Ultra-tight engine: outer-loop geometry against geometry.light_time, hot start, metrics
 against closed forms, an end-to-end run on generated IF/IMU data, and bad-input handling."""
 
-import json
-import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest

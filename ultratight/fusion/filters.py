@@ -39,6 +39,7 @@ import numpy as np
 
 from ultratight.errors import DivergenceError, FilterError
 from ultratight.fusion.guards import (
+    check_linear_update,
     DivergenceMonitor,
     as_matrix,
     as_vector,
@@ -221,13 +222,7 @@ def _joseph(x, P, z, zhat, H, R):
 
 def kf_update(x, P, z, H, R):
     """Linear measurement update with the Joseph-form covariance (seed 003 eqs. 2–5)."""
-    x = as_vector("x", x)
-    n = x.shape[0]
-    P = check_covariance("P", P, n)
-    z = as_vector("z", z)
-    m = z.shape[0]
-    H = as_matrix("H", H, (m, n))
-    R = check_covariance("R", R, m)
+    x, P, z, H, R = check_linear_update(x, P, z, H, R)
     return _joseph(x, P, z, H @ x, H, R)
 
 

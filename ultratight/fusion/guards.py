@@ -176,3 +176,18 @@ class DivergenceMonitor:
                     f"{self.count} consecutive updates (last NIS {nis:.3g})"
                 )
         return self.diverged
+
+
+def check_linear_update(x, P, z, H, R):
+    """Validate the inputs of a linear measurement update; return them as checked arrays.
+
+    ``x`` (n,), ``P`` (n, n) PD, ``z`` (m,), ``H`` (m, n), ``R`` (m, m) PD; raises FilterError.
+    """
+    x = as_vector("x", x)
+    n = x.shape[0]
+    P = check_covariance("P", P, n)
+    z = as_vector("z", z)
+    m = z.shape[0]
+    H = as_matrix("H", H, (m, n))
+    R = check_covariance("R", R, m)
+    return x, P, z, H, R

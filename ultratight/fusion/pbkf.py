@@ -149,7 +149,6 @@ def _pbkf_step(x, P, Phi, Qd, z, bits, active, prm, prev, have_prev, rot, innov,
     dlg = prm[10]
     y = np.zeros(NM)
     Rv = np.zeros(NM)
-    S = np.zeros((NM, NM))
     PHt = np.zeros((NK, NM))
     K = np.zeros((NK, NM))
     tmp = np.zeros((NK, NK))

@@ -46,6 +46,7 @@ from ultratight.fusion.filters import (
     sigma_measure,
 )
 from ultratight.fusion.guards import (
+    check_linear_update,
     as_matrix,
     as_vector,
     check_covariance,
@@ -281,13 +282,7 @@ def chi2_newton_kf_update(x, P, z, H, R, detector: ChiSquareNewton) -> UpdateRes
     ``info`` has ``faulty`` (bool mask), ``stat`` (χ² statistics) and ``z_used``.
     The reported innovation/nis are those of the raw measurement.
     """
-    x = as_vector("x", x)
-    n = x.shape[0]
-    P = check_covariance("P", P, n)
-    z = as_vector("z", z)
-    m = z.shape[0]
-    H = as_matrix("H", H, (m, n))
-    R = check_covariance("R", R, m)
+    x, P, z, H, R = check_linear_update(x, P, z, H, R)
     zhat = H @ x
     D = symmetrize(H @ P @ H.T + R)  # eq. 13
     used, faulty, stat = detector.screen(z - zhat, D)

@@ -43,7 +43,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from numba import njit
 
-from ultratight.constants import C, CA_LEN, CHIP_M, F_CA, F_L1, LAMBDA_L1, T_CA
+from ultratight.constants import CA_LEN, CHIP_M, F_CA, F_L1, LAMBDA_L1, T_CA
 from ultratight.errors import ConfigError, InputFileError
 
 METHODS = ("pb-kf-utc", "dlb-ukf", "dlb-ckf", "dlb-rackf", "scalar")
@@ -743,7 +743,6 @@ class UltratightEngine:
             # ---- tight filter update at the decimated rate, once every channel passed t_next_upd
             if t_start.min() >= t_next_upd * fs:
                 tw = time.perf_counter()
-                t_u = t_next_upd
                 acc_n, acc_cp, acc_f, acc_pt, acc_pf, acc_a = acc
                 ok = acc_n > 0
                 nn = np.maximum(acc_n, 1)

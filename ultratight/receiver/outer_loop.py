@@ -123,8 +123,6 @@ def _solve_all(t0, h, n, pos, vel, clk, clkd, rx, rv, t_rx, bias, drift, iters, 
     nch = pos.shape[0]
     p = np.empty(3)
     v = np.empty(3)
-    c2 = np.empty(1)
-    cd2 = np.empty(1)
     for i in range(nch):
         ta = tau[i]
         for _ in range(iters):

@@ -395,7 +395,6 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             for k in ("pseudorange_m", "doppler_hz", "carrier_cycles", "cn0_dbhz", "code_phase_chips"):
                 writer.append(f"observables/{k}", row[k][None, :])
             writer.append("observables/pll_lock", row["pll_lock"][None, :])
-        pr_raw = pr
         if cfg.smoothing_s > 0:
             pr = smoother.update(pr, row["carrier_cycles"], row["pll_lock"])
             if writer is not None:
