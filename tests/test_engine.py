@@ -208,3 +208,29 @@ def test_phase_init_handover_keeps_the_doppler_continuous(short_run):
     k = 40                                         # EngineOptions.phase_init_ms
     jump = np.abs(de[k + 1] - de[k - 2])
     assert np.max(jump) < 0.03, jump
+
+
+def test_outer_freq_update_is_a_scalar_kalman_update():
+    """The opt-in outer-loop frequency pseudo-measurement equals a textbook KF update of the
+    prefilter's frequency state, only on the selected channels."""
+    from ultratight.fusion.prefilter import IF as I_F
+    from ultratight.receiver.engine import _outer_freq_update
+    rng = np.random.default_rng(4)
+    a = rng.standard_normal((2, 5, 5))
+    P = np.einsum("cij,ckj->cik", a, a) + 0.1 * np.eye(5)
+    x = rng.standard_normal((2, 5))
+    x0, P0 = x.copy(), P.copy()
+    resid_hz = np.array([0.3, -0.7])
+    r_var = np.array([0.05, 0.02])
+    _outer_freq_update(x, P, np.array([False, True]), resid_hz, r_var)
+    # channel 0 untouched
+    assert np.array_equal(x[0], x0[0]) and np.array_equal(P[0], P0[0])
+    # channel 1: z - h(x) = -2 pi resid, H = e_IF
+    H = np.zeros((1, 5))
+    H[0, I_F] = 1.0
+    S = H @ P0[1] @ H.T + r_var[1]
+    K = P0[1] @ H.T / S
+    x_ref = x0[1] + (K * (-2 * np.pi * resid_hz[1])).ravel()
+    P_ref = (np.eye(5) - K @ H) @ P0[1]
+    assert np.allclose(x[1], x_ref, atol=1e-12)
+    assert np.allclose(P[1], 0.5 * (P_ref + P_ref.T), atol=1e-12)

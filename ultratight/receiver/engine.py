@@ -270,6 +270,21 @@ class NoiseFloor:
         return math.sqrt(self.var)
 
 
+def _outer_freq_update(x, P, sel, resid_hz, r_var):
+    """Scalar Kalman update of the prefilters' frequency states (rad/s) of channels ``sel`` with
+    the outer loop's Doppler: innovation -2 pi (estimate - prediction) = -2 pi ``resid_hz``,
+    measurement variance ``r_var`` ((rad/s)^2)."""
+    from ultratight.fusion.prefilter import IF as I_F
+    for c in np.flatnonzero(sel):
+        s_ = P[c, I_F, I_F] + r_var[c]
+        if not (s_ > 0.0):
+            continue
+        k = P[c, :, I_F] / s_
+        x[c] += k * (-2.0 * math.pi * resid_hz[c])
+        P[c] -= np.outer(k, P[c, I_F, :])
+        P[c] = 0.5 * (P[c] + P[c].T)
+
+
 @dataclass
 class EngineOptions:
     """Parameters of the engine (all recorded in the outputs)."""
@@ -298,6 +313,9 @@ class EngineOptions:
     clock_q_drift: float = 1e-4          # (m/s)^2/s clock drift random walk in the tight filter
     phase_init_ms: int = 40              # startup coherent phase initialisation window (0: off)
     aid_time_offset_s: float = 0.5e-3    # aiding sampled at next-interval middle + this (see docs)
+    # double loop: a channel whose rows are out of the tight filter (amplitude below amp_min) gets
+    # the outer loop's Doppler as a frequency pseudo-measurement (variance sigma_i^2), see docs
+    outer_freq_update: bool = False
     # engine-level signal monitor (not part of the paper's structure, off by default: the prefilters
     # must ride through fades themselves; see docs/ultratight.md "Signal monitor"):
     monitor_gates_tight: bool = False    # keep fading channels out of the tight filter (NCOs untouched)
@@ -763,6 +781,7 @@ class UltratightEngine:
                 Phi, Qd = tightmod.phi_q(ins, t_upd_step, self.imu_noise, opt.clock_q_drift)
                 tf.predict(Phi, Qd)
                 dx = tf.update(dz_pr, dz_prr, los_l, M_pos, var_pr, var_prr, valid)
+                dfp_all = np.zeros(n_ch)
                 if np.any(dx != 0.0):
                     ins.feedback(dx)
                     tf.reset()
@@ -775,6 +794,7 @@ class UltratightEngine:
                     dfp = pr_fix["doppler_hz"] - ring_f[i1]
                     ring_cp += dcp
                     ring_f += dfp
+                    dfp_all = dfp
                     if self.method != "pb-kf-utc":
                         outer.offset_hz += dfp   # double loop: corrections do not jump the NCOs
                     ring_r[i1] = pr_fix["code_rate_cps"]
@@ -782,6 +802,13 @@ class UltratightEngine:
                 sig_dopp = tightmod.doppler_sigma_hz(tf.P, los_l, LAMBDA_L1)
                 if self.method != "pb-kf-utc":
                     use_aid = (sig_dopp < opt.arbitration_sigma_hz)
+                if opt.outer_freq_update and self.method != "pb-kf-utc":
+                    # frequency pseudo-measurement from the outer loop for channels the tight filter
+                    # did not use (independent information: no double counting)
+                    sel = ok & present & ~valid & pref.active & np.isfinite(m_f)
+                    if sel.any():
+                        _outer_freq_update(pref.x, pref.P, sel, m_f - dfp_all,
+                                           (two_pi * sig_dopp) ** 2)
                 mode_now = np.where(present, np.where(use_aid, mode_aided, MODE_INNER),
                                     MODE_COAST).astype(np.int8)
                 nav["t"].append(t_sins)      # the SINS state logged is at t_sins (>= t_u)

@@ -28,6 +28,10 @@ def add_arguments(parser):
                              "headroom for the loudest noise event); default: the scenario's")
     parser.add_argument("--format", default=None,
                         help="override the generated IF format (e.g. ci16; sets the matching quantiser bits)")
+    parser.add_argument("--outer-freq-update", action="store_true",
+                        help="double loop: channels whose rows are out of the tight filter (faded) take the "
+                             "outer loop's Doppler as a frequency pseudo-measurement (not in the paper; off "
+                             "by default, see docs/ultratight.md)")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
     parser.add_argument("--no-plots", action="store_true", help="do not write PNG figures")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
@@ -60,6 +64,8 @@ def run(args):
         if not args.noise_tau >= 0:
             raise ConfigError(f"--noise-tau must be >= 0 s (or inf), got {args.noise_tau}")
         mon["noise_tau_s"] = float(args.noise_tau)
+    if args.outer_freq_update:
+        mon["outer_freq_update"] = True
     overrides = {}
     if args.frontend_gain is not None:
         overrides["frontend.gain"] = args.frontend_gain
