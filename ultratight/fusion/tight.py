@@ -39,15 +39,13 @@ import numpy as np
 
 from ultratight.errors import FilterError
 
-NX = 17
-ATT = slice(0, 3)
-VEL = slice(3, 6)
-POS = slice(6, 9)
-BG = slice(9, 12)
-BA = slice(12, 15)
-CLK_B = 15
-CLK_D = 16
-CLK = slice(15, 17)
+# the 17-state layout is the INS error model's (one definition)
+from ultratight.ins.error_model import ATT, BA, BG, POS, VEL  # noqa: F401  (re-exported)
+from ultratight.ins.error_model import CLK as CLK_B
+from ultratight.ins.error_model import DRIFT as CLK_D
+from ultratight.ins.error_model import N17 as NX
+
+CLK = slice(CLK_B, CLK_D + 1)
 STATE_NAMES = ("phi_e", "phi_n", "phi_u", "dv_e", "dv_n", "dv_u", "dlat", "dlon", "dh",
                "bg_x", "bg_y", "bg_z", "ba_x", "ba_y", "ba_z", "dclk_b_m", "dclk_d_mps")
 
