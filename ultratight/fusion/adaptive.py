@@ -206,13 +206,8 @@ class IAKF:
         self._Phi = np.eye(n)
         self._P_prev = self.P.copy()
 
-    def predict(self, Phi):
-        n = self.x.shape[0]
-        Phi = as_matrix("Phi", Phi, (n, n))
-        self._Phi, self._P_prev = Phi, self.P
-        self.x = Phi @ self.x
-        self.P = symmetrize(Phi @ self.P @ Phi.T + self.Q)
-        return self.x, self.P
+    # same time update as the AKF (eq. 15), keeping Phi and P_{k-1} for the windowed Q estimate
+    predict = AKF.predict
 
     def update(self, z, H, los_unit=None, gdop_pr: float | None = None, gdop_prr: float | None = None) -> UpdateResult:
         """One IAKF update. ``los_unit`` (k, 3): line-of-sight unit vectors of the satellites, in the
