@@ -403,3 +403,31 @@ def test_stateless_feedback_equals_innerloop_without_aiding():
     np.testing.assert_allclose(b.x, x2)
     np.testing.assert_allclose(ncos[0].carr_freq, ncos[1].carr_freq)
     np.testing.assert_allclose(x2[1], x[1])            # inactive channel untouched
+
+
+@pytest.mark.parametrize("kind", pf.KINDS)
+def test_phase_cap_decorrelates_so_a_relock_moves_phase_not_frequency(kind):
+    """After a coast the phase is known only modulo 2 pi: once its sigma hits the cap, the
+    phase-frequency correlation built up while coasting must not turn the re-lock's phase
+    correction into a frequency jump (the cause of a 0.3-0.9 Hz transient after the
+    paper-highdyn noise burst).  Step 1 carries no phase information (amplitude state 0), so
+    the prior for step 2 is the capped one; step 2 sees a strong signal whose phase is 0.6 rad
+    off with the frequency exactly right."""
+    sig_f = 2 * math.pi * 0.5                       # rad/s
+    sig_phi, rho = 2.0, 0.98                        # rad: beyond the 0.8 rad cap
+    P0 = np.diag([1e-6, 1e-6, sig_phi ** 2, sig_f ** 2, 1e-4])
+    P0[pf.IPHI, pf.IF] = P0[pf.IF, pf.IPHI] = rho * sig_phi * sig_f
+    bank = pf.PrefilterBank(1, kind=kind, cn0_dbhz_init=20.0)
+    bank.reset([0], x0=np.zeros(pf.NX), P0=P0)
+    bank.step(np.zeros((1, pf.NZ)), np.ones(1))
+    P = bank.P[0]
+    assert math.sqrt(P[pf.IPHI, pf.IPHI]) == pytest.approx(0.8, rel=1e-9)
+    corr = P[pf.IPHI, pf.IF] / math.sqrt(P[pf.IPHI, pf.IPHI] * P[pf.IF, pf.IF])
+    assert abs(corr) < 0.01
+    A = 4.0
+    bank.x[0] = [A, 0.0, 0.0, 0.0, 0.0]
+    f_before = bank.x[0, pf.IF]
+    bank.step(pf.measurement_model([A, 0.0, 0.6, f_before, 0.0])[None, :], np.ones(1))
+    xp = bank.x_post[0]
+    assert 0.3 < xp[pf.IPHI] < 0.9                              # the phase is pulled in ...
+    assert abs(xp[pf.IF] - f_before) / (2 * math.pi) < 0.02      # ... not the frequency (Hz)

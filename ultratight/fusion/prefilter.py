@@ -97,7 +97,12 @@ symmetrisation; theta >= theta_min (default 1e-3); the phase standard deviation
 is capped at ``phi_sigma_max`` (default 0.8 rad) after each prediction — beyond
 ~1 rad the Gaussian picture of a 2pi-periodic measurement breaks down and the
 filter falls into a non-coherent "false lock" (observed at 20 dB-Hz after any
-covariance inflation; the cap applies equally to CKF, UKF and RACKF); a channel whose state or
+covariance inflation; the cap applies equally to CKF, UKF and RACKF).  A capped
+phase is known only modulo 2pi, so the cap also zeroes the phase's covariances
+with the other states: otherwise the phase-frequency correlation built up while
+coasting (rho -> 1) turns the re-lock's phase correction into a frequency jump
+(0.3-0.9 Hz per channel after the paper-highdyn noise burst, docs/ultratight.md);
+a channel whose state or
 covariance becomes non-finite or whose covariance exceeds the blow-up limits
 is flagged (``diverged``), counted (``n_resets``) and re-initialised to its
 initial state — the bank never returns NaN.
@@ -662,13 +667,14 @@ def _bank_step(kind, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, prm, iprm
             _predict(xc, Pc, Phi, Qd, tmpv, tmpm)
             # phase-uncertainty cap: beyond ~1 rad the Gaussian/cubature picture of a 2pi-periodic
             # measurement breaks down (the filter would fall into a non-coherent false lock);
-            # scale the phase row/column so the phase sigma stays <= phi_sigma_max
+            # the phase sigma stays <= phi_sigma_max and, being known only modulo 2 pi, the phase
+            # is decorrelated from the other states (a re-lock corrects phase, not frequency)
             vphi = Pc[IPHI, IPHI]
             if vphi > phi_var_max:
-                g = math.sqrt(phi_var_max / vphi)
                 for j in range(NX):
-                    Pc[IPHI, j] *= g
-                    Pc[j, IPHI] *= g
+                    Pc[IPHI, j] = 0.0
+                    Pc[j, IPHI] = 0.0
+                Pc[IPHI, IPHI] = phi_var_max
             for i in range(NX):
                 if not np.isfinite(xc[i]):
                     bad = True
