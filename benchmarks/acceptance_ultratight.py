@@ -129,7 +129,7 @@ def main(argv=None):
     ap.add_argument("--data", default="scenario_out")
     ap.add_argument("--frontend-gain", choices=("agc", "fixed"), default=None)
     ap.add_argument("--format", default=None, help="IF format override, e.g. ci16")
-    ap.add_argument("--noise-tau", type=float, default=None, help="EngineOptions.noise_tau_s (inf: start-up)")
+    ap.add_argument("--noise-tau", type=float, default=None, help="engine noise-floor time constant, s (default: the scenario's; inf: start-up, 0: per block)")
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
@@ -146,7 +146,9 @@ def main(argv=None):
     if a.format:
         from ultratight.receiver.commands.scenario import format_overrides
         ov.update(format_overrides(a.format))
-    ekw = {} if a.noise_tau is None else {"noise_tau_s": a.noise_tau}
+    ekw = {}
+    if a.noise_tau is not None:
+        ov["engine.noise_tau_s"] = a.noise_tau
     rows = run(seeds, duration, fs, methods, monitors, a.data, overrides=ov, engine_kw=ekw)
     pool = pooled(rows)
     print(f"\npooled over seeds {seeds}, {duration:g} s, all channels (RMS):")

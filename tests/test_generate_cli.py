@@ -144,7 +144,7 @@ def test_paper_highdyn_writes_imu_and_trajectory(tmp_path):
     rc = main(["generate", "paper-highdyn", "--duration", "0.2", "--out", str(tmp_path / "ph"), "--no-progress"])
     assert rc == 0
     names = sorted(p.name for p in tmp_path.iterdir())
-    assert names == ["ph.ci8", "ph.ci8.json", "ph.imu.h5", "ph.traj.h5", "ph.truth.h5"]
+    assert names == ["ph.ci16", "ph.ci16.json", "ph.imu.h5", "ph.traj.h5", "ph.truth.h5"]
     with h5py.File(tmp_path / "ph.truth.h5") as f:
         assert f["code_phase_chips"].shape == (200, 13)
         assert np.all(f["cn0_dbhz"][()] == 20.0)      # the x20 noise event starts at 5 s

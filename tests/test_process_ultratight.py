@@ -32,7 +32,7 @@ def cut(tmp_path_factory):
     rc = main(["generate", "paper-highdyn", "--duration", str(DURATION_S), "--fs", str(FS_HZ),
                "--out", str(d / "ph"), "--no-progress"])
     assert rc == 0
-    paths = {"if": d / "ph.ci8", "imu": d / "ph.imu.h5", "traj": d / "ph.traj.h5", "truth": d / "ph.truth.h5"}
+    paths = {"if": d / "ph.ci16", "imu": d / "ph.imu.h5", "traj": d / "ph.traj.h5", "truth": d / "ph.truth.h5"}
     for p in paths.values():
         assert p.is_file(), p
     return paths
@@ -44,7 +44,7 @@ def test_ultratight_mode_json_and_output_against_truth(cut, tmp_path, capsys):
                "--out", str(out)])
     assert rc == 0
     summ = json.loads(capsys.readouterr().out)
-    side = json.loads((cut["if"].parent / "ph.ci8.json").read_text())
+    side = json.loads((cut["if"].parent / "ph.ci16.json").read_text())
     assert summ["mode"] == "ultratight" and summ["method"] == "dlb-rackf"     # the default method
     assert summ["prns"] == side["prn"] and len(summ["prns"]) == 13
     assert summ["duration_s"] == pytest.approx(DURATION_S, abs=2e-3)

@@ -1,6 +1,6 @@
 """``ultratight scenario`` end to end: a 20 s cut of paper-highdyn (4 MHz, two seeds) through
 dlb-rackf and dlb-ckf with the paper's double loop (no engine-level signal monitor), metrics vs
-the generator truth, JSON/HDF5 outputs, the data cache, and user errors."""
+the generator truth, JSON/HDF5 outputs, the data cache, the AGC variant, and user errors."""
 
 import json
 
@@ -22,9 +22,10 @@ def _run(capsys, *argv):
 
 
 def test_paper_highdyn_20s_rackf_rides_through_the_burst_and_beats_ckf(scenario_20s, capsys):
-    """Seeds 1-2, 13 channels, noise x20 over 5-10 s.  Measured (docs/ultratight.md): burst Doppler
-    RMS 0.129 Hz (RACKF) vs 0.176 Hz (CKF), ratio 0.73; 0-20 s 0.093 vs 0.118 Hz (0.79); RACKF
-    burst / 0-5 s = 1.49."""
+    """Seeds 1-2, 13 channels, noise x20 over 5-10 s unknown to the filters (the scenario's fixed-gain
+    int16 front end and start-up noise floor).  Measured (docs/ultratight.md): RACKF keeps all 26
+    channel-runs, burst Doppler RMS ~0.13 Hz, 0-20 s ~0.09 Hz; CKF loses lock on 9-11 of 13 channels
+    per run in the burst (~5 Hz burst RMS)."""
     rc, out, err = _run(capsys, "scenario", "paper-highdyn", "--duration", "20", "--runs", "2",
                         "--methods", "dlb-rackf,dlb-ckf", "--seed", "1", "--json", "--no-plots",
                         "--out", str(scenario_20s))
@@ -33,17 +34,19 @@ def test_paper_highdyn_20s_rackf_rides_through_the_burst_and_beats_ckf(scenario_
     assert js["scenario"] == "paper-highdyn" and js["seed"] == 1 and js["runs"] == 2
     assert js["monitor"] == "off"                   # default: the paper's structure
     r, c = js["methods"]["dlb-rackf"], js["methods"]["dlb-ckf"]
-    # both double-loop filters keep lock through the burst on their own (no coasting)
+    # RACKF's robust-adaptive update rides through the burst on its own (no coasting) ...
     assert r["lock_lost_channels"] == 0 and not r["diverged"]
-    assert c["lock_lost_channels"] == 0
     (rb,), (cb,) = r["noise_events"], c["noise_events"]
     assert (rb["t0_s"], rb["t1_s"], rb["noise_factor"]) == (5.0, 10.0, 20.0)
-    # RACKF's robust-adaptive update: clearly better than CKF during the burst and over the cut
-    assert rb["doppler_rms_hz"] < 0.85 * cb["doppler_rms_hz"]
-    assert r["doppler_rms_hz"][0] < 0.9 * c["doppler_rms_hz"][0]
-    # ... and its burst error stays within twice its quiet level just before
+    # ... where the CKF, trusting its noise model, is thrown out of lock (the paper's gross errors)
+    assert c["lock_lost_channels"] >= 1
+    assert rb["doppler_rms_hz"] < 0.1 * cb["doppler_rms_hz"]
+    assert r["doppler_rms_hz"][0] < 0.1 * c["doppler_rms_hz"][0]
+    # before the burst both run the same model on the same data
+    assert rb["doppler_rms_hz_before"] == pytest.approx(cb["doppler_rms_hz_before"], rel=0.2)
+    # RACKF's burst error stays within twice its quiet level just before; the issue's targets
     assert rb["doppler_rms_hz"] < 2.0 * rb["doppler_rms_hz_before"]
-    assert r["doppler_rms_hz"][0] < 0.15 and r["code_rms_chips"][0] < 0.005
+    assert r["doppler_rms_hz"][0] < 0.10 and r["code_rms_chips"][0] < 0.005
     assert rb["code_rms_chips"] < 0.005
     assert r["doppler_rms_hz"][1] is None          # 20-40 s not in a 20 s cut
     # real-time factor = wall-clock s per signal s (as `ultratight process`; < 1 = faster)
@@ -54,6 +57,21 @@ def test_paper_highdyn_20s_rackf_rides_through_the_burst_and_beats_ckf(scenario_
         g = f["run001/dlb-rackf"]
         assert g["doppler_err_hz"].shape[1] == 13 and g["mode"].shape == g["doppler_err_hz"].shape
         assert not (g["mode"][()] == 3).any()       # no coasting with the monitor off
+        cfg = json.loads(f.attrs["config_json"])
+        assert cfg["frontend"]["gain"] == "fixed" and cfg["engine"]["noise_tau_s"] == float("inf")
+
+
+def test_agc_variant_turns_the_burst_into_a_fade_all_keep_lock(tmp_path, capsys):
+    """The same cut through an AGC'd 8-bit front end with a per-block noise estimate: the burst
+    becomes a known 26 dB fade; measured seed 1 (20 s): RACKF 0.080, CKF 0.090 Hz over 0-20 s,
+    no lock loss (the cap-decorrelation fix of the prefilters removed a 0.3-0.9 Hz re-lock jump)."""
+    rc, out, err = _run(capsys, "scenario", "paper-highdyn", "--duration", "20", "--methods", "dlb-rackf",
+                        "--seed", "1", "--frontend-gain", "agc", "--format", "ci8", "--noise-tau", "0",
+                        "--json", "--no-plots", "--out", str(tmp_path))
+    assert rc == 0, err
+    r = json.loads(out)["methods"]["dlb-rackf"]
+    assert r["lock_lost_channels"] == 0
+    assert r["doppler_rms_hz"][0] < 0.10 and r["code_rms_chips"][0] < 0.005
 
 
 def test_cache_reused_and_human_output(scenario_20s, capsys):
@@ -77,3 +95,24 @@ def test_user_errors_exit_2(argv, what, tmp_path, capsys):
     rc, out, err = _run(capsys, *argv, "--out", str(tmp_path))
     assert rc == 2
     assert what in err and "Traceback" not in err
+
+
+def test_engine_table_validated_and_kept_out_of_the_data_key(tmp_path):
+    from ultratight.errors import ConfigError
+    from ultratight.receiver.engine import EngineOptions
+    from ultratight.receiver.scenario_config import load_scenario
+    from ultratight.receiver.scenario_runner import engine_options_for, prepare_data
+
+    cfg = load_scenario("paper-highdyn")
+    assert engine_options_for(cfg).noise_tau_s == float("inf")
+    assert engine_options_for(cfg, EngineOptions(outer_freq_update=True)).outer_freq_update
+    assert engine_options_for(load_scenario("static-open-sky")).noise_tau_s == EngineOptions().noise_tau_s
+    with pytest.raises(ConfigError, match="engine.noise_tau_s must be >= 0"):
+        load_scenario("paper-highdyn", {"engine.noise_tau_s": -1.0})
+    with pytest.raises(ConfigError, match=r"\[engine\]: unknown key\(s\) tau"):
+        load_scenario("paper-highdyn", {"engine.tau": 1.0})
+    # the noise-floor setting is processing, not data: same cache entry either way
+    ov = {"duration_s": 0.05, "frontend.fs_hz": 1.023e6}
+    p1, cached1 = prepare_data(load_scenario("paper-highdyn", ov), 3, tmp_path)
+    p2, cached2 = prepare_data(load_scenario("paper-highdyn", {**ov, "engine.noise_tau_s": 0.0}), 3, tmp_path)
+    assert not cached1 and cached2 and p1 == p2

@@ -4,7 +4,10 @@
 schema in ``/work/notes/INTERFACES.md`` (the tables ``time``, ``receiver``, ``trajectory``,
 ``satellites``, ``noise_events``, ``frontend``, ``nav`` and optionally ``imu``) filled with
 defaults and checked. Tables this module does not know (used by other stages) pass through
-unchanged.
+unchanged. The optional ``[engine]`` table fixes receiver settings that belong to the
+scenario's definition (``noise_tau_s``: the engine's noise-floor estimator, ``inf`` = calibrated
+at start-up); ``ultratight scenario`` applies it to every method and leaves it out of the
+data-cache key.
 
 ``overrides`` is a dict whose keys are either dotted paths (``{"frontend.fs_hz": 2e6,
 "duration_s": 5}``) or nested tables (``{"frontend": {"fs_hz": 2e6}}``); ``None`` values are
@@ -38,6 +41,9 @@ DEFAULTS = {
     "nav": {"data_bits": True},
 }
 IMU_DEFAULTS = {"preset": "paper", "rate_hz": 100.0}
+# receiver settings a scenario may fix (the ultra-tight engine's EngineOptions fields); they do not
+# change the generated data, only how the scenario is processed
+ENGINE_KEYS = ("noise_tau_s",)
 
 
 def _scenario_dir():
@@ -234,4 +240,14 @@ def validate(cfg):
     if "imu" in cfg:
         _table(cfg, "imu")
         _num(cfg, "imu.rate_hz", lo=0, lo_open=True)
+    if "engine" in cfg:
+        eng = _table(cfg, "engine")
+        unknown = sorted(set(eng) - set(ENGINE_KEYS))
+        if unknown:
+            raise ConfigError(f"[engine]: unknown key(s) {', '.join(unknown)}; expected {', '.join(ENGINE_KEYS)}")
+        if "noise_tau_s" in eng:
+            v = eng["noise_tau_s"]
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0:
+                raise ConfigError(f"engine.noise_tau_s must be >= 0 s (or inf), got {v!r}")
+            eng["noise_tau_s"] = float(v)
     return cfg

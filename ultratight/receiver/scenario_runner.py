@@ -41,6 +41,7 @@ def prepare_data(cfg, seed, out_dir, progress=False):
     c = dict(cfg)
     c["seed"] = int(seed)
     c.pop("source_file", None)
+    c.pop("engine", None)            # processing settings: not part of the generated data
     key = _cfg_key(c)
     d = Path(out_dir) / "cache" / key
     done = d / "done.json"
@@ -103,6 +104,17 @@ def truth_initial_state(cfg):
             "clk_drift_mps": float(rcv.get("clock_drift_mps", 0.0))}
 
 
+def engine_options_for(cfg, options=None):
+    """EngineOptions for a scenario: ``options`` (default EngineOptions()) with the scenario's
+    ``[engine]`` table applied (e.g. its noise-floor estimator)."""
+    import dataclasses
+
+    from ultratight.receiver.engine import EngineOptions
+    opt = options or EngineOptions()
+    eng = cfg.get("engine") or {}
+    return dataclasses.replace(opt, **eng) if eng else opt
+
+
 def run_method(paths, cfg, method, seed, options=None, startup_errors=None, duration_s=None):
     """Run one method on generated files; returns (EngineResult, truth dict)."""
     from ultratight.ins.imu import read_imu_h5
@@ -110,6 +122,7 @@ def run_method(paths, cfg, method, seed, options=None, startup_errors=None, dura
     from ultratight.receiver.startup import StartupErrors, perturb_state
     from ultratight.signals.iffile import open_if
     check_method(method)
+    options = engine_options_for(cfg, options)
     truth = load_truth(paths["truth"])
     src = open_if(paths["if"])
     imu = read_imu_h5(paths["imu"])

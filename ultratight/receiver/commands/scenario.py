@@ -21,8 +21,8 @@ def add_arguments(parser):
                              "prefilters ride through fades), gate (keep fading channels out of the tight "
                              "filter only), coast (also coast fading channels on the outer loop and restart)")
     parser.add_argument("--noise-tau", type=float, default=None, metavar="S",
-                        help="engine noise-floor estimator time constant in s (default: the engine's, "
-                             "0 = per 10 ms IF block; inf = calibrated at start-up and held)")
+                        help="engine noise-floor estimator time constant in s (default: the scenario's [engine] "
+                             "noise_tau_s, else 0 = per 10 ms IF block; inf = calibrated at start-up and held)")
     parser.add_argument("--frontend-gain", choices=("agc", "fixed"), default=None,
                         help="generator front-end gain: agc (follows noise events) or fixed (nominal noise, "
                              "headroom for the loudest noise event); default: the scenario's")
@@ -60,13 +60,13 @@ def run(args):
         mon = monitor_options(args.monitor)
     except ConfigError as exc:
         raise ConfigError(f"--monitor: {exc}") from None
-    if args.noise_tau is not None:
-        if not args.noise_tau >= 0:
-            raise ConfigError(f"--noise-tau must be >= 0 s (or inf), got {args.noise_tau}")
-        mon["noise_tau_s"] = float(args.noise_tau)
     if args.outer_freq_update:
         mon["outer_freq_update"] = True
     overrides = {}
+    if args.noise_tau is not None:
+        if not args.noise_tau >= 0:
+            raise ConfigError(f"--noise-tau must be >= 0 s (or inf), got {args.noise_tau}")
+        overrides["engine.noise_tau_s"] = float(args.noise_tau)
     if args.frontend_gain is not None:
         overrides["frontend.gain"] = args.frontend_gain
     if args.format is not None:
