@@ -1,7 +1,7 @@
 """Scenario configuration: TOML files in ``ultratight/data/scenarios``, defaults, overrides, validation.
 
 ``load_scenario(name_or_path, overrides)`` returns a plain dict with every field of the
-schema in ``/work/notes/INTERFACES.md`` (the tables ``time``, ``receiver``, ``trajectory``,
+schema documented in docs/ultratight.md (the tables ``time``, ``receiver``, ``trajectory``,
 ``satellites``, ``noise_events``, ``frontend``, ``nav`` and optionally ``imu``) filled with
 defaults and checked. Tables this module does not know (used by other stages) pass through
 unchanged. The optional ``[engine]`` table fixes receiver settings that belong to the
@@ -91,7 +91,8 @@ def _apply_overrides(cfg, overrides):
     return cfg
 
 
-def _read_toml(path):
+def read_toml(path):
+    """The raw TOML dict of a scenario file (ConfigError on unreadable or invalid TOML)."""
     try:
         with open(path, "rb") as f:
             return tomllib.load(f)
@@ -101,7 +102,8 @@ def _read_toml(path):
         raise ConfigError(f"{path}: cannot read scenario file ({exc.strerror})") from None
 
 
-def _locate(name_or_path):
+def locate_scenario(name_or_path):
+    """Path of a built-in scenario name or of a TOML file (ConfigError when neither exists)."""
     s = str(name_or_path)
     p = Path(s)
     if s.endswith(".toml") or os.sep in s or p.is_file():
@@ -116,8 +118,8 @@ def _locate(name_or_path):
 
 def load_scenario(name_or_path, overrides=None):
     """Load, complete and validate a scenario (see module doc). Raises ConfigError."""
-    path = _locate(name_or_path)
-    raw = _read_toml(path)
+    path = locate_scenario(name_or_path)
+    raw = read_toml(path)
     cfg = _deep_merge(DEFAULTS, raw)
     cfg.setdefault("name", path.stem)
     if "imu" in cfg:
@@ -150,6 +152,19 @@ def _num(cfg, dotted, lo=None, hi=None, lo_open=False, integer=False):
     if hi is not None and v > hi:
         raise ConfigError(f"{dotted} must be <= {hi}, got {v!r}")
     return v
+
+
+def check_known_keys(table, allowed, where):
+    """Refuse keys of ``table`` not in ``allowed`` (a did-you-mean names the closest one).
+
+    ``where`` names the table in the message (``"[imu]"``, ``"top level"``)."""
+    import difflib
+    unknown = sorted(set(table) - set(allowed))
+    if unknown:
+        k = unknown[0]
+        near = difflib.get_close_matches(k, list(allowed), n=1)
+        hint = f" (did you mean {near[0]!r}?)" if near else f"; expected one of {', '.join(sorted(allowed))}"
+        raise ConfigError(f"{where}: unknown key {k!r}{hint}")
 
 
 def _table(cfg, name):

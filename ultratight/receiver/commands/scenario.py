@@ -1,22 +1,26 @@
-"""``ultratight scenario``: generate (or reuse) a scenario's IF + IMU + truth, run the
-ultra-tight methods on it and report the paper's metrics (seed 000 Tables 3 and 4)."""
+"""``ultratight scenario``: run a scenario's experiment and report the paper's metrics.
 
-HELP = "run a scenario end to end (generate IF/IMU/truth, track with each method, paper metrics)"
+The scenario's ``experiment`` key picks the experiment (:mod:`ultratight.receiver.experiments`);
+without it, seed 000's IF-level double loop: generate (or reuse) IF + IMU + truth, run the
+ultra-tight methods on it, report Tables 3 and 4."""
+
+HELP = "run a scenario end to end (simulate, run each method, print the paper's tables)"
 
 DEFAULT_METHODS = "pb-kf-utc,dlb-ukf,dlb-ckf,dlb-rackf"
 
 
 def add_arguments(parser):
     parser.add_argument("scenario", help="scenario name (e.g. paper-highdyn) or path to a TOML file")
-    parser.add_argument("--methods", default=DEFAULT_METHODS,
-                        help=f"comma-separated methods (default {DEFAULT_METHODS}; also 'scalar')")
+    parser.add_argument("--methods", default=None,
+                        help=f"comma-separated methods (default: the experiment's; paper-highdyn: {DEFAULT_METHODS}, "
+                             "also 'scalar')")
     parser.add_argument("--runs", type=int, default=1, help="Monte-Carlo runs (seeds seed..seed+runs-1)")
     parser.add_argument("--seed", type=int, default=None, help="base seed (default: the scenario's)")
     parser.add_argument("--out", default="scenario_out", help="output directory (also holds the data cache)")
     parser.add_argument("--duration", type=float, default=None, help="cut the scenario to this many seconds")
     parser.add_argument("--fs-hz", type=float, default=None, help="override the front-end sampling rate")
-    parser.add_argument("--channel", type=int, default=0, help="channel index for the one-channel table")
-    parser.add_argument("--monitor", default="off",
+    parser.add_argument("--channel", type=int, default=None, help="channel index for the one-channel table (default 0)")
+    parser.add_argument("--monitor", default=None,
                         help="engine-level signal monitor: off (default, the paper's double loop: the "
                              "prefilters ride through fades), gate (keep fading channels out of the tight "
                              "filter only), coast (also coast fading channels on the outer loop and restart)")
@@ -49,15 +53,48 @@ def format_overrides(fmt):
             "frontend.bits": bits}
 
 
-def run(args):
+def _methods(args):
+    return None if args.methods is None else [m.strip() for m in args.methods.split(",") if m.strip()]
+
+
+def _print_summary(args, summary):
     import json
     import sys
+    if args.json:
+        print(json.dumps(summary["json"], indent=2))
+    else:
+        print(summary["text"])
+        print(f"\nwrote {summary['metrics_path']} and {summary['h5_path']}", file=sys.stderr)
 
+
+def run(args):
     from ultratight.errors import ConfigError
+    from ultratight.receiver import experiments
+    path, raw, module = experiments.resolve(args.scenario)
+    if not hasattr(module, "run_scenario"):
+        used = [f"--{k.replace('_', '-')}" for k in IF_ONLY if getattr(args, k) not in (None, False)]
+        if used:
+            raise ConfigError(f"{', '.join(used)}: only for IF-level scenarios (this one runs experiment "
+                              f"{raw.get('experiment')!r})")
+        overrides = {} if args.duration is None else {"duration_s": args.duration}
+        summary = experiments.run_experiment(
+            module, path, raw, methods=_methods(args), runs=args.runs, seed=args.seed, out_dir=args.out,
+            overrides=overrides, plots=not args.no_plots, progress=not (args.quiet or args.json))
+        _print_summary(args, summary)
+        return 0
+    return _run_if(args, path, module)
+
+
+# flags only the IF-level experiment understands (argparse dest names)
+IF_ONLY = ("fs_hz", "channel", "monitor", "noise_tau", "frontend_gain", "format", "outer_freq_update")
+
+
+def _run_if(args, path, module):
+    from ultratight.errors import ConfigError
+    from ultratight.receiver import experiments
     from ultratight.receiver.engine import EngineOptions, monitor_options
-    from ultratight.receiver.scenario_runner import run_scenario
     try:
-        mon = monitor_options(args.monitor)
+        mon = monitor_options(args.monitor or "off")
     except ConfigError as exc:
         raise ConfigError(f"--monitor: {exc}") from None
     if args.outer_freq_update:
@@ -71,16 +108,11 @@ def run(args):
         overrides["frontend.gain"] = args.frontend_gain
     if args.format is not None:
         overrides.update(format_overrides(args.format))
-    summary = run_scenario(
-        args.scenario,
-        methods=[m.strip() for m in args.methods.split(",") if m.strip()],
+    summary = module.run_scenario(
+        path, methods=experiments.check_methods(module, _methods(args)),
         runs=args.runs, seed=args.seed, out_dir=args.out, duration_s=args.duration,
-        fs_hz=args.fs_hz, channel=args.channel, plots=not args.no_plots,
+        fs_hz=args.fs_hz, channel=0 if args.channel is None else args.channel, plots=not args.no_plots,
         progress=not (args.quiet or args.json), options=EngineOptions(**mon), overrides=overrides,
     )
-    if args.json:
-        print(json.dumps(summary["json"], indent=2))
-    else:
-        print(summary["text"])
-        print(f"\nwrote {summary['metrics_path']} and {summary['h5_path']}", file=sys.stderr)
+    _print_summary(args, summary)
     return 0
