@@ -1,6 +1,6 @@
 """Acquisition on the real recorded IF files of ../shared/data/real-if (all 32 PRNs searched).
 
-The files are read in place with numpy (see /work/shared/data/README.md for the formats).
+The files are read in place with numpy (see the README of the shared data folder for the formats).
 Threshold: false-alarm probability 1e-3 per PRN search for every file (ultratight.receiver.acquisition).
 
 Expected sets: the PRNs listed in the data README, with two documented differences found here:

@@ -234,7 +234,7 @@ def _kf_update(x, P, z, H, R):
 
 
 # ---------------------------------------------------------------------------------------------
-# time update from helper C's SINS error model, initial covariance, IMU noise
+# time update from the SINS error model (ins.error_model), initial covariance, IMU noise
 # ---------------------------------------------------------------------------------------------
 def imu_errors_from_meta(imu):
     """:class:`ultratight.ins.imu.ImuErrors` from an IMU file's metadata (generator-written files
@@ -258,7 +258,7 @@ def imu_errors_from_meta(imu):
 
 
 def phi_q(ins, dt, imu_errors, clock_q_drift=1e-4, clock_q_bias=1e-4, bias_floor=(1e-16, 1e-14)):
-    """(Phi, Qd) of the 17-state model over dt at the current SINS state (helper C's F, G, Qc).
+    """(Phi, Qd) of the 17-state model over dt at the current SINS state (F, G, Qc of ins.error_model).
 
     Phi: second-order Taylor series of exp(F dt) (C's ``discretize_taylor``); Qd by the
     trapezoidal rule ``(Phi G Qc G^T Phi^T + G Qc G^T) dt / 2``, positive semi-definite by

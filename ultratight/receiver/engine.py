@@ -13,13 +13,13 @@ channels)::
 Methods (all on the same IF/IMU data):
 
 * ``dlb-rackf`` (default), ``dlb-ckf``, ``dlb-ukf``: double loop — each channel's prefilter
-  (helper G's numba bank) closes its own inner loop every epoch; the outer loop feeds the
+  (the numba bank of fusion.prefilter) closes its own inner loop every epoch; the outer loop feeds the
   SINS-predicted Doppler *increments* forward into the carrier NCO (the code NCO rate is
   slaved to the carrier, so it is aided too).
 * ``pb-kf-utc``: single loop baseline — discriminator outputs into a linear KF per channel
   (``ultratight.fusion.pbkf``); the NCOs are driven by the outer loop only (absolute
   SINS-predicted Doppler and code phase, no inner loop).
-* ``scalar``: helper F's scalar tracking pipeline (no INS), for reference.
+* ``scalar``: the scalar tracking pipeline of receiver.tracking (no INS), for reference.
 
 Arbitration (double loop, logged per channel per epoch in ``mode``): after every tight
 update the 1-sigma of each channel's predicted Doppler is computed from the tight filter
@@ -353,10 +353,10 @@ class EngineResult:
 
 
 # ---------------------------------------------------------------------------------------
-# SINS + clock wrapper (helper C's mechanisation; feedback of the tight filter's error state)
+# SINS + clock wrapper (ins.sins mechanisation; feedback of the tight filter's error state)
 # ---------------------------------------------------------------------------------------
 class InsClock:
-    """Corrected SINS (helper C's ``sins_step``) plus receiver-clock estimates."""
+    """Corrected SINS (``ins.sins.sins_step``) plus receiver-clock estimates."""
 
     def __init__(self, q_lb, vel_l, llh, clk_bias_m, clk_drift_mps):
         from ultratight.ins import sins
@@ -399,7 +399,7 @@ class InsClock:
         """Apply the tight filter's error state (estimate minus truth) and clear it."""
         from ultratight.fusion import tight
         from ultratight.ins import error_model
-        error_model.apply_feedback(self.x, dx)      # attitude, velocity, position (helper C)
+        error_model.apply_feedback(self.x, dx)      # attitude, velocity, position
         self.bg += dx[tight.BG]
         self.ba += dx[tight.BA]
         self.clk_b -= dx[tight.CLK_B]
@@ -434,7 +434,7 @@ class UltratightEngine:
 
     def run(self, progress=False):
         if self.method == "scalar":
-            raise ConfigError("method 'scalar' runs through helper F's pipeline "
+            raise ConfigError("method 'scalar' runs through the scalar tracking pipeline "
                               "(ultratight.receiver.scenario_runner.run_scalar)")
         from ultratight.fusion import tight as tightmod
         from ultratight.fusion.innerloop import InnerLoop

@@ -255,7 +255,7 @@ class OuterLoop:
 
     ``interp_factory(n_ch)`` returns an interpolator object with ``push(x (n_ch, k)) ->
     (n_ch, k*R)`` semantics and attributes ``ratio`` and ``delay_s``; by default
-    :func:`make_cic` (helper G's CIC interpolator).
+    :func:`make_cic` (the CIC interpolator of fusion.rateconv).
     """
 
     def __init__(self, ephs, prns, week, tow0_s, duration_s, rate_hz=100.0, out_rate_hz=1000.0,
@@ -333,7 +333,7 @@ class OuterLoop:
 
 
 def make_cic(n_ch, ratio, order, in_rate_hz):
-    """Helper G's CIC interpolator for two quantities x n_ch channels (adapter)."""
+    """The CIC interpolator of fusion.rateconv for two quantities x n_ch channels (adapter)."""
     return _CicAdapter(n_ch, ratio, order, in_rate_hz)
 
 

@@ -141,7 +141,7 @@ def run_method(paths, cfg, method, seed, options=None, startup_errors=None, dura
 
 
 def run_scalar(src, prns, ephs, week, tow0, init, duration_s=None, block_ms=100):
-    """Helper F's scalar tracking loops (no INS) from the same hot-start predictions; returns an
+    """The scalar tracking loops of receiver.tracking (no INS) from the same hot-start predictions; returns an
     EngineResult-like record of the per-epoch NCO Doppler and code phase."""
     import time as _time
     from ultratight.ins.earth import dcm_ecef_from_enu, llh_to_ecef
@@ -191,7 +191,7 @@ def run_scalar(src, prns, ephs, week, tow0, init, duration_s=None, block_ms=100)
                         mode=np.zeros(t.shape, dtype=np.int8), nav_t=np.zeros(0), nav_pos_e=empty,
                         nav_vel_e=empty, nav_clk=np.zeros((0, 2)), nav_sigma_doppler_hz=np.zeros((0, n_ch)),
                         runtime_s=_time.perf_counter() - t0, duration_s=n * 1e-3,
-                        info={"pipeline": "helper F ScalarTracker (FLL-assisted PLL, DLL), no INS"})
+                        info={"pipeline": "receiver.tracking ScalarTracker (FLL-assisted PLL, DLL), no INS"})
 
 
 def errors_vs_truth(res, truth):
