@@ -297,15 +297,24 @@ def fading_factor(y, A, B, threshold: float) -> float:
     return float(np.max(_omega(np.asarray(y, float), A, B, threshold)))
 
 
-def fading_matrix(y, A, B, H, threshold: float, zero_tol: float = 1e-12) -> np.ndarray:
-    """AFM (seed 002 eqs. 5–10): S = (H′ᵀH′)⁻¹ H′ᵀ Ω H′ on the non-zero columns of H, I elsewhere."""
+def fading_matrix(y, A, B, H, threshold: float, zero_tol: float = 1e-12, nonzero_cols=None) -> np.ndarray:
+    """AFM (seed 002 eqs. 5–10): S = (H′ᵀH′)⁻¹ H′ᵀ Ω H′ on the non-zero columns of H, I elsewhere.
+
+    The all-zero columns are found numerically (``zero_tol`` relative to the largest column) unless
+    ``nonzero_cols`` gives them from the model's structure (SPEC §6 choice for the SINS model, whose
+    sigma-point H = P_xzᵀ P⁻¹ is only numerically ≈ 0 on the unmeasured states).
+    """
     y = np.asarray(y, float)
     H = np.asarray(H, float)
     n = H.shape[1]
     omega = _omega(y, A, B, threshold)  # eq. 5–6
     Om = np.diag(omega)
-    colmax = np.max(np.abs(H), axis=0)
-    nz = colmax > zero_tol * max(colmax.max(), 1e-300)  # eq. 8: partition off all-zero columns
+    if nonzero_cols is None:
+        colmax = np.max(np.abs(H), axis=0)
+        nz = colmax > zero_tol * max(colmax.max(), 1e-300)  # eq. 8: partition off all-zero columns
+    else:
+        nz = np.zeros(n, bool)
+        nz[np.asarray(nonzero_cols, int)] = True
     S = np.eye(n)
     Hp = H[:, nz]
     HtH = Hp.T @ Hp
