@@ -164,27 +164,71 @@ def process_noise(gyro_arw, accel_vrw, gyro_bias_rw, dt):
 # --------------------------------------------------------------------------- numba kernels
 
 
+@njit(cache=True, inline="always")
+def _qmul(a0, a1, a2, a3, b0, b1, b2, b3):
+    return (a0 * b0 - a1 * b1 - a2 * b2 - a3 * b3, a0 * b1 + a1 * b0 + a2 * b3 - a3 * b2,
+            a0 * b2 - a1 * b3 + a2 * b0 + a3 * b1, a0 * b3 + a1 * b2 - a2 * b1 + a3 * b0)
+
+
+@njit(cache=True, inline="always")
+def _rv2q(x, y, z):
+    a2 = x * x + y * y + z * z
+    if a2 < 1e-8:
+        s = 0.5 - a2 / 48.0 + a2 * a2 / 3840.0
+        c = 1.0 - a2 / 8.0 + a2 * a2 / 384.0
+    else:
+        a = math.sqrt(a2)
+        s = math.sin(0.5 * a) / a
+        c = math.cos(0.5 * a)
+    return c, x * s, y * s, z * s
+
+
+@njit(cache=True, inline="always")
+def _qnorm(a0, a1, a2, a3):
+    s = 1.0 / math.sqrt(a0 * a0 + a1 * a1 + a2 * a2 + a3 * a3)
+    if a0 < 0.0:
+        s = -s
+    return a0 * s, a1 * s, a2 * s, a3 * s
+
+
 @njit(cache=True)
 def propagate_points(Qs, Vs, Ps, Bs, W, dtheta, dv, dt, g_n, w_ie):
     """The model's f over a set of full-state points, in place: Qs (N,4), Vs, Ps, Bs (N,3);
     W (N,9) process noise [n_g, n_a, n_b] per point (zeros for the noise-free P′ points)."""
-    qe = rotvec_to_quat(-w_ie * dt)                      # nav-frame rotation over Δt
+    e0, e1, e2, e3 = _rv2q(-w_ie[0] * dt, -w_ie[1] * dt, -w_ie[2] * dt)   # nav-frame rotation over Δt
     for i in range(Qs.shape[0]):
-        th = np.empty(3)
-        dvb = np.empty(3)
-        for k in range(3):
-            th[k] = dtheta[k] - (Bs[i, k] + W[i, k]) * dt
-            dvb[k] = dv[k] - W[i, 3 + k] * dt
-        dvb = dvb + 0.5 * np.cross(th, dvb)              # rotation compensation
-        C = quat_to_dcm(Qs[i])
-        dvn = C @ dvb
-        vold = Vs[i].copy()
-        cor = 2.0 * np.cross(w_ie, vold)
-        for k in range(3):
-            Vs[i, k] = vold[k] + dvn[k] + (g_n[k] - cor[k]) * dt
-            Ps[i, k] = Ps[i, k] + 0.5 * (vold[k] + Vs[i, k]) * dt
-            Bs[i, k] = Bs[i, k] + W[i, 6 + k] * dt
-        Qs[i] = quat_normalize(quat_mult(quat_mult(qe, Qs[i]), rotvec_to_quat(th)))
+        t0 = dtheta[0] - (Bs[i, 0] + W[i, 0]) * dt
+        t1 = dtheta[1] - (Bs[i, 1] + W[i, 1]) * dt
+        t2 = dtheta[2] - (Bs[i, 2] + W[i, 2]) * dt
+        u0 = dv[0] - W[i, 3] * dt
+        u1 = dv[1] - W[i, 4] * dt
+        u2 = dv[2] - W[i, 5] * dt
+        # rotation compensation Δv_b += ½ θ × Δv_b
+        c0 = u0 + 0.5 * (t1 * u2 - t2 * u1)
+        c1 = u1 + 0.5 * (t2 * u0 - t0 * u2)
+        c2 = u2 + 0.5 * (t0 * u1 - t1 * u0)
+        w, x, y, z = Qs[i, 0], Qs[i, 1], Qs[i, 2], Qs[i, 3]
+        # C_nb Δv_b (unit quaternion)
+        d0 = (1 - 2 * (y * y + z * z)) * c0 + 2 * (x * y - w * z) * c1 + 2 * (x * z + w * y) * c2
+        d1 = 2 * (x * y + w * z) * c0 + (1 - 2 * (x * x + z * z)) * c1 + 2 * (y * z - w * x) * c2
+        d2 = 2 * (x * z - w * y) * c0 + 2 * (y * z + w * x) * c1 + (1 - 2 * (x * x + y * y)) * c2
+        v0, v1, v2 = Vs[i, 0], Vs[i, 1], Vs[i, 2]
+        k0 = 2.0 * (w_ie[1] * v2 - w_ie[2] * v1)
+        k1 = 2.0 * (w_ie[2] * v0 - w_ie[0] * v2)
+        k2 = 2.0 * (w_ie[0] * v1 - w_ie[1] * v0)
+        Vs[i, 0] = v0 + d0 + (g_n[0] - k0) * dt
+        Vs[i, 1] = v1 + d1 + (g_n[1] - k1) * dt
+        Vs[i, 2] = v2 + d2 + (g_n[2] - k2) * dt
+        Ps[i, 0] += 0.5 * (v0 + Vs[i, 0]) * dt
+        Ps[i, 1] += 0.5 * (v1 + Vs[i, 1]) * dt
+        Ps[i, 2] += 0.5 * (v2 + Vs[i, 2]) * dt
+        Bs[i, 0] += W[i, 6] * dt
+        Bs[i, 1] += W[i, 7] * dt
+        Bs[i, 2] += W[i, 8] * dt
+        r0, r1, r2, r3 = _rv2q(t0, t1, t2)
+        a0, a1, a2, a3 = _qmul(e0, e1, e2, e3, w, x, y, z)
+        a0, a1, a2, a3 = _qmul(a0, a1, a2, a3, r0, r1, r2, r3)
+        Qs[i, 0], Qs[i, 1], Qs[i, 2], Qs[i, 3] = _qnorm(a0, a1, a2, a3)
 
 
 @njit(cache=True)
@@ -196,7 +240,9 @@ def points_from_chart(q, v, p, b, D):
     Ps = np.empty((n, 3))
     Bs = np.empty((n, 3))
     for i in range(n):
-        Qs[i] = quat_normalize(quat_mult(rotvec_to_quat(D[i, 0:3]), q))
+        r0, r1, r2, r3 = _rv2q(D[i, 0], D[i, 1], D[i, 2])
+        a0, a1, a2, a3 = _qmul(r0, r1, r2, r3, q[0], q[1], q[2], q[3])
+        Qs[i, 0], Qs[i, 1], Qs[i, 2], Qs[i, 3] = _qnorm(a0, a1, a2, a3)
         for k in range(3):
             Vs[i, k] = v[k] + D[i, 3 + k]
             Ps[i, k] = p[k] + D[i, 6 + k]
@@ -209,14 +255,60 @@ def chart_of_points(Qs, Vs, Ps, Bs, q_ref):
     """Chart coordinates (N, 12) of full-state points: φ = rotvec(q_i ⊗ q_ref⁻¹), v, p, b as they are."""
     n = Qs.shape[0]
     out = np.empty((n, 12))
-    qc = q_ref.copy()
-    qc[1:] = -qc[1:]
     for i in range(n):
-        out[i, 0:3] = quat_to_rotvec(quat_mult(Qs[i], qc))
-        out[i, 3:6] = Vs[i]
-        out[i, 6:9] = Ps[i]
-        out[i, 9:12] = Bs[i]
+        a0, a1, a2, a3 = _qmul(Qs[i, 0], Qs[i, 1], Qs[i, 2], Qs[i, 3], q_ref[0], -q_ref[1], -q_ref[2], -q_ref[3])
+        a0, a1, a2, a3 = _qnorm(a0, a1, a2, a3)
+        vn = math.sqrt(a1 * a1 + a2 * a2 + a3 * a3)
+        if vn < 1e-8:
+            k = 2.0 / a0 * (1.0 - vn * vn / (3.0 * a0 * a0))
+        else:
+            k = 2.0 * math.atan2(vn, a0) / vn
+        out[i, 0] = a1 * k
+        out[i, 1] = a2 * k
+        out[i, 2] = a3 * k
+        for j in range(3):
+            out[i, 3 + j] = Vs[i, j]
+            out[i, 6 + j] = Ps[i, j]
+            out[i, 9 + j] = Bs[i, j]
     return out
+
+
+@njit(cache=True)
+def _aukf_predict_kernel(q, v, p, b, Lp, Lq, Lr, xi, wm, wc, dtheta, dv, dt, g_n, w_ie, Qn, Vn, Pn, Bn):
+    """One augmented time update (seed 002 steps 1–3) fused for speed; also moves the P′ points.
+
+    Points: chart offsets ``xi @ blkdiag(Lp, Lq, Lr)ᵀ`` (step 1, rows of ``xi`` the unit set with the
+    √(L+λ) factor); full states through :func:`propagate_points` (step 3); back to the chart
+    relative to the propagated centre point; weighted mean folded into the nominal, covariance
+    Σ W_c D Dᵀ.  Returns (q, v, p, b, P, D, V): D the centred chart deviations, V the
+    measurement-noise parts χ^v of the points (for step 4).
+    """
+    n_x = Lp.shape[0]
+    n_w = Lq.shape[0]
+    n_v = Lr.shape[0]
+    N = xi.shape[0]
+    X = np.ascontiguousarray(xi[:, :n_x]) @ np.ascontiguousarray(Lp.T)
+    W = np.ascontiguousarray(xi[:, n_x:n_x + n_w]) @ np.ascontiguousarray(Lq.T)
+    V = np.ascontiguousarray(xi[:, n_x + n_w:]) @ np.ascontiguousarray(Lr.T)
+    Qs, Vs, Ps, Bs = points_from_chart(q, v, p, b, X)
+    propagate_points(Qs, Vs, Ps, Bs, W, dtheta, dv, dt, g_n, w_ie)
+    q_ref = Qs[0].copy()
+    chart = chart_of_points(Qs, Vs, Ps, Bs, q_ref)
+    mean = np.zeros(n_x)
+    for i in range(N):
+        mean += wm[i] * chart[i]
+    D = chart - mean
+    P = np.zeros((n_x, n_x))
+    for r in range(n_x):
+        for c in range(r + 1):
+            acc = 0.0
+            for i in range(N):
+                acc += wc[i] * D[i, r] * D[i, c]
+            P[r, c] = acc
+            P[c, r] = acc
+    qn = quat_normalize(quat_mult(rotvec_to_quat(mean[0:3].copy()), q_ref))
+    propagate_points(Qn, Vn, Pn, Bn, np.zeros((Qn.shape[0], 9)), dtheta, dv, dt, g_n, w_ie)
+    return qn, mean[3:6].copy(), mean[6:9].copy(), mean[9:12].copy(), P, D, V
 
 
 # --------------------------------------------------------------------------- filters
@@ -286,23 +378,13 @@ class QuatAUKF:
         m = self.model
         sch = self.scheme
         Lp = cholesky_lower(self.P, "P")
-        La = np.zeros((sch.xi.shape[1], sch.xi.shape[1]))
-        La[:N_ERR, :N_ERR] = Lp
-        La[N_ERR:N_ERR + Q_DIM, N_ERR:N_ERR + Q_DIM] = self._Lq
-        La[N_ERR + Q_DIM:, N_ERR + Q_DIM:] = self._Lr
-        Xa = sch.xi @ La.T                                    # step 1: x̂^a ± sqrt((L+λ) P^a) columns
-        dth = np.asarray(dtheta_b, float)
-        dvv = np.asarray(dv_b, float)
-        Qs, Vs, Ps, Bs = points_from_chart(self.nom.q, self.nom.v, self.nom.p, self.nom.b,
-                                           np.ascontiguousarray(Xa[:, :N_ERR]))
-        W = np.ascontiguousarray(Xa[:, N_ERR:N_ERR + Q_DIM])
-        propagate_points(Qs, Vs, Ps, Bs, W, dth, dvv, m.dt, m.g_n, m.w_ie_n)          # step 3
-        chart = chart_of_points(Qs, Vs, Ps, Bs, Qs[0])
-        self.nom, P, D = _sigma_stats(chart, sch.wm, sch.wc, Qs[0])                     # x̂, P
-        self.P = P
-        self._meas = (D, Xa[:, N_ERR + Q_DIM:])             # χ^x deviations and χ^v for step 4
         Qn, Vn, Pn, Bn = self._nl
-        propagate_points(Qn, Vn, Pn, Bn, np.zeros((Qn.shape[0], Q_DIM)), dth, dvv, m.dt, m.g_n, m.w_ie_n)
+        q, v, p, b, P, D, V = _aukf_predict_kernel(
+            self.nom.q, self.nom.v, self.nom.p, self.nom.b, Lp, self._Lq, self._Lr, sch.xi, sch.wm, sch.wc,
+            np.asarray(dtheta_b, float), np.asarray(dv_b, float), m.dt, m.g_n, m.w_ie_n, Qn, Vn, Pn, Bn)
+        self.nom = Nominal(q, v, p, b)
+        self.P = P
+        self._meas = (D, V)                                   # χ^x deviations and χ^v for step 4
         return self.nom, self.P
 
     def _noiseless_cov(self):
