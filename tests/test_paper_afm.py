@@ -85,5 +85,8 @@ def test_reduction_and_recovery_helpers():
     e = np.zeros((t.size, 3))
     e[(t >= 30) & (t < 42.0), :2] = math.radians(5.0)
     assert paper_afm.recovery_time(t, e, 30.0, math.radians(1.0)) == pytest.approx(12.0)
+    assert paper_afm.first_within(t, e, 30.0, math.radians(1.0)) == pytest.approx(12.0)
     e[-1, 0] = 1.0
     assert math.isnan(paper_afm.recovery_time(t, e, 30.0, math.radians(1.0)))
+    e[t > 30.0, 1] = 1.0
+    assert math.isnan(paper_afm.first_within(t, e, 30.0, math.radians(1.0)))
