@@ -13,7 +13,6 @@ shared: the 1-minute load average is recorded with the figures.
 import argparse
 import time
 
-import numpy as np
 
 from _common import add_common_args, finish
 

@@ -71,9 +71,10 @@ from ultratight.errors import FilterError
 from ultratight.fusion.adaptive import apply_fading, fading_factor, fading_matrix, fading_terms
 from ultratight.fusion.filters import aukf_measure, gain_update, kf_update, unscented_scheme
 from ultratight.fusion.guards import check_covariance, cholesky_lower, symmetrize
-from ultratight.ins.attitude import (dcm_to_euler, euler_to_dcm, quat_mult, quat_normalize,
-                                     quat_to_dcm, rotvec_to_quat, quat_to_rotvec, skew)
+from ultratight.ins.attitude import (dcm_to_euler, dcm_to_quat, euler_to_dcm, quat_mult, quat_normalize,
+                                     quat_to_dcm, rotvec_to_quat, skew)
 from ultratight.ins.earth import gravity_l
+from ultratight.ins.sins import _qmul, _rv2q   # scalar (tuple) quaternion algebra of the mechanisation
 
 __all__ = ["ATT", "VEL", "POS", "BG", "N_ERR", "NG", "NA", "NB", "Q_DIM", "M_DIM", "MEAS_COLS",
            "NavModel", "Nominal", "propagate_points", "QuatAUKF", "QuatEKF", "euler_from_q_nb",
@@ -114,7 +115,7 @@ def euler_from_q_nb(q_nb):
 
 
 def q_nb_from_euler(euler):
-    from ultratight.ins.attitude import dcm_to_quat
+    """q_nb of [roll, pitch, yaw] (rad), inverse of :func:`euler_from_q_nb`."""
     e = np.asarray(euler, float)
     return dcm_to_quat(C_nb_from_C_lb(euler_to_dcm(e[0], e[1], e[2])))
 
@@ -162,25 +163,6 @@ def process_noise(gyro_arw, accel_vrw, gyro_bias_rw, dt):
 
 
 # --------------------------------------------------------------------------- numba kernels
-
-
-@njit(cache=True, inline="always")
-def _qmul(a0, a1, a2, a3, b0, b1, b2, b3):
-    return (a0 * b0 - a1 * b1 - a2 * b2 - a3 * b3, a0 * b1 + a1 * b0 + a2 * b3 - a3 * b2,
-            a0 * b2 - a1 * b3 + a2 * b0 + a3 * b1, a0 * b3 + a1 * b2 - a2 * b1 + a3 * b0)
-
-
-@njit(cache=True, inline="always")
-def _rv2q(x, y, z):
-    a2 = x * x + y * y + z * z
-    if a2 < 1e-8:
-        s = 0.5 - a2 / 48.0 + a2 * a2 / 3840.0
-        c = 1.0 - a2 / 8.0 + a2 * a2 / 384.0
-    else:
-        a = math.sqrt(a2)
-        s = math.sin(0.5 * a) / a
-        c = math.cos(0.5 * a)
-    return c, x * s, y * s, z * s
 
 
 @njit(cache=True, inline="always")
