@@ -296,6 +296,12 @@ def _aukf_predict_kernel(q, v, p, b, Lp, Lq, Lr, xi, wm, wc, dtheta, dv, dt, g_n
 # --------------------------------------------------------------------------- filters
 
 
+def _lam(scheme):
+    """λ of an unscented scheme (params n, α, β, κ): λ = α²(n + κ) − n."""
+    n, a, _, k = scheme.params
+    return a * a * (n + k) - n
+
+
 def _sigma_stats(chart, wm, wc, q_ref):
     """Mean (folded into a Nominal) and covariance of chart points; also the centred deviations."""
     mean = wm @ chart
@@ -335,6 +341,7 @@ class QuatAUKF:
         self.scheme = unscented_scheme(L, *self.ut)           # step 2 weights
         self.scheme0 = unscented_scheme(N_ERR, *self.ut)      # noise-free set for P′
         self.last = {}
+        self.guard_count = 0                                  # epochs where the chart guard acted
         self._meas = None
         self._Lq = cholesky_lower(self.Q, "Q")
         self._Lr = cholesky_lower(self.R, "R")
@@ -375,6 +382,26 @@ class QuatAUKF:
         _, Pnl, _ = _sigma_stats(chart, self.scheme0.wm, self.scheme0.wc, Qn[0])
         return Pnl
 
+    def _chart_guard(self, P):
+        """Keep the attitude sigma points inside the chart: σ_φ ≤ (π/2)/√(L+λ) per axis.
+
+        A rotation-vector chart is single-valued only for |φ| < π; a faded covariance whose attitude
+        sigma points reach beyond it (a fading factor of a few hundred on the unobservable yaw of a
+        static base does) wraps them round and the unscented mean and covariance become meaningless,
+        which feeds the next inconsistent innovation and the next fade.  The guard scales the attitude
+        rows and columns (a congruence, so P stays positive definite); it never acts on the
+        unfaded filters, whose attitude σ stays far below the bound.
+        """
+        c = math.sqrt(self.scheme.xi.shape[1] + _lam(self.scheme))
+        cap = 0.5 * math.pi / c
+        sd = np.sqrt(np.diag(P)[ATT])
+        if np.all(sd <= cap):
+            return P
+        d = np.ones(N_ERR)
+        d[ATT] = np.minimum(1.0, cap / sd)
+        self.guard_count += 1
+        return P * np.outer(d, d)
+
     def _h_chart(self, dx, v):
         return np.concatenate([self.nom.p + dx[POS], self.nom.v + dx[VEL]]) + v
 
@@ -405,7 +432,7 @@ class QuatAUKF:
                 fade = fading_factor(y, A, B, self.threshold)                          # eq. 1
             else:
                 fade = fading_matrix(y, A, B, H, self.threshold, nonzero_cols=MEAS_COLS)  # eqs. 5–10
-            Pl = apply_fading(self.P, Pnl, fade)              # eq. 13
+            Pl = self._chart_guard(apply_fading(self.P, Pnl, fade))   # eq. 13, then the chart guard
             zhat, Pzz, Pxz = aukf_measure(zero, Pl, self._h_chart, self.R, *self.ut, m=M_DIM)  # steps 5–7
             res = gain_update(zero, Pl, z, zhat, Pzz, Pxz, np.zeros((M_DIM, M_DIM)))           # step 8
         self._apply_correction(res.x)

@@ -273,7 +273,7 @@ def run_filter(method, cfg, sim, nom0, P0, Q, R, progress=False):
     runtime = time.perf_counter() - t0
     err = _wrap(eul - sim["truth"]["euler"][ks])
     return {"t": ks * sim["dt"], "att_err": err, "att_sigma": sig, "runtime_s": runtime,
-            "fade_max": np.asarray(fades)}
+            "fade_max": np.asarray(fades), "chart_guard_epochs": int(getattr(flt, "guard_count", 0))}
 
 
 def recovery_time(t, err, t_fault, tol):
@@ -309,7 +309,9 @@ def run_one(cfg, methods, seed, progress=False):
                "att_err_mean_after_deg": np.degrees(e[post].mean(axis=0)),
                "att_err_std_after_deg": np.degrees(e[post].std(axis=0)),
                "runtime_s": r["runtime_s"], "t": t, "att_err_deg": np.degrees(e),
-               "att_sigma_deg": np.degrees(r["att_sigma"]), "fade_max": r["fade_max"]}
+               "att_sigma_deg": np.degrees(r["att_sigma"]), "fade_max": r["fade_max"],
+               "chart_guard_epochs": r["chart_guard_epochs"],
+               "faded_epochs": int(np.sum(r["fade_max"] > 1.0))}
         if cfg["fault"]["kind"] == "attitude-jump":
             res["recovery_s"] = recovery_time(t, e, t_fault, tol)
             res["first_within_s"] = first_within(t, e, t_fault, tol)
@@ -344,6 +346,8 @@ def summarize(cfg, runs):
              "att_err_mean_after_deg": np.mean([r["methods"][m]["att_err_mean_after_deg"] for r in runs], 0).tolist(),
              "att_err_std_after_deg": np.mean([r["methods"][m]["att_err_std_after_deg"] for r in runs], 0).tolist(),
              "runtime_s": float(np.mean([r["methods"][m]["runtime_s"] for r in runs])),
+             "faded_epochs_mean": float(np.mean([r["methods"][m]["faded_epochs"] for r in runs])),
+             "chart_guard_epochs_mean": float(np.mean([r["methods"][m]["chart_guard_epochs"] for r in runs])),
              "per_seed_std_deg": {str(r["seed"]): np.asarray(r["methods"][m]["att_err_std_deg"]).tolist() for r in runs}}
         if "recovery_s" in runs[0]["methods"][m]:
             rec = [r["methods"][m]["recovery_s"] for r in runs]
@@ -395,6 +399,8 @@ def summarize(cfg, runs):
             lines.append(f"  {LABELS[m]:10s} " + " ".join(f"{v:.1f}" for v in stats[m]["recovery_s"])
                          + f"   mean {stats[m]['recovery_s_mean']:.1f}")
             lines.append(f"  {'':10s} " + " ".join(f"{v:.1f}" for v in stats[m]["first_within_s"]) + "   (first)")
+    lines += ["", "GPS epochs with a fade > 1 / with the chart guard acting (mean per run): " + ", ".join(
+        f"{LABELS[m]} {stats[m]['faded_epochs_mean']:.0f} / {stats[m]['chart_guard_epochs_mean']:.0f}" for m in methods)]
     lines += ["", "Runtime per filter (s, mean over runs): " + ", ".join(
         f"{LABELS[m]} {stats[m]['runtime_s']:.1f}" for m in methods)]
     if ordering:
