@@ -123,6 +123,11 @@ def load(path, raw, overrides):
         raise ConfigError(f"trajectory.kind must be 'static' or 'swing' for this experiment (a base at one "
                           f"site), got {cfg['trajectory'].get('kind')!r}")
     imu = _merge(raw, "imu")
+    given = raw.get("imu", {}) if isinstance(raw.get("imu", {}), dict) else {}
+    # a per-sample noise given in the scenario replaces the default random-walk form (ultratight.ins.imu)
+    for per_sample, walk in (("gyro_noise_dph", "gyro_arw_dprh"), ("accel_noise_ug", "accel_vrw_ugrhz")):
+        if per_sample in given and walk not in given:
+            imu.pop(walk, None)
     imu_errors_from_config(imu)                                   # validates the [imu] keys and values
     _num(imu["rate_hz"], "imu.rate_hz", lo=0, lo_open=True)
     cfg["imu"] = imu
