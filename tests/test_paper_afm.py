@@ -79,7 +79,7 @@ def test_cli_json_is_strict_and_carries_table1(tmp_path, capsys):
     assert (tmp_path / "paper-afm-jump_metrics.json").is_file()
 
 
-def test_reduction_and_recovery_helpers():
+def test_reduction_and_recovery_times():
     assert paper_afm.reduction([0.5, 0.2, 0.1], [1.0, 0.4, 0.2]) == pytest.approx(50.0)
     t = np.arange(0, 60.0, 0.1)
     e = np.zeros((t.size, 3))
