@@ -251,6 +251,8 @@ def run_filter(method, cfg, sim, nom0, P0, Q, R, progress=False):
     ks = np.arange(0, n + 1, out_step)
     eul = np.empty((ks.size, 3))
     sig = np.empty((ks.size, 3))
+    vel = np.empty((ks.size, 3))
+    pos = np.empty((ks.size, 3))
     fades = []
     j = 0
     t0 = time.perf_counter()
@@ -274,10 +276,14 @@ def run_filter(method, cfg, sim, nom0, P0, Q, R, progress=False):
         if k % out_step == 0:
             eul[j] = euler_from_q_nb(flt.nom.q)
             sig[j] = np.sqrt(np.diag(flt.P)[ATT])
+            vel[j] = flt.nom.v
+            pos[j] = flt.nom.p
             j += 1
     runtime = time.perf_counter() - t0
     err = _wrap(eul - sim["truth"]["euler"][ks])
+    tr = sim["truth"]
     return {"t": ks * sim["dt"], "att_err": err, "att_sigma": sig, "runtime_s": runtime,
+            "vel_err": vel - tr["vel_n"][ks], "pos_err": pos - tr["pos_n"][ks],
             "fade_max": np.asarray(fades), "chart_guard_epochs": int(getattr(flt, "guard_count", 0))}
 
 
@@ -316,6 +322,9 @@ def run_one(cfg, methods, seed, progress=False):
                "runtime_s": r["runtime_s"], "t": t, "att_err_deg": np.degrees(e),
                "att_sigma_deg": np.degrees(r["att_sigma"]), "fade_max": r["fade_max"],
                "chart_guard_epochs": r["chart_guard_epochs"],
+               "vel_err_ned_mps": r["vel_err"], "pos_err_ned_m": r["pos_err"],
+               "vel_err_rms_mps": float(np.sqrt(np.mean(np.sum(r["vel_err"] ** 2, axis=1)))),
+               "pos_err_rms_m": float(np.sqrt(np.mean(np.sum(r["pos_err"] ** 2, axis=1)))),
                "faded_epochs": int(np.sum(r["fade_max"] > 1.0))}
         if cfg["fault"]["kind"] == "attitude-jump":
             res["recovery_s"] = recovery_time(t, e, t_fault, tol)
@@ -351,6 +360,8 @@ def summarize(cfg, runs):
              "att_err_mean_after_deg": np.mean([r["methods"][m]["att_err_mean_after_deg"] for r in runs], 0).tolist(),
              "att_err_std_after_deg": np.mean([r["methods"][m]["att_err_std_after_deg"] for r in runs], 0).tolist(),
              "runtime_s": float(np.mean([r["methods"][m]["runtime_s"] for r in runs])),
+             "vel_err_rms_mps": float(np.mean([r["methods"][m]["vel_err_rms_mps"] for r in runs])),
+             "pos_err_rms_m": float(np.mean([r["methods"][m]["pos_err_rms_m"] for r in runs])),
              "faded_epochs_mean": float(np.mean([r["methods"][m]["faded_epochs"] for r in runs])),
              "chart_guard_epochs_mean": float(np.mean([r["methods"][m]["chart_guard_epochs"] for r in runs])),
              "per_seed_std_deg": {str(r["seed"]): np.asarray(r["methods"][m]["att_err_std_deg"]).tolist() for r in runs}}
@@ -404,6 +415,8 @@ def summarize(cfg, runs):
             lines.append(f"  {LABELS[m]:10s} " + " ".join(f"{v:.1f}" for v in stats[m]["recovery_s"])
                          + f"   mean {stats[m]['recovery_s_mean']:.1f}")
             lines.append(f"  {'':10s} " + " ".join(f"{v:.1f}" for v in stats[m]["first_within_s"]) + "   (first)")
+    lines += ["", "Velocity / position error RMS (3D, whole run, mean over runs): " + ", ".join(
+        f"{LABELS[m]} {stats[m]['vel_err_rms_mps']:.3f} m/s / {stats[m]['pos_err_rms_m']:.2f} m" for m in methods)]
     lines += ["", "GPS epochs with a fade > 1 / with the chart guard acting (mean per run): " + ", ".join(
         f"{LABELS[m]} {stats[m]['faded_epochs_mean']:.0f} / {stats[m]['chart_guard_epochs_mean']:.0f}" for m in methods)]
     lines += ["", "Runtime per filter (s, mean over runs): " + ", ".join(
@@ -448,12 +461,14 @@ def write_outputs(cfg, runs, summary, out_dir, plots):
         f.attrs["config_json"] = json.dumps(summary["json"]["config"])
         f.attrs["version"] = summary["json"]["version"]
         f.attrs["schema"] = ("per seed group seed_<s>/<method>: t (s), att_err_deg (n,3 roll/pitch/yaw, "
-                             "estimate - truth), att_sigma_deg (n,3 filter 1-sigma of the attitude error)")
+                             "estimate - truth), att_sigma_deg (n,3 filter 1-sigma of the attitude error), "
+                             "vel_err_ned_mps, pos_err_ned_m (n,3 estimate - truth, NED), fade_max (per GPS "
+                             "epoch: lambda or the largest diagonal of S)")
         for r in runs:
             g = f.create_group(f"seed_{r['seed']}")
             for m, d in r["methods"].items():
                 gm = g.create_group(m)
-                for key in ("t", "att_err_deg", "att_sigma_deg", "fade_max"):
+                for key in ("t", "att_err_deg", "att_sigma_deg", "vel_err_ned_mps", "pos_err_ned_m", "fade_max"):
                     gm.create_dataset(key, data=np.asarray(d[key]))
                 gm.attrs["runtime_s"] = d["runtime_s"]
     figures = []
@@ -471,17 +486,23 @@ def _figures(cfg, runs, out_dir, name):
         return []
     from ultratight.receiver.outputs import atomic_savefig
     r = runs[0]
-    fig, axs = plt.subplots(3, 1, figsize=(8, 7), sharex=True)
-    for m, d in r["methods"].items():
-        for i in range(3):
-            axs[i].plot(d["t"], d["att_err_deg"][:, i], lw=0.8, label=LABELS[m])
-    for i, a in enumerate(AXES):
-        axs[i].set_ylabel(f"{a} error (°)")
-        axs[i].grid(alpha=0.3)
-    axs[0].legend(loc="upper right")
-    axs[-1].set_xlabel("t (s)")
-    axs[0].set_title(f"{cfg['name']}: attitude error, seed {r['seed']} (cf. seed 002 Figs. 1, 4, 5)")
-    path = out_dir / f"{name}_attitude_error.png"
-    atomic_savefig(fig, path)
-    plt.close(fig)
-    return [str(path)]
+    figures = []
+    panels = (("attitude_error", "att_err_deg", AXES, "error (°)", "attitude error", "Figs. 1, 4, 5"),
+              ("velocity_error", "vel_err_ned_mps", ("north", "east", "down"), "error (m/s)", "velocity error", "Fig. 2"),
+              ("position_error", "pos_err_ned_m", ("north", "east", "down"), "error (m)", "position error", "Fig. 3"))
+    for tag, key, names, unit, title, ref in panels:
+        fig, axs = plt.subplots(3, 1, figsize=(8, 7), sharex=True)
+        for m, d in r["methods"].items():
+            for i in range(3):
+                axs[i].plot(d["t"], d[key][:, i], lw=0.8, label=LABELS[m])
+        for i, a in enumerate(names):
+            axs[i].set_ylabel(f"{a} {unit}")
+            axs[i].grid(alpha=0.3)
+        axs[0].legend(loc="upper right")
+        axs[-1].set_xlabel("t (s)")
+        axs[0].set_title(f"{cfg['name']}: {title}, seed {r['seed']} (cf. seed 002 {ref})")
+        path = out_dir / f"{name}_{tag}.png"
+        atomic_savefig(fig, path)
+        plt.close(fig)
+        figures.append(str(path))
+    return figures
