@@ -70,6 +70,7 @@ __all__ = [
     "fading_matrix",
     "apply_fading",
     "FadingUKF",
+    "aukf_fading_step",
 ]
 
 
@@ -297,15 +298,24 @@ def fading_factor(y, A, B, threshold: float) -> float:
     return float(np.max(_omega(np.asarray(y, float), A, B, threshold)))
 
 
-def fading_matrix(y, A, B, H, threshold: float, zero_tol: float = 1e-12) -> np.ndarray:
-    """AFM (seed 002 eqs. 5–10): S = (H′ᵀH′)⁻¹ H′ᵀ Ω H′ on the non-zero columns of H, I elsewhere."""
+def fading_matrix(y, A, B, H, threshold: float, zero_tol: float = 1e-12, nonzero_cols=None) -> np.ndarray:
+    """AFM (seed 002 eqs. 5–10): S = (H′ᵀH′)⁻¹ H′ᵀ Ω H′ on the non-zero columns of H, I elsewhere.
+
+    The all-zero columns are found numerically (``zero_tol`` relative to the largest column) unless
+    ``nonzero_cols`` gives them from the model's structure (SPEC §6 choice for the SINS model, whose
+    sigma-point H = P_xzᵀ P⁻¹ is only numerically ≈ 0 on the unmeasured states).
+    """
     y = np.asarray(y, float)
     H = np.asarray(H, float)
     n = H.shape[1]
     omega = _omega(y, A, B, threshold)  # eq. 5–6
     Om = np.diag(omega)
-    colmax = np.max(np.abs(H), axis=0)
-    nz = colmax > zero_tol * max(colmax.max(), 1e-300)  # eq. 8: partition off all-zero columns
+    if nonzero_cols is None:
+        colmax = np.max(np.abs(H), axis=0)
+        nz = colmax > zero_tol * max(colmax.max(), 1e-300)  # eq. 8: partition off all-zero columns
+    else:
+        nz = np.zeros(n, bool)
+        nz[np.asarray(nonzero_cols, int)] = True
     S = np.eye(n)
     Hp = H[:, nz]
     HtH = Hp.T @ Hp
@@ -388,3 +398,67 @@ class FadingUKF:
         res.info["fade"] = fade
         self.x, self.P = res.x, res.P
         return res
+
+
+def aukf_fading_step(x, P, z, f, h, Q, R, mode=None, threshold: float | None = None, alpha: float = 1.0,
+                     beta: float = 2.0, kappa: float = 0.0, nonzero_cols=None) -> UpdateResult:
+    """One step of seed 002's augmented UKF with process *and* measurement noise in the state (§3).
+
+    ``f(X, W) -> X⁺`` and ``h(X, V) -> Z`` act on arrays of points (rows).  Steps 1–3:
+    ``x^a = [x; w; v]``, ``P^a = diag(P, Q, R)``, L = n + q + m, 2L+1 points through f → x̂⁻, P⁻; the
+    same points with the noise parts zero → P′.  Step 4: ζ_i = h(χ_i^x, χ_i^v) of the propagated
+    points → ẑ, P_xz, P_zz.  ``mode=None`` (the "UKF"): K = P_xz P_zz⁻¹ from these points (step 8).
+    ``mode="aff"``/``"afm"``: λ (eq. 1) or S (eqs. 5–10) from eqs. 11–12, P^l by eq. 13, then the
+    redraw ``x^b = [x; v]``, L′ = n + m (steps 5–7) and the update (step 8).  ``threshold``: the
+    χ²₁ bound ε_i (default the 1 % quantile, SPEC §6).  ``info["fade"]`` holds λ or S.
+    """
+    x = as_vector("x", x)
+    n = x.shape[0]
+    P = check_covariance("P", P, n)
+    Q = check_covariance("Q", Q, None)
+    R = check_covariance("R", R, None)
+    z = as_vector("z", z, R.shape[0])
+    q, m = Q.shape[0], R.shape[0]
+    if mode not in (None, "aff", "afm"):
+        raise FilterError(f"mode: expected None, 'aff' or 'afm', got {mode!r}")
+    T = float(chi2.isf(0.01, 1)) if threshold is None else float(threshold)
+    La = np.zeros((n + q + m, n + q + m))
+    La[:n, :n] = cholesky_lower(P, "P")
+    La[n:n + q, n:n + q] = cholesky_lower(Q, "Q")
+    La[n + q:, n + q:] = cholesky_lower(R, "R")
+    sch = unscented_scheme(n + q + m, alpha, beta, kappa)          # steps 1–2
+    Xa = np.concatenate([x, np.zeros(q + m)])[None, :] + sch.xi @ La.T
+    X, W, V = Xa[:, :n], Xa[:, n:n + q], Xa[:, n + q:]
+    Xs = np.asarray(f(X, W), float)                                 # step 3
+    xp = sch.wm @ Xs
+    D = Xs - xp
+    Pp = symmetrize((D.T * sch.wc) @ D)
+    Z = np.asarray(h(Xs, V), float)                                 # step 4
+    zhat = sch.wm @ Z
+    DZ = Z - zhat
+    Pzz = symmetrize((DZ.T * sch.wc) @ DZ)
+    Pxz = (D.T * sch.wc) @ DZ
+    if mode is None:
+        res = gain_update(xp, Pp, z, zhat, Pzz, Pxz, np.zeros((m, m)))
+        res.info["fade"] = 1.0
+        return res
+    X0 = np.asarray(f(X, np.zeros_like(W)), float)                  # step 3, noise parts zero
+    D0 = X0 - sch.wm @ X0
+    Pnl = symmetrize((D0.T * sch.wc) @ D0)
+    Hs, A, B = fading_terms(Pxz, Pp, Pnl, Pzz)                      # eqs. 11–12
+    y = z - zhat
+    fade = fading_factor(y, A, B, T) if mode == "aff" else fading_matrix(y, A, B, Hs, T, nonzero_cols=nonzero_cols)
+    Pl = apply_fading(Pp, Pnl, fade)                                # eq. 13
+    sch2 = unscented_scheme(n + m, alpha, beta, kappa)             # steps 5–6
+    Lb = np.zeros((n + m, n + m))
+    Lb[:n, :n] = cholesky_lower(Pl, "faded P")
+    Lb[n:, n:] = La[n + q:, n + q:]
+    Xb = np.concatenate([xp, np.zeros(m)])[None, :] + sch2.xi @ Lb.T
+    Zb = np.asarray(h(Xb[:, :n], Xb[:, n:]), float)                 # step 7
+    zb = sch2.wm @ Zb
+    DZb = Zb - zb
+    Pzzb = symmetrize((DZb.T * sch2.wc) @ DZb)
+    Pxzb = ((Xb[:, :n] - xp).T * sch2.wc) @ DZb
+    res = gain_update(xp, Pl, z, zb, Pzzb, Pxzb, np.zeros((m, m)))  # step 8
+    res.info["fade"] = fade
+    return res

@@ -21,6 +21,12 @@ Trajectory kinds (``[trajectory]`` table of a scenario, see docs/ins.md):
   segment's ``t0`` the l0 acceleration is ``acc_enu + jerk_enu * (t - t0)``.
   The first segment must start at t0 = 0.  Acceleration may jump between
   segments (velocity and position are continuous).
+* ``"swing"``: a swinging base (swing table, ship at anchor): static position,
+  sinusoidal Euler angles ``att = att0_deg + swing_amp_deg * sin(2 pi t /
+  swing_period_s + swing_phase_deg)`` per axis [roll, pitch, yaw] (defaults
+  SPEC §6: ±10° / 8 s, ±8° / 6 s, ±5° / 10 s, phases 0).  The body rate is the
+  exact Euler-rate map, so the IMU increments (Gauss–Legendre integrals of the
+  rate and specific force) are exact, coning and sculling included.
 * ``"turns"``: horizontal ground/air vehicle.  ``speed0_mps``, ``heading0_deg``
   (clockwise from north); ``segments = [{t0, turn_rate_dps, acc_mps2 | speed_mps}]``:
   constant turn rate (positive = turning right, heading increasing) and
@@ -56,8 +62,11 @@ from ultratight.ins.attitude import (dcm_to_quat_vec, euler_to_dcm, euler_to_dcm
 from ultratight.ins.earth import (dcm_ecef_from_enu, dcm_ecef_from_enu_vec, ecef_to_llh_batch,
                                   llh_to_ecef)
 
-KINDS = ("static", "segments", "turns")
-ATTITUDE_MODES = ("velocity", "fixed", "rates")
+KINDS = ("static", "segments", "turns", "swing")
+ATTITUDE_MODES = ("velocity", "fixed", "rates", "swing")
+# swinging-base defaults (SPEC §6, not from seed 002): [roll, pitch, yaw]
+SWING_AMP_DEG = (10.0, 8.0, 5.0)
+SWING_PERIOD_S = (8.0, 6.0, 10.0)
 _SPEED_EPS = 1e-9     # m/s: below this the velocity direction is taken from acc / jerk
 
 
@@ -118,6 +127,10 @@ class Trajectory:
         self.rate_t0 = np.zeros(1)
         self.rate_w = np.zeros((1, 3))
         self.rate_C0 = self.C_l0b0[None].copy()
+        # swing attitude mode: amplitudes (rad), angular frequencies (rad/s), phases (rad)
+        self.swing_amp = np.zeros(3)
+        self.swing_w = np.zeros(3)
+        self.swing_phase = np.zeros(3)
 
     # ------------------------------------------------------------------ local-frame motion
     def _seg_index(self, t, t0s):
@@ -184,6 +197,8 @@ class Trajectory:
         n = t.shape[0]
         if self.attitude_mode == "fixed":
             return np.broadcast_to(self.C_l0b0, (n, 3, 3)).copy(), np.zeros((n, 3))
+        if self.attitude_mode == "swing":
+            return self._swing_attitude(t)
         if self.attitude_mode == "rates":
             i = self._seg_index(t, self.rate_t0)
             dt = (t - self.rate_t0[i])[:, None]
@@ -192,6 +207,25 @@ class Trajectory:
             return C, w.copy()
         _, v, a, j = motion if motion is not None else self.local_motion(t)
         return self._velocity_attitude(v, a, j)
+
+    def swing_euler(self, t):
+        """Swing-mode Euler angles [roll, pitch, yaw] (rad) and their rates, two (n, 3) arrays."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))[:, None]
+        arg = self.swing_w[None, :] * t + self.swing_phase[None, :]
+        return self.att0[None, :] + self.swing_amp * np.sin(arg), self.swing_amp * self.swing_w * np.cos(arg)
+
+    def _swing_attitude(self, t):
+        e, de = self.swing_euler(t)
+        roll, pitch = e[:, 0], e[:, 1]
+        sr, cr, sp, cp = np.sin(roll), np.cos(roll), np.sin(pitch), np.cos(pitch)
+        dr, dp, dy = de[:, 0], de[:, 1], de[:, 2]
+        # C_lb = Rz(pi/2 - yaw) Ry(-pitch) Rx(roll) (FLU body, ENU): the Euler-rate map of the
+        # equivalent NED/FRD yaw-pitch-roll sequence, FRD -> FLU flips the y and z components
+        w = np.empty((t.shape[0], 3))
+        w[:, 0] = dr - dy * sp
+        w[:, 1] = -(dp * cr + dy * sr * cp)
+        w[:, 2] = dp * sr - dy * cr * cp
+        return euler_to_dcm_vec(roll, pitch, e[:, 2]), w
 
     def _velocity_attitude(self, v, a, j):
         v = v.copy()
@@ -355,7 +389,10 @@ def build_trajectory(traj_cfg, receiver_cfg, duration_s):
     kind = traj_cfg.get("kind", "static")
     if kind not in KINDS:
         raise ConfigError(f"trajectory.kind must be one of {', '.join(KINDS)}; got {kind!r}")
-    mode = traj_cfg.get("attitude", "velocity" if kind != "static" else "fixed")
+    mode = traj_cfg.get("attitude", {"static": "fixed", "swing": "swing"}.get(kind, "velocity"))
+    if (kind == "swing") != (mode == "swing"):
+        raise ConfigError(f"trajectory.attitude = {mode!r} does not go with kind = {kind!r} "
+                          "(the swing attitude belongs to kind = \"swing\" only)")
     if mode not in ATTITUDE_MODES:
         raise ConfigError(f"trajectory.attitude must be one of {', '.join(ATTITUDE_MODES)}; got {mode!r}")
     att0 = np.radians(_vec3(traj_cfg.get("att0_deg", [0.0, 0.0, 0.0]), "att0_deg"))
@@ -368,6 +405,17 @@ def build_trajectory(traj_cfg, receiver_cfg, duration_s):
     if kind == "static":
         if mode == "velocity":
             tr.attitude_mode = "fixed"
+    elif kind == "swing":
+        amp = np.radians(_vec3(traj_cfg.get("swing_amp_deg", SWING_AMP_DEG), "swing_amp_deg"))
+        per = _vec3(traj_cfg.get("swing_period_s", SWING_PERIOD_S), "swing_period_s")
+        if np.any(per <= 0.0):
+            raise ConfigError(f"trajectory: swing_period_s must be > 0 on every axis, got {per.tolist()}")
+        if np.any(np.abs(np.degrees(tr.att0[1]) + np.degrees(np.abs(amp[1]))) >= 89.0):
+            raise ConfigError("trajectory: att0_deg[1] + swing_amp_deg[1] must stay below 89 deg of pitch "
+                              "(Euler singularity)")
+        tr.swing_amp = amp
+        tr.swing_w = 2.0 * np.pi / per
+        tr.swing_phase = np.radians(_vec3(traj_cfg.get("swing_phase_deg", [0.0, 0.0, 0.0]), "swing_phase_deg"))
     elif kind == "segments":
         segs, t0 = _segments_list(traj_cfg, kind)
         n = len(segs)
