@@ -15,6 +15,14 @@ Receiver time: ``t_rx(s) = t0 + s/fs`` (receiver clock).  ``t0`` is set when the
 knows its transmit time (``t0 = t_tx + 75 ms``) and is steered by the clock-bias estimate at the
 first fix (and whenever |bias| exceeds 1 ms); reported fix times are GPS time
 ``t_rx - bias/c``.
+
+Atmosphere (``ProcessConfig.iono`` / ``tropo``, :mod:`ultratight.signals.atmosphere`): the PVT
+removes the Klobuchar ionospheric delay once broadcast coefficients are known — from the RINEX
+navigation header given as ephemerides, else from the first subframe 4 page 18 decoded on any
+channel — and the Saastamoinen tropospheric delay (standard atmosphere, ``tropo_mapping``).
+The satellite clock correction includes ``-T_GD`` (:func:`ultratight.signals.ephemeris.sat_state`).
+The options and the coefficients used are recorded in the summary (``corrections``), the HDF5
+root attributes and every other output.
 """
 
 import math
@@ -23,11 +31,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ultratight import __version__
 from ultratight.constants import C, LAMBDA_L1, T_CA
 from ultratight.errors import ConfigError, InputFileError, UltratightError
 from ultratight.receiver.navdecode import ChannelNav
 from ultratight.receiver.observables import CarrierSmoother, ChannelHistory, observe, pseudorange
-from ultratight.receiver.pvt import solve_pvt
+from ultratight.receiver.pvt import atmosphere_delays, solve_pvt
 from ultratight.receiver.tracking import (
     FL_BIT_DONE, FL_BIT_SYNC, FL_PLL_LOCK, MODE_LOST, MODE_TRACK, R_BIT, R_CN0, R_CODE_PHASE, R_DOPP, R_IP,
     REC_F_NAMES, REC_I_NAMES, RI_EPOCH, RI_FLAGS, RI_MODE, RI_PTR, S_MODE, ScalarTracker, TrackingConfig)
@@ -67,6 +76,9 @@ class ProcessConfig:
     sigma_rr_mps: float = 0.05
     reacquire: bool = True
     reacq_retry_s: float = 1.0
+    iono: str = "klobuchar"             # klobuchar | off (klobuchar applies once alpha/beta are known)
+    tropo: str = "saastamoinen"         # saastamoinen | off
+    tropo_mapping: str = "cosz"         # mapping function of the Saastamoinen model
     record_epochs: bool = False
     parallel: bool = False              # spread channels over numba threads
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
@@ -86,6 +98,13 @@ class ProcessConfig:
                     raise ConfigError(f"--prn: PRN must be in 1..32, got {p}")
         if not 10 <= self.block_ms <= 1000:
             raise ConfigError(f"block_ms must be in [10, 1000], got {self.block_ms}")
+        from ultratight.signals.atmosphere import IONO_MODELS, MAPPINGS, TROPO_MODELS
+        if self.iono not in IONO_MODELS:
+            raise ConfigError(f"--iono must be one of {', '.join(IONO_MODELS)}, got {self.iono!r}")
+        if self.tropo not in TROPO_MODELS:
+            raise ConfigError(f"--tropo must be one of {', '.join(TROPO_MODELS)}, got {self.tropo!r}")
+        if self.tropo_mapping not in MAPPINGS:
+            raise ConfigError(f"tropospheric mapping must be one of {', '.join(MAPPINGS)}, got {self.tropo_mapping!r}")
         if self.doppler_window_s * self.obs_rate_hz > 0.5 + 1e-9:
             self.doppler_window_s = 0.5 / self.obs_rate_hz
         if self.doppler_range_hz >= 0.5 * source.fs_hz:
@@ -106,6 +125,7 @@ class ProcessResult:
     out_path: str | None = None
     epochs: dict = field(default_factory=dict)   # prn -> dict of arrays (record_epochs)
     warnings: list = field(default_factory=list)
+    corrections: dict = field(default_factory=dict)   # atmosphere options and coefficients used
 
     @property
     def realtime_factor(self):
@@ -150,6 +170,8 @@ class ProcessResult:
             "realtime_factor": round(self.realtime_factor, 4) if self.signal_s > 0 else None,
             "interrupted": self.interrupted,
             "warnings": self.warnings,
+            "corrections": self.corrections,
+            "version": __version__,
             "out": self.out_path,
         }
 
@@ -358,6 +380,28 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
                               "[{elapsed}<{remaining}{postfix}]", leave=False)
     done_s = 0.0
 
+    from ultratight.signals.atmosphere import AtmosphereModel
+    nav_iono = None
+    if cfg.iono == "klobuchar" and getattr(ephemerides, "ion_alpha", None) and getattr(ephemerides, "ion_beta", None):
+        nav_iono = (tuple(ephemerides.ion_alpha), tuple(ephemerides.ion_beta), "rinex")
+    atm = {"iono": nav_iono, "model": None}
+
+    def atmosphere_model():
+        """The AtmosphereModel of this epoch (the ionosphere starts when coefficients are known)."""
+        if cfg.iono == "klobuchar" and atm["iono"] is None:
+            for nv in navs:
+                io = nv.decoder.iono
+                if io is not None:
+                    atm["iono"] = (tuple(io.alpha), tuple(io.beta), "lnav")
+                    atm["model"] = None
+                    break
+        if atm["model"] is None:
+            a, b, src = atm["iono"] if atm["iono"] is not None else (None, None, None)
+            atm["model"] = AtmosphereModel(cfg.iono, a, b, cfg.tropo, cfg.tropo_mapping)
+            result.corrections = {**atm["model"].describe(), "iono_source": src,
+                                  "iono_option": cfg.iono, "tropo_option": cfg.tropo}
+        return atm["model"]
+
     def write_acq():
         if writer is None:
             return
@@ -426,8 +470,11 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             rr[ch] = -LAMBDA_L1 * o["doppler_hz"] + C * float(drift[0])
         if np.isfinite(prc).sum() < 4:
             return
+        model = atmosphere_model()
+        parts = {}
         sol = solve_pvt(sp, prc, sv, rr, sigma_pr_m=cfg.sigma_pr_m, sigma_rr_mps=cfg.sigma_rr_mps,
-                        x0=last_x, mask_deg=cfg.mask_deg)
+                        x0=last_x, mask_deg=cfg.mask_deg,
+                        delays=atmosphere_delays(model, t_rx, parts) if model.active else None)
         if not sol.valid or sol.vel_e is None:
             return
         if last_x is None or abs(sol.clk_bias_m) > CLOCK_STEER_S * C:
@@ -446,7 +493,8 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
                "n_used": int(sol.used.sum()), "raim_ok": sol.raim_ok,
                "excluded_prn": [chinfo[j]["prn"] for j in sol.excluded],
                "used_prn": [chinfo[j]["prn"] for j in np.flatnonzero(sol.used)],
-               "sigma_pos_m": float(np.sqrt(np.trace(sol.cov_pos_clk[:3, :3])))}
+               "sigma_pos_m": float(np.sqrt(np.trace(sol.cov_pos_clk[:3, :3]))),
+               "iono": "klobuchar" if model.iono_active else "off", "tropo": cfg.tropo}
         fixes.append(fix)
         if writer is not None:
             writer.append("pvt/t_s", np.array([fix["t_s"]]))
@@ -465,6 +513,9 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             used = np.zeros(n_ch, dtype=bool)
             used[sol.used] = True
             writer.append("pvt/used", used[None, :])
+            for k in ("iono_m", "tropo_m"):
+                v = np.asarray(parts.get(k, np.full(n_ch, np.nan)), dtype=float) * np.ones(n_ch)
+                writer.append(f"pvt/{k}", v[None, :])
 
     def reacquire(ch, now_sample):
         from ultratight.receiver.acquisition import acquire
@@ -636,7 +687,7 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             if csv_path:
                 write_csv(csv_path, fixes)
             if kml_path:
-                write_kml(kml_path, fixes)
+                write_kml(kml_path, fixes, options=result.corrections)
     return result
 
 
@@ -676,6 +727,7 @@ def _finish_writer(writer, result, cfg, run_config):
     conf = asdict(cfg)
     writer.flush()                 # datasets exist before their attributes are set
     writer.attrs("/", config=conf, run_config=run_config or {}, input=result.input,
+                 corrections=result.corrections,
                  signal_s=result.signal_s, wall_s=result.wall_s, interrupted=result.interrupted)
     for c in result.channels:
         writer.attrs(f"tracking/prn{c['prn']:02d}", **{k: (-1 if v is None else v) for k, v in c.items()

@@ -81,6 +81,11 @@ def add_arguments(p):
     p.add_argument("--doppler-range", type=float, default=10e3, metavar="HZ",
                    help="acquisition Doppler search half-width (default 10 kHz)")
     p.add_argument("--mask", type=float, default=5.0, metavar="DEG", help="elevation mask (default 5 deg)")
+    p.add_argument("--iono", choices=("klobuchar", "off"), default="klobuchar",
+                   help="ionospheric correction: broadcast Klobuchar model (default; applied once alpha/beta "
+                        "are known from subframe 4 page 18 or the --ephemeris RINEX header) or off")
+    p.add_argument("--tropo", choices=("saastamoinen", "off"), default="saastamoinen",
+                   help="tropospheric correction: Saastamoinen with a standard atmosphere (default) or off")
     p.add_argument("--out", metavar="OUT.h5", help="HDF5 output (schema in docs/process.md)")
     p.add_argument("--csv", metavar="OUT.csv", help="also write the fixes as CSV")
     p.add_argument("--kml", metavar="OUT.kml", help="also write the track as KML")
@@ -143,7 +148,7 @@ def run(args):
                         duration_s=args.duration, start_s=args.start, obs_rate_hz=args.obs_rate,
                         mask_deg=args.mask, acq_min_cn0_dbhz=args.acq_min_cn0,
                         acq_coherent_ms=args.acq_coherent, acq_noncoherent=args.acq_noncoherent,
-                        doppler_range_hz=args.doppler_range, tracking=tcfg)
+                        doppler_range_hz=args.doppler_range, tracking=tcfg, iono=args.iono, tropo=args.tropo)
     eph = None
     if args.ephemeris:
         from ultratight.signals.rinex import read_rinex_nav
