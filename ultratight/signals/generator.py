@@ -280,7 +280,8 @@ class SignalPlan:
         first = int(math.floor((self.tow0 - 0.2) / 0.02))
         n_bits = int(math.ceil((duration_s + 0.5) / 0.02)) + 2
         for eph in self.ephs:
-            b = np.asarray(nav_bits(eph, self.week, first * 0.02, n_bits, iono=self.iono_broadcast), dtype=np.int8)
+            kw = {"iono": self.iono_broadcast} if self.iono_broadcast is not None else {}
+            b = np.asarray(nav_bits(eph, self.week, first * 0.02, n_bits, **kw), dtype=np.int8)
             self.bits[int(eph.prn)] = (first, b)
 
     def bit_values(self, epoch0):

@@ -21,7 +21,8 @@ Subframes 1–3 carry the clock/ephemeris parameters with the IS-GPS-200 scale f
 of Table 20-V and, for subframe 5 pages 1–24, the almanac of PRN = page when ``almanac`` (dict
 prn -> Ephemeris) holds it; subframe 4 page 18 (SV ID 56) carries the ionospheric and UTC
 parameters (Figure 20-1 sheet 8, Table 20-X scale factors) when ``iono`` (:class:`IonoUtc`) is
-given; otherwise the page content is the alternating 1/0 filler pattern.  The decoder keeps the
+given (without it, page 18 is sent as a reserved page, SV ID 57); otherwise the page content is
+the alternating 1/0 filler pattern.  The decoder keeps the
 latest page 18 it reads with good parity in ``LnavDecoder.iono``.
 """
 
@@ -314,6 +315,10 @@ def _subframe_words(sf_id, eph, tow_s, week, almanac=None, alert=0, anti_spoof=0
         page = int(round(tow_s / SUBFRAME_S)) // 5 % 25 + 1
         if sf_id == 4 and page == 18 and iono is not None:
             words += _iono_page(iono)
+        elif sf_id == 4 and page == 18:
+            # no coefficients to send: a reserved page (SV ID 57), so that no receiver reads the
+            # filler pattern as ionospheric / UTC parameters
+            words += _filler_page(57)
         elif sf_id == 4:
             words += _filler_page(SF4_SV_ID[page - 1])
         elif page == 25:
