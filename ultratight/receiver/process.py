@@ -289,13 +289,16 @@ def _assisted(a, start_sample):
 
 
 def process(source, config=None, ephemerides=None, out_path=None, csv_path=None, kml_path=None,
-            progress=False, run_config=None, assist=None):
+            progress=False, run_config=None, assist=None, rinex_obs_path=None, rinex_nav_path=None,
+            nmea_path=None):
     """Run the scalar receiver on ``source`` (IfSource or path); returns a :class:`ProcessResult`.
 
     ``ephemerides``: None (decode from the signal), a RINEX :class:`NavData` or dict prn ->
     Ephemeris.  ``assist``: optional list of dicts (prn, doppler_hz, code_phase_chips, sample_index,
     cn0_dbhz) replacing the acquisition (warm start, e.g. from a scenario's truth or a prediction).
-    ``out_path``: HDF5 output (schema in docs/process.md).  KeyboardInterrupt stops
+    ``out_path``: HDF5 output (schema in docs/process.md); ``rinex_obs_path`` / ``rinex_nav_path``:
+    RINEX 3.04 observation / navigation files (:mod:`ultratight.receiver.rinex_out`);
+    ``nmea_path``: NMEA 0183 sentences (:mod:`ultratight.receiver.nmea`).  KeyboardInterrupt stops
     the run, writes a partial output (root attribute ``complete = False``) and re-raises.
     """
     from ultratight.signals.ephemeris import sat_state
@@ -402,6 +405,31 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
                                   "iono_option": cfg.iono, "tropo_option": cfg.tropo}
         return atm["model"]
 
+    rinex_obs = None
+    if rinex_obs_path:
+        from ultratight.receiver.rinex_out import RinexObsWriter
+        rinex_obs = RinexObsWriter(rinex_obs_path, 1.0 / cfg.obs_rate_hz, comments=[
+            f"ultratight {__version__} process: iono={cfg.iono} tropo={cfg.tropo} "
+            f"({cfg.tropo_mapping}), mask {cfg.mask_deg:g} deg",
+            ("C1C carrier smoothed (Hatch filter, %g s window)" % cfg.smoothing_s) if cfg.smoothing_s > 0
+            else "C1C raw code pseudorange",
+            f"input {source.path}"])
+    used_ephs = {}               # (prn, week, toe, iode) -> Ephemeris used by the PVT
+    restarts = [0] * n_ch        # re-acquisitions per channel at the previous RINEX epoch
+
+    def write_rinex_epoch(t_rx, pr, row):
+        sats = []
+        for ch in range(n_ch):
+            nreacq = chinfo[ch]["reacquisitions"]
+            half = navs[ch].decoder.inverted is None
+            sats.append({"prn": chinfo[ch]["prn"], "pr_m": pr[ch],
+                         "phase_cycles": row["carrier_cycles"][ch] + (0.5 if navs[ch].decoder.inverted else 0.0),
+                         "doppler_hz": row["doppler_hz"][ch], "cn0_dbhz": row["cn0_dbhz"][ch],
+                         "lock": bool(row["pll_lock"][ch]), "continuous": nreacq == restarts[ch],
+                         "half_cycle": half})
+            restarts[ch] = nreacq
+        rinex_obs.add_epoch(week_known, t_rx, sats)
+
     def write_acq():
         if writer is None:
             return
@@ -443,6 +471,8 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             pr = smoother.update(pr, row["carrier_cycles"], row["pll_lock"])
             if writer is not None:
                 writer.append("observables/pseudorange_smoothed_m", pr[None, :])
+        if rinex_obs is not None and week_known is not None:
+            write_rinex_epoch(t_rx, pr, row)
         # satellite states
         n = n_ch
         sp = np.full((n, 3), np.nan)
@@ -462,6 +492,7 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
                 continue
             # state at the satellite-clock time, moved to GPS time t_gps = t_sv - clk (|clk| < 1 ms:
             # the linear step leaves < 1 um of position error)
+            used_ephs[(eph.prn, eph.week, eph.toe, eph.iode)] = eph
             p_, v_, clk, drift = sat_state(eph, ttx[ch])
             p_ = p_ - v_ * float(clk[0])
             sp[ch] = p_[0]
@@ -484,6 +515,14 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             last_x = np.r_[sol.pos_e, 0.0]
             return
         last_x = np.r_[sol.pos_e, sol.clk_bias_m]
+        from ultratight.receiver.pvt import elevations
+        fin = np.all(np.isfinite(sp), axis=1)
+        el_all, az_all = np.full(n, np.nan), np.full(n, np.nan)
+        if fin.any():
+            el_all[fin], az_all[fin] = elevations(sol.pos_e, sp[fin])
+        sv_list = [{"prn": chinfo[j]["prn"], "elev_deg": math.degrees(el_all[j]),
+                    "azim_deg": math.degrees(az_all[j]) % 360.0, "cn0_dbhz": float(row["cn0_dbhz"][j]),
+                    "used": bool(sol.used[j])} for j in np.flatnonzero(fin)]
         llh_deg = [math.degrees(sol.llh[0]), math.degrees(sol.llh[1]), float(sol.llh[2])]
         fix = {"t_s": row["t_s"], "sample_index": int(s_obs), "gps_week": week_known,
                "gps_tow_s": t_rx - sol.clk_bias_m / C, "pos_e": sol.pos_e, "vel_e": sol.vel_e,
@@ -494,7 +533,7 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
                "excluded_prn": [chinfo[j]["prn"] for j in sol.excluded],
                "used_prn": [chinfo[j]["prn"] for j in np.flatnonzero(sol.used)],
                "sigma_pos_m": float(np.sqrt(np.trace(sol.cov_pos_clk[:3, :3]))),
-               "iono": "klobuchar" if model.iono_active else "off", "tropo": cfg.tropo}
+               "iono": "klobuchar" if model.iono_active else "off", "tropo": cfg.tropo, "sv": sv_list}
         fixes.append(fix)
         if writer is not None:
             writer.append("pvt/t_s", np.array([fix["t_s"]]))
@@ -657,6 +696,8 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
         result.interrupted = True
         raise
     finally:
+        if rinex_obs is not None and not complete:
+            rinex_obs.abort()
         if bar is not None:
             bar.close()
         result.signal_s = max(done_s, 0.0)
@@ -688,7 +729,28 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
                 write_csv(csv_path, fixes)
             if kml_path:
                 write_kml(kml_path, fixes, options=result.corrections)
+            _write_exchange_files(result, cfg, navs, ephemerides, used_ephs, atm["iono"], rinex_obs,
+                                  rinex_nav_path, nmea_path)
     return result
+
+
+def _write_exchange_files(result, cfg, navs, ephemerides, used_ephs, iono, rinex_obs, rinex_nav_path, nmea_path):
+    """RINEX observation / navigation and NMEA files at the end of a complete run."""
+    pos, _ = result.position_median()
+    if rinex_obs is not None:
+        rinex_obs.finish(pos)
+    utc = next((nv.decoder.iono for nv in navs if nv.decoder.iono is not None), None)
+    leap = utc.dt_ls if utc is not None else getattr(ephemerides, "leap_seconds", None)
+    if rinex_nav_path:
+        from ultratight.receiver.rinex_out import write_rinex_nav
+        ephs = list(used_ephs.values()) + [nv.ephemeris for nv in navs if nv.ephemeris is not None]
+        write_rinex_nav(rinex_nav_path, ephs, iono=None if iono is None else iono[:2], leap_seconds=leap,
+                        comments=[f"ultratight {__version__} process: ephemerides "
+                                  f"{'from ' + str(getattr(ephemerides, 'path', 'the caller')) if ephemerides is not None else 'decoded from the signal'}"])
+    if nmea_path:
+        from ultratight.receiver.nmea import DEFAULT_LEAP_S, write_nmea
+        write_nmea(nmea_path, result.fixes, leap_s=DEFAULT_LEAP_S if leap is None else leap,
+                   options={"iono": result.corrections.get("iono", cfg.iono), "tropo": cfg.tropo})
 
 
 def _spectrum_check(hists, tracker, input_info, min_doppler_hz=800.0):

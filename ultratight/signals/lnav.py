@@ -635,6 +635,7 @@ class LnavDecoder:
         dt = ints["toe"] * 2.0 ** 4 - tx_tow
         eph_week = week + (-1 if dt > SECONDS_PER_WEEK / 2 else (1 if dt < -SECONDS_PER_WEEK / 2 else 0))
         self.ephemeris = ints_to_eph(ints, self.prn, eph_week)
+        self.ephemeris.tx_tow = float(tx_tow)     # transmission time of subframe 1 (RINEX field)
 
 
 def _parse_sf123(s1, s2, s3):

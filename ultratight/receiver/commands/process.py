@@ -88,6 +88,9 @@ def add_arguments(p):
                    help="tropospheric correction: Saastamoinen with a standard atmosphere (default) or off")
     p.add_argument("--out", metavar="OUT.h5", help="HDF5 output (schema in docs/process.md)")
     p.add_argument("--csv", metavar="OUT.csv", help="also write the fixes as CSV")
+    p.add_argument("--rinex-obs", metavar="OUT.obs", help="also write RINEX 3.04 observations (C1C L1C D1C S1C)")
+    p.add_argument("--rinex-nav", metavar="OUT.nav", help="also write the ephemerides used as RINEX 3.04 navigation")
+    p.add_argument("--nmea", metavar="OUT.nmea", help="also write NMEA 0183 GGA/RMC/GSA/GSV per fix")
     p.add_argument("--kml", metavar="OUT.kml", help="also write the track as KML")
     p.add_argument("--json", action="store_true", help="print one JSON summary object on stdout")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -157,7 +160,8 @@ def run(args):
     run_config = {k: v for k, v in vars(args).items() if not k.startswith("_")}
     try:
         res = process(source, cfg, ephemerides=eph, out_path=args.out, csv_path=args.csv, kml_path=args.kml,
-                      progress=progress, run_config=run_config)
+                      progress=progress, run_config=run_config, rinex_obs_path=args.rinex_obs,
+                      rinex_nav_path=args.rinex_nav, nmea_path=args.nmea)
     except NoSignalError as exc:
         if args.json:
             print(json.dumps({"acquired": [], "tracked": [], "fixes": 0, "first_fix_s": None,
@@ -189,7 +193,9 @@ def _run_ultratight(args):
         raise ConfigError("--mode ultratight needs --imu IMU.h5")
     ignored = [flag for flag, on in (("--fs", args.fs is not None), ("--if", args.if_hz is not None),
                                      ("--format", args.fmt is not None), ("--iq-conj", args.iq_conj),
-                                     ("--start", args.start != 0.0), ("--csv", args.csv), ("--kml", args.kml))
+                                     ("--start", args.start != 0.0), ("--csv", args.csv), ("--kml", args.kml),
+                                     ("--rinex-obs", args.rinex_obs), ("--rinex-nav", args.rinex_nav),
+                                     ("--nmea", args.nmea))
                if on]
     if ignored:
         raise ConfigError(f"{', '.join(ignored)} not supported with --mode ultratight (the IF parameters come "
