@@ -56,7 +56,7 @@ class NoSignalError(UltratightError):
 
 @dataclass
 class ProcessConfig:
-    n_channels: int = 8
+    n_channels: int | None = None       # None: all in view (one channel per searched PRN, periodic search)
     prns: list | None = None
     duration_s: float | None = None
     start_s: float = 0.0
@@ -76,6 +76,7 @@ class ProcessConfig:
     sigma_rr_mps: float = 0.05
     reacquire: bool = True
     reacq_retry_s: float = 1.0
+    search_every_s: float = 15.0        # all-in-view: search again for the PRNs not tracked
     iono: str = "klobuchar"             # klobuchar | off (klobuchar applies once alpha/beta are known)
     tropo: str = "saastamoinen"         # saastamoinen | off
     tropo_mapping: str = "cosz"         # mapping function of the Saastamoinen model
@@ -84,8 +85,10 @@ class ProcessConfig:
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
 
     def validate(self, source):
-        if not 1 <= int(self.n_channels) <= 32:
+        if self.n_channels is not None and not 1 <= int(self.n_channels) <= 32:
             raise ConfigError(f"--channels must be in 1..32, got {self.n_channels}")
+        if not self.search_every_s > 0:
+            raise ConfigError(f"search interval must be > 0 s, got {self.search_every_s}")
         if not 0.1 <= self.obs_rate_hz <= 50.0:
             raise ConfigError(f"observation rate must be in [0.1, 50] Hz, got {self.obs_rate_hz}")
         if self.duration_s is not None and not self.duration_s > 0:
@@ -126,6 +129,7 @@ class ProcessResult:
     epochs: dict = field(default_factory=dict)   # prn -> dict of arrays (record_epochs)
     warnings: list = field(default_factory=list)
     corrections: dict = field(default_factory=dict)   # atmosphere options and coefficients used
+    searches: int = 0                  # all-in-view searches run after the first acquisition
 
     @property
     def realtime_factor(self):
@@ -171,6 +175,7 @@ class ProcessResult:
             "interrupted": self.interrupted,
             "warnings": self.warnings,
             "corrections": self.corrections,
+            "searches": self.searches,
             "version": __version__,
             "out": self.out_path,
         }
@@ -340,8 +345,16 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             f"{[a.prn for a in acq if getattr(a, 'weak', False)] or 'none'}). "
             f"Hint: check --fs/--if/--format; for complex files try --iq-conj (I - jQ spectrum inversion); "
             f"for real files check the IF sign/LO side")
-    found = found[:cfg.n_channels]
-    n_ch = len(found)
+    all_in_view = cfg.n_channels is None
+    searched = [int(p) for p in (cfg.prns or range(1, 33))]
+    if all_in_view:
+        # one channel per searched PRN: the ones acquired start now, the others on a later search
+        got = {a.prn for a in found}
+        idle_prns = [p for p in dict.fromkeys(searched) if p not in got]
+    else:
+        found = found[:cfg.n_channels]
+        idle_prns = []
+    n_ch = len(found) + len(idle_prns)
     block_len = int(round(cfg.block_ms * 1e-3 * fs))
     margin = int(math.ceil(2.2e-3 * fs))
     tracker = ScalarTracker(n_ch, fs, source.if_hz, source.is_complex, cfg.tracking,
@@ -355,14 +368,22 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
         hists.append(ChannelHistory(fs))
         chinfo.append({"prn": a.prn, "epochs": 0, "locked_epochs": 0, "losses": 0, "reacquisitions": 0,
                        "tow_s": None, "ephemeris_s": None, "cn0_dbhz": None, "tracked": False,
-                       "next_retry": None, "bit_sync": False, "bit_sync_s": None})
+                       "next_retry": None, "bit_sync": False, "bit_sync_s": None, "started": True,
+                       "acquired_s": (a.sample_index - start_sample) / fs})
+    for p in idle_prns:
+        navs.append(ChannelNav(p, ref_week=ref_week))
+        hists.append(ChannelHistory(fs))
+        chinfo.append({"prn": p, "epochs": 0, "locked_epochs": 0, "losses": 0, "reacquisitions": 0,
+                       "tow_s": None, "ephemeris_s": None, "cn0_dbhz": None, "tracked": False,
+                       "next_retry": None, "bit_sync": False, "bit_sync_s": None, "started": False,
+                       "acquired_s": None})
     pre_ip = [[] for _ in range(n_ch)]
     pre_ep = [[] for _ in range(n_ch)]
     epochs = {}
     if cfg.record_epochs:
-        for a in found:
-            epochs[a.prn] = {k: [] for k in ("sample_index", "epoch", "doppler_hz", "code_phase_chips",
-                                             "cn0_dbhz", "mode", "flags")}
+        for info in chinfo:
+            epochs[info["prn"]] = {k: [] for k in ("sample_index", "epoch", "doppler_hz", "code_phase_chips",
+                                                   "cn0_dbhz", "mode", "flags")}
 
     writer = H5Stream(out_path) if out_path else None
     fixes, observations = [], []
@@ -580,6 +601,30 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
         else:
             info["next_retry"] = now_sample + int(cfg.reacq_retry_s * fs)
 
+    search = {"next": start_sample + int(cfg.search_every_s * fs), "runs": 0}
+
+    def search_idle(now_sample):
+        """All in view: search the PRNs without a channel running; start the ones found."""
+        idle = [ch for ch in range(n_ch) if not chinfo[ch]["started"]]
+        if not idle or now_sample < search["next"]:
+            return
+        search["next"] = now_sample + int(cfg.search_every_s * fs)
+        if now_sample + int(0.05 * fs) >= stop:
+            return
+        from dataclasses import replace
+        scfg = replace(cfg, prns=[chinfo[ch]["prn"] for ch in idle], acq_looks=1)
+        res = _acquire(source, scfg, int(now_sample))
+        search["runs"] += 1
+        by_prn = {chinfo[ch]["prn"]: ch for ch in idle}
+        for a in res:
+            if not (a.detected and a.peak_cn0_dbhz >= cfg.acq_min_cn0_dbhz):
+                continue
+            ch = by_prn[a.prn]
+            tracker.start_channel(ch, a.prn, a.code_phase_chips, a.doppler_hz, a.sample_index, a.cn0_dbhz)
+            chinfo[ch]["started"] = True
+            chinfo[ch]["acquired_s"] = (a.sample_index - start_sample) / fs
+            acq.append(a)
+
     complete = False
     n_blocks_done = 0
     try:
@@ -591,11 +636,13 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
                 far = max((h.end_sample for h in hists), default=start_sample)
                 if not cfg.reacquire or far + margin >= stop:
                     break
-                nxt = min((c["next_retry"] or far) for c in chinfo)
+                nxt = min((c["next_retry"] or far) for c in chinfo if c["started"])
                 for ch in range(n_ch):
-                    reacquire(ch, max(far, nxt))
+                    if chinfo[ch]["started"]:
+                        reacquire(ch, max(far, nxt))
                 if tracker.next_needed_sample() is None:
-                    if all(c["next_retry"] is not None and c["next_retry"] + margin >= stop for c in chinfo):
+                    if all(c["next_retry"] is not None and c["next_retry"] + margin >= stop for c in chinfo
+                           if c["started"]):
                         break
                     continue
                 s = tracker.next_needed_sample()
@@ -676,6 +723,8 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
                 for ch in range(n_ch):
                     if not tracker.active[ch] and tracker.state.si[ch, S_MODE] == MODE_LOST:
                         reacquire(ch, hists[ch].end_sample if hists[ch].end_sample > 0 else s)
+            if all_in_view:
+                search_idle(max(h.end_sample for h in hists))
             # observation epochs fully covered by every active channel
             ends = [hists[ch].end_sample for ch in range(n_ch) if tracker.active[ch]]
             limit = min(ends) if ends else max(h.end_sample for h in hists)
@@ -710,6 +759,7 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             info["cn0_dbhz"] = None if not np.isfinite(cn) else round(cn, 2)
             info.pop("next_retry", None)
         result.channels = chinfo
+        result.searches = search["runs"]
         result.warnings = _spectrum_check(hists, tracker, input_info)
         if cfg.record_epochs:
             for prn, e in epochs.items():

@@ -215,6 +215,8 @@ def validate(cfg):
     if len(set(prns)) != len(prns):
         raise ConfigError(f"satellites.prns has duplicates: {prns!r}")
     _num(cfg, "satellites.max_count", lo=1, hi=32, integer=True)
+    if sat.get("horizon_deg") is not None:
+        _num(cfg, "satellites.horizon_deg", lo=-90, hi=90)
     _num(cfg, "satellites.mask_deg", lo=-90, hi=90)
     cn0 = sat.get("cn0_dbhz")
     vals = cn0 if isinstance(cn0, list) else [cn0]

@@ -35,6 +35,11 @@ and the truth Doppler gets ``-d(T - I)/dt / lambda``.  The truth file records ``
 ``tropo_m`` (zeros without ``[atmosphere]``); with ``broadcast = true`` the coefficients are sent
 in subframe 4 page 18 of every satellite's LNAV.
 
+Horizon (``satellites.horizon_deg``, opt-in): satellites rising above ``mask_deg`` during the
+run are generated as well, and every satellite's amplitude is zero while its elevation is below
+``horizon_deg`` (terrain or obstructions; 0 = the open horizon); the truth ``cn0_dbhz`` keeps the
+configured value.
+
 Random numbers: one ``numpy.random.Generator`` from the seed
 (``SeedSequence(seed).spawn(2)``: noise, IMU); noise is drawn block by block with
 ``standard_normal(dtype=float32)`` in a fixed block size, so a seed always gives the same file.
@@ -343,6 +348,14 @@ def _ephemerides(cfg, rx_pos0_e):
 
         prns = visible_prns(ephs, rx_pos0_e, week, tow, float(sat.get("mask_deg", 5.0)),
                             max_count=sat.get("max_count"))
+        if sat.get("horizon_deg") is not None:
+            # satellites rising above the mask during the run are generated too (their signal
+            # starts at the horizon, see generate())
+            step = 30.0
+            for k in range(1, int(float(cfg.get("duration_s", 0.0)) // step) + 1):
+                for p in visible_prns(ephs, rx_pos0_e, week, tow + k * step, float(sat.get("mask_deg", 5.0))):
+                    if p not in prns:
+                        prns.append(p)
         if not prns:
             raise ConfigError("satellites: no satellite visible above mask_deg at the start point")
     cn0 = sat.get("cn0_dbhz", 45.0)
@@ -493,6 +506,7 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
                       atmosphere=atmosphere, iono_broadcast=iono_broadcast)
     plan.set_nav_bits(duration, bool(cfg.get("nav", {}).get("data_bits", True)))
     events = cfg.get("noise_events", [])
+    horizon = cfg.get("satellites", {}).get("horizon_deg")
 
     out_dir = Path(out_dir)
     if not out_dir.is_dir():
@@ -526,6 +540,10 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
             coefs, epoch0, starts, rx0 = plan.coefficients(j0, n_int)
             bits = plan.bit_values(epoch0)
             amps = np.broadcast_to(plan.amp, (n_int, nsat)).astype(np.float32)
+            if horizon is not None and nsat:
+                # terrain / obstructions block the satellites below the horizon elevation
+                el = np.stack([g["elev_rad"] for g in starts], 1)
+                amps = amps * (el > math.radians(float(horizon))).astype(np.float32)
             x = buf[:ns * comps]
             rng.standard_normal(out=x, dtype=np.float32)
             t_b0, t_b1 = j0 * L / fe.fs_hz, (j0 * L + ns) / fe.fs_hz

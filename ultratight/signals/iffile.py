@@ -373,17 +373,27 @@ def read_sidecar(path):
 
 def open_if(path=None, meta=None, fs_hz=None, if_hz=None, fmt=None, iq_conj=False):
     """Open an IF file. Parameters come from (in rising priority) the sidecar ``<path>.json``
-    or ``meta`` (a JSON sidecar or ION XML path), then the explicit arguments.
+    or ``meta`` (a JSON sidecar, an ION XML or a SigMF ``.sigmf-meta`` path; a ``path`` ending in
+    ``.sigmf-meta`` / ``.sigmf-data`` is read as SigMF, :mod:`ultratight.signals.sigmf_io`), then
+    the explicit arguments.
 
     Raises InputFileError (missing file) or FormatError (unknown format, size not a whole
     number of samples, no sidecar and no ``fmt``/``fs_hz``).
     """
     info = {}
+    if meta is None and path is not None and str(path).lower().endswith((".sigmf-meta", ".sigmf-data")):
+        meta = path                       # a SigMF recording named by either of its files
+        path = None
     if meta is not None:
         mp = Path(meta)
-        if not mp.is_file():
+        if not mp.is_file() and not str(mp).lower().endswith(".sigmf-data"):
             raise InputFileError(f"metadata file not found: {mp}")
-        if mp.suffix.lower() == ".xml":
+        if str(mp).lower().endswith((".sigmf-meta", ".sigmf-data")):
+            from ultratight.signals.sigmf_io import read_sigmf
+            info = read_sigmf(mp)
+            if path is None:
+                path = info["data_file"]
+        elif mp.suffix.lower() == ".xml":
             info = parse_ion_metadata(mp)
             if path is None:
                 if not info.get("data_file"):

@@ -63,7 +63,9 @@ def add_arguments(p):
     p.add_argument("--iq-conj", action="store_true", help="read complex samples as I - jQ (inverted spectrum)")
     p.add_argument("--ephemeris", metavar="RINEX", help="RINEX navigation file (default: decode from the signal)")
     p.add_argument("--prn", metavar="LIST", help="PRNs to search, e.g. 1,3,7-12 (default: all 32)")
-    p.add_argument("--channels", type=int, default=8, metavar="N", help="tracking channels (default 8)")
+    p.add_argument("--channels", type=int, default=None, metavar="N",
+                   help="tracking channels (default: all in view - every satellite acquired is tracked and the "
+                        "others are searched again every 15 s; with N, the N strongest, no periodic search)")
     p.add_argument("--duration", type=float, metavar="S", help="process only the first S seconds")
     p.add_argument("--start", type=float, default=0.0, metavar="S", help="skip the first S seconds")
     p.add_argument("--obs-rate", type=float, default=10.0, metavar="HZ",
@@ -245,6 +247,8 @@ def _print_human(s):
                                    for a in s["acquired"]))
     print(f"tracked: {s['tracked']}")
     for c in s["channels"]:
+        if not c.get("started", True):
+            continue
         print(f"  PRN {c['prn']:2d}: locked {100 * c['locked_fraction']:.0f}%, C/N0 {c['cn0_dbhz']} dB-Hz, "
               f"TOW at {c['tow_s']} s, ephemeris at {c['ephemeris_s']} s, losses {c['losses']}")
     print(f"fixes: {s['fixes']}, first fix at {s['first_fix_s']} s")
