@@ -54,12 +54,20 @@ def add_arguments(p):
     p.add_argument("--method", choices=_EngineMethods(), default=None, metavar="METHOD",
                    help="ultra-tight method (--mode ultratight): %(choices)s (default: the engine's DEFAULT_METHOD, "
                         "dlb-rackf)")
-    p.add_argument("--meta", metavar="SIDECAR", help="JSON sidecar or ION GNSS SDR metadata XML "
-                                                      "(default: IFFILE.json when present)")
+    p.add_argument("--meta", metavar="SIDECAR", help="JSON sidecar, ION GNSS SDR metadata XML or SigMF .sigmf-meta "
+                                                      "(default: IFFILE.json when present; an IFFILE ending in "
+                                                      ".sigmf-meta/.sigmf-data is read as SigMF)")
     p.add_argument("--fs", type=float, metavar="HZ", help="sampling rate (Hz)")
     p.add_argument("--if", dest="if_hz", type=float, metavar="HZ", help="intermediate frequency (Hz), 0 = baseband")
     p.add_argument("--format", dest="fmt", metavar="FMT",
-                   help="sample format: i8, i16, f32, ci8, ci16, cf32, i2packed, ci2packed")
+                   help="sample format: i8, i16, f32, ci8, ci16, cf32, i2packed, ci2packed, i4packed, ci4packed")
+    p.add_argument("--packing", choices=("msb-first", "lsb-first"),
+                   help="packed formats: the first sample in the high or the low bits of a word (default msb-first)")
+    p.add_argument("--encoding", choices=("sign-magnitude", "twos-complement", "offset-binary", "sign"),
+                   help="packed formats: sample encoding (default sign-magnitude)")
+    p.add_argument("--word-size", type=int, choices=(1, 2, 4, 8), metavar="BYTES",
+                   help="packed formats: word size in bytes, 1, 2, 4 or 8 (default 1)")
+    p.add_argument("--endian", choices=("little", "big"), help="packed formats: byte order of a word (default little)")
     p.add_argument("--iq-conj", action="store_true", help="read complex samples as I - jQ (inverted spectrum)")
     p.add_argument("--ephemeris", metavar="RINEX", help="RINEX navigation file (default: decode from the signal)")
     p.add_argument("--prn", metavar="LIST", help="PRNs to search, e.g. 1,3,7-12 (default: all 32)")
@@ -139,7 +147,9 @@ def run(args):
         raise ConfigError(f"--fs must be a positive sampling rate in Hz, got {args.fs}")
     if args.if_hz is not None and args.fs is not None and abs(args.if_hz) >= args.fs:
         raise ConfigError(f"--if {args.if_hz} Hz must be smaller in magnitude than --fs {args.fs} Hz")
-    source = open_if(args.iffile, meta=args.meta, fs_hz=args.fs, if_hz=args.if_hz, fmt=args.fmt,
+    packing = {k: v for k, v in (("order", args.packing), ("encoding", args.encoding),
+                                 ("word_bytes", args.word_size), ("endian", args.endian)) if v is not None}
+    source = open_if(args.iffile, meta=args.meta, fs_hz=args.fs, if_hz=args.if_hz, fmt=args.fmt, packing=packing,
                      iq_conj=args.iq_conj)
     if source.n_samples == 0:
         from ultratight.errors import InputFileError
