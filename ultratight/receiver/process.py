@@ -426,6 +426,7 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
                                   "iono_option": cfg.iono, "tropo_option": cfg.tropo}
         return atm["model"]
 
+    atmosphere_model()           # records the options in result.corrections from the start
     rinex_obs = None
     if rinex_obs_path:
         from ultratight.receiver.rinex_out import RinexObsWriter
