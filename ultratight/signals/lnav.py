@@ -483,6 +483,7 @@ class LnavDecoder:
         self._sf = {}
         self.polarity_flips = 0
         self.iono = None               # IonoUtc of the latest subframe 4 page 18 with good parity
+        self.ephemeris_tx_tow = None   # TOW of the subframe 1 of the current ephemeris
 
     # -- helpers
     def _tlm_how_ok(self, b, i, inv, prev_zero=False):
@@ -635,7 +636,7 @@ class LnavDecoder:
         dt = ints["toe"] * 2.0 ** 4 - tx_tow
         eph_week = week + (-1 if dt > SECONDS_PER_WEEK / 2 else (1 if dt < -SECONDS_PER_WEEK / 2 else 0))
         self.ephemeris = ints_to_eph(ints, self.prn, eph_week)
-        self.ephemeris.tx_tow = float(tx_tow)     # transmission time of subframe 1 (RINEX field)
+        self.ephemeris_tx_tow = float(tx_tow)     # start of its subframe 1 (the RINEX transmission time)
 
 
 def _parse_sf123(s1, s2, s3):
