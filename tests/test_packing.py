@@ -98,3 +98,25 @@ def test_other_front_end_layout_acquires_like_ours(tmp_path):
         assert r.returncode == 0, r.stderr
         res[name] = json.loads(r.stdout)["acquired"]
     assert res["ours"] and res["ours"] == res["other"]
+
+
+@pytest.mark.parametrize("quant,packed,fmt,enc", [(2, 2, "IF", "TC"), (2, 4, "IQ", "OB"), (4, 4, "IF", "SM"),
+                                                  (4, 8, "IQ", "TC"), (1, 2, "IF", "SIGN")])
+def test_ion_xml_encodings(tmp_path, quant, packed, fmt, enc):
+    """The ION XML's <encoding> (and 2/4-bit width) selects the layout; samples byte-packed, first
+    in the high bits."""
+    from test_iffile import ION_XML
+    is_c = fmt == "IQ"
+    bits = packed // 2 if is_c else packed
+    name = {"TC": "twos-complement", "OB": "offset-binary", "SM": "sign-magnitude", "SIGN": "sign"}[enc]
+    rng = np.random.default_rng(quant * 10 + packed)
+    codes = rng.integers(0, 1 << bits, size=8 * 16)
+    (tmp_path / "d.bin").write_bytes(_pack_reference(codes, bits, "msb-first", 1, "little"))
+    xml = tmp_path / "d.xml"
+    xml.write_text(ION_XML.format(quant=quant, packed=packed, fmt=fmt, enc=enc, endian="Little",
+                                  if_khz=0 if is_c else 1000, url="d.bin"))
+    lv = PackedLayout(bits=bits, encoding=name).levels()[codes]
+    want = lv[0::2] + 1j * lv[1::2] if is_c else lv
+    with open_if(meta=xml) as src:
+        assert src.fmt == ("ci" if is_c else "i") + f"{bits}packed" and src.packing.encoding == name
+        np.testing.assert_array_equal(src.read(0, want.size), want.astype(src.read(0, 1).dtype))
