@@ -246,11 +246,17 @@ def test_almanac_page_structure(eph):
     assert abs(_get(v, 192, 8, 16) * 2 ** -21 - eph.e) <= 2 ** -22
     assert abs(_get(v, 192, 72, 24) * 2 ** -11 - eph.sqrt_a) <= 2 ** -12
     assert abs((_get(v, 192, 32, 16, True) * 2 ** -19 + 0.30) * PI - eph.i0) <= 2 ** -20 * PI
-    # subframe 4 page 18 carries SV ID 56; subframe 5 page 25 SV ID 51 (Table 20-V)
+    # subframe 4 page 18 carries SV ID 56 (Table 20-V) with the ionospheric/UTC parameters; without
+    # them the generator sends it as a reserved page (SV ID 57) so that no receiver reads filler as alpha/beta
+    from ultratight.signals.lnav import IonoUtc
     t18 = frame_start(18) + 18.0
-    b4 = encode_subframe(4, eph, t18)
-    d4 = decode_bits(np.concatenate([b4, encode_subframe(5, eph, t18 + 6.0)])).subframes[0]
-    assert d4.ok and d4.page == 18 and (d4.words[2] >> 16) & 0x3F == 56
+    io = IonoUtc(alpha=(1e-8, 0.0, -6e-8, 1e-7), beta=(1e5, 0.0, -2e5, 1e5))
+    for iono, sv_id in ((io, 56), (None, 57)):
+        b4 = encode_subframe(4, eph, t18, iono=iono)
+        d4 = decode_bits(np.concatenate([b4, encode_subframe(5, eph, t18 + 6.0)]))
+        assert d4.subframes[0].ok and d4.subframes[0].page == 18
+        assert (d4.subframes[0].words[2] >> 16) & 0x3F == sv_id
+        assert (d4.iono is not None) == (iono is not None)
 
 
 def test_random_bit_errors_are_flagged_exactly(eph):

@@ -85,7 +85,8 @@ def test_generated_with_ephemeris_against_truth(gen9, tmp_path):
     week, tow0 = int(truth.attrs["week"]), float(truth.attrs["tow0_s"])
     out = tmp_path / "o.h5"
     t_prn = [int(p) for p in truth.attrs["prn"]]
-    cfg = ProcessConfig(n_channels=9, record_epochs=True, prns=t_prn + [1, 2, 3])
+    # the generated signal has no atmosphere ([atmosphere] absent): no corrections
+    cfg = ProcessConfig(n_channels=9, record_epochs=True, prns=t_prn + [1, 2, 3], iono="off", tropo="off")
     res = process(open_if(gen9["if"]), cfg, ephemerides=nominal_ephemerides(week, tow0), out_path=out,
                   csv_path=tmp_path / "o.csv", kml_path=tmp_path / "o.kml")
     assert {a.prn for a in res.acquisition if a.detected} == set(t_prn)
@@ -165,8 +166,9 @@ def test_cli_with_rinex_ephemeris(tmp_path, rinex_path, capsys):
     files = json.loads(r.stdout)["files"]
     truth = h5py.File(files["truth"], "r")
     prns = ",".join(str(int(p)) for p in truth.attrs["prn"])
+    # the signal has no atmosphere, so no corrections (the RINEX header's alpha/beta would apply)
     code, out, err = run_cli([files["if"], "--ephemeris", str(rinex_path), "--json", "--channels", "12",
-                              "--prn", prns], capsys)
+                              "--prn", prns, "--iono", "off", "--tropo", "off"], capsys)
     assert code == 0, err
     d = json.loads(out)
     assert d["fixes"] >= 10
@@ -324,7 +326,7 @@ def test_acceptance_static_60s_everything_from_the_signal(tmp_path):
     from ultratight.signals.iffile import open_if
     files = _generate(tmp_path, "static-open-sky")
     truth = h5py.File(files["truth"], "r")
-    res = process(open_if(files["if"]), ProcessConfig())
+    res = process(open_if(files["if"]), ProcessConfig(iono="off", tropo="off"))   # no atmosphere in the signal
     t_eph = earliest_ephemeris_time(truth)
     pos_rms, vel_rms = _fix_errors(res, truth)
     print(f"\nstatic 60 s: earliest subframes 1-3 on 4 channels {t_eph:.3f} s, first fix {res.first_fix_s} s, "
@@ -341,7 +343,7 @@ def test_acceptance_vehicle_turns(tmp_path):
     from ultratight.signals.iffile import open_if
     files = _generate(tmp_path, "vehicle-turns")
     truth = h5py.File(files["truth"], "r")
-    res = process(open_if(files["if"]), ProcessConfig(n_channels=12, record_epochs=True))
+    res = process(open_if(files["if"]), ProcessConfig(n_channels=12, record_epochs=True, iono="off", tropo="off"))
     pos_rms, vel_rms = _fix_errors(res, truth)
     fs = truth.attrs["fs_hz"]
     worst = min(np.mean(e["flags"][e["sample_index"] > fs] & FL_PLL_LOCK > 0) for e in res.epochs.values())

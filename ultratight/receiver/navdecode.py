@@ -27,7 +27,8 @@ class ChannelNav:
         self.bit_epochs = []          # epoch of the first period of every bit fed (stream order)
         self.epoch_ref = None         # epoch whose period starts at satellite time tow_ref
         self.tow_ref = None
-        self.ephemeris = None
+        self.ephemeris = None         # decoder's ephemeris with tx_tow = start of its subframe 1
+        self._decoded = None
         self.n_bits = 0
         self.n_subframes = 0
         self.first_tow_epoch = None   # epoch at which the TOW became known (for reporting)
@@ -58,10 +59,11 @@ class ChannelNav:
                 self.first_tow_epoch = now_epoch
             self.epoch_ref = ep
             self.tow_ref = float(sf.tow_s)
-        if self.decoder.ephemeris is not None and self.decoder.ephemeris is not self.ephemeris:
+        if self.decoder.ephemeris is not None and self.decoder.ephemeris is not self._decoded:
             if self.eph_epoch is None:
                 self.eph_epoch = now_epoch
-            self.ephemeris = self.decoder.ephemeris
+            self._decoded = self.decoder.ephemeris
+            self.ephemeris = self._decoded.copy(tx_tow=self.decoder.ephemeris_tx_tow)
         # keep memory bounded: epochs older than two subframes are not needed any more
         if len(self.bit_epochs) > 4000:
             drop = len(self.bit_epochs) - 2000

@@ -126,22 +126,26 @@ def _write_atomic(path, text):
 def write_csv(path, pvt_rows):
     """PVT fixes as CSV: time, position (ECEF and lat/lon/h), velocity, clock, DOP, satellites used."""
     cols = ("t_s", "gps_week", "gps_tow_s", "x_m", "y_m", "z_m", "lat_deg", "lon_deg", "h_m", "vx_mps",
-            "vy_mps", "vz_mps", "clk_bias_m", "clk_drift_mps", "pdop", "n_used")
+            "vy_mps", "vz_mps", "clk_bias_m", "clk_drift_mps", "pdop", "n_used", "iono", "tropo", "version")
     lines = [",".join(cols)]
     for r in pvt_rows:
         vals = [r["t_s"], r["gps_week"], r["gps_tow_s"], *r["pos_e"], *r["llh_deg"], *r["vel_e"],
-                r["clk_bias_m"], r["clk_drift_mps"], r["pdop"], r["n_used"]]
+                r["clk_bias_m"], r["clk_drift_mps"], r["pdop"], r["n_used"], r.get("iono", "off"),
+                r.get("tropo", "off"), __version__]
         lines.append(",".join(f"{v:.10g}" if isinstance(v, float) else str(v) for v in vals))
     _write_atomic(path, "\n".join(lines) + "\n")
 
 
-def write_kml(path, pvt_rows, name="ultratight track"):
-    """Positions as a KML LineString (lon,lat,h) plus the first point as a placemark."""
+def write_kml(path, pvt_rows, name="ultratight track", options=None):
+    """Positions as a KML LineString (lon,lat,h) plus the first point as a placemark; the
+    document description names the package version and the ``options`` (dict) used."""
+    from xml.sax.saxutils import escape
+    desc = escape(f"ultratight {__version__}" + "".join(f"; {k}={v}" for k, v in (options or {}).items()))
     coords = " ".join(f"{r['llh_deg'][1]:.9f},{r['llh_deg'][0]:.9f},{r['llh_deg'][2]:.3f}" for r in pvt_rows)
     first = pvt_rows[0]["llh_deg"] if pvt_rows else (0.0, 0.0, 0.0)
     text = f"""<?xml version="1.0" encoding="UTF-8"?>
 <kml xmlns="http://www.opengis.net/kml/2.2">
-<Document><name>{name}</name>
+<Document><name>{name}</name><description>{desc}</description>
 <Placemark><name>track</name><LineString><altitudeMode>absolute</altitudeMode>
 <coordinates>{coords}</coordinates></LineString></Placemark>
 <Placemark><name>first fix</name><Point><altitudeMode>absolute</altitudeMode>

@@ -15,6 +15,14 @@ Receiver time: ``t_rx(s) = t0 + s/fs`` (receiver clock).  ``t0`` is set when the
 knows its transmit time (``t0 = t_tx + 75 ms``) and is steered by the clock-bias estimate at the
 first fix (and whenever |bias| exceeds 1 ms); reported fix times are GPS time
 ``t_rx - bias/c``.
+
+Atmosphere (``ProcessConfig.iono`` / ``tropo``, :mod:`ultratight.signals.atmosphere`): the PVT
+removes the Klobuchar ionospheric delay once broadcast coefficients are known — from the RINEX
+navigation header given as ephemerides, else from the first subframe 4 page 18 decoded on any
+channel — and the Saastamoinen tropospheric delay (standard atmosphere, ``tropo_mapping``).
+The satellite clock correction includes ``-T_GD`` (:func:`ultratight.signals.ephemeris.sat_state`).
+The options and the coefficients used are recorded in the summary (``corrections``), the HDF5
+root attributes and every other output.
 """
 
 import math
@@ -23,11 +31,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ultratight import __version__
 from ultratight.constants import C, LAMBDA_L1, T_CA
 from ultratight.errors import ConfigError, InputFileError, UltratightError
 from ultratight.receiver.navdecode import ChannelNav
 from ultratight.receiver.observables import CarrierSmoother, ChannelHistory, observe, pseudorange
-from ultratight.receiver.pvt import solve_pvt
+from ultratight.receiver.pvt import atmosphere_delays, solve_pvt
 from ultratight.receiver.tracking import (
     FL_BIT_DONE, FL_BIT_SYNC, FL_PLL_LOCK, MODE_LOST, MODE_TRACK, R_BIT, R_CN0, R_CODE_PHASE, R_DOPP, R_IP,
     REC_F_NAMES, REC_I_NAMES, RI_EPOCH, RI_FLAGS, RI_MODE, RI_PTR, S_MODE, ScalarTracker, TrackingConfig)
@@ -47,7 +56,7 @@ class NoSignalError(UltratightError):
 
 @dataclass
 class ProcessConfig:
-    n_channels: int = 8
+    n_channels: int | None = None       # None: all in view (one channel per searched PRN, periodic search)
     prns: list | None = None
     duration_s: float | None = None
     start_s: float = 0.0
@@ -67,13 +76,19 @@ class ProcessConfig:
     sigma_rr_mps: float = 0.05
     reacquire: bool = True
     reacq_retry_s: float = 1.0
+    search_every_s: float = 15.0        # all-in-view: search again for the PRNs not tracked
+    iono: str = "klobuchar"             # klobuchar | off (klobuchar applies once alpha/beta are known)
+    tropo: str = "saastamoinen"         # saastamoinen | off
+    tropo_mapping: str = "cosz"         # mapping function of the Saastamoinen model
     record_epochs: bool = False
     parallel: bool = False              # spread channels over numba threads
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
 
     def validate(self, source):
-        if not 1 <= int(self.n_channels) <= 32:
+        if self.n_channels is not None and not 1 <= int(self.n_channels) <= 32:
             raise ConfigError(f"--channels must be in 1..32, got {self.n_channels}")
+        if not self.search_every_s > 0:
+            raise ConfigError(f"search interval must be > 0 s, got {self.search_every_s}")
         if not 0.1 <= self.obs_rate_hz <= 50.0:
             raise ConfigError(f"observation rate must be in [0.1, 50] Hz, got {self.obs_rate_hz}")
         if self.duration_s is not None and not self.duration_s > 0:
@@ -86,6 +101,13 @@ class ProcessConfig:
                     raise ConfigError(f"--prn: PRN must be in 1..32, got {p}")
         if not 10 <= self.block_ms <= 1000:
             raise ConfigError(f"block_ms must be in [10, 1000], got {self.block_ms}")
+        from ultratight.signals.atmosphere import IONO_MODELS, MAPPINGS, TROPO_MODELS
+        if self.iono not in IONO_MODELS:
+            raise ConfigError(f"--iono must be one of {', '.join(IONO_MODELS)}, got {self.iono!r}")
+        if self.tropo not in TROPO_MODELS:
+            raise ConfigError(f"--tropo must be one of {', '.join(TROPO_MODELS)}, got {self.tropo!r}")
+        if self.tropo_mapping not in MAPPINGS:
+            raise ConfigError(f"tropospheric mapping must be one of {', '.join(MAPPINGS)}, got {self.tropo_mapping!r}")
         if self.doppler_window_s * self.obs_rate_hz > 0.5 + 1e-9:
             self.doppler_window_s = 0.5 / self.obs_rate_hz
         if self.doppler_range_hz >= 0.5 * source.fs_hz:
@@ -106,6 +128,8 @@ class ProcessResult:
     out_path: str | None = None
     epochs: dict = field(default_factory=dict)   # prn -> dict of arrays (record_epochs)
     warnings: list = field(default_factory=list)
+    corrections: dict = field(default_factory=dict)   # atmosphere options and coefficients used
+    searches: int = 0                  # all-in-view searches run after the first acquisition
 
     @property
     def realtime_factor(self):
@@ -150,6 +174,9 @@ class ProcessResult:
             "realtime_factor": round(self.realtime_factor, 4) if self.signal_s > 0 else None,
             "interrupted": self.interrupted,
             "warnings": self.warnings,
+            "corrections": self.corrections,
+            "searches": self.searches,
+            "version": __version__,
             "out": self.out_path,
         }
 
@@ -267,13 +294,16 @@ def _assisted(a, start_sample):
 
 
 def process(source, config=None, ephemerides=None, out_path=None, csv_path=None, kml_path=None,
-            progress=False, run_config=None, assist=None):
+            progress=False, run_config=None, assist=None, rinex_obs_path=None, rinex_nav_path=None,
+            nmea_path=None):
     """Run the scalar receiver on ``source`` (IfSource or path); returns a :class:`ProcessResult`.
 
     ``ephemerides``: None (decode from the signal), a RINEX :class:`NavData` or dict prn ->
     Ephemeris.  ``assist``: optional list of dicts (prn, doppler_hz, code_phase_chips, sample_index,
     cn0_dbhz) replacing the acquisition (warm start, e.g. from a scenario's truth or a prediction).
-    ``out_path``: HDF5 output (schema in docs/process.md).  KeyboardInterrupt stops
+    ``out_path``: HDF5 output (schema in docs/process.md); ``rinex_obs_path`` / ``rinex_nav_path``:
+    RINEX 3.04 observation / navigation files (:mod:`ultratight.receiver.rinex_out`);
+    ``nmea_path``: NMEA 0183 sentences (:mod:`ultratight.receiver.nmea`).  KeyboardInterrupt stops
     the run, writes a partial output (root attribute ``complete = False``) and re-raises.
     """
     from ultratight.signals.ephemeris import sat_state
@@ -315,8 +345,16 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             f"{[a.prn for a in acq if getattr(a, 'weak', False)] or 'none'}). "
             f"Hint: check --fs/--if/--format; for complex files try --iq-conj (I - jQ spectrum inversion); "
             f"for real files check the IF sign/LO side")
-    found = found[:cfg.n_channels]
-    n_ch = len(found)
+    all_in_view = cfg.n_channels is None
+    searched = [int(p) for p in (cfg.prns or range(1, 33))]
+    if all_in_view:
+        # one channel per searched PRN: the ones acquired start now, the others on a later search
+        got = {a.prn for a in found}
+        idle_prns = [p for p in dict.fromkeys(searched) if p not in got]
+    else:
+        found = found[:cfg.n_channels]
+        idle_prns = []
+    n_ch = len(found) + len(idle_prns)
     block_len = int(round(cfg.block_ms * 1e-3 * fs))
     margin = int(math.ceil(2.2e-3 * fs))
     tracker = ScalarTracker(n_ch, fs, source.if_hz, source.is_complex, cfg.tracking,
@@ -330,14 +368,22 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
         hists.append(ChannelHistory(fs))
         chinfo.append({"prn": a.prn, "epochs": 0, "locked_epochs": 0, "losses": 0, "reacquisitions": 0,
                        "tow_s": None, "ephemeris_s": None, "cn0_dbhz": None, "tracked": False,
-                       "next_retry": None, "bit_sync": False, "bit_sync_s": None})
+                       "next_retry": None, "bit_sync": False, "bit_sync_s": None, "started": True,
+                       "acquired_s": (a.sample_index - start_sample) / fs})
+    for p in idle_prns:
+        navs.append(ChannelNav(p, ref_week=ref_week))
+        hists.append(ChannelHistory(fs))
+        chinfo.append({"prn": p, "epochs": 0, "locked_epochs": 0, "losses": 0, "reacquisitions": 0,
+                       "tow_s": None, "ephemeris_s": None, "cn0_dbhz": None, "tracked": False,
+                       "next_retry": None, "bit_sync": False, "bit_sync_s": None, "started": False,
+                       "acquired_s": None})
     pre_ip = [[] for _ in range(n_ch)]
     pre_ep = [[] for _ in range(n_ch)]
     epochs = {}
     if cfg.record_epochs:
-        for a in found:
-            epochs[a.prn] = {k: [] for k in ("sample_index", "epoch", "doppler_hz", "code_phase_chips",
-                                             "cn0_dbhz", "mode", "flags")}
+        for info in chinfo:
+            epochs[info["prn"]] = {k: [] for k in ("sample_index", "epoch", "doppler_hz", "code_phase_chips",
+                                                   "cn0_dbhz", "mode", "flags")}
 
     writer = H5Stream(out_path) if out_path else None
     fixes, observations = [], []
@@ -357,6 +403,54 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
                    bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.1f}/{total:.1f} s signal "
                               "[{elapsed}<{remaining}{postfix}]", leave=False)
     done_s = 0.0
+
+    from ultratight.signals.atmosphere import AtmosphereModel
+    nav_iono = None
+    if cfg.iono == "klobuchar" and getattr(ephemerides, "ion_alpha", None) and getattr(ephemerides, "ion_beta", None):
+        nav_iono = (tuple(ephemerides.ion_alpha), tuple(ephemerides.ion_beta), "rinex")
+    atm = {"iono": nav_iono, "model": None}
+
+    def atmosphere_model():
+        """The AtmosphereModel of this epoch (the ionosphere starts when coefficients are known)."""
+        if cfg.iono == "klobuchar" and atm["iono"] is None:
+            for nv in navs:
+                io = nv.decoder.iono
+                if io is not None:
+                    atm["iono"] = (tuple(io.alpha), tuple(io.beta), "lnav")
+                    atm["model"] = None
+                    break
+        if atm["model"] is None:
+            a, b, src = atm["iono"] if atm["iono"] is not None else (None, None, None)
+            atm["model"] = AtmosphereModel(cfg.iono, a, b, cfg.tropo, cfg.tropo_mapping)
+            result.corrections = {**atm["model"].describe(), "iono_source": src,
+                                  "iono_option": cfg.iono, "tropo_option": cfg.tropo}
+        return atm["model"]
+
+    atmosphere_model()           # records the options in result.corrections from the start
+    rinex_obs = None
+    if rinex_obs_path:
+        from ultratight.receiver.rinex_out import RinexObsWriter
+        rinex_obs = RinexObsWriter(rinex_obs_path, 1.0 / cfg.obs_rate_hz, comments=[
+            f"ultratight {__version__} process: iono={cfg.iono} tropo={cfg.tropo} "
+            f"({cfg.tropo_mapping}), mask {cfg.mask_deg:g} deg",
+            ("C1C carrier smoothed (Hatch filter, %g s window)" % cfg.smoothing_s) if cfg.smoothing_s > 0
+            else "C1C raw code pseudorange",
+            f"input {source.path}"])
+    used_ephs = {}               # (prn, week, toe, iode) -> Ephemeris used by the PVT
+    restarts = [0] * n_ch        # re-acquisitions per channel at the previous RINEX epoch
+
+    def write_rinex_epoch(t_rx, pr, row):
+        sats = []
+        for ch in range(n_ch):
+            nreacq = chinfo[ch]["reacquisitions"]
+            half = navs[ch].decoder.inverted is None
+            sats.append({"prn": chinfo[ch]["prn"], "pr_m": pr[ch],
+                         "phase_cycles": row["carrier_cycles"][ch] + (0.5 if navs[ch].decoder.inverted else 0.0),
+                         "doppler_hz": row["doppler_hz"][ch], "cn0_dbhz": row["cn0_dbhz"][ch],
+                         "lock": bool(row["pll_lock"][ch]), "continuous": nreacq == restarts[ch],
+                         "half_cycle": half})
+            restarts[ch] = nreacq
+        rinex_obs.add_epoch(week_known, t_rx, sats)
 
     def write_acq():
         if writer is None:
@@ -399,6 +493,8 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             pr = smoother.update(pr, row["carrier_cycles"], row["pll_lock"])
             if writer is not None:
                 writer.append("observables/pseudorange_smoothed_m", pr[None, :])
+        if rinex_obs is not None and week_known is not None:
+            write_rinex_epoch(t_rx, pr, row)
         # satellite states
         n = n_ch
         sp = np.full((n, 3), np.nan)
@@ -418,6 +514,7 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
                 continue
             # state at the satellite-clock time, moved to GPS time t_gps = t_sv - clk (|clk| < 1 ms:
             # the linear step leaves < 1 um of position error)
+            used_ephs[(eph.prn, eph.week, eph.toe, eph.iode)] = eph
             p_, v_, clk, drift = sat_state(eph, ttx[ch])
             p_ = p_ - v_ * float(clk[0])
             sp[ch] = p_[0]
@@ -426,8 +523,11 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             rr[ch] = -LAMBDA_L1 * o["doppler_hz"] + C * float(drift[0])
         if np.isfinite(prc).sum() < 4:
             return
+        model = atmosphere_model()
+        parts = {}
         sol = solve_pvt(sp, prc, sv, rr, sigma_pr_m=cfg.sigma_pr_m, sigma_rr_mps=cfg.sigma_rr_mps,
-                        x0=last_x, mask_deg=cfg.mask_deg)
+                        x0=last_x, mask_deg=cfg.mask_deg,
+                        delays=atmosphere_delays(model, t_rx, parts) if model.active else None)
         if not sol.valid or sol.vel_e is None:
             return
         if last_x is None or abs(sol.clk_bias_m) > CLOCK_STEER_S * C:
@@ -437,6 +537,14 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             last_x = np.r_[sol.pos_e, 0.0]
             return
         last_x = np.r_[sol.pos_e, sol.clk_bias_m]
+        from ultratight.receiver.pvt import elevations
+        fin = np.all(np.isfinite(sp), axis=1)
+        el_all, az_all = np.full(n, np.nan), np.full(n, np.nan)
+        if fin.any():
+            el_all[fin], az_all[fin] = elevations(sol.pos_e, sp[fin])
+        sv_list = [{"prn": chinfo[j]["prn"], "elev_deg": math.degrees(el_all[j]),
+                    "azim_deg": math.degrees(az_all[j]) % 360.0, "cn0_dbhz": float(row["cn0_dbhz"][j]),
+                    "used": bool(sol.used[j])} for j in np.flatnonzero(fin)]
         llh_deg = [math.degrees(sol.llh[0]), math.degrees(sol.llh[1]), float(sol.llh[2])]
         fix = {"t_s": row["t_s"], "sample_index": int(s_obs), "gps_week": week_known,
                "gps_tow_s": t_rx - sol.clk_bias_m / C, "pos_e": sol.pos_e, "vel_e": sol.vel_e,
@@ -446,7 +554,8 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
                "n_used": int(sol.used.sum()), "raim_ok": sol.raim_ok,
                "excluded_prn": [chinfo[j]["prn"] for j in sol.excluded],
                "used_prn": [chinfo[j]["prn"] for j in np.flatnonzero(sol.used)],
-               "sigma_pos_m": float(np.sqrt(np.trace(sol.cov_pos_clk[:3, :3])))}
+               "sigma_pos_m": float(np.sqrt(np.trace(sol.cov_pos_clk[:3, :3]))),
+               "iono": "klobuchar" if model.iono_active else "off", "tropo": cfg.tropo, "sv": sv_list}
         fixes.append(fix)
         if writer is not None:
             writer.append("pvt/t_s", np.array([fix["t_s"]]))
@@ -465,6 +574,9 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             used = np.zeros(n_ch, dtype=bool)
             used[sol.used] = True
             writer.append("pvt/used", used[None, :])
+            for k in ("iono_m", "tropo_m"):
+                v = np.asarray(parts.get(k, np.full(n_ch, np.nan)), dtype=float) * np.ones(n_ch)
+                writer.append(f"pvt/{k}", v[None, :])
 
     def reacquire(ch, now_sample):
         from ultratight.receiver.acquisition import acquire
@@ -490,6 +602,30 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
         else:
             info["next_retry"] = now_sample + int(cfg.reacq_retry_s * fs)
 
+    search = {"next": start_sample + int(cfg.search_every_s * fs), "runs": 0}
+
+    def search_idle(now_sample):
+        """All in view: search the PRNs without a channel running; start the ones found."""
+        idle = [ch for ch in range(n_ch) if not chinfo[ch]["started"]]
+        if not idle or now_sample < search["next"]:
+            return
+        search["next"] = now_sample + int(cfg.search_every_s * fs)
+        if now_sample + int(0.05 * fs) >= stop:
+            return
+        from dataclasses import replace
+        scfg = replace(cfg, prns=[chinfo[ch]["prn"] for ch in idle], acq_looks=1)
+        res = _acquire(source, scfg, int(now_sample))
+        search["runs"] += 1
+        by_prn = {chinfo[ch]["prn"]: ch for ch in idle}
+        for a in res:
+            if not (a.detected and a.peak_cn0_dbhz >= cfg.acq_min_cn0_dbhz):
+                continue
+            ch = by_prn[a.prn]
+            tracker.start_channel(ch, a.prn, a.code_phase_chips, a.doppler_hz, a.sample_index, a.cn0_dbhz)
+            chinfo[ch]["started"] = True
+            chinfo[ch]["acquired_s"] = (a.sample_index - start_sample) / fs
+            acq.append(a)
+
     complete = False
     n_blocks_done = 0
     try:
@@ -501,11 +637,13 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
                 far = max((h.end_sample for h in hists), default=start_sample)
                 if not cfg.reacquire or far + margin >= stop:
                     break
-                nxt = min((c["next_retry"] or far) for c in chinfo)
+                nxt = min((c["next_retry"] or far) for c in chinfo if c["started"])
                 for ch in range(n_ch):
-                    reacquire(ch, max(far, nxt))
+                    if chinfo[ch]["started"]:
+                        reacquire(ch, max(far, nxt))
                 if tracker.next_needed_sample() is None:
-                    if all(c["next_retry"] is not None and c["next_retry"] + margin >= stop for c in chinfo):
+                    if all(c["next_retry"] is not None and c["next_retry"] + margin >= stop for c in chinfo
+                           if c["started"]):
                         break
                     continue
                 s = tracker.next_needed_sample()
@@ -586,6 +724,8 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
                 for ch in range(n_ch):
                     if not tracker.active[ch] and tracker.state.si[ch, S_MODE] == MODE_LOST:
                         reacquire(ch, hists[ch].end_sample if hists[ch].end_sample > 0 else s)
+            if all_in_view:
+                search_idle(max(h.end_sample for h in hists))
             # observation epochs fully covered by every active channel
             ends = [hists[ch].end_sample for ch in range(n_ch) if tracker.active[ch]]
             limit = min(ends) if ends else max(h.end_sample for h in hists)
@@ -606,6 +746,8 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
         result.interrupted = True
         raise
     finally:
+        if rinex_obs is not None and not complete:
+            rinex_obs.abort()
         if bar is not None:
             bar.close()
         result.signal_s = max(done_s, 0.0)
@@ -618,6 +760,7 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             info["cn0_dbhz"] = None if not np.isfinite(cn) else round(cn, 2)
             info.pop("next_retry", None)
         result.channels = chinfo
+        result.searches = search["runs"]
         result.warnings = _spectrum_check(hists, tracker, input_info)
         if cfg.record_epochs:
             for prn, e in epochs.items():
@@ -636,8 +779,29 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             if csv_path:
                 write_csv(csv_path, fixes)
             if kml_path:
-                write_kml(kml_path, fixes)
+                write_kml(kml_path, fixes, options=result.corrections)
+            _write_exchange_files(result, cfg, navs, ephemerides, used_ephs, atm["iono"], rinex_obs,
+                                  rinex_nav_path, nmea_path)
     return result
+
+
+def _write_exchange_files(result, cfg, navs, ephemerides, used_ephs, iono, rinex_obs, rinex_nav_path, nmea_path):
+    """RINEX observation / navigation and NMEA files at the end of a complete run."""
+    pos, _ = result.position_median()
+    if rinex_obs is not None:
+        rinex_obs.finish(pos)
+    utc = next((nv.decoder.iono for nv in navs if nv.decoder.iono is not None), None)
+    leap = utc.dt_ls if utc is not None else getattr(ephemerides, "leap_seconds", None)
+    if rinex_nav_path:
+        from ultratight.receiver.rinex_out import write_rinex_nav
+        ephs = list(used_ephs.values()) + [nv.ephemeris for nv in navs if nv.ephemeris is not None]
+        write_rinex_nav(rinex_nav_path, ephs, iono=None if iono is None else iono[:2], leap_seconds=leap,
+                        comments=[f"ultratight {__version__} process: ephemerides "
+                                  f"{'from ' + str(getattr(ephemerides, 'path', 'the caller')) if ephemerides is not None else 'decoded from the signal'}"])
+    if nmea_path:
+        from ultratight.receiver.nmea import DEFAULT_LEAP_S, write_nmea
+        write_nmea(nmea_path, result.fixes, leap_s=DEFAULT_LEAP_S if leap is None else leap,
+                   options={"iono": result.corrections.get("iono", cfg.iono), "tropo": cfg.tropo})
 
 
 def _spectrum_check(hists, tracker, input_info, min_doppler_hz=800.0):
@@ -676,6 +840,7 @@ def _finish_writer(writer, result, cfg, run_config):
     conf = asdict(cfg)
     writer.flush()                 # datasets exist before their attributes are set
     writer.attrs("/", config=conf, run_config=run_config or {}, input=result.input,
+                 corrections=result.corrections,
                  signal_s=result.signal_s, wall_s=result.wall_s, interrupted=result.interrupted)
     for c in result.channels:
         writer.attrs(f"tracking/prn{c['prn']:02d}", **{k: (-1 if v is None else v) for k, v in c.items()

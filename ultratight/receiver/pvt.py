@@ -17,6 +17,12 @@
   six satellites are used, every single-satellite exclusion is tried and the one
   passing with the smallest statistic is kept (one bad satellite excluded).
 
+* Atmospheric delays (optional ``delays``, a function (receiver position, satellite positions)
+  -> (n,) metres, e.g. :func:`atmosphere_delays`): evaluated at the unweighted first solution
+  (or ``x0``) and subtracted from the pseudoranges; the solution is repeated with the delays at
+  the new position while the position moves by more than ``DELAY_REEVAL_M`` (a 10 m position change
+  moves a delay by well under 1 mm).
+
 Inputs are already corrected for the satellite clock:
 ``pseudorange_m = c (t_rx - t_tx,sat-clock) + c dt_sat`` and
 ``range_rate_mps = -lambda f_D + c d(dt_sat)/dt``.
@@ -38,6 +44,7 @@ N_STATE = 4
 SIN_ELEV_FLOOR = 0.1
 MAX_ITER = 12
 CONV_TOL_M = 1e-4
+DELAY_REEVAL_M = 10.0
 
 
 @dataclass
@@ -59,6 +66,7 @@ class PvtSolution:
     raim_threshold: float = float("nan")
     raim_ok: bool = True
     excluded: list = field(default_factory=list)
+    delays_m: np.ndarray | None = None   # (n,) atmospheric delays subtracted (None: no model)
     n_iter: int = 0
     message: str = ""
 
@@ -170,13 +178,14 @@ def _wls_position(sat_pos_e, pr, sigma, x0, mask):
 
 def solve_pvt(sat_pos_e, pseudorange_m, sat_vel_e=None, range_rate_mps=None, *,
               sigma_pr_m=3.0, sigma_rr_mps=0.1, x0=None, mask_deg=5.0, elev_weight=True,
-              raim=True, p_fa=1e-4):
+              raim=True, p_fa=1e-4, delays=None):
     """Position/clock (and velocity/drift when range rates are given) at one receive epoch.
 
     sat_pos_e, sat_vel_e: (n,3) satellite ECEF states at transmit time (m, m/s);
     pseudorange_m, range_rate_mps: (n,) corrected for satellite clock (see module doc);
     sigma_pr_m, sigma_rr_mps: scalar or (n,) a-priori 1-sigma at zenith;
-    x0: optional initial [x, y, z, c*dt] (default: Earth centre, 0).
+    x0: optional initial [x, y, z, c*dt] (default: Earth centre, 0);
+    delays: optional function (rx_pos_e (3,), sat_pos_e (n,3)) -> (n,) delays (m) to remove.
     Non-finite measurements are ignored. Returns a :class:`PvtSolution`.
     """
     sat_pos_e = np.asarray(sat_pos_e, dtype=float).reshape(-1, 3)
@@ -199,7 +208,16 @@ def solve_pvt(sat_pos_e, pseudorange_m, sat_vel_e=None, range_rate_mps=None, *,
     elev, _ = elevations(x[POS], sat_pos_e)
     mask = finite & (elev >= np.radians(mask_deg))
     sigma = sig0 / np.maximum(np.sin(elev), SIN_ELEV_FLOOR) if elev_weight else sig0
-    x, cov, resid, los, n_iter, ok = _wls_position(sat_pos_e, pr, sigma, x, mask)
+    pr_raw, d_atm = pr, None
+    at = x[POS].copy()
+    for _ in range(3):
+        if delays is not None:
+            d_atm = np.where(finite, np.asarray(delays(at, sat_pos_e), dtype=float), 0.0)
+            pr = pr_raw - d_atm
+        x, cov, resid, los, n_iter, ok = _wls_position(sat_pos_e, pr, sigma, x, mask)
+        if delays is None or not ok or np.linalg.norm(x[POS] - at) < DELAY_REEVAL_M:
+            break
+        at = x[POS].copy()
     if not ok:
         empty.message = f"least squares failed with {int(mask.sum())} satellites above the {mask_deg} deg mask"
         return empty
@@ -228,7 +246,7 @@ def solve_pvt(sat_pos_e, pseudorange_m, sat_vel_e=None, range_rate_mps=None, *,
     elev, _ = elevations(x[POS], sat_pos_e)
     sol = PvtSolution(True, x[POS].copy(), float(x[CLK]), cov, ecef_to_llh(x[POS].copy()), mask.copy(),
                       resid, elev, dops(x[POS], los[mask]), raim_stat=stat, raim_threshold=thr,
-                      raim_ok=bool(raim_ok), excluded=excluded, n_iter=n_iter)
+                      raim_ok=bool(raim_ok), excluded=excluded, delays_m=d_atm, n_iter=n_iter)
     if range_rate_mps is not None and sat_vel_e is not None:
         _solve_velocity(sol, sat_pos_e, np.asarray(sat_vel_e, dtype=float).reshape(-1, 3),
                         np.asarray(range_rate_mps, dtype=float).ravel(), sigma_rr_mps, elev_weight)
@@ -275,3 +293,17 @@ def _solve_velocity(sol, sat_pos_e, sat_vel_e, rr, sigma_rr_mps, elev_weight):
     sol.clk_drift_mps = float(x[3])
     sol.cov_vel_drift = 0.5 * (cov + cov.T)
     sol.rr_residuals_mps[idx] = y - H @ x
+
+
+def atmosphere_delays(model, tow_s, parts=None):
+    """A ``delays`` function for :func:`solve_pvt` from an
+    :class:`ultratight.signals.atmosphere.AtmosphereModel` at GPS time ``tow_s``; when ``parts``
+    (a dict) is given, the last evaluation's ``iono_m`` and ``tropo_m`` arrays are stored in it."""
+    def f(rx_pos_e, sat_pos_e):
+        llh = ecef_to_llh(np.asarray(rx_pos_e, dtype=float).copy())
+        el, az = elevations(np.asarray(rx_pos_e, dtype=float), sat_pos_e)
+        iono, tropo = model.delays_m(llh[0], llh[1], llh[2], el, az, tow_s)
+        if parts is not None:
+            parts["iono_m"], parts["tropo_m"] = iono, tropo
+        return iono + tropo
+    return f

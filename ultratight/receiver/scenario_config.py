@@ -215,6 +215,8 @@ def validate(cfg):
     if len(set(prns)) != len(prns):
         raise ConfigError(f"satellites.prns has duplicates: {prns!r}")
     _num(cfg, "satellites.max_count", lo=1, hi=32, integer=True)
+    if sat.get("horizon_deg") is not None:
+        _num(cfg, "satellites.horizon_deg", lo=-90, hi=90)
     _num(cfg, "satellites.mask_deg", lo=-90, hi=90)
     cn0 = sat.get("cn0_dbhz")
     vals = cn0 if isinstance(cn0, list) else [cn0]
@@ -255,6 +257,8 @@ def validate(cfg):
     if "imu" in cfg:
         _table(cfg, "imu")
         _num(cfg, "imu.rate_hz", lo=0, lo_open=True)
+    if "atmosphere" in cfg:
+        _validate_atmosphere(_table(cfg, "atmosphere"))
     if "engine" in cfg:
         eng = _table(cfg, "engine")
         unknown = sorted(set(eng) - set(ENGINE_KEYS))
@@ -266,3 +270,33 @@ def validate(cfg):
                 raise ConfigError(f"engine.noise_tau_s must be >= 0 s (or inf), got {v!r}")
             eng["noise_tau_s"] = float(v)
     return cfg
+
+
+# [atmosphere] (opt-in): delays the generator applies (ultratight.signals.atmosphere); the default
+# broadcast coefficients are those of the IGS broadcast file of 2022-01-01 (brdc0010.22n header)
+ATMOSPHERE_DEFAULTS = {"iono": "off", "tropo": "off", "tropo_mapping": "cosz", "iono_scale": 1.0,
+                       "alpha": [1.211e-08, -7.451e-09, -5.960e-08, 1.192e-07],
+                       "beta": [1.167e+05, -2.458e+05, -6.554e+04, 1.114e+06], "broadcast": True}
+
+
+def _validate_atmosphere(atm):
+    from ultratight.signals.atmosphere import IONO_MODELS, MAPPINGS, TROPO_MODELS
+
+    check_known_keys(atm, ATMOSPHERE_DEFAULTS, "[atmosphere]")
+    for k, v in ATMOSPHERE_DEFAULTS.items():
+        atm.setdefault(k, list(v) if isinstance(v, list) else v)
+    for key, allowed in (("iono", IONO_MODELS), ("tropo", TROPO_MODELS), ("tropo_mapping", MAPPINGS)):
+        if atm[key] not in allowed:
+            raise ConfigError(f"atmosphere.{key} must be one of {', '.join(allowed)}, got {atm[key]!r}")
+    v = atm["iono_scale"]
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v <= 10.0:
+        raise ConfigError(f"atmosphere.iono_scale must be a number in [0, 10], got {v!r}")
+    atm["iono_scale"] = float(v)
+    for key in ("alpha", "beta"):
+        v = atm[key]
+        if (not isinstance(v, list) or len(v) != 4 or
+                any(isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) for x in v)):
+            raise ConfigError(f"atmosphere.{key} must be a list of 4 numbers (Klobuchar coefficients), got {v!r}")
+        atm[key] = [float(x) for x in v]
+    if not isinstance(atm["broadcast"], bool):
+        raise ConfigError(f"atmosphere.broadcast must be true or false, got {atm['broadcast']!r}")

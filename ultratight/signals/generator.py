@@ -25,6 +25,21 @@ Receiver clock: bias ``b(e) = clock_bias_m + clock_drift_mps * e`` (e = receiver
 since the start); the true reception time of sample ``n`` is ``T_n - b/c`` and the trajectory
 time is ``e - (b(e) - b(0))/c``.
 
+Atmosphere (scenario table ``[atmosphere]``, opt-in; :mod:`ultratight.signals.atmosphere`): the
+code is delayed by ``I + T`` and the carrier phase advanced by ``I`` and delayed by ``T``
+(``I``: Klobuchar ionosphere times ``iono_scale``, ``T``: Saastamoinen troposphere with the
+named mapping function), evaluated at the true receive time with the receiver's geodetic
+position and the satellite's elevation/azimuth: ``pseudorange += I + T``,
+``t_tx_tow -= (I + T)/c`` (code phase and data bits follow), ``carrier_phase_cycles -= (T - I)/lambda``
+and the truth Doppler gets ``-d(T - I)/dt / lambda``.  The truth file records ``iono_m`` and
+``tropo_m`` (zeros without ``[atmosphere]``); with ``broadcast = true`` the coefficients are sent
+in subframe 4 page 18 of every satellite's LNAV.
+
+Horizon (``satellites.horizon_deg``, opt-in): satellites rising above ``mask_deg`` during the
+run are generated as well, and every satellite's amplitude is zero while its elevation is below
+``horizon_deg`` (terrain or obstructions; 0 = the open horizon); the truth ``cn0_dbhz`` keeps the
+configured value.
+
 Random numbers: one ``numpy.random.Generator`` from the seed
 (``SeedSequence(seed).spawn(2)``: noise, IMU); noise is drawn block by block with
 ``standard_normal(dtype=float32)`` in a fixed block size, so a seed always gives the same file.
@@ -156,7 +171,7 @@ class SignalPlan:
     """
 
     def __init__(self, ephs, cn0_dbhz, traj, week, tow0, fs_hz, if_hz, is_complex, inversion=False,
-                 clock_bias_m=0.0, clock_drift_mps=0.0, n_samples=None):
+                 clock_bias_m=0.0, clock_drift_mps=0.0, n_samples=None, atmosphere=None, iono_broadcast=None):
         self.ephs = list(ephs)
         self.prns = np.array([e.prn for e in self.ephs], dtype=np.int64)
         self.cn0_dbhz = np.broadcast_to(np.asarray(cn0_dbhz, dtype=float), (len(self.ephs),)).copy()
@@ -175,6 +190,8 @@ class SignalPlan:
             if len(self.prns) else np.zeros((0, N_EXT), np.float32)
         self.amp = signal_amplitude(self.cn0_dbhz, self.fs, 1.0, self.is_complex).astype(np.float32)
         self.bits = {}          # prn -> (first_bit_index (ms//20), int8 array) or None
+        self.atmosphere = atmosphere if atmosphere is not None and atmosphere.active else None
+        self.iono_broadcast = iono_broadcast     # lnav.IonoUtc sent in subframe 4 page 18 (or None)
 
     # --- time base
     def clock_bias_m(self, e):
@@ -190,7 +207,28 @@ class SignalPlan:
         pos, vel = self.traj.pos_vel_e(np.maximum(tau_traj, 0.0))
         t_true = self.tow0 + e - b / C
         out = [light_time(eph, pos, vel, self.week, t_true, b, self.drift) for eph in self.ephs]
+        if self.atmosphere is not None:
+            self._apply_atmosphere(out, pos, t_true, e)
         return out, {"pos_e": pos, "vel_e": vel, "clk_bias_m": b, "t_true": t_true, "e": e}
+
+    def _apply_atmosphere(self, geo, pos, t_true, e):
+        """Add the ionospheric and tropospheric delays to the light-time solutions (module doc)."""
+        from ultratight.constants import LAMBDA_L1
+        from ultratight.signals.geometry import geodetic_llh
+
+        lat, lon, h = geodetic_llh(pos)
+        for g in geo:
+            iono, tropo = self.atmosphere.delays_m(lat, lon, h, g["elev_rad"], g["azim_rad"], t_true)
+            d_code = iono + tropo
+            d_carr = tropo - iono
+            g["iono_m"] = iono
+            g["tropo_m"] = tropo
+            g["pseudorange_m"] = g["pseudorange_m"] + d_code
+            g["t_tx_tow"] = g["t_tx_tow"] - d_code / C
+            g["code_phase_chips"] = np.mod(g["t_tx_tow"] * F_CA, float(CA_LEN))
+            g["carrier_phase_cycles"] = g["carrier_phase_cycles"] - d_carr / LAMBDA_L1
+            if e.size >= 2:
+                g["doppler_hz"] = g["doppler_hz"] - np.gradient(d_carr, e) / LAMBDA_L1
 
     def coefficients(self, j0, n_int):
         """Per-interval coefficients for intervals j0..j0+n_int-1.
@@ -247,7 +285,8 @@ class SignalPlan:
         first = int(math.floor((self.tow0 - 0.2) / 0.02))
         n_bits = int(math.ceil((duration_s + 0.5) / 0.02)) + 2
         for eph in self.ephs:
-            b = np.asarray(nav_bits(eph, self.week, first * 0.02, n_bits), dtype=np.int8)
+            kw = {"iono": self.iono_broadcast} if self.iono_broadcast is not None else {}
+            b = np.asarray(nav_bits(eph, self.week, first * 0.02, n_bits, **kw), dtype=np.int8)
             self.bits[int(eph.prn)] = (first, b)
 
     def bit_values(self, epoch0):
@@ -309,6 +348,14 @@ def _ephemerides(cfg, rx_pos0_e):
 
         prns = visible_prns(ephs, rx_pos0_e, week, tow, float(sat.get("mask_deg", 5.0)),
                             max_count=sat.get("max_count"))
+        if sat.get("horizon_deg") is not None:
+            # satellites rising above the mask during the run are generated too (their signal
+            # starts at the horizon, see generate())
+            step = 30.0
+            for k in range(1, int(float(cfg.get("duration_s", 0.0)) // step) + 1):
+                for p in visible_prns(ephs, rx_pos0_e, week, tow + k * step, float(sat.get("mask_deg", 5.0))):
+                    if p not in prns:
+                        prns.append(p)
         if not prns:
             raise ConfigError("satellites: no satellite visible above mask_deg at the start point")
     cn0 = sat.get("cn0_dbhz", 45.0)
@@ -316,6 +363,25 @@ def _ephemerides(cfg, rx_pos0_e):
         if len(cn0) != len(prns):
             raise ConfigError(f"satellites.cn0_dbhz has {len(cn0)} values for {len(prns)} satellites")
     return [ephs[p] for p in prns], np.broadcast_to(np.asarray(cn0, float), (len(prns),)).copy()
+
+
+def atmosphere_from_config(atm):
+    """(AtmosphereModel or None, lnav.IonoUtc or None) of a validated ``[atmosphere]`` table."""
+    if not atm:
+        return None, None
+    from ultratight.signals.atmosphere import AtmosphereModel
+    from ultratight.signals.lnav import IonoUtc
+
+    from ultratight.signals.lnav import quantise_iono
+
+    alpha, beta = atm["alpha"], atm["beta"]
+    if atm["broadcast"]:
+        # the delays the receiver can reproduce are those of the transmitted (quantised) coefficients
+        alpha, beta = quantise_iono(alpha, beta)
+    model = AtmosphereModel(iono=atm["iono"], alpha=alpha, beta=beta, tropo=atm["tropo"],
+                            mapping_name=atm["tropo_mapping"], iono_scale=atm["iono_scale"])
+    bc = IonoUtc(alpha=tuple(alpha), beta=tuple(beta)) if atm["broadcast"] else None
+    return model, bc
 
 
 def noise_factor(events, e):
@@ -349,7 +415,7 @@ class _TruthWriter:
                 "vel_e": (3,), "clk_bias_m": (), "clk_drift_mps": (), "noise_factor": (),
                 "code_phase_chips": (nsat,), "carrier_phase_cycles": (nsat,), "doppler_hz": (nsat,),
                 "cn0_dbhz": (nsat,), "nav_bit": (nsat,), "pseudorange_m": (nsat,), "elev_deg": (nsat,),
-                "azim_deg": (nsat,), "t_tx_tow_s": (nsat,)}
+                "azim_deg": (nsat,), "t_tx_tow_s": (nsat,), "iono_m": (nsat,), "tropo_m": (nsat,)}
         for name, shp in spec.items():
             dt = np.int8 if name == "nav_bit" else (np.int64 if name == "sample_index" else np.float64)
             self.ds[name] = self.f.create_dataset(name, shape=(0,) + shp, maxshape=(None,) + shp,
@@ -434,10 +500,13 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
         ephs = list(ephemerides)
         cn0 = np.broadcast_to(np.asarray(cfg.get("satellites", {}).get("cn0_dbhz", 45.0), float),
                               (len(ephs),)).copy()
+    atmosphere, iono_broadcast = atmosphere_from_config(cfg.get("atmosphere"))
     plan = SignalPlan(ephs, cn0, trajectory, week, tow0, fe.fs_hz, fe.if_hz, fe.is_complex, fe.inversion,
-                      rcv.get("clock_bias_m", 0.0), rcv.get("clock_drift_mps", 0.0))
+                      rcv.get("clock_bias_m", 0.0), rcv.get("clock_drift_mps", 0.0),
+                      atmosphere=atmosphere, iono_broadcast=iono_broadcast)
     plan.set_nav_bits(duration, bool(cfg.get("nav", {}).get("data_bits", True)))
     events = cfg.get("noise_events", [])
+    horizon = cfg.get("satellites", {}).get("horizon_deg")
 
     out_dir = Path(out_dir)
     if not out_dir.is_dir():
@@ -471,6 +540,10 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
             coefs, epoch0, starts, rx0 = plan.coefficients(j0, n_int)
             bits = plan.bit_values(epoch0)
             amps = np.broadcast_to(plan.amp, (n_int, nsat)).astype(np.float32)
+            if horizon is not None and nsat:
+                # terrain / obstructions block the satellites below the horizon elevation
+                el = np.stack([g["elev_rad"] for g in starts], 1)
+                amps = amps * (el > math.radians(float(horizon))).astype(np.float32)
             x = buf[:ns * comps]
             rng.standard_normal(out=x, dtype=np.float32)
             t_b0, t_b1 = j0 * L / fe.fs_hz, (j0 * L + ns) / fe.fs_hz
@@ -510,6 +583,9 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
             rows["elev_deg"] = np.degrees(np.stack([g["elev_rad"] for g in starts], 1)) if nsat else np.zeros((n_int, 0))
             rows["azim_deg"] = np.degrees(np.stack([g["azim_rad"] for g in starts], 1)) if nsat else np.zeros((n_int, 0))
             rows["t_tx_tow_s"] = np.stack([g["t_tx_tow"] for g in starts], 1) if nsat else np.zeros((n_int, 0))
+            for k in ("iono_m", "tropo_m"):
+                rows[k] = (np.stack([g[k] for g in starts], 1) if nsat and k in starts[0]
+                           else np.zeros((n_int, nsat)))
             rows["cn0_dbhz"] = plan.cn0_dbhz[None, :] - 20.0 * np.log10(nf.astype(float))[:, None]
             rows["nav_bit"] = bits[:, :, 0].astype(np.int8)
             truth.append(rows)

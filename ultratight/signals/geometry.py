@@ -62,6 +62,19 @@ def _geodetic_lat_lon(pos_e):
     return lat, lon
 
 
+def geodetic_llh(pos_e):
+    """Vectorised geodetic latitude, longitude (rad) and ellipsoidal height (m) of ECEF points."""
+    pos = np.asarray(pos_e, dtype=np.float64)
+    lat, lon = _geodetic_lat_lon(pos)
+    p = np.hypot(pos[..., 0], pos[..., 1])
+    s = np.sin(lat)
+    rn = WGS84_A / np.sqrt(1.0 - WGS84_E2 * s * s)
+    c_lat = np.cos(lat)
+    h = np.where(np.abs(c_lat) > 1e-9, p / np.where(np.abs(c_lat) > 1e-9, c_lat, 1.0) - rn,
+                 np.abs(pos[..., 2]) - rn * (1.0 - WGS84_E2))
+    return lat, lon, h
+
+
 def enu_basis(rx_pos_e):
     """Local east, north, up unit vectors (each (n,3) or (3,)) at ECEF position(s)."""
     rx = np.asarray(rx_pos_e, dtype=np.float64)

@@ -13,7 +13,14 @@ Formats (``FORMATS``; all little-endian unless an ION XML says otherwise)
                significant bits (bits 7-6), then 5-4, 3-2, 1-0
 ``ci2packed``  complex, 2 bits per component, 2 samples per byte: I0 (bits 7-6),
                Q0 (5-4), I1 (3-2), Q1 (1-0)
+``i4packed``   real, 4 bits per sample (read only)
+``ci4packed``  complex, 4 bits per component (read only)
 =============  =========================================================================
+
+Packed formats are read in any layout of :class:`ultratight.signals.packing.PackedLayout`
+(bit order within a word, word size and byte order, sign-magnitude / two's complement / offset
+binary / sign-only encoding): from the ``packing`` argument, the sidecar's ``packing`` object or
+an ION XML; the defaults are the layout described here.
 
 2-bit code (sign-magnitude): bit 1 = sign (1 = negative), bit 0 = magnitude
 (1 = large). Codes 0, 1, 2, 3 mean +1, +3, -1, -3 (the front-end levels of
@@ -39,7 +46,8 @@ single lump/chunk/block is supported. Sample rate = system ``freqbase`` x stream
 ``ratefactor`` (units from the ``format`` attribute: Hz/kHz/MHz/GHz), IF from the band's
 ``translatedfreq``, sample type from ``quantization``/``packedbits``/``format``
 (IF, IFn, IQ, IQn, QI, QIn) /``encoding`` (TC/INT8/INT16 two's complement, FP
-float, SM sign-magnitude 2-bit) and the chunk ``endian``; ``inverted`` or the
+float; for 2- and 4-bit packed samples SM sign-magnitude, TC, OB offset binary, SIGN sign only)
+and the chunk ``endian`` (not applied to packed samples, which are read byte-wise); ``inverted`` or the
 ``n`` suffix formats set inversion; the file is the ``<file><url>`` relative
 to the XML when ``path`` is None.
 """
@@ -53,6 +61,7 @@ from pathlib import Path
 import numpy as np
 
 from ultratight.errors import FormatError, InputFileError
+from ultratight.signals.packing import ION_ENCODINGS, PackedLayout
 
 
 @dataclass(frozen=True)
@@ -61,6 +70,15 @@ class FormatSpec:
     dtype: str          # numpy dtype of one stored component / byte
     is_complex: bool
     packed2: bool = False   # 2-bit packed
+    packed4: bool = False   # 4-bit packed (read only)
+
+    @property
+    def packed(self):
+        return self.packed2 or self.packed4
+
+    @property
+    def packed_bits(self):
+        return 2 if self.packed2 else (4 if self.packed4 else 0)
 
     @property
     def comps(self):
@@ -68,11 +86,13 @@ class FormatSpec:
 
     @property
     def samples_per_byte(self):
-        return (2 if self.is_complex else 4) if self.packed2 else None
+        if not self.packed:
+            return None
+        return 8 // self.packed_bits // self.comps
 
     @property
     def bytes_per_sample(self):
-        if self.packed2:
+        if self.packed:
             return None
         return np.dtype(self.dtype).itemsize * self.comps
 
@@ -87,6 +107,11 @@ FORMATS = {
     "i2packed": FormatSpec("i2packed", "u1", False, packed2=True),
     "ci2packed": FormatSpec("ci2packed", "u1", True, packed2=True),
 }
+# formats the reader accepts but nothing here writes
+READ_ONLY_FORMATS = {
+    "i4packed": FormatSpec("i4packed", "u1", False, packed4=True),
+    "ci4packed": FormatSpec("ci4packed", "u1", True, packed4=True),
+}
 
 # 2-bit code -> level (sign-magnitude): 0:+1, 1:+3, 2:-1, 3:-3
 CODE2_LEVEL = np.array([1.0, 3.0, -1.0, -3.0], dtype=np.float32)
@@ -96,9 +121,10 @@ _BYTE_LUT = np.stack([CODE2_LEVEL[(np.arange(256) >> s) & 3] for s in (6, 4, 2, 
 
 def get_format(name):
     try:
-        return FORMATS[name]
+        return FORMATS[name] if name in FORMATS else READ_ONLY_FORMATS[name]
     except (KeyError, TypeError):
-        raise FormatError(f"unknown IF sample format {name!r}; expected one of {', '.join(FORMATS)}") from None
+        raise FormatError(f"unknown IF sample format {name!r}; expected one of "
+                          f"{', '.join(list(FORMATS) + list(READ_ONLY_FORMATS))}") from None
 
 
 def check_bits_for_format(fmt, bits, field="frontend"):
@@ -106,6 +132,8 @@ def check_bits_for_format(fmt, bits, field="frontend"):
     from ultratight.errors import ConfigError
 
     spec = get_format(fmt)
+    if spec.packed4:
+        raise ConfigError(f"{field}.format {spec.name!r} is read only (no writer for 4-bit packed samples)")
     if spec.packed2 and bits not in (1, 2):
         raise ConfigError(f"{field}.format {spec.name!r} stores 2-bit samples; {field}.bits must be 1 or 2 "
                           f"(got {bits})")
@@ -198,8 +226,8 @@ def parse_ion_metadata(xml_path):
         if quant != 32:
             raise FormatError(f"{xml_path}: floating-point quantization {quant} not supported (expected 32)")
         name, dtype = ("cf32" if is_complex else "f32"), endian + "f4"
-    elif quant == 2 and enc in ("SM", "SIGNMAG") and comp_bits == 2:
-        name, dtype = ("ci2packed" if is_complex else "i2packed"), "u1"
+    elif quant in (1, 2, 3, 4) and comp_bits in (2, 4) and enc in ION_ENCODINGS:
+        name, dtype = ("c" if is_complex else "") + f"i{comp_bits}packed", "u1"
     elif quant in (1, 2, 3, 4, 5, 6, 7, 8) and comp_bits == 8 and enc in ("TC", "INT8", "SM"):
         name, dtype = ("ci8" if is_complex else "i8"), "i1"
     elif quant <= 16 and comp_bits == 16 and enc in ("TC", "INT16"):
@@ -213,7 +241,13 @@ def parse_ion_metadata(xml_path):
         url = txt(f, "url")
         if url:
             break
-    return {"format": name, "dtype": dtype, "fs_hz": freqbase * ratefactor, "if_hz": if_hz or 0.0,
+    packing = None
+    if name.endswith("packed"):
+        # the encoding comes from the XML; samples are read byte by byte, first sample in the high
+        # bits (the chunk's sizeword / endian are not applied to packed samples: give --word-size,
+        # --endian and --packing for other layouts)
+        packing = {"bits": comp_bits, "encoding": ION_ENCODINGS[enc] if quant > 1 else "sign"}
+    return {"format": name, "dtype": dtype, "fs_hz": freqbase * ratefactor, "if_hz": if_hz or 0.0, "packing": packing,
             "is_complex": is_complex, "iq_swap": fmt == "QI", "inversion": inverted, "bits": quant,
             "data_file": str(xml_path.parent / url) if url else None}
 
@@ -231,7 +265,7 @@ class IfSource:
     """
 
     def __init__(self, path, fmt, fs_hz, if_hz, iq_conj=False, inversion=False, start_week=None,
-                 start_tow_s=None, n_samples=None, dtype=None, iq_swap=False, meta=None):
+                 start_tow_s=None, n_samples=None, dtype=None, iq_swap=False, meta=None, packing=None):
         self.path = Path(path)
         self.spec = get_format(fmt)
         self.fmt = self.spec.name
@@ -252,8 +286,14 @@ class IfSource:
             raise InputFileError(f"IF file not found: {self.path}")
         size = self.path.stat().st_size
         spec = self.spec
-        if spec.packed2:
-            total = size * spec.samples_per_byte
+        self.packing = None
+        if spec.packed:
+            lay = packing if isinstance(packing, PackedLayout) else PackedLayout(**{"bits": spec.packed_bits,
+                                                                                    **(packing or {})})
+            if lay.bits != spec.packed_bits:
+                raise FormatError(f"{self.path}: packing of {lay.bits}-bit samples given for format {self.fmt}")
+            self.packing = lay
+            total = size // lay.word_bytes * lay.per_word // spec.comps
         else:
             bps = spec.bytes_per_sample
             if size % bps:
@@ -301,7 +341,10 @@ class IfSource:
         if upto <= 0:
             return 0
         spec = self.spec
-        nbytes = upto // spec.samples_per_byte if spec.packed2 else upto * spec.bytes_per_sample
+        if spec.packed:
+            nbytes = upto * spec.comps // self.packing.per_word * self.packing.word_bytes
+        else:
+            nbytes = upto * spec.bytes_per_sample
         # np.memmap maps from the page boundary at or below its offset; here the offset is 0
         start = int(getattr(self._mm, "offset", 0) or 0)
         end = min((start + nbytes) // _mmap.PAGESIZE * _mmap.PAGESIZE, len(raw))
@@ -324,13 +367,14 @@ class IfSource:
             raise ValueError("start must be >= 0")
         count = max(0, min(int(count), self.n_samples - start))
         spec = self.spec
-        if spec.packed2:
+        if spec.packed:
+            lay = self.packing
             comp_start = start * spec.comps
             comp_stop = (start + count) * spec.comps
-            b0, b1 = comp_start // 4, -(-comp_stop // 4)
-            vals = _BYTE_LUT[np.asarray(self._mm[b0:b1])].reshape(-1)
-            vals = vals[comp_start - 4 * b0: comp_start - 4 * b0 + count * spec.comps]
-            raw = np.ascontiguousarray(vals, dtype=np.float32)
+            w0, w1 = comp_start // lay.per_word, -(-comp_stop // lay.per_word)
+            vals = lay.unpack(np.asarray(self._mm[w0 * lay.word_bytes:w1 * lay.word_bytes]))
+            off = comp_start - lay.per_word * w0
+            raw = np.ascontiguousarray(vals[off: off + count * spec.comps], dtype=np.float32)
         else:
             c = spec.comps
             raw = np.asarray(self._mm[start * c:(start + count) * c]).astype(np.float32)
@@ -371,19 +415,29 @@ def read_sidecar(path):
         raise FormatError(f"{sp}: unreadable JSON sidecar ({exc})") from None
 
 
-def open_if(path=None, meta=None, fs_hz=None, if_hz=None, fmt=None, iq_conj=False):
+def open_if(path=None, meta=None, fs_hz=None, if_hz=None, fmt=None, iq_conj=False, packing=None):
     """Open an IF file. Parameters come from (in rising priority) the sidecar ``<path>.json``
-    or ``meta`` (a JSON sidecar or ION XML path), then the explicit arguments.
+    or ``meta`` (a JSON sidecar, an ION XML or a SigMF ``.sigmf-meta`` path; a ``path`` ending in
+    ``.sigmf-meta`` / ``.sigmf-data`` is read as SigMF, :mod:`ultratight.signals.sigmf_io`), then
+    the explicit arguments.
 
     Raises InputFileError (missing file) or FormatError (unknown format, size not a whole
     number of samples, no sidecar and no ``fmt``/``fs_hz``).
     """
     info = {}
+    if meta is None and path is not None and str(path).lower().endswith((".sigmf-meta", ".sigmf-data")):
+        meta = path                       # a SigMF recording named by either of its files
+        path = None
     if meta is not None:
         mp = Path(meta)
-        if not mp.is_file():
+        if not mp.is_file() and not str(mp).lower().endswith(".sigmf-data"):
             raise InputFileError(f"metadata file not found: {mp}")
-        if mp.suffix.lower() == ".xml":
+        if str(mp).lower().endswith((".sigmf-meta", ".sigmf-data")):
+            from ultratight.signals.sigmf_io import read_sigmf
+            info = read_sigmf(mp)
+            if path is None:
+                path = info["data_file"]
+        elif mp.suffix.lower() == ".xml":
             info = parse_ion_metadata(mp)
             if path is None:
                 if not info.get("data_file"):
@@ -414,7 +468,8 @@ def open_if(path=None, meta=None, fs_hz=None, if_hz=None, fmt=None, iq_conj=Fals
                     inversion=bool(info.get("inversion", False)), start_week=info.get("start_week"),
                     start_tow_s=info.get("start_tow_s"),
                     n_samples=info.get("n_samples") if info.get("format") == spec.name else None,
-                    dtype=dtype, iq_swap=info.get("iq_swap", False), meta=info)
+                    dtype=dtype, iq_swap=info.get("iq_swap", False), meta=info,
+                    packing={**(info.get("packing") or {}), **(packing or {})} if spec.packed else None)
 
 
 # ------------------------------------------------------------------------------------------
@@ -443,6 +498,8 @@ class IfWriter:
                  start_tow_s=None, bits=None, extra=None):
         self.path = Path(path)
         self.spec = get_format(fmt)
+        if self.spec.packed4:
+            raise FormatError(f"{self.path}: format {fmt!r} is read only (no writer for 4-bit packed samples)")
         self.fs_hz = float(fs_hz)
         self.if_hz = float(if_hz)
         self.sidecar = {"format": self.spec.name, "fs_hz": self.fs_hz, "if_hz": self.if_hz,

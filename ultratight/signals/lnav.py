@@ -19,7 +19,11 @@ Bit conventions
 Subframes 1–3 carry the clock/ephemeris parameters with the IS-GPS-200 scale factors (Tables
 20-I, 20-III).  Subframes 4 and 5 carry structurally valid pages: data ID 01, the SV (page) ID
 of Table 20-V and, for subframe 5 pages 1–24, the almanac of PRN = page when ``almanac`` (dict
-prn -> Ephemeris) holds it; otherwise the page content is the alternating 1/0 filler pattern.
+prn -> Ephemeris) holds it; subframe 4 page 18 (SV ID 56) carries the ionospheric and UTC
+parameters (Figure 20-1 sheet 8, Table 20-X scale factors) when ``iono`` (:class:`IonoUtc`) is
+given (without it, page 18 is sent as a reserved page, SV ID 57); otherwise the page content is
+the alternating 1/0 filler pattern.  The decoder keeps the
+latest page 18 it reads with good parity in ``LnavDecoder.iono``.
 """
 
 from dataclasses import dataclass
@@ -204,7 +208,67 @@ def quantise(eph):
 
 
 # ------------------------------------------------------------------------------- encoding
-def _subframe_words(sf_id, eph, tow_s, week, almanac=None, alert=0, anti_spoof=0, tlm_message=0):
+@dataclass(frozen=True)
+class IonoUtc:
+    """Subframe 4 page 18 content: Klobuchar alpha_0..3 (s, s/semicircle^n), beta_0..3 (s, ...),
+    UTC parameters A0 (s), A1 (s/s), t_ot (s), WN_t, delta_t_LS, WN_LSF, DN, delta_t_LSF."""
+
+    alpha: tuple
+    beta: tuple
+    a0: float = 0.0
+    a1: float = 0.0
+    tot: float = 0.0
+    wnt: int = 0
+    dt_ls: int = 18
+    wn_lsf: int = 0
+    dn: int = 1
+    dt_lsf: int = 18
+
+
+# Table 20-X scale factors (power of two) of alpha_0..3 and beta_0..3 (8-bit two's complement)
+ALPHA_SCALE = (-30, -27, -24, -24)
+BETA_SCALE = (11, 14, 16, 16)
+
+
+def quantise_iono(alpha, beta):
+    """alpha, beta (tuples) as an LNAV receiver decodes them from subframe 4 page 18."""
+    qa = tuple(_q(v, 2.0 ** ALPHA_SCALE[k]) * 2.0 ** ALPHA_SCALE[k] for k, v in enumerate(alpha))
+    qb = tuple(_q(v, 2.0 ** BETA_SCALE[k]) * 2.0 ** BETA_SCALE[k] for k, v in enumerate(beta))
+    return qa, qb
+
+
+def _iono_page(p18):
+    p = _Packer().put(0b01, 2).put(56, 6, "sv_id")
+    for k, v in enumerate(p18.alpha):
+        p.put(_q(v, 2.0 ** ALPHA_SCALE[k]), 8, f"alpha{k}", True)
+    for k, v in enumerate(p18.beta):
+        p.put(_q(v, 2.0 ** BETA_SCALE[k]), 8, f"beta{k}", True)
+    p.put(_q(p18.a1, 2.0 ** -50), 24, "A1", True)
+    a0 = _q(p18.a0, 2.0 ** -30)
+    _Packer().put(a0, 32, "A0", True)
+    a0 &= 0xFFFFFFFF
+    p.put(a0 >> 8, 24).put(a0 & 0xFF, 8)
+    p.put(_q(p18.tot, 2.0 ** 12), 8, "t_ot").put(p18.wnt % 256, 8, "WN_t")
+    p.put(p18.dt_ls, 8, "delta_t_LS", True).put(p18.wn_lsf % 256, 8, "WN_LSF").put(p18.dn, 8, "DN")
+    p.put(p18.dt_lsf, 8, "delta_t_LSF", True).put(0, 14).put(0, 2)
+    return _split_words(p, 8)
+
+
+def _parse_iono_page(words):
+    """IonoUtc from the 24-bit source words 3..10 of a subframe 4 page with SV ID 56."""
+    v = 0
+    for w in words[2:10]:
+        v = (v << 24) | w
+    n = 8 * 24
+    alpha = tuple(_get(v, n, 8 + 8 * k, 8, True) * 2.0 ** ALPHA_SCALE[k] for k in range(4))
+    beta = tuple(_get(v, n, 40 + 8 * k, 8, True) * 2.0 ** BETA_SCALE[k] for k in range(4))
+    return IonoUtc(alpha=alpha, beta=beta, a1=_get(v, n, 72, 24, True) * 2.0 ** -50,
+                   a0=_get(v, n, 96, 32, True) * 2.0 ** -30, tot=_get(v, n, 128, 8) * 2.0 ** 12,
+                   wnt=_get(v, n, 136, 8), dt_ls=_get(v, n, 144, 8, True), wn_lsf=_get(v, n, 152, 8),
+                   dn=_get(v, n, 160, 8), dt_lsf=_get(v, n, 168, 8, True))
+
+
+def _subframe_words(sf_id, eph, tow_s, week, almanac=None, alert=0, anti_spoof=0, tlm_message=0, iono=None):
     """24-bit source words 1..10 (t bits of words 2 and 10 not yet solved: low 2 bits 0)."""
     tow_next = int(round(tow_s / SUBFRAME_S)) + 1
     tow_count = tow_next % (BITS_PER_WEEK // SUBFRAME_BITS)
@@ -249,7 +313,13 @@ def _subframe_words(sf_id, eph, tow_s, week, almanac=None, alert=0, anti_spoof=0
         words += _split_words(p, 8)
     elif sf_id in (4, 5):
         page = int(round(tow_s / SUBFRAME_S)) // 5 % 25 + 1
-        if sf_id == 4:
+        if sf_id == 4 and page == 18 and iono is not None:
+            words += _iono_page(iono)
+        elif sf_id == 4 and page == 18:
+            # no coefficients to send: a reserved page (SV ID 57), so that no receiver reads the
+            # filler pattern as ionospheric / UTC parameters
+            words += _filler_page(57)
+        elif sf_id == 4:
             words += _filler_page(SF4_SV_ID[page - 1])
         elif page == 25:
             words += _filler_page(SF5_PAGE25_SV_ID)
@@ -289,7 +359,7 @@ def _almanac_page(eph, tow_s):
 
 
 def encode_subframe(sf_id, eph, tow_s, week=None, almanac=None, alert=0, anti_spoof=0,
-                    tlm_message=0):
+                    tlm_message=0, iono=None):
     """300 transmitted bits (uint8 0/1) of the subframe that starts at GPS TOW ``tow_s``.
 
     ``tow_s`` must be a multiple of 6 s; ``week`` is the transmission week (default eph.week; only
@@ -298,7 +368,7 @@ def encode_subframe(sf_id, eph, tow_s, week=None, almanac=None, alert=0, anti_sp
         raise NavDataError(f"LNAV subframe start tow_s = {tow_s} is not a multiple of 6 s")
     if week is None:
         week = eph.week
-    words = _subframe_words(int(sf_id), eph, tow_s, int(week), almanac, alert, anti_spoof, tlm_message)
+    words = _subframe_words(int(sf_id), eph, tow_s, int(week), almanac, alert, anti_spoof, tlm_message, iono)
     bits = np.empty(SUBFRAME_BITS, dtype=np.uint8)
     d29s = d30s = 0
     for k, d24 in enumerate(words):
@@ -321,7 +391,7 @@ def bit_index(tow_s):
     return np.floor(np.asarray(tow_s, dtype=np.float64) / BIT_S + 1e-7).astype(np.int64)
 
 
-def nav_bits_at(eph, week, bit_indices, almanac=None):
+def nav_bits_at(eph, week, bit_indices, almanac=None, iono=None):
     """±1 symbols (int8, logic 0 -> +1) of the LNAV bits with absolute indices ``bit_indices``
     counted from the start of GPS week ``week`` (may be negative or ≥ one week: the week is
     carried).  Subframes are encoded once per call."""
@@ -332,13 +402,13 @@ def nav_bits_at(eph, week, bit_indices, almanac=None):
     sf_idx = np.floor_divide(idx, SUBFRAME_BITS)
     for s in np.unique(sf_idx):
         w, tow = normalize(week, float(s) * SUBFRAME_S)
-        bits = encode_subframe(subframe_id_at(tow), eph, tow, week=w, almanac=almanac)
+        bits = encode_subframe(subframe_id_at(tow), eph, tow, week=w, almanac=almanac, iono=iono)
         sel = sf_idx == s
         out[sel] = 1 - 2 * bits[idx[sel] - s * SUBFRAME_BITS].astype(np.int8)
     return out
 
 
-def nav_bits(eph, week, tow_start_s, n_bits, almanac=None):
+def nav_bits(eph, week, tow_start_s, n_bits, almanac=None, iono=None):
     """``n_bits`` ±1 LNAV data bits (int8) aligned to GPS (satellite) time.
 
     Bit k spans [t0 + 0.02·k, t0 + 0.02·(k+1)) with t0 = the start of the bit in progress at
@@ -347,7 +417,7 @@ def nav_bits(eph, week, tow_start_s, n_bits, almanac=None):
     not on a bit edge, bit 0 is the partial bit containing it.  Use :func:`bit_index` /
     :func:`nav_bits_at` to look bits up for arbitrary satellite-clock times."""
     k0 = int(bit_index(tow_start_s))
-    return nav_bits_at(eph, week, k0 + np.arange(int(n_bits)), almanac)
+    return nav_bits_at(eph, week, k0 + np.arange(int(n_bits)), almanac, iono)
 
 
 # ------------------------------------------------------------------------------- decoding
@@ -412,6 +482,8 @@ class LnavDecoder:
         self.subframes = []
         self._sf = {}
         self.polarity_flips = 0
+        self.iono = None               # IonoUtc of the latest subframe 4 page 18 with good parity
+        self.ephemeris_tx_tow = None   # TOW of the subframe 1 of the current ephemeris
 
     # -- helpers
     def _tlm_how_ok(self, b, i, inv, prev_zero=False):
@@ -546,6 +618,8 @@ class LnavDecoder:
         if sf_id in (1, 2, 3) and not bad:
             self._sf[sf_id] = sf
             self._try_ephemeris()
+        elif sf_id == 4 and not bad and (words[2] >> 16) & 0x3F == 56:
+            self.iono = _parse_iono_page(words)
         return sf
 
     def _try_ephemeris(self):
@@ -562,6 +636,7 @@ class LnavDecoder:
         dt = ints["toe"] * 2.0 ** 4 - tx_tow
         eph_week = week + (-1 if dt > SECONDS_PER_WEEK / 2 else (1 if dt < -SECONDS_PER_WEEK / 2 else 0))
         self.ephemeris = ints_to_eph(ints, self.prn, eph_week)
+        self.ephemeris_tx_tow = float(tx_tow)     # start of its subframe 1 (the RINEX transmission time)
 
 
 def _parse_sf123(s1, s2, s3):

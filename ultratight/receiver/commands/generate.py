@@ -21,6 +21,8 @@ def add_arguments(p):
     p.add_argument("--if", dest="if_hz", type=float, metavar="HZ", help="intermediate frequency, Hz (0: complex baseband)")
     p.add_argument("--format", metavar="FMT", help="sample format: i8 i16 f32 ci8 ci16 cf32 i2packed ci2packed")
     p.add_argument("--cn0", type=float, metavar="DBHZ", help="C/N0 of every satellite, dB-Hz")
+    p.add_argument("--sigmf", action="store_true",
+                   help="also write SigMF metadata (<stem>.sigmf-meta naming the IF file as its dataset)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
 
@@ -105,6 +107,11 @@ def run(args):
                               f"{', '.join(FORMATS)}")
         overrides.update(format_overrides(args.format))
     cfg = load_scenario(args.scenario, overrides)
+    if getattr(args, "sigmf", False):
+        from ultratight.signals.sigmf_io import FORMAT_TO_DATATYPE
+        if cfg["frontend"]["format"] not in FORMAT_TO_DATATYPE:
+            raise ConfigError(f"--sigmf: SigMF has no datatype for the {cfg['frontend']['format']!r} format "
+                              f"(use one of {', '.join(FORMAT_TO_DATATYPE)})")
     out_dir, stem = _out_location(args.out, cfg["name"], list(FORMATS))
 
     from ultratight.signals.generator import generate
@@ -116,6 +123,13 @@ def run(args):
         _remove_empty_dirs(created)     # only directories this run created, and only when empty
         raise
     summ = res["summary"]
+    if getattr(args, "sigmf", False):
+        from ultratight.signals.sigmf_io import write_sigmf_meta
+        fe = cfg.get("frontend", {})
+        res["sigmf"] = write_sigmf_meta(res["if"], summ["format"], summ["fs_hz"], summ["if_hz"],
+                                        inversion=bool(fe.get("inversion", False)),
+                                        start_week=cfg["time"]["week"], start_tow_s=cfg["time"]["tow_s"],
+                                        description=f"ultratight generate {cfg['name']} (seed {summ['seed']})")
     files = {k: str(v) for k, v in res.items() if k != "summary"}
     if args.json:
         print(json.dumps({"files": files, **summ}, indent=1))

@@ -54,16 +54,26 @@ def add_arguments(p):
     p.add_argument("--method", choices=_EngineMethods(), default=None, metavar="METHOD",
                    help="ultra-tight method (--mode ultratight): %(choices)s (default: the engine's DEFAULT_METHOD, "
                         "dlb-rackf)")
-    p.add_argument("--meta", metavar="SIDECAR", help="JSON sidecar or ION GNSS SDR metadata XML "
-                                                      "(default: IFFILE.json when present)")
+    p.add_argument("--meta", metavar="SIDECAR", help="JSON sidecar, ION GNSS SDR metadata XML or SigMF .sigmf-meta "
+                                                      "(default: IFFILE.json when present; an IFFILE ending in "
+                                                      ".sigmf-meta/.sigmf-data is read as SigMF)")
     p.add_argument("--fs", type=float, metavar="HZ", help="sampling rate (Hz)")
     p.add_argument("--if", dest="if_hz", type=float, metavar="HZ", help="intermediate frequency (Hz), 0 = baseband")
     p.add_argument("--format", dest="fmt", metavar="FMT",
-                   help="sample format: i8, i16, f32, ci8, ci16, cf32, i2packed, ci2packed")
+                   help="sample format: i8, i16, f32, ci8, ci16, cf32, i2packed, ci2packed, i4packed, ci4packed")
+    p.add_argument("--packing", choices=("msb-first", "lsb-first"),
+                   help="packed formats: the first sample in the high or the low bits of a word (default msb-first)")
+    p.add_argument("--encoding", choices=("sign-magnitude", "twos-complement", "offset-binary", "sign"),
+                   help="packed formats: sample encoding (default sign-magnitude)")
+    p.add_argument("--word-size", type=int, choices=(1, 2, 4, 8), metavar="BYTES",
+                   help="packed formats: word size in bytes, 1, 2, 4 or 8 (default 1)")
+    p.add_argument("--endian", choices=("little", "big"), help="packed formats: byte order of a word (default little)")
     p.add_argument("--iq-conj", action="store_true", help="read complex samples as I - jQ (inverted spectrum)")
     p.add_argument("--ephemeris", metavar="RINEX", help="RINEX navigation file (default: decode from the signal)")
     p.add_argument("--prn", metavar="LIST", help="PRNs to search, e.g. 1,3,7-12 (default: all 32)")
-    p.add_argument("--channels", type=int, default=8, metavar="N", help="tracking channels (default 8)")
+    p.add_argument("--channels", type=int, default=None, metavar="N",
+                   help="tracking channels (default: all in view - every satellite acquired is tracked and the "
+                        "others are searched again every 15 s; with N, the N strongest, no periodic search)")
     p.add_argument("--duration", type=float, metavar="S", help="process only the first S seconds")
     p.add_argument("--start", type=float, default=0.0, metavar="S", help="skip the first S seconds")
     p.add_argument("--obs-rate", type=float, default=10.0, metavar="HZ",
@@ -81,8 +91,16 @@ def add_arguments(p):
     p.add_argument("--doppler-range", type=float, default=10e3, metavar="HZ",
                    help="acquisition Doppler search half-width (default 10 kHz)")
     p.add_argument("--mask", type=float, default=5.0, metavar="DEG", help="elevation mask (default 5 deg)")
+    p.add_argument("--iono", choices=("klobuchar", "off"), default="klobuchar",
+                   help="ionospheric correction: broadcast Klobuchar model (default; applied once alpha/beta "
+                        "are known from subframe 4 page 18 or the --ephemeris RINEX header) or off")
+    p.add_argument("--tropo", choices=("saastamoinen", "off"), default="saastamoinen",
+                   help="tropospheric correction: Saastamoinen with a standard atmosphere (default) or off")
     p.add_argument("--out", metavar="OUT.h5", help="HDF5 output (schema in docs/process.md)")
     p.add_argument("--csv", metavar="OUT.csv", help="also write the fixes as CSV")
+    p.add_argument("--rinex-obs", metavar="OUT.obs", help="also write RINEX 3.04 observations (C1C L1C D1C S1C)")
+    p.add_argument("--rinex-nav", metavar="OUT.nav", help="also write the ephemerides used as RINEX 3.04 navigation")
+    p.add_argument("--nmea", metavar="OUT.nmea", help="also write NMEA 0183 GGA/RMC/GSA/GSV per fix")
     p.add_argument("--kml", metavar="OUT.kml", help="also write the track as KML")
     p.add_argument("--json", action="store_true", help="print one JSON summary object on stdout")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -129,7 +147,9 @@ def run(args):
         raise ConfigError(f"--fs must be a positive sampling rate in Hz, got {args.fs}")
     if args.if_hz is not None and args.fs is not None and abs(args.if_hz) >= args.fs:
         raise ConfigError(f"--if {args.if_hz} Hz must be smaller in magnitude than --fs {args.fs} Hz")
-    source = open_if(args.iffile, meta=args.meta, fs_hz=args.fs, if_hz=args.if_hz, fmt=args.fmt,
+    packing = {k: v for k, v in (("order", args.packing), ("encoding", args.encoding),
+                                 ("word_bytes", args.word_size), ("endian", args.endian)) if v is not None}
+    source = open_if(args.iffile, meta=args.meta, fs_hz=args.fs, if_hz=args.if_hz, fmt=args.fmt, packing=packing,
                      iq_conj=args.iq_conj)
     if source.n_samples == 0:
         from ultratight.errors import InputFileError
@@ -143,7 +163,7 @@ def run(args):
                         duration_s=args.duration, start_s=args.start, obs_rate_hz=args.obs_rate,
                         mask_deg=args.mask, acq_min_cn0_dbhz=args.acq_min_cn0,
                         acq_coherent_ms=args.acq_coherent, acq_noncoherent=args.acq_noncoherent,
-                        doppler_range_hz=args.doppler_range, tracking=tcfg)
+                        doppler_range_hz=args.doppler_range, tracking=tcfg, iono=args.iono, tropo=args.tropo)
     eph = None
     if args.ephemeris:
         from ultratight.signals.rinex import read_rinex_nav
@@ -152,7 +172,8 @@ def run(args):
     run_config = {k: v for k, v in vars(args).items() if not k.startswith("_")}
     try:
         res = process(source, cfg, ephemerides=eph, out_path=args.out, csv_path=args.csv, kml_path=args.kml,
-                      progress=progress, run_config=run_config)
+                      progress=progress, run_config=run_config, rinex_obs_path=args.rinex_obs,
+                      rinex_nav_path=args.rinex_nav, nmea_path=args.nmea)
     except NoSignalError as exc:
         if args.json:
             print(json.dumps({"acquired": [], "tracked": [], "fixes": 0, "first_fix_s": None,
@@ -184,7 +205,9 @@ def _run_ultratight(args):
         raise ConfigError("--mode ultratight needs --imu IMU.h5")
     ignored = [flag for flag, on in (("--fs", args.fs is not None), ("--if", args.if_hz is not None),
                                      ("--format", args.fmt is not None), ("--iq-conj", args.iq_conj),
-                                     ("--start", args.start != 0.0), ("--csv", args.csv), ("--kml", args.kml))
+                                     ("--start", args.start != 0.0), ("--csv", args.csv), ("--kml", args.kml),
+                                     ("--rinex-obs", args.rinex_obs), ("--rinex-nav", args.rinex_nav),
+                                     ("--nmea", args.nmea))
                if on]
     if ignored:
         raise ConfigError(f"{', '.join(ignored)} not supported with --mode ultratight (the IF parameters come "
@@ -234,6 +257,8 @@ def _print_human(s):
                                    for a in s["acquired"]))
     print(f"tracked: {s['tracked']}")
     for c in s["channels"]:
+        if not c.get("started", True):
+            continue
         print(f"  PRN {c['prn']:2d}: locked {100 * c['locked_fraction']:.0f}%, C/N0 {c['cn0_dbhz']} dB-Hz, "
               f"TOW at {c['tow_s']} s, ephemeris at {c['ephemeris_s']} s, losses {c['losses']}")
     print(f"fixes: {s['fixes']}, first fix at {s['first_fix_s']} s")
