@@ -239,9 +239,15 @@ class ChiSquareNewton:
     ``screen(r, S)`` returns (r_used, faulty, stat): stat_i = r_i²/S_ii (eq. 15); dimensions with
     stat_i > T (eq. 16, T = χ²_α(1)) get r_i replaced by newton_extrapolate(past values)/δ
     (eqs. 21, 27).  The history keeps the values actually used.
+
+    ``guard``: a replacement that itself fails the test (ext_i²/S_ii > T) is set to 0 (the
+    measurement is replaced by its prediction).  Not in the paper; without it a run of consecutive
+    faults feeds replaced values back into the extrapolation, whose recursion
+    f_k = (4f₋₁ − 6f₋₂ + 4f₋₃ − f₋₄)/δ has roots of modulus 1.07 > 1 at δ = 4 (it grows without
+    bound; seen in the paper-robust-flight sweep at small gross-error factors).
     """
 
-    def __init__(self, m: int, alpha: float = 0.01, delta: float = 4.0, order: int = 4):
+    def __init__(self, m: int, alpha: float = 0.01, delta: float = 4.0, order: int = 4, guard: bool = False):
         if m < 1:
             raise FilterError(f"measurement dimension must be ≥ 1, got {m}")
         if not delta > 0:
@@ -255,6 +261,7 @@ class ChiSquareNewton:
         self._hist = np.zeros((self.order, m))  # newest last
         self._count = 0
         self.n_faults = 0
+        self.guard = bool(guard)
 
     def screen(self, r, S):
         r = as_vector("innovation", r, self.m)
@@ -267,6 +274,8 @@ class ChiSquareNewton:
                 ext = (self.coeffs @ self._hist[::-1]) / self.delta  # eqs. 21, 27
             else:
                 ext = np.zeros(self.m)
+            if self.guard:
+                ext = np.where(ext * ext / np.diag(S) > self.threshold, 0.0, ext)
             used[faulty] = ext[faulty]
             self.n_faults += int(faulty.sum())
         self._hist = np.roll(self._hist, -1, axis=0)
