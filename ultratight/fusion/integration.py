@@ -151,9 +151,10 @@ class IAKFCore(_Core):
 class Chi2NewtonCore(_Core):
     """Seed 003: per-dimension χ² (eq. 15) + Newton replacement (eqs. 21–28), both readings."""
 
-    def __init__(self, P0, m, alpha=0.01, delta=4.0, order=4, literal=False, guard=True):
+    def __init__(self, P0, m, alpha=0.01, delta=4.0, order=4, literal=False, guard=True, release_after=None):
         super().__init__(P0)
-        self.det = ChiSquareNewton(m, alpha=alpha, delta=delta, order=order, guard=guard)
+        self.det = ChiSquareNewton(m, alpha=alpha, delta=delta, order=order, guard=guard,
+                                   release_after=None if literal else release_after)
         self.literal = literal
         self._hist = []          # literal reading: the noise values actually used, newest last
 
@@ -192,7 +193,7 @@ class Chi2NewtonCore(_Core):
 
 
 def make_core(name, P0, Q0, R0, *, window=20, m_sat=4, alpha=0.01, delta=4.0, akf0_adaptive=False,
-              iakf_r_source="correction", newton_guard=True):
+              iakf_r_source="correction", newton_guard=True, release_after=None):
     """A core by name (see the module docstring); Q0/R0 are the *given* noise (true or wrong)."""
     if name == "kf":
         return KFCore(P0)
@@ -206,7 +207,7 @@ def make_core(name, P0, Q0, R0, *, window=20, m_sat=4, alpha=0.01, delta=4.0, ak
         return IAKFCore(P0, Q0, R0, m_sat, window=window, r_source=iakf_r_source)
     if name in ("chi2-newton", "chi2-newton-lit"):
         return Chi2NewtonCore(P0, R0.shape[0], alpha=alpha, delta=delta, literal=name.endswith("-lit"),
-                              guard=newton_guard)
+                              guard=newton_guard, release_after=release_after)
     raise ConfigError(f"unknown integration core {name!r}; expected one of {', '.join(CORES)}")
 
 

@@ -245,9 +245,14 @@ class ChiSquareNewton:
     faults feeds replaced values back into the extrapolation, whose recursion
     f_k = (4f₋₁ − 6f₋₂ + 4f₋₃ − f₋₄)/δ has roots of modulus 1.07 > 1 at δ = 4 (it grows without
     bound; seen in the paper-robust-flight sweep at small gross-error factors).
+    ``release_after``: a dimension flagged in this many consecutive epochs is used unchanged
+    (counted in ``n_released``): the innovation is the filter's proxy of V, and a persistent
+    "fault" is the filter's own error, which replacing would hide from it for good (divergence,
+    the paper's Fig. 1).  Not in the paper; None (default) = never.
     """
 
-    def __init__(self, m: int, alpha: float = 0.01, delta: float = 4.0, order: int = 4, guard: bool = False):
+    def __init__(self, m: int, alpha: float = 0.01, delta: float = 4.0, order: int = 4, guard: bool = False,
+                 release_after: int | None = None):
         if m < 1:
             raise FilterError(f"measurement dimension must be ≥ 1, got {m}")
         if not delta > 0:
@@ -262,12 +267,20 @@ class ChiSquareNewton:
         self._count = 0
         self.n_faults = 0
         self.guard = bool(guard)
+        self.release_after = None if release_after is None else int(release_after)
+        self._run = np.zeros(m, dtype=int)      # consecutive flagged epochs per dimension
+        self.n_released = 0
 
     def screen(self, r, S):
         r = as_vector("innovation", r, self.m)
         S = as_matrix("S", S, (self.m, self.m))
         stat = r * r / np.diag(S)  # eq. 15
         faulty = stat > self.threshold  # eq. 16
+        self._run = np.where(faulty, self._run + 1, 0)
+        if self.release_after is not None:
+            released = faulty & (self._run > self.release_after)
+            self.n_released += int(released.sum())
+            faulty = faulty & ~released
         used = r.copy()
         if np.any(faulty):
             if self._count >= self.order:

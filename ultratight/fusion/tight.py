@@ -200,11 +200,13 @@ class TightFilter:
         # rows not usable: zero H and residual (the fixed-size IAKF keeps them, without effect)
         H = np.where(use[:, None], H, 0.0)
         z = np.where(use, z, 0.0)
+        los_l = np.asarray(los_l, dtype=float)
         if gdop is None:
-            lv = np.asarray(los_l)[use[:m]]
+            lv = los_l[use[:m]]
             gdop = gdop_fn(lv) if lv.shape[0] >= 4 else 10.0
         self._iakf.x, self._iakf.P = self.x, self.P
-        res = self._iakf.update(z, H, gdop)
+        # the line-of-sight matrix (eqs. 17–19, geometry of the least-squares R estimate) and GDOP (eq. 20)
+        res = self._iakf.update(z, H, los_unit=los_l, gdop_pr=gdop)
         self.x, self.P = self._iakf.x.copy(), self._iakf.P.copy()
         self.last_nis = res.nis
         self.last_used = int(use.sum())

@@ -77,7 +77,7 @@ SCHEMA = {
     "gross": {"factor": 20.0, "period_s": 10.0, "mode": "scale", "components": [0, 1, 2, 3, 4, 5],
               "sweep": [5.0, 10.0, 20.0, 50.0]},
     "initial_errors": {"att_deg": [0.05, 0.05, 0.2], "vel_mps": 0.3, "pos_m": 10.0},
-    "filter": {"alpha": 0.01, "delta": 4.0, "newton_guard": True},
+    "filter": {"alpha": 0.01, "delta": 4.0, "newton_guard": True, "release_after": 3},
 }
 
 
@@ -110,6 +110,7 @@ def load(path, raw, overrides):
     GrossErrors(float(g["factor"]), float(g["period_s"]), tuple(comps), g["mode"])     # validates mode
     C.num(cfg["filter"], "alpha", "filter", lo=0.0, lo_open=True, hi=0.5)
     C.num(cfg["filter"], "delta", "filter", lo=0.0, lo_open=True)
+    C.num(cfg["filter"], "release_after", "filter", lo=0, integer=True)
     if not isinstance(cfg["filter"]["newton_guard"], bool):
         raise ConfigError(f"filter.newton_guard must be true or false, got {cfg['filter']['newton_guard']!r}")
     return cfg
@@ -197,7 +198,7 @@ def run_method(cfg, method, inp, fx):
     q, R, P0 = noise_model(cfg, inp.truth_llh[0])
     f = cfg["filter"]
     core = I.make_core(method, P0, None, R, alpha=float(f["alpha"]), delta=float(f["delta"]),
-                       newton_guard=bool(f["newton_guard"]))
+                       newton_guard=bool(f["newton_guard"]), release_after=int(f["release_after"]) or None)
     meas = I.loose_measurement_fn(fx[0], fx[1], fx[2], R)
     return I.run_integration("loose", core, inp, meas, q)
 
