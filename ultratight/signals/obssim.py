@@ -155,25 +155,23 @@ def simulate_observables(ephs, week, tow0_s, t, pos_e, vel_e, clk_bias_m, clk_dr
     eph_by = ephs if isinstance(ephs, dict) else {e.prn: e for e in ephs}
     k = prns.size
     shape = (n, k)
-    pr = np.empty(shape)
-    prr = np.empty(shape)
-    elev = np.empty(shape)
-    sclk = np.empty(shape)
-    sdrift = np.empty(shape)
-    spos = np.empty(shape + (3,))
-    svel = np.empty(shape + (3,))
-    los = np.empty(shape + (3,))
+    # filled satellite by satellite in (k, n) layout (contiguous writes), returned as (n, k) views
+    pr, prr, elev, sclk, sdrift = (np.empty((k, n)) for _ in range(5))
+    spos, svel, los = (np.empty((k, n, 3)) for _ in range(3))
     tow = tow0_s + t
     for j, prn in enumerate(prns):
         o = light_time(eph_by[int(prn)], pos_e, vel_e, week, tow, clk_bias_m, clk_drift_mps)
-        pr[:, j] = o["pseudorange_m"]
-        prr[:, j] = o["range_rate_mps"]
-        elev[:, j] = o["elev_rad"]
-        sclk[:, j] = C * o["sat_clk_bias_s"]
-        sdrift[:, j] = C * o["sat_clk_drift"]
-        spos[:, j] = o["sat_pos_e"]
-        svel[:, j] = o["sat_vel_e"]
-        los[:, j] = o["los_e"]
+        pr[j] = o["pseudorange_m"]
+        prr[j] = o["range_rate_mps"]
+        elev[j] = o["elev_rad"]
+        sclk[j] = o["sat_clk_bias_s"]
+        sdrift[j] = o["sat_clk_drift"]
+        spos[j] = o["sat_pos_e"]
+        svel[j] = o["sat_vel_e"]
+        los[j] = o["los_e"]
+    pr, prr, elev = pr.T, prr.T, elev.T
+    sclk, sdrift = C * sclk.T, C * sdrift.T
+    spos, svel, los = (a.transpose(1, 0, 2) for a in (spos, svel, los))
     visible = elev >= math.radians(mask_deg)
     if mask_deg < 0.0:       # below the local horizon: the line of sight must clear the Earth
         for i, j in zip(*np.nonzero(visible)):

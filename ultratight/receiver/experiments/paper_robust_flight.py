@@ -269,8 +269,10 @@ def summarize(cfg, runs):
         fa = a.get("false_alarm_rate", np.nan)
         L.append(f"{m:16s} " + "".join(f"{v:8.2f}" for v in a["pos_rms_m"]) + "".join(f"{v:8.3f}" for v in a["vel_rms_mps"])
                  + f"{a['nees_in_band_fraction']:8.3f}{fa:9.4f}{a['runtime_s']:8.2f}")
-        L.append(f"{'  seeds':16s} " + "".join(f"{lo:4.1f}-{hi:<3.1f}"[:8].rjust(8) for lo, hi in
-                                                zip(a["pos_rms_m_seed_min"], a["pos_rms_m_seed_max"])))
+        L.append(f"{'  seed min':16s} " + "".join(f"{v:8.2f}" for v in a["pos_rms_m_seed_min"])
+                 + "".join(f"{v:8.3f}" for v in a["vel_rms_mps_seed_min"]))
+        L.append(f"{'  seed max':16s} " + "".join(f"{v:8.2f}" for v in a["pos_rms_m_seed_max"])
+                 + "".join(f"{v:8.3f}" for v in a["vel_rms_mps_seed_max"]))
     red = {}
     for m in ("chi2-newton", "chi2-newton-lit"):
         if m in agg and "kf" in agg:

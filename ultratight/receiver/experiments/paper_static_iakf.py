@@ -19,7 +19,10 @@ epoch for all cores so that the adaptive windows have a fixed dimension m = 8):
   fixed by default (``[filter] akf0_adaptive = false``, the SPEC's alternative reading),
   eq. 15 still adapting with ``true``;
 * ``akf`` — AKF (eqs. 6–15, window N) started from the wrong settings;
-* ``iakf`` — IAKF (eqs. 16–26) started from the wrong settings;
+* ``iakf`` — IAKF (eqs. 16–26) started from the wrong settings; the numerator of eq. 24 from the
+  least-squares reading of eqs. 21–22 (``[filter] iakf_r_source = "lsq"``, default) or from
+  P_ΔX̂ = K P̂_ε Kᵀ (eq. 13, ``"correction"``, which collapses R̂ as K shrinks: measured 2–3x worse
+  velocity RMS on this scenario, docs/integration-experiments.md);
 * ``kf`` — fixed-gain KF with the wrong settings (no adaptation: what the settings alone do);
 * ``ins-only`` — free inertial.
 
@@ -64,7 +67,7 @@ SCHEMA = {
     "initial_errors": {"att_deg": 0.6, "vel_mps": 0.2, "pos_m": 15.0},
     "wrong": {"gyro_dph": 0.1, "accel_g": 1e-2, "clock_bias_m": 35.0, "clock_drift_mps": 0.3,
               "sigma_pr_m": 50.0, "sigma_prr_mps": 0.6},
-    "filter": {"window": 20, "akf0_adaptive": False, "iakf_r_source": "correction", "best4": True},
+    "filter": {"window": 20, "akf0_adaptive": False, "iakf_r_source": "lsq", "best4": True},
 }
 
 
@@ -214,7 +217,8 @@ def summarize(cfg, runs):
                      + f"{a['nees_in_band_fraction']:13.3f}{a['runtime_s']:11.2f}")
         lo = np.concatenate([a["vel_rms_mps_seed_min"], a["pos_rms_m_seed_min"]])
         hi = np.concatenate([a["vel_rms_mps_seed_max"], a["pos_rms_m_seed_max"]])
-        lines.append(f"{'':10s} {'seeds':6s}" + "".join(f"{lo_:4.3g}-{hi_:<4.3g}"[:9].rjust(9) for lo_, hi_ in zip(lo, hi)))
+        lines.append(f"{'':10s} {'min':6s}" + "".join(f"{v:9.4f}" for v in lo))
+        lines.append(f"{'':10s} {'max':6s}" + "".join(f"{v:9.4f}" for v in hi))
         if m in PAPER_TABLE1:
             p = PAPER_TABLE1[m]
             lines.append(f"{'':10s} {'paper':6s}" + "".join(f"{v:9.4f}" for v in p["vel_rms_mps"] + p["pos_rms_m"]))
