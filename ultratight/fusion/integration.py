@@ -129,15 +129,15 @@ class IAKFCore(_Core):
     """Seed 001 IAKF (eqs. 16–26): R from GDOP (eqs. 24–25), Q windowed (eq. 26)."""
     adaptive = True
 
-    def __init__(self, P0, Q0, R0, m_sat, window=20, r_source="correction"):
+    def __init__(self, P0, Q0, R0, m_sat, window=20, r_source="correction", adapt_q=True):
         super().__init__(P0)
         self.f = IAKF(self.x, self.P, Q0, R0, pr_rows=np.arange(m_sat), prr_rows=np.arange(m_sat, 2 * m_sat),
                       pos_clk_idx=[6, 7, 8, CLK], vel_drift_idx=[3, 4, 5, DRIFT], window=window,
-                      r_source=r_source)
+                      r_source=r_source, adapt_q=adapt_q)
 
     def predict(self, Phi, Q):
-        if len(self.f.qterms) < self.f.N:
-            self.f.Q = Q        # the given Q until eq. 26 has a full window
+        if not self.f.adapt_q or len(self.f.qterms) < self.f.N:
+            self.f.Q = Q        # the given Q until eq. 26 has a full window (always, without Q adaptation)
         self.f.x, self.f.P = self.x, self.P
         self.x, self.P = self.f.predict(Phi)
 
@@ -193,7 +193,7 @@ class Chi2NewtonCore(_Core):
 
 
 def make_core(name, P0, Q0, R0, *, window=20, m_sat=4, alpha=0.01, delta=4.0, akf0_adaptive=False,
-              iakf_r_source="correction", newton_guard=True, release_after=None):
+              iakf_r_source="correction", iakf_adapt_q=True, newton_guard=True, release_after=None):
     """A core by name (see the module docstring); Q0/R0 are the *given* noise (true or wrong)."""
     if name == "kf":
         return KFCore(P0)
@@ -204,7 +204,7 @@ def make_core(name, P0, Q0, R0, *, window=20, m_sat=4, alpha=0.01, delta=4.0, ak
     if name == "akf0":
         return AKFCore(P0, Q0, R0, window=window, adapt=bool(akf0_adaptive))
     if name == "iakf":
-        return IAKFCore(P0, Q0, R0, m_sat, window=window, r_source=iakf_r_source)
+        return IAKFCore(P0, Q0, R0, m_sat, window=window, r_source=iakf_r_source, adapt_q=iakf_adapt_q)
     if name in ("chi2-newton", "chi2-newton-lit"):
         return Chi2NewtonCore(P0, R0.shape[0], alpha=alpha, delta=delta, literal=name.endswith("-lit"),
                               guard=newton_guard, release_after=release_after)
