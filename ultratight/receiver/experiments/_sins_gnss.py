@@ -144,7 +144,7 @@ def json_methods(agg):
         if "false_alarm_rate" in a:
             d["false_alarm_rate"] = float(a["false_alarm_rate"])
         d["seed_spread"] = {k: [np.asarray(a[k + "_seed_min"]).tolist(), np.asarray(a[k + "_seed_max"]).tolist()]
-                            for k in ("vel_rms_mps", "pos_rms_m")}
+                            for k in ("vel_rms_mps", "pos_rms_m", "nees_in_band_fraction")}
         out[m] = d
     return out
 

@@ -293,19 +293,30 @@ def summarize(cfg, runs):
             a = cagg[m]
             clean[m] = {"pos_rms_m": a["pos_rms_m"].tolist(), "vel_rms_mps": a["vel_rms_mps"].tolist(),
                         "nees_in_band_fraction": float(a["nees_in_band_fraction"]),
+                        "nees_in_band_fraction_seed_range": [float(a["nees_in_band_fraction_seed_min"]),
+                                                             float(a["nees_in_band_fraction_seed_max"])],
+                        "rms_seed_range": {"pos_rms_m": [a["pos_rms_m_seed_min"].tolist(), a["pos_rms_m_seed_max"].tolist()],
+                                           "vel_rms_mps": [a["vel_rms_mps_seed_min"].tolist(),
+                                                           a["vel_rms_mps_seed_max"].tolist()]},
                         "false_alarm_rate": float(a.get("false_alarm_rate", np.nan)),
                         "false_alarm_rate_seed_range": [float(a.get("false_alarm_rate_seed_min", np.nan)),
                                                         float(a.get("false_alarm_rate_seed_max", np.nan))]}
             L.append(f"  {m:16s} pos rms {np.round(a['pos_rms_m'], 2)} vel rms {np.round(a['vel_rms_mps'], 3)} "
-                     f"NEES95 {a['nees_in_band_fraction']:.3f} FA/dim {a.get('false_alarm_rate', np.nan):.4f} "
-                     f"(alpha {cfg['filter']['alpha']})")
+                     f"NEES95 {a['nees_in_band_fraction']:.3f} (seeds {a['nees_in_band_fraction_seed_min']:.3f}.."
+                     f"{a['nees_in_band_fraction_seed_max']:.3f}) FA/dim {a.get('false_alarm_rate', np.nan):.4f} "
+                     f"(seeds {a.get('false_alarm_rate_seed_min', np.nan):.4f}..{a.get('false_alarm_rate_seed_max', np.nan):.4f}; "
+                     f"alpha {cfg['filter']['alpha']})")
         if "kf" in cagg:
+            per_seed = {m: [np.linalg.norm(r["clean"][m]["pos_rms_m"]) / np.linalg.norm(r["clean"]["kf"]["pos_rms_m"])
+                            for r in runs] for m in cms}
             for m in cms:
                 if m != "kf":
                     clean[m]["rms_vs_kf"] = {
                         "pos": float(np.linalg.norm(cagg[m]["pos_rms_m"]) / np.linalg.norm(cagg["kf"]["pos_rms_m"])),
                         "vel": float(np.linalg.norm(cagg[m]["vel_rms_mps"]) / np.linalg.norm(cagg["kf"]["vel_rms_mps"]))}
-                    L.append(f"  {m} / kf on clean data: position RMS x{clean[m]['rms_vs_kf']['pos']:.3f}, "
+                    clean[m]["rms_vs_kf"]["pos_seed_range"] = [float(min(per_seed[m])), float(max(per_seed[m]))]
+                    L.append(f"  {m} / kf on clean data: position RMS x{clean[m]['rms_vs_kf']['pos']:.3f} (seeds "
+                             f"x{min(per_seed[m]):.3f}..x{max(per_seed[m]):.3f}), "
                              f"velocity RMS x{clean[m]['rms_vs_kf']['vel']:.3f}")
     sweep = {}
     keys = sorted({k.split("/")[0] for r in runs for k in r["sweep"]}, key=float)
