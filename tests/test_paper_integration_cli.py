@@ -89,3 +89,13 @@ def test_config_errors_are_clear(tmp_path, capsys):
     assert len(err) == 1 and "filter.alpha" in err[0]
     assert main(["scenario", "paper-robust-flight", "--methods", "iakf", "--out", str(tmp_path / "o3")]) == 2
     assert "unknown method" in capsys.readouterr().err
+
+
+def test_out_onto_a_file_and_huge_duration_are_refused_before_running(tmp_path, capsys):
+    f = tmp_path / "taken"
+    f.write_text("keep")
+    assert main(["scenario", "paper-robust-flight", "--quiet", "--out", str(f)]) == 2
+    assert "exists and is not a directory" in capsys.readouterr().err
+    assert f.read_text() == "keep"
+    assert main(["scenario", "paper-robust-flight", "--duration", "1e9", "--quiet", "--out", str(tmp_path / "o")]) == 2
+    assert "duration_s must be <= 86400" in capsys.readouterr().err

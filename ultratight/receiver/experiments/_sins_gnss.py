@@ -31,17 +31,21 @@ G0 = 9.80665
 DPH = math.pi / 180.0 / 3600.0
 
 
+MAX_DURATION_S = 86400.0     # one day of 100 Hz IMU data is ~0.5 GB of increments
+
+
 def num(table, key, where, lo=None, hi=None, lo_open=False, integer=False):
     """A number of a TOML table (ConfigError naming ``where.key`` when absent or out of range)."""
     v = table.get(key)
+    name = f"{where}.{key}" if where else key
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise ConfigError(f"{where}.{key} must be a finite number, got {v!r}")
+        raise ConfigError(f"{name} must be a finite number, got {v!r}")
     if integer and int(v) != v:
-        raise ConfigError(f"{where}.{key} must be an integer, got {v!r}")
+        raise ConfigError(f"{name} must be an integer, got {v!r}")
     if lo is not None and (v <= lo if lo_open else v < lo):
-        raise ConfigError(f"{where}.{key} must be {'>' if lo_open else '>='} {lo}, got {v!r}")
+        raise ConfigError(f"{name} must be {'>' if lo_open else '>='} {lo}, got {v!r}")
     if hi is not None and v > hi:
-        raise ConfigError(f"{where}.{key} must be <= {hi}, got {v!r}")
+        raise ConfigError(f"{name} must be <= {hi}, got {v!r}")
     return float(v)
 
 

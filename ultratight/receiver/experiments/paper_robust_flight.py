@@ -85,7 +85,7 @@ def load(path, raw, overrides):
     cfg = C.tables(raw, SCHEMA, overrides)
     cfg["name"] = raw.get("name", getattr(path, "stem", "paper-robust-flight"))
     cfg["source_file"] = str(path)
-    C.num(cfg, "duration_s", "top", lo=10.0)
+    C.num(cfg, "duration_s", "", lo=10.0, hi=C.MAX_DURATION_S)
     C.num(cfg["receiver"], "lat_deg", "receiver", lo=-85.0, hi=85.0)
     C.num(cfg["receiver"], "h_m", "receiver", lo=-1000.0, hi=1e5)
     C.num(cfg["gnss"], "rate_hz", "gnss", lo=0.0, lo_open=True, hi=100.0)

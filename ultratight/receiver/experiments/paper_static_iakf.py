@@ -76,7 +76,7 @@ def load(path, raw, overrides):
     cfg = C.tables(raw, SCHEMA, overrides)
     cfg["name"] = raw.get("name", path.stem if hasattr(path, "stem") else "paper-static-iakf")
     cfg["source_file"] = str(path)
-    C.num(cfg, "duration_s", "top", lo=10.0)
+    C.num(cfg, "duration_s", "", lo=10.0, hi=C.MAX_DURATION_S)
     for k in ("lat_deg",):
         C.num(cfg["receiver"], k, "receiver", lo=-89.0, hi=89.0)
     C.num(cfg["receiver"], "lon_deg", "receiver", lo=-180.0, hi=360.0)
@@ -93,7 +93,7 @@ def load(path, raw, overrides):
         C.num(cfg["initial_errors"], k, "initial_errors", lo=0.0, lo_open=True)
     for k in cfg["wrong"]:
         C.num(cfg["wrong"], k, "wrong", lo=0.0, lo_open=True)
-    C.num(cfg["filter"], "window", "filter", lo=2, integer=True)
+    C.num(cfg["filter"], "window", "filter", lo=2, hi=10000, integer=True)
     C.num(cfg["satellites"], "mask_deg", "satellites", lo=-5.0, hi=60.0)
     if cfg["satellites"]["source"] not in ("rinex", "nominal"):
         raise ConfigError(f"satellites.source must be 'rinex' or 'nominal', got {cfg['satellites']['source']!r}")
