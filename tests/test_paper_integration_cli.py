@@ -99,3 +99,13 @@ def test_out_onto_a_file_and_huge_duration_are_refused_before_running(tmp_path, 
     assert f.read_text() == "keep"
     assert main(["scenario", "paper-robust-flight", "--duration", "1e9", "--quiet", "--out", str(tmp_path / "o")]) == 2
     assert "duration_s must be <= 86400" in capsys.readouterr().err
+
+
+def test_robust_flight_json_is_strict(tmp_path, capsys):
+    """--json on stdout: strict JSON (the kf has no false-alarm rate: null, not NaN)."""
+    assert main(["scenario", "paper-robust-flight", "--duration", "30", "--json", "--no-plots",
+                 "--methods", "kf,chi2-newton", "--out", str(tmp_path / "o")]) == 0
+    js = _strict(capsys.readouterr().out)
+    _check_methods(js, ["kf", "chi2-newton"])
+    assert js["clean"]["kf"]["false_alarm_rate"] is None
+    assert 0.0 <= js["clean"]["chi2-newton"]["false_alarm_rate"] < 1.0

@@ -342,7 +342,7 @@ def summarize(cfg, runs):
           "ranges_min_max": {m: {"pos_neu_m": [agg[m]["pos_min_signed_m"].tolist(), agg[m]["pos_max_signed_m"].tolist()],
                                  "vel_enu_mps": [agg[m]["vel_min_signed_mps"].tolist(), agg[m]["vel_max_signed_mps"].tolist()]}
                              for m in methods}}
-    return {"text": "\n".join(L), "json": js}
+    return {"text": "\n".join(L), "json": C.json_clean(js)}
 
 
 def _figures(out, run):
