@@ -211,7 +211,7 @@ def make_core(name, P0, Q0, R0, *, window=20, m_sat=4, alpha=0.01, delta=4.0, ak
     raise ConfigError(f"unknown integration core {name!r}; expected one of {', '.join(CORES)}")
 
 
-# --------------------------------------------------------------------------- model helpers
+# --------------------------------------------------------------------------- model functions
 def pos_scale(lat, h):
     """T_pos (3,): metres (N, E, U) per (dlat, dlon, dh)."""
     rm, rn = radii(lat)

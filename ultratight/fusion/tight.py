@@ -236,7 +236,7 @@ def _kf_update(x, P, z, H, R):
 
 
 # ---------------------------------------------------------------------------------------------
-# time update from helper C's SINS error model, initial covariance, IMU noise
+# time update from the SINS error model (ultratight.ins.error_model), initial covariance, IMU noise
 # ---------------------------------------------------------------------------------------------
 def imu_errors_from_meta(imu):
     """:class:`ultratight.ins.imu.ImuErrors` from an IMU file's metadata (generator-written files
@@ -260,11 +260,11 @@ def imu_errors_from_meta(imu):
 
 
 def phi_q(ins, dt, imu_errors, clock_q_drift=1e-4, clock_q_bias=1e-4, bias_floor=(1e-16, 1e-14)):
-    """(Phi, Qd) of the 17-state model over dt at the current SINS state (helper C's F, G, Qc).
+    """(Phi, Qd) of the 17-state model over dt at the current SINS state (F, G, Qc of ultratight.ins.error_model).
 
-    Phi: second-order Taylor series of exp(F dt) (C's ``discretize_taylor``); Qd by the
+    Phi: second-order Taylor series of exp(F dt) (``error_model.discretize_taylor``); Qd by the
     trapezoidal rule ``(Phi G Qc G^T Phi^T + G Qc G^T) dt / 2``, positive semi-definite by
-    construction (C's Van Loan ``discretize`` is exact but costs a 34x34 matrix exponential,
+    construction (the Van Loan ``error_model.discretize`` is exact but costs a 34x34 matrix exponential,
     ~15 ms, per tight update).  ``ins`` has ``q_lb``, ``vel_l``, ``llh``, ``f_b``."""
     from ultratight.ins import error_model as em
     F = em.F_matrix(ins.q_lb, ins.vel_l, ins.llh, ins.f_b, n_states=em.N17)
