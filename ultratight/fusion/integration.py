@@ -129,7 +129,7 @@ class IAKFCore(_Core):
     """Seed 001 IAKF (eqs. 16–26): R from GDOP (eqs. 24–25), Q windowed (eq. 26)."""
     adaptive = True
 
-    def __init__(self, P0, Q0, R0, m_sat, window=20, r_source="correction", adapt_q=True):
+    def __init__(self, P0, Q0, R0, m_sat, window=20, r_source="lsq", adapt_q=True):
         super().__init__(P0)
         self.f = IAKF(self.x, self.P, Q0, R0, pr_rows=np.arange(m_sat), prr_rows=np.arange(m_sat, 2 * m_sat),
                       pos_clk_idx=[6, 7, 8, CLK], vel_drift_idx=[3, 4, 5, DRIFT], window=window,
@@ -193,7 +193,7 @@ class Chi2NewtonCore(_Core):
 
 
 def make_core(name, P0, Q0, R0, *, window=20, m_sat=4, alpha=0.01, delta=4.0, akf0_adaptive=False,
-              iakf_r_source="correction", iakf_adapt_q=True, newton_guard=True, release_after=None):
+              iakf_r_source="lsq", iakf_adapt_q=True, newton_guard=True, release_after=None):
     """A core by name (see the module docstring); Q0/R0 are the *given* noise (true or wrong)."""
     if name == "kf":
         return KFCore(P0)
