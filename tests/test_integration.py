@@ -142,6 +142,28 @@ def test_tight_akf0_consistent_and_akf_with_wrong_noise_worse(static):
     assert np.all(np.isfinite(iakf["err"])) and np.all(_rms(iakf, em.POS) < 15.0)
 
 
+def test_discrete_model_basis_spans_its_q(static):
+    """The eq. 3 noise basis of the discrete model: Q_d = Q_fixed + Σ q_i B_i at the model's own
+    PSDs (gyro 3, accelerometer 3, clock bias and drift), and the IAKF core with the model-structured
+    Q̂ keeps Q inside that span."""
+    cfg, (inp, obs) = static
+    q, _, _, _ = SI.noise_settings(cfg, True)
+    q[em.NOISE_CLK], q[em.NOISE_DRIFT] = 0.5, 0.2
+    x = inp.x0_est
+    Phi, Qd, B, Qf = I.discrete_model(x, np.array([0.0, 0.0, 9.8]), 1.0, q, em.N17, basis=True)
+    assert B.shape == (8, em.N17, em.N17)
+    w = np.concatenate([q[em.NOISE_GYRO], q[em.NOISE_ACCEL], [q[em.NOISE_CLK], q[em.NOISE_DRIFT]]])
+    Phi2, Qd2 = I.discrete_model(x, np.array([0.0, 0.0, 9.8]), 1.0, q, em.N17)
+    np.testing.assert_allclose(Phi, Phi2)
+    Qc = Qf + np.tensordot(w, B, axes=1)
+    np.testing.assert_allclose(Qc[:15, :15], Qd2[:15, :15], rtol=1e-9, atol=1e-9 * np.abs(Qd2[:15, :15]).max())
+    np.testing.assert_allclose(Qc[em.CLK:, em.CLK:], [[q[em.NOISE_CLK] + q[em.NOISE_DRIFT] / 3, q[em.NOISE_DRIFT] / 2],
+                                                      [q[em.NOISE_DRIFT] / 2, q[em.NOISE_DRIFT]]])
+    cfg2 = {**cfg, "filter": {**cfg["filter"], "iakf_q_structure": "model"}}
+    core_res = SI.run_method(cfg2, "iakf", inp, obs)
+    assert np.all(np.isfinite(core_res["err"])) and np.all(_rms(core_res, em.POS) < 15.0)
+
+
 def test_make_core_names():
     P0 = np.eye(15)
     for name in ("kf", "ins-only", "chi2-newton", "chi2-newton-lit"):

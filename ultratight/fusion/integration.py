@@ -129,11 +129,15 @@ class IAKFCore(_Core):
     """Seed 001 IAKF (eqs. 16–26): R from GDOP (eqs. 24–25), Q windowed (eq. 26)."""
     adaptive = True
 
-    def __init__(self, P0, Q0, R0, m_sat, window=20, r_source="lsq", adapt_q=True):
+    def __init__(self, P0, Q0, R0, m_sat, window=20, r_source="lsq", adapt_q=True, q_structure="full"):
         super().__init__(P0)
         self.f = IAKF(self.x, self.P, Q0, R0, pr_rows=np.arange(m_sat), prr_rows=np.arange(m_sat, 2 * m_sat),
                       pos_clk_idx=[6, 7, 8, CLK], vel_drift_idx=[3, 4, 5, DRIFT], window=window,
-                      r_source=r_source, adapt_q=adapt_q)
+                      r_source=r_source, adapt_q=adapt_q, q_structure=q_structure)
+        self.wants_q_basis = adapt_q and q_structure != "full"
+
+    def set_q_basis(self, B, Q_fixed):
+        self.f.q_basis, self.f.q_fixed = B, Q_fixed
 
     def predict(self, Phi, Q):
         if not self.f.adapt_q or len(self.f.qterms) < self.f.N:
@@ -193,7 +197,8 @@ class Chi2NewtonCore(_Core):
 
 
 def make_core(name, P0, Q0, R0, *, window=20, m_sat=4, alpha=0.01, delta=4.0, akf0_adaptive=False,
-              iakf_r_source="lsq", iakf_adapt_q=True, newton_guard=True, release_after=None):
+              iakf_r_source="lsq", iakf_adapt_q=True, iakf_q_structure="full", newton_guard=True,
+              release_after=None):
     """A core by name (see the module docstring); Q0/R0 are the *given* noise (true or wrong)."""
     if name == "kf":
         return KFCore(P0)
@@ -204,7 +209,8 @@ def make_core(name, P0, Q0, R0, *, window=20, m_sat=4, alpha=0.01, delta=4.0, ak
     if name == "akf0":
         return AKFCore(P0, Q0, R0, window=window, adapt=bool(akf0_adaptive))
     if name == "iakf":
-        return IAKFCore(P0, Q0, R0, m_sat, window=window, r_source=iakf_r_source, adapt_q=iakf_adapt_q)
+        return IAKFCore(P0, Q0, R0, m_sat, window=window, r_source=iakf_r_source, adapt_q=iakf_adapt_q,
+                        q_structure=iakf_q_structure)
     if name in ("chi2-newton", "chi2-newton-lit"):
         return Chi2NewtonCore(P0, R0.shape[0], alpha=alpha, delta=delta, literal=name.endswith("-lit"),
                               guard=newton_guard, release_after=release_after)
@@ -218,12 +224,18 @@ def pos_scale(lat, h):
     return np.array([rm + h, (rn + h) * math.cos(lat), 1.0])
 
 
-def discrete_model(sins_x, f_b, dt, q_psd, n_states, clock_qd=None):
+def discrete_model(sins_x, f_b, dt, q_psd, n_states, clock_qd=None, basis=False):
     """(Φ, Q_d) of the error model over dt at the SINS state, position block in metres.
 
     Φ: second-order Taylor series of exp(F dt); Q_d by the trapezoidal rule
     (Φ G Q_c Gᵀ Φᵀ + G Q_c Gᵀ) dt/2 (as :func:`ultratight.fusion.tight.phi_q`); the clock block,
-    when given, is the exact discrete clock noise ``clock_qd`` (2 × 2)."""
+    when given, is the exact discrete clock noise ``clock_qd`` (2 × 2).
+
+    ``basis=True`` also returns the noise structure of seed 001 eq. 3 (W = gyro 3, accelerometer
+    3 [, clock bias, clock drift] white noises): ``(Φ, Q_d, B, Q_fixed)`` with B (k, n, n) the
+    discretised Q of each of these noises alone at unit PSD (same rule; the clock pair of
+    δṫ_u = δt_ru + w_tu, δṫ_ru = w_tru exactly: dt·e_u e_uᵀ and [[dt³/3, dt²/2], [dt²/2, dt]])
+    and Q_fixed the rest of Q_d (the bias-driving floors of :func:`imu_psd`, not part of W)."""
     q_lb, vel, llh = sins_x[0:4], sins_x[4:7], sins_x[7:10]
     F = em.F_matrix(q_lb, vel, llh, f_b, n_states=n_states)
     G = em.G_matrix(q_lb, n_states=n_states)
@@ -234,9 +246,28 @@ def discrete_model(sins_x, f_b, dt, q_psd, n_states, clock_qd=None):
         Qd[CLK:DRIFT + 1, CLK:DRIFT + 1] = clock_qd
     T = np.ones(n_states)
     T[POS] = pos_scale(llh[0], llh[2])
-    Phi = Phi * T[:, None] / T[None, :]
-    Qd = Qd * T[:, None] * T[None, :]
-    return Phi, symmetrize(Qd)
+    W = T[:, None] * T[None, :]
+    Phi_m = Phi * T[:, None] / T[None, :]
+    Qd = symmetrize(Qd * W)
+    if not basis:
+        return Phi_m, Qd
+    cols = list(range(em.NOISE_GYRO.start, em.NOISE_ACCEL.stop))
+    Gw = G[:, cols]
+    PG = Phi @ Gw
+    B = 0.5 * dt * (np.einsum("ik,jk->kij", PG, PG) + np.einsum("ik,jk->kij", Gw, Gw))
+    qf = np.asarray(q_psd, float).copy()
+    qf[cols] = 0.0
+    if n_states == em.N17:
+        qf[em.NOISE_CLK] = qf[em.NOISE_DRIFT] = 0.0
+        Bc = np.zeros((2, n_states, n_states))
+        Bc[0, CLK, CLK] = dt
+        Bc[1, CLK, CLK], Bc[1, CLK, DRIFT], Bc[1, DRIFT, CLK], Bc[1, DRIFT, DRIFT] = dt**3 / 3, dt**2 / 2, dt**2 / 2, dt
+        B = np.concatenate([B, Bc])
+    GQf = (G * qf) @ G.T
+    Qf = 0.5 * (Phi @ GQf @ Phi.T + GQf) * dt
+    if n_states == em.N17:
+        Qf[CLK:DRIFT + 1, CLK:DRIFT + 1] = 0.0
+    return Phi_m, Qd, B * W[None], symmetrize(Qf * W)
 
 
 def imu_psd(gyro_white, accel_white, gyro_bias_floor=1e-18, accel_bias_floor=1e-14, n_states=15):
@@ -322,7 +353,11 @@ def run_integration(kind, core, inp, meas_fn, q_psd, clock_qd=None):
         else:
             f_b = np.zeros(3)
         clk[0] += clk[1] * dt
-        Phi, Qd = discrete_model(x, f_b, dt, q_psd, n_states, clock_qd)
+        if getattr(core, "wants_q_basis", False):
+            Phi, Qd, Bq, Qf = discrete_model(x, f_b, dt, q_psd, n_states, clock_qd, basis=True)
+            core.set_q_basis(Bq, Qf)
+        else:
+            Phi, Qd = discrete_model(x, f_b, dt, q_psd, n_states, clock_qd)
         core.predict(Phi, Qd)
         m = meas_fn(k, x, clk)
         if m is not None and not isinstance(core, InsOnlyCore):

@@ -24,6 +24,8 @@ epoch for all cores so that the adaptive windows have a fixed dimension m = 8):
   P_ΔX̂ = K P̂_ε Kᵀ (eq. 13, ``"correction"``, which collapses R̂ as K shrinks: measured 2–3x worse
   velocity RMS on this scenario, docs/integration-experiments.md);
   ``[filter] iakf_adapt_q = false`` keeps the given Q (R adaptation only: a diagnostic);
+  ``[filter] iakf_q_structure``: eq. 26's Q̂ as printed ("full", default) or projected onto the
+  eq. 3 noise structure ("model", "model-diag"; docs/integration-experiments.md);
 * ``kf`` — fixed-gain KF with the wrong settings (no adaptation: what the settings alone do);
 * ``ins-only`` — free inertial.
 
@@ -40,6 +42,7 @@ import numpy as np
 
 from ultratight.errors import ConfigError, InputFileError
 from ultratight.fusion import integration as I
+from ultratight.fusion.adaptive import Q_STRUCTURES
 from ultratight.ins import error_model as em
 from ultratight.receiver.experiments import _sins_gnss as C
 from ultratight.signals.obssim import clock_q, simulate_clock, simulate_observables
@@ -68,7 +71,8 @@ SCHEMA = {
     "initial_errors": {"att_deg": 0.6, "vel_mps": 0.2, "pos_m": 15.0},
     "wrong": {"gyro_dph": 0.1, "accel_g": 1e-2, "clock_bias_m": 35.0, "clock_drift_mps": 0.3,
               "sigma_pr_m": 50.0, "sigma_prr_mps": 0.6},
-    "filter": {"window": 20, "akf0_adaptive": False, "iakf_r_source": "lsq", "iakf_adapt_q": True, "best4": True},
+    "filter": {"window": 20, "akf0_adaptive": False, "iakf_r_source": "lsq", "iakf_adapt_q": True,
+               "iakf_q_structure": "full", "best4": True},
 }
 
 
@@ -100,6 +104,9 @@ def load(path, raw, overrides):
     for k in ("akf0_adaptive", "iakf_adapt_q", "best4"):
         if not isinstance(cfg["filter"][k], bool):
             raise ConfigError(f"filter.{k} must be true or false, got {cfg['filter'][k]!r}")
+    if cfg["filter"]["iakf_q_structure"] not in Q_STRUCTURES:
+        raise ConfigError(f"filter.iakf_q_structure must be one of {', '.join(Q_STRUCTURES)}, "
+                          f"got {cfg['filter']['iakf_q_structure']!r}")
     if cfg["filter"]["iakf_r_source"] not in ("correction", "lsq"):
         raise ConfigError("filter.iakf_r_source must be 'correction' (eq. 13) or 'lsq' (eqs. 21–22)")
     return cfg
@@ -185,7 +192,8 @@ def run_method(cfg, method, inp, obs):
     R0 = np.diag([r[0]] * 4 + [r[1]] * 4)
     Q0 = np.diag(np.full(em.N17, 1e-12))
     core = I.make_core(method, P0, Q0, R0, window=int(f["window"]), m_sat=4, akf0_adaptive=f["akf0_adaptive"],
-                       iakf_r_source=f["iakf_r_source"], iakf_adapt_q=f["iakf_adapt_q"])
+                       iakf_r_source=f["iakf_r_source"], iakf_adapt_q=f["iakf_adapt_q"],
+                       iakf_q_structure=f["iakf_q_structure"])
     meas = I.tight_measurement_fn(obs, r[0], r[1], select_best4=bool(f["best4"]) or method == "iakf")
     return I.run_integration("tight", core, inp, meas, q, cq)
 
