@@ -155,10 +155,12 @@ class IAKFCore(_Core):
 class Chi2NewtonCore(_Core):
     """Seed 003: per-dimension χ² (eq. 15) + Newton replacement (eqs. 21–28), both readings."""
 
-    def __init__(self, P0, m, alpha=0.01, delta=4.0, order=4, literal=False, guard=True, release_after=None):
+    def __init__(self, P0, m, alpha=0.01, delta=4.0, order=4, literal=False, guard=True, release_after=None,
+                 weight_replacements=False):
         super().__init__(P0)
         self.det = ChiSquareNewton(m, alpha=alpha, delta=delta, order=order, guard=guard,
-                                   release_after=None if literal else release_after)
+                                   release_after=None if literal else release_after,
+                                   weight_replacements=weight_replacements and not literal)
         self.literal = literal
         self._hist = []          # literal reading: the noise values actually used, newest last
 
@@ -198,7 +200,7 @@ class Chi2NewtonCore(_Core):
 
 def make_core(name, P0, Q0, R0, *, window=20, m_sat=4, alpha=0.01, delta=4.0, akf0_adaptive=False,
               iakf_r_source="lsq", iakf_adapt_q=True, iakf_q_structure="full", newton_guard=True,
-              release_after=None):
+              release_after=None, weight_replacements=False):
     """A core by name (see the module docstring); Q0/R0 are the *given* noise (true or wrong)."""
     if name == "kf":
         return KFCore(P0)
@@ -213,7 +215,8 @@ def make_core(name, P0, Q0, R0, *, window=20, m_sat=4, alpha=0.01, delta=4.0, ak
                         q_structure=iakf_q_structure)
     if name in ("chi2-newton", "chi2-newton-lit"):
         return Chi2NewtonCore(P0, R0.shape[0], alpha=alpha, delta=delta, literal=name.endswith("-lit"),
-                              guard=newton_guard, release_after=release_after)
+                              guard=newton_guard, release_after=release_after,
+                              weight_replacements=weight_replacements)
     raise ConfigError(f"unknown integration core {name!r}; expected one of {', '.join(CORES)}")
 
 

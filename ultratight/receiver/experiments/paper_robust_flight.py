@@ -10,8 +10,10 @@ N(0, σ²)); GNSS fixes at 1 Hz = truth + white noise of σ 0.00015° (latitude,
 (height), 1 km/h (each velocity axis) — ``[gnss] mode = "truth"``, the paper's description; or
 ``mode = "lsq"``: least-squares fixes of simulated pseudoranges/rates of the nominal constellation.
 Gross errors: at t = 10, 20, …, 500 s the noise of all six components is multiplied by m
-(``[gross] factor``, 20 by default; ``mode = "add"``: V + m·σ).  R from the GNSS σ, Q from the IMU
-specs, P0 matching the drawn initial errors.
+(``[gross] factor``, 20 by default; ``mode = "add"``: V + m·σ).  R from the GNSS σ, Q from
+the IMU specs, P0 matching the drawn initial errors.  ``[filter] weight_replacements`` (on): a
+Newton-replaced innovation of the implementable reading enters the update with the variance of
+its extrapolation (:class:`ultratight.fusion.robust.ChiSquareNewton`).
 
 Each seed runs every method on the gross-error data and, for ``kf`` and the χ² cores, on the same
 noise without gross errors ("clean": the cost of false alarms and the false-alarm rate), plus the
@@ -77,7 +79,8 @@ SCHEMA = {
     "gross": {"factor": 20.0, "period_s": 10.0, "mode": "scale", "components": [0, 1, 2, 3, 4, 5],
               "sweep": [5.0, 10.0, 20.0, 50.0]},
     "initial_errors": {"att_deg": [0.05, 0.05, 0.2], "vel_mps": 0.3, "pos_m": 10.0},
-    "filter": {"alpha": 0.01, "delta": 4.0, "newton_guard": True, "release_after": 3},
+    "filter": {"alpha": 0.01, "delta": 4.0, "newton_guard": True, "release_after": 3,
+               "weight_replacements": True},
 }
 
 
@@ -111,8 +114,9 @@ def load(path, raw, overrides):
     C.num(cfg["filter"], "alpha", "filter", lo=0.0, lo_open=True, hi=0.5)
     C.num(cfg["filter"], "delta", "filter", lo=0.0, lo_open=True)
     C.num(cfg["filter"], "release_after", "filter", lo=0, integer=True)
-    if not isinstance(cfg["filter"]["newton_guard"], bool):
-        raise ConfigError(f"filter.newton_guard must be true or false, got {cfg['filter']['newton_guard']!r}")
+    for k in ("newton_guard", "weight_replacements"):
+        if not isinstance(cfg["filter"][k], bool):
+            raise ConfigError(f"filter.{k} must be true or false, got {cfg['filter'][k]!r}")
     return cfg
 
 
@@ -198,7 +202,8 @@ def run_method(cfg, method, inp, fx):
     q, R, P0 = noise_model(cfg, inp.truth_llh[0])
     f = cfg["filter"]
     core = I.make_core(method, P0, None, R, alpha=float(f["alpha"]), delta=float(f["delta"]),
-                       newton_guard=bool(f["newton_guard"]), release_after=int(f["release_after"]) or None)
+                       newton_guard=bool(f["newton_guard"]), release_after=int(f["release_after"]) or None,
+                       weight_replacements=bool(f["weight_replacements"]))
     meas = I.loose_measurement_fn(fx[0], fx[1], fx[2], R)
     return I.run_integration("loose", core, inp, meas, q)
 
@@ -229,6 +234,19 @@ def run_one(cfg, methods, seed, progress=False):
             if m in methods:
                 out["sweep"][f"{float(fac):g}/{m}"] = C.run_metrics(run_method(cfg, m, inp, fx), em.N15)
     return out
+
+
+def kf_range_distance(pos_max_neu, vel_max_enu):
+    """How far the plain KF's error magnitudes are from the paper's Figs. 4/6: mean over the six axes
+    of |ln(ours / paper)|, ours the max |error| per axis (position N, E, U; velocity E, N, U), the
+    paper's the extent of its quoted KF ranges (``PAPER_RANGES["kf"]``).  The criterion that fixes
+    the gross-error factor and reading (docs/integration-experiments.md); 0 = the same magnitudes.
+    Returns (all six, position three, velocity three)."""
+    pe = [max(abs(a), abs(b)) for a, b in PAPER_RANGES["kf"]["pos_enu_m"]]
+    pv = [max(abs(a), abs(b)) for a, b in PAPER_RANGES["kf"]["vel_enu_mps"]]
+    dp = np.abs(np.log(np.asarray(pos_max_neu, float) / np.array([pe[1], pe[0], pe[2]])))
+    dv = np.abs(np.log(np.asarray(vel_max_enu, float) / np.array(pv)))
+    return float(np.mean(np.concatenate([dp, dv]))), float(dp.mean()), float(dv.mean())
 
 
 def _reduction(a_kf, a_rob):
@@ -327,12 +345,18 @@ def summarize(cfg, runs):
             if all(ka in r["sweep"] and kb in r["sweep"] for r in runs):
                 sa = C.aggregate([{"methods": {"kf": r["sweep"][ka], "rob": r["sweep"][kb]}} for r in runs], ["kf", "rob"])
                 rd = _reduction(sa["kf"], sa["rob"])
+                pmax = np.mean([r["sweep"][ka]["pos_max_m"] for r in runs], axis=0)
+                vmax = np.mean([r["sweep"][ka]["vel_max_mps"] for r in runs], axis=0)
+                dist = kf_range_distance(pmax, vmax)
                 sweep[fk] = {"reduction_pos": rd["pos"], "reduction_vel": rd["vel"],
+                             "kf_pos_max_m": pmax.tolist(), "kf_vel_max_mps": vmax.tolist(),
+                             "kf_range_distance": {"all": dist[0], "pos": dist[1], "vel": dist[2]},
                              "kf_pos_rms_m": sa["kf"]["pos_rms_m"].tolist(), "kf_vel_rms_mps": sa["kf"]["vel_rms_mps"].tolist(),
                              "chi2_pos_rms_m": sa["rob"]["pos_rms_m"].tolist(),
                              "chi2_vel_rms_mps": sa["rob"]["vel_rms_mps"].tolist()}
                 L.append(f"  m = {fk:>4s}: {100 * rd['pos']:5.1f} % / {100 * rd['vel']:5.1f} %   "
-                         f"(kf pos {np.linalg.norm(sa['kf']['pos_rms_m']):.1f} m, vel {np.linalg.norm(sa['kf']['vel_rms_mps']):.3f} m/s)")
+                         f"(kf pos {np.linalg.norm(sa['kf']['pos_rms_m']):.1f} m, vel {np.linalg.norm(sa['kf']['vel_rms_mps']):.3f} m/s; "
+                         f"kf max |err| vs the paper's Figs. 4/6, mean |ln| {dist[0]:.2f} (pos {dist[1]:.2f}, vel {dist[2]:.2f}))")
     js = {"scenario": cfg["name"], "seed": int(runs[0]["seed"]), "runs": len(runs),
           "axis_order": {"vel_rms_mps": "E, N, U", "pos_rms_m": "N, E, U", "pos_max_m": "N, E, U (max |error|)",
                          "vel_max_mps": "E, N, U (max |error|)"},
