@@ -35,6 +35,18 @@ def machine_line(info=None):
             + (f", load average {load:.2f}" if load is not None else ""))
 
 
+def best(fn, repeat):
+    """Best (minimum) wall time in s of ``repeat`` calls of ``fn()`` (the machine may be shared)."""
+    import time
+
+    ts = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return min(ts)
+
+
 def add_common_args(ap):
     """Add the convention's ``--quick`` and ``--json OUT.json`` options to an argparse parser."""
     ap.add_argument("--quick", action="store_true", help="short run (smoke-level figures, <~30 s)")

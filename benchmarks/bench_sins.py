@@ -22,16 +22,7 @@ import time
 
 import numpy as np
 
-from _common import add_common_args, finish
-
-
-def best(fn, repeat):
-    ts = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return min(ts)
+from _common import add_common_args, best, finish
 
 
 def speed(quick, repeat):

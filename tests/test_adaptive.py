@@ -105,6 +105,45 @@ def test_iakf_noise_estimates_converge():
         filt.update(np.zeros(2 * NSAT), H_TC)
 
 
+def test_project_q_recovers_the_model_noises_and_drops_the_rest():
+    """Q̂ of eq. 26 projected onto the eq. 3 structure: a Q built from the basis plus noise on a state
+    no white noise drives (and a coupling outside the span) projects back onto the basis weights."""
+    rng = np.random.default_rng(3)
+    n = 6
+    B = np.zeros((3, n, n))
+    for i, g in enumerate((np.array([1.0, 0.5, 0, 0, 0, 0]), np.array([0, 1.0, 2.0, 0, 0, 0]),
+                           np.array([0, 0, 0, 1.0, 0, 0]))):
+        B[i] = np.outer(g, g) + np.diag(rng.uniform(0.1, 0.2, n) * (g != 0))
+    q_true = np.array([2.0, 0.3, 5.0])
+    fixed = np.diag([0, 0, 0, 0, 0, 1e-9])
+    junk = np.zeros((n, n))
+    junk[4, 4] = 7.0                      # noise on a state outside the model's structure
+    junk[0, 3] = junk[3, 0] = 0.4         # a coupling no single noise produces
+    Qh = fixed + np.tensordot(q_true, B, axes=1) + junk
+    for diagonal in (False, True):
+        Q, q = AD.project_q(Qh, B, fixed, scale=np.full(n, 2.0), diagonal=diagonal)
+        np.testing.assert_allclose(q, q_true, rtol=1e-9)
+        assert Q[4, 4] == 0.0 and Q[0, 3] == 0.0 and Q[5, 5] == 1e-9
+        assert np.all(np.linalg.eigvalsh(Q) >= -1e-12)
+    # a negative fit is clipped to the floor (Q stays PSD)
+    Q, q = AD.project_q(-Qh, B, floor=1e-6)
+    np.testing.assert_allclose(q * np.max(np.diagonal(B, axis1=1, axis2=2), axis=1), 1e-6)
+    with pytest.raises(FilterError, match="q_basis"):
+        AD.project_q(Qh, B[:, :3, :3])
+
+
+def test_iakf_model_structure_needs_a_basis():
+    with pytest.raises(FilterError, match="q_structure"):
+        _iakf(np.zeros(NX), q_structure="blocks")
+    rng = np.random.default_rng(5)
+    filt = _iakf(np.zeros(NX), q_structure="model")
+    filt.N = 2
+    with pytest.raises(FilterError, match="q_basis"):
+        for _ in range(3):
+            filt.predict(PHI)
+            filt.update(H_TC @ np.zeros(NX) + SIG * rng.standard_normal(2 * NSAT), H_TC, LOS)
+
+
 def test_akf_bad_input():
     with pytest.raises(FilterError):
         AD.AKF(np.zeros(2), np.eye(2), np.eye(2), np.eye(1), window=0)

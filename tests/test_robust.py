@@ -235,3 +235,41 @@ def test_chi2_newton_cuts_rms_by_half():
     robust = np.mean([_gross_error_run(s, True) for s in range(4)], axis=0)
     assert robust[0] <= 0.5 * plain[0], (plain, robust)
     assert robust[1] <= 0.5 * plain[1], (plain, robust)
+
+
+def test_weighted_replacement_enters_with_its_extrapolation_variance():
+    """weight_replacements: a replaced dimension is updated with R_ii = Σc²/δ² · D_ii − (H P Hᵀ)_ii
+    (the variance of the Newton combination of white innovations); one the guard zeroes is left out."""
+    import numpy as np
+    from ultratight.fusion import filters as F
+    from ultratight.fusion import robust as RB
+    x = np.zeros(2)
+    P = np.diag([4.0, 9.0])
+    H = np.eye(2)
+    R = np.diag([1.0, 1.0])
+    D = np.diag(P + R)
+    g = 69.0 / 16.0                      # (4² + 6² + 4² + 1²) / δ², δ = 4
+    for weight in (False, True):
+        det = RB.ChiSquareNewton(2, alpha=0.01, delta=4.0, guard=True, weight_replacements=weight)
+        for r in ([0.4, -0.3], [0.2, 0.5], [-0.1, 0.2], [0.3, -0.4]):
+            RB.chi2_newton_kf_update(x, P, np.array(r), H, R, det)
+        ext = det.coeffs @ det._hist[::-1] / 4.0
+        z = np.array([100.0, 0.5])       # dimension 0 gross
+        res = RB.chi2_newton_kf_update(x, P, z, H, R, det)
+        assert res.info["faulty"].tolist() == [True, False]
+        R2 = R.copy()
+        if weight:
+            R2[0, 0] = g * D[0] - P[0, 0]
+        ref = F.kf_update(x, P, np.array([ext[0], 0.5]), H, R2)
+        np.testing.assert_allclose(res.x, ref.x)
+        np.testing.assert_allclose(res.P, ref.P)
+    # a replacement the guard zeroes: the dimension carries no information and is left out
+    det = RB.ChiSquareNewton(2, alpha=0.01, delta=4.0, guard=True, weight_replacements=True)
+    for r in ([5.0, 0.1], [-5.0, 0.1], [5.0, 0.1], [-5.0, 0.1]):
+        det._hist = np.roll(det._hist, -1, axis=0)
+        det._hist[-1] = r
+        det._count += 1
+    res = RB.chi2_newton_kf_update(x, P, np.array([100.0, 0.5]), H, R, det)
+    ref = F.kf_update(x, P, np.array([0.5]), H[1:], R[1:, 1:])
+    np.testing.assert_allclose(res.x, ref.x)
+    np.testing.assert_allclose(res.P, ref.P)

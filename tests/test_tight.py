@@ -63,11 +63,9 @@ def test_rate_rows_match_geometry():
     np.testing.assert_allclose(H_[sat.shape[0]:] @ dx, dz, atol=1e-9)
 
 
-@pytest.mark.parametrize("core", ["ekf", "ckf", "ukf"])
-def test_cores_agree_and_recover_the_error(core):
-    """On the linear measurement model all cores give the same update and estimate the
-    injected position/clock error to well within its prior."""
-    sat, rx, C_el = _sats(10)
+def _linear_case(n_sat):
+    """(ENU lines of sight, position map M, prior P0, injected error state) of the linear model."""
+    sat, rx, C_el = _sats(n_sat)
     los_l = ((sat - rx) / _range(sat, rx)[:, None]) @ C_el
     rm, rn = radii(LAT)
     M = tight.pos_error_to_enu(LAT, H, rm, rn)
@@ -76,11 +74,19 @@ def test_cores_agree_and_recover_the_error(core):
     x_true = np.zeros(tight.NX)
     x_true[6:9] = [5.0 / (rm + H), -4.0 / ((rn + H) * np.cos(LAT)), 6.0]
     x_true[tight.CLK_B] = -7.0
+    return los_l, M, P0, x_true
+
+
+@pytest.mark.parametrize("core", ["ekf", "ckf", "ukf"])
+def test_cores_agree_and_recover_the_error(core):
+    """On the linear measurement model all cores give the same update and estimate the
+    injected position/clock error to well within its prior."""
+    los_l, M, P0, x_true = _linear_case(10)
     x_true[tight.CLK_D] = 0.3
     x_true[3:6] = [0.05, -0.08, 0.02]
     Hm = tight.measurement_matrix(los_l, M)
     rng = np.random.default_rng(5)
-    m = sat.shape[0]
+    m = los_l.shape[0]
     z = Hm @ x_true + np.concatenate([rng.normal(0, 0.5, m), rng.normal(0, 0.01, m)])
     tf = tight.TightFilter(P0, core=core, gate_sigma=100.0)
     dx = tf.update(z[:m], z[m:], los_l, M, 0.25, 1e-4)
@@ -165,3 +171,27 @@ def test_bad_core_and_shapes():
         tight.TightFilter(np.eye(17), core="pf")
     with pytest.raises(FilterError):
         tight.TightFilter(np.eye(15))
+
+
+def test_iakf_core_updates_and_converges():
+    """The "iakf" core (seed 001 IAKF) runs repeated updates on the linear model (it raised
+    FilterError on its first update when GDOP was passed as the line-of-sight matrix) and, started
+    with a 25x too large R, estimates a constant injected error as well as the EKF given the true R."""
+    los_l, M, P0, x_true = _linear_case(8)
+    Hm = tight.measurement_matrix(los_l, M)
+    m = los_l.shape[0]
+    rng = np.random.default_rng(11)
+    Qd = np.diag(np.full(tight.NX, 1e-16))
+    errs = {}
+    for core, r_pr in (("iakf", 25.0), ("ekf", 1.0)):
+        tf = tight.TightFilter(P0, core=core, gate_sigma=1e6, iakf_window=10)
+        for _ in range(60):
+            tf.predict(np.eye(tight.NX), Qd)
+            z = Hm @ x_true + np.concatenate([rng.normal(0, 1.0, m), rng.normal(0, 0.01, m)])
+            dx = tf.update(z[:m], z[m:], los_l, M, r_pr, 1e-4)
+        assert tf.n_updates == 60
+        assert np.all(np.isfinite(tf.P)) and np.all(np.linalg.eigvalsh(tf.P) > 0)
+        errs[core] = np.linalg.norm(M @ (dx[6:9] - x_true[6:9]))
+    # both recover the 9 m position error to < 1.5 m; the adaptive R costs at most a factor 2
+    assert errs["ekf"] < 1.5 and errs["iakf"] < 1.5, errs
+    assert errs["iakf"] < 2.0 * errs["ekf"] + 0.3, errs

@@ -65,6 +65,7 @@ __all__ = [
     "AKF",
     "IAKF",
     "gdop",
+    "project_q",
     "fading_terms",
     "fading_factor",
     "fading_matrix",
@@ -72,6 +73,9 @@ __all__ = [
     "FadingUKF",
     "aukf_fading_step",
 ]
+
+
+Q_STRUCTURES = ("full", "model", "model-diag")
 
 
 def _floor(M: np.ndarray, rel: float, absolute: float) -> float:
@@ -176,16 +180,26 @@ class IAKF:
     directly; likewise for rates); "correction" takes it from P_Δx̂ = K P̂_ε Kᵀ (eq. 13, the
     paper's "结合式(13)").  The latter is the paper's literal wording but collapses R̂ when the
     prior is tight (K → 0), see docs/filters.md.
+    ``q_structure``: "full" (default) uses eq. 26's window matrix as Q̂; "model" / "model-diag"
+    project it onto the noise structure of the model (eq. 3: Q = Σ q_i Q_i over the white noises
+    of W, :func:`project_q`, fitted on all entries / on the diagonal), with the basis ``q_basis``
+    (k, n, n) and the fixed part ``q_fixed`` set by the caller before each update.
     """
 
     def __init__(self, x0, P0, Q0, R0, pr_rows, prr_rows, pos_clk_idx, vel_drift_idx,
                  window: int = 20, adapt_q: bool = True, adapt_r: bool = True,
-                 floor: float = 1e-12, r_source: str = "lsq"):
+                 floor: float = 1e-12, r_source: str = "lsq", q_structure: str = "full"):
         if int(window) < 1:
             raise FilterError(f"window must be an integer ≥ 1, got {window}")
         if r_source not in ("lsq", "correction"):
             raise FilterError(f"r_source: expected 'lsq' or 'correction', got {r_source!r}")
+        if q_structure not in Q_STRUCTURES:
+            raise FilterError(f"q_structure: expected one of {', '.join(Q_STRUCTURES)}, got {q_structure!r}")
         self.r_source = r_source
+        self.q_structure = q_structure
+        self.q_basis = None      # (k, n, n) discretised Q of each model noise at unit PSD ("model*")
+        self.q_fixed = None      # (n, n) the part of Q that is not estimated
+        self.q_w = None          # the last estimated noise variances (PSDs) of the basis
         self.x = as_vector("x0", x0)
         n = self.x.shape[0]
         self.P = check_covariance("P0", P0, n)
@@ -265,11 +279,47 @@ class IAKF:
         self.qterms.append(np.outer(dx, dx) + self.P - self._Phi @ self._P_prev @ self._Phi.T)
         if len(self.qterms) == self.N and self.adapt_q:
             Qh = sum(self.qterms) / self.N  # eq. 26
-            self.Q = nearest_pd(Qh, _floor(Qh, 1e-9, self.floor))
+            if self.q_structure == "full":
+                self.Q = nearest_pd(Qh, _floor(Qh, 1e-9, self.floor))
+            else:
+                self.Q, self.q_w = project_q(Qh, self.q_basis, self.q_fixed, np.diag(Pp),
+                                             diagonal=self.q_structure == "model-diag", floor=self.floor)
         check_state(self.x, self.P, "IAKF.update")
         res = UpdateResult(self.x, self.P, eps, S, K, _nis(eps, S), H @ (self.x - dx), Pp @ H.T)
         res.info.update(Q_hat=self.Q, R_hat=self.R)
         return res
+
+
+def project_q(Q_hat, basis, fixed=None, scale=None, diagonal=False, floor=1e-12):
+    """Q̂ of eq. 26 projected onto the noise structure of the model (seed 001 eq. 3).
+
+    The model admits only Q = Q_fixed + Σ_i q_i Q_i, q_i ≥ 0, with Q_i the discretised process
+    noise of the i-th white noise of W alone at unit PSD (G_i Q_w,i G_iᵀ through the
+    discretisation).  The noise variances are the non-negative least-squares fit
+    q = argmin ‖D⁻¹(Q̂ − Q_fixed − Σ q_i Q_i)D⁻¹‖_F (all entries, or the diagonal only with
+    ``diagonal=True``), D = diag(√scale) — the fit is made relative to the predicted covariance
+    (``scale`` = its diagonal), so states of different units weigh alike; each q_i is then
+    floored so that its Q_i adds at least ``floor`` on its largest diagonal entry.  Whatever of
+    Q̂ falls outside the span (noise on states the model drives by no white noise, arbitrary
+    couplings) is discarded.  Returns (Q, q).
+    """
+    from scipy.optimize import nnls
+    B = np.asarray(basis, float)
+    if B.ndim != 3 or B.shape[1:] != Q_hat.shape:
+        raise FilterError(f"q_basis: expected (k, {Q_hat.shape[0]}, {Q_hat.shape[0]}), got {B.shape}")
+    F = np.zeros_like(Q_hat) if fixed is None else np.asarray(fixed, float)
+    d = np.ones(Q_hat.shape[0]) if scale is None else 1.0 / np.sqrt(np.maximum(np.asarray(scale, float), 1e-300))
+    W = d[:, None] * d[None, :]
+    Bn = B * W[None]
+    Rn = (Q_hat - F) * W
+    if diagonal:
+        A, b = np.diagonal(Bn, axis1=1, axis2=2), np.diag(Rn)
+    else:
+        A, b = Bn.reshape(B.shape[0], -1), Rn.ravel()
+    q, _ = nnls(A.T, b)
+    qmin = floor / np.maximum(np.max(np.diagonal(B, axis1=1, axis2=2), axis=1), 1e-300)
+    q = np.maximum(q, qmin)
+    return symmetrize(F + np.tensordot(q, B, axes=1)), q
 
 
 # --------------------------------------------------------------------------- fading (seed 002)

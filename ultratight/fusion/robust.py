@@ -239,9 +239,23 @@ class ChiSquareNewton:
     ``screen(r, S)`` returns (r_used, faulty, stat): stat_i = r_i²/S_ii (eq. 15); dimensions with
     stat_i > T (eq. 16, T = χ²_α(1)) get r_i replaced by newton_extrapolate(past values)/δ
     (eqs. 21, 27).  The history keeps the values actually used.
+
+    ``guard``: a replacement that itself fails the test (ext_i²/S_ii > T) is set to 0 (the
+    measurement is replaced by its prediction).  Not in the paper; without it a run of consecutive
+    faults feeds replaced values back into the extrapolation, whose recursion
+    f_k = (4f₋₁ − 6f₋₂ + 4f₋₃ − f₋₄)/δ has roots of modulus 1.07 > 1 at δ = 4 (it grows without
+    bound; seen in the paper-robust-flight sweep at small gross-error factors).
+    ``release_after``: a dimension flagged in this many consecutive epochs is used unchanged
+    (counted in ``n_released``): the innovation is the filter's proxy of V, and a persistent
+    "fault" is the filter's own error, which replacing would hide from it for good (divergence,
+    the paper's Fig. 1).  Not in the paper; None (default) = never.
+    ``weight_replacements`` (used by :func:`chi2_newton_kf_update`): a replaced innovation enters
+    the update with the variance of its extrapolation instead of R's, and one zeroed by the guard
+    is left out.  Not in the paper; False (default) = the update uses R for every dimension.
     """
 
-    def __init__(self, m: int, alpha: float = 0.01, delta: float = 4.0, order: int = 4):
+    def __init__(self, m: int, alpha: float = 0.01, delta: float = 4.0, order: int = 4, guard: bool = False,
+                 release_after: int | None = None, weight_replacements: bool = False):
         if m < 1:
             raise FilterError(f"measurement dimension must be ≥ 1, got {m}")
         if not delta > 0:
@@ -255,18 +269,30 @@ class ChiSquareNewton:
         self._hist = np.zeros((self.order, m))  # newest last
         self._count = 0
         self.n_faults = 0
+        self.guard = bool(guard)
+        self.release_after = None if release_after is None else int(release_after)
+        self._run = np.zeros(m, dtype=int)      # consecutive flagged epochs per dimension
+        self.n_released = 0
+        self.weight_replacements = bool(weight_replacements)
 
     def screen(self, r, S):
         r = as_vector("innovation", r, self.m)
         S = as_matrix("S", S, (self.m, self.m))
         stat = r * r / np.diag(S)  # eq. 15
         faulty = stat > self.threshold  # eq. 16
+        self._run = np.where(faulty, self._run + 1, 0)
+        if self.release_after is not None:
+            released = faulty & (self._run > self.release_after)
+            self.n_released += int(released.sum())
+            faulty = faulty & ~released
         used = r.copy()
         if np.any(faulty):
             if self._count >= self.order:
                 ext = (self.coeffs @ self._hist[::-1]) / self.delta  # eqs. 21, 27
             else:
                 ext = np.zeros(self.m)
+            if self.guard:
+                ext = np.where(ext * ext / np.diag(S) > self.threshold, 0.0, ext)
             used[faulty] = ext[faulty]
             self.n_faults += int(faulty.sum())
         self._hist = np.roll(self._hist, -1, axis=0)
@@ -287,7 +313,23 @@ def chi2_newton_kf_update(x, P, z, H, R, detector: ChiSquareNewton) -> UpdateRes
     D = symmetrize(H @ P @ H.T + R)  # eq. 13
     used, faulty, stat = detector.screen(z - zhat, D)
     z_used = zhat + used
-    res = _joseph(x, P, z_used, zhat, H, R)
+    if detector.weight_replacements and np.any(faulty):
+        # a replaced value is a measurement with the error of its extrapolation: the Newton
+        # combination of white innovations has variance Σc²/δ² · D_ii, so R_ii = that − (H P Hᵀ)_ii
+        # (never below R_ii); a replacement zeroed by the guard carries no information and is
+        # left out (used with R it would shrink P by a measurement that was not made)
+        R = R.copy()
+        idx = np.flatnonzero(faulty)
+        g = float(np.sum(detector.coeffs ** 2)) / detector.delta ** 2
+        Dd = np.diag(D)
+        R[idx, idx] = np.maximum(R[idx, idx], g * Dd[idx] - (Dd[idx] - np.diag(R)[idx]))
+        keep = ~(faulty & (used == 0.0))
+        if not keep.any():
+            res = UpdateResult(x.copy(), P.copy(), z - zhat, D, np.zeros((x.shape[0], z.shape[0])), 0.0, zhat, P @ H.T)
+        else:
+            res = _joseph(x, P, z_used[keep], zhat[keep], H[keep], R[np.ix_(keep, keep)])
+    else:
+        res = _joseph(x, P, z_used, zhat, H, R)
     raw = z - zhat
     y = np.linalg.solve(cholesky_lower(D), raw)
     res.innovation = raw

@@ -200,11 +200,13 @@ class TightFilter:
         # rows not usable: zero H and residual (the fixed-size IAKF keeps them, without effect)
         H = np.where(use[:, None], H, 0.0)
         z = np.where(use, z, 0.0)
+        los_l = np.asarray(los_l, dtype=float)
         if gdop is None:
-            lv = np.asarray(los_l)[use[:m]]
+            lv = los_l[use[:m]]
             gdop = gdop_fn(lv) if lv.shape[0] >= 4 else 10.0
         self._iakf.x, self._iakf.P = self.x, self.P
-        res = self._iakf.update(z, H, gdop)
+        # the line-of-sight matrix (eqs. 17–19, geometry of the least-squares R estimate) and GDOP (eq. 20)
+        res = self._iakf.update(z, H, los_unit=los_l, gdop_pr=gdop)
         self.x, self.P = self._iakf.x.copy(), self._iakf.P.copy()
         self.last_nis = res.nis
         self.last_used = int(use.sum())
@@ -234,7 +236,7 @@ def _kf_update(x, P, z, H, R):
 
 
 # ---------------------------------------------------------------------------------------------
-# time update from the SINS error model (ins.error_model), initial covariance, IMU noise
+# time update from the SINS error model (ultratight.ins.error_model), initial covariance, IMU noise
 # ---------------------------------------------------------------------------------------------
 def imu_errors_from_meta(imu):
     """:class:`ultratight.ins.imu.ImuErrors` from an IMU file's metadata (generator-written files
@@ -258,11 +260,11 @@ def imu_errors_from_meta(imu):
 
 
 def phi_q(ins, dt, imu_errors, clock_q_drift=1e-4, clock_q_bias=1e-4, bias_floor=(1e-16, 1e-14)):
-    """(Phi, Qd) of the 17-state model over dt at the current SINS state (F, G, Qc of ins.error_model).
+    """(Phi, Qd) of the 17-state model over dt at the current SINS state (F, G, Qc of ultratight.ins.error_model).
 
-    Phi: second-order Taylor series of exp(F dt) (C's ``discretize_taylor``); Qd by the
+    Phi: second-order Taylor series of exp(F dt) (``error_model.discretize_taylor``); Qd by the
     trapezoidal rule ``(Phi G Qc G^T Phi^T + G Qc G^T) dt / 2``, positive semi-definite by
-    construction (C's Van Loan ``discretize`` is exact but costs a 34x34 matrix exponential,
+    construction (the Van Loan ``error_model.discretize`` is exact but costs a 34x34 matrix exponential,
     ~15 ms, per tight update).  ``ins`` has ``q_lb``, ``vel_l``, ``llh``, ``f_b``."""
     from ultratight.ins import error_model as em
     F = em.F_matrix(ins.q_lb, ins.vel_l, ins.llh, ins.f_b, n_states=em.N17)

@@ -86,6 +86,8 @@ def run_experiment(module, path, raw, *, methods=None, runs=1, seed=None, out_di
     methods = check_methods(module, methods)
     if isinstance(runs, bool) or int(runs) != runs or int(runs) < 1:
         raise ConfigError(f"--runs must be an integer >= 1, got {runs}")
+    if Path(out_dir).exists() and not Path(out_dir).is_dir():
+        raise ConfigError(f"--out {out_dir}: exists and is not a directory")
     cfg = module.load(path, raw, overrides or {})
     base_seed = int(cfg.get("seed", 0) if seed is None else seed)
     if base_seed < 0:

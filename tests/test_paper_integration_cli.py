@@ -1,0 +1,111 @@
+"""``ultratight scenario paper-static-iakf`` / ``paper-robust-flight`` end to end: the --json
+schema, the outputs (strict JSON metrics, HDF5 with the resolved configuration), the tight IAKF
+through the CLI, and one-line configuration errors."""
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+
+from ultratight import __version__
+from ultratight.errors import ConfigError, InputFileError
+from ultratight.receiver import experiments as E
+from ultratight.receiver.cli import main
+from ultratight.receiver.experiments import paper_robust_flight as RF
+from ultratight.receiver.experiments import paper_static_iakf as SI
+
+
+def _strict(text):
+    def bad(c):
+        raise ValueError(f"non-finite JSON constant {c}")
+    return json.loads(text, parse_constant=bad)
+
+
+def _check_methods(js, methods):
+    assert set(js["methods"]) == set(methods)
+    for m in methods:
+        d = js["methods"][m]
+        for k in ("vel_rms_mps", "pos_rms_m", "pos_max_m", "vel_max_mps"):
+            assert len(d[k]) == 3 and all(np.isfinite(d[k])), (m, k)
+        assert 0.0 <= d["nees_in_band_fraction"] <= 1.0
+        assert d["runtime_s"] > 0.0
+    assert js["axis_order"]["vel_rms_mps"] == "E, N, U"
+
+
+def test_static_iakf_cli_json_runs_the_tight_iakf(tmp_path, capsys, shared_data):
+    out = tmp_path / "o"
+    rc = main(["scenario", "paper-static-iakf", "--methods", "iakf,akf0", "--duration", "40", "--runs", "2",
+               "--seed", "5", "--json", "--no-plots", "--out", str(out)])
+    assert rc == 0
+    js = _strict(capsys.readouterr().out)
+    assert js["scenario"] == "paper-static-iakf" and js["seed"] == 5 and js["runs"] == 2
+    _check_methods(js, ["iakf", "akf0"])
+    assert js["ratios"]["iakf/akf0"]["paper"][0] == pytest.approx(0.0491 / 0.0311)
+    doc = _strict((out / "metrics.json").read_text())
+    assert doc["version"] == __version__ and doc["config"]["duration_s"] == 40.0
+    with h5py.File(out / "results.h5", "r") as f:
+        assert json.loads(f.attrs["config_json"])["filter"]["iakf_r_source"] == "lsq"
+        g = f["seed000005/iakf"]
+        assert g["err"].shape == (40, 17) and np.all(np.isfinite(g["err"][()]))
+
+
+def test_robust_flight_cli_text_and_outputs(tmp_path, capsys):
+    out = tmp_path / "o"
+    rc = main(["scenario", "paper-robust-flight", "--duration", "60", "--quiet", "--out", str(out)])
+    assert rc == 0
+    text = capsys.readouterr().out
+    for s in ("chi2-newton-lit", "abstract: 75 % / 80 %", "clean data", "m =   50", "paper"):
+        assert s in text
+    doc = _strict((out / "metrics.json").read_text())
+    _check_methods(doc, RF.DEFAULT_METHODS)
+    assert set(doc["sweep"]) == {"5", "10", "20", "50"}
+    assert doc["clean"]["chi2-newton"]["false_alarm_rate"] >= 0.0
+    pytest.importorskip("matplotlib")
+    assert (out / "fig4_position_error.png").stat().st_size > 1000
+
+
+def test_config_errors_are_clear(tmp_path, capsys):
+    path, raw, _ = E.resolve("paper-robust-flight")
+    bad = dict(raw, gross=dict(raw["gross"], factr=3.0))
+    with pytest.raises(ConfigError, match=r"\[gross\]: unknown key 'factr' \(did you mean 'factor'\?\)"):
+        RF.load(path, bad, {})
+    with pytest.raises(ConfigError, match="gross.mode"):
+        RF.load(path, dict(raw, gross=dict(raw["gross"], mode="times")), {})
+    with pytest.raises(ConfigError, match="gross.components"):
+        RF.load(path, dict(raw, gross=dict(raw["gross"], components=[0, 7])), {})
+    with pytest.raises(ConfigError, match="imu.rate_hz must be an integer multiple"):
+        RF.load(path, dict(raw, imu=dict(raw["imu"], rate_hz=150.5)), {})
+    p2, raw2, _ = E.resolve("paper-static-iakf")
+    with pytest.raises(ConfigError, match="top level: unknown key 'duraton_s'"):
+        SI.load(p2, dict(raw2, duraton_s=3.0), {})
+    cfg = SI.load(p2, dict(raw2, satellites=dict(raw2["satellites"], rinex=str(tmp_path / "none.22n"))), {})
+    with pytest.raises(InputFileError, match="satellites.rinex"):
+        SI.ephemerides(cfg)
+    p = tmp_path / "s.toml"
+    p.write_text('experiment = "paper-robust-flight"\n[filter]\nalpha = 2.0\n')
+    assert main(["scenario", str(p), "--out", str(tmp_path / "o2"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "filter.alpha" in err[0]
+    assert main(["scenario", "paper-robust-flight", "--methods", "iakf", "--out", str(tmp_path / "o3")]) == 2
+    assert "unknown method" in capsys.readouterr().err
+
+
+def test_out_onto_a_file_and_huge_duration_are_refused_before_running(tmp_path, capsys):
+    f = tmp_path / "taken"
+    f.write_text("keep")
+    assert main(["scenario", "paper-robust-flight", "--quiet", "--out", str(f)]) == 2
+    assert "exists and is not a directory" in capsys.readouterr().err
+    assert f.read_text() == "keep"
+    assert main(["scenario", "paper-robust-flight", "--duration", "1e9", "--quiet", "--out", str(tmp_path / "o")]) == 2
+    assert "duration_s must be <= 86400" in capsys.readouterr().err
+
+
+def test_robust_flight_json_is_strict(tmp_path, capsys):
+    """--json on stdout: strict JSON (the kf has no false-alarm rate: null, not NaN)."""
+    assert main(["scenario", "paper-robust-flight", "--duration", "30", "--json", "--no-plots",
+                 "--methods", "kf,chi2-newton", "--out", str(tmp_path / "o")]) == 0
+    js = _strict(capsys.readouterr().out)
+    _check_methods(js, ["kf", "chi2-newton"])
+    assert js["clean"]["kf"]["false_alarm_rate"] is None
+    assert 0.0 <= js["clean"]["chi2-newton"]["false_alarm_rate"] < 1.0
