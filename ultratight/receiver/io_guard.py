@@ -172,7 +172,7 @@ def _path_max(d):
 
 def _existing_ancestor(p):
     q = Path(os.path.abspath(p))
-    while not q.exists() and q.parent != q:
+    while not os.path.exists(q) and q.parent != q:
         q = q.parent
     return q
 
@@ -207,6 +207,19 @@ def _same(a, b):
         return False
 
 
+def check_path_length(path, flag="--out"):
+    """ConfigError when a path or one of its components exceeds the file system's limits."""
+    s = str(path)
+    anc = _existing_ancestor(os.path.dirname(os.path.abspath(s)) or ".")
+    nmax, pmax = _name_max(anc), _path_max(anc)
+    if len(os.fsencode(os.path.abspath(s))) >= pmax:
+        raise ConfigError(f"{flag}: path too long ({len(os.fsencode(os.path.abspath(s)))} bytes, limit {pmax})")
+    for part in Path(s).parts:
+        if len(os.fsencode(part)) > nmax:
+            raise ConfigError(f"{flag}: file name too long ({len(os.fsencode(part))} bytes, limit {nmax}): "
+                              f"{part[:32]}...")
+
+
 def check_output_path(path, flag="--out", create_parent=False):
     """Refuse an output path that cannot be written (one line naming ``flag``)."""
     s = str(path)
@@ -215,18 +228,11 @@ def check_output_path(path, flag="--out", create_parent=False):
     p = Path(s)
     if "\x00" in s:
         raise ConfigError(f"{flag}: the path contains a NUL character")
+    check_path_length(s, flag)
     if p.is_dir():
         raise ConfigError(f"{flag} {p} is a directory; give a file name")
     parent = p.parent if str(p.parent) else Path(".")
     anc = _existing_ancestor(parent)
-    if len(os.fsencode(p.name)) > _name_max(anc):
-        raise ConfigError(f"{flag}: file name too long ({len(os.fsencode(p.name))} bytes > {_name_max(anc)}): "
-                          f"{p.name[:40]}...")
-    if len(os.fsencode(os.path.abspath(s))) >= _path_max(anc):
-        raise ConfigError(f"{flag}: path too long ({len(os.fsencode(os.path.abspath(s)))} bytes)")
-    for part in p.parts:
-        if len(os.fsencode(part)) > _name_max(anc):
-            raise ConfigError(f"{flag}: path component too long: {part[:40]}...")
     if not parent.exists():
         if not create_parent:
             raise ConfigError(f"{flag}: directory {parent} does not exist")

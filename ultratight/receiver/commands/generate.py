@@ -72,6 +72,41 @@ def _remove_empty_dirs(dirs):
             break
 
 
+def estimate(cfg):
+    """Up-front estimate of a generation: ``{"if_bytes", "truth_bytes", "imu_bytes", "memory_bytes"}``.
+
+    IF bytes = duration x fs x sample size; truth: one row (~40 numbers + 12 per satellite) per
+    1 ms interval; IMU + trajectory: ~40 numbers per IMU sample (written from memory)."""
+    from ultratight.signals.iffile import get_format
+    fe = cfg["frontend"]
+    spec = get_format(fe["format"])
+    n = float(cfg["duration_s"]) * float(fe["fs_hz"])
+    if_bytes = n / spec.samples_per_byte if spec.packed2 else n * spec.bytes_per_sample
+    n_sat = max(len(cfg["satellites"].get("prns") or []), int(cfg["satellites"].get("max_count", 12)))
+    rows = float(cfg["duration_s"]) * 1000.0
+    truth_bytes = rows * 8 * (12 + 12 * n_sat)
+    imu_rows = float(cfg["duration_s"]) * float((cfg.get("imu") or {}).get("rate_hz", 0.0)) if cfg.get("imu") else 0.0
+    imu_bytes = imu_rows * 8 * 40
+    # the generator's plan holds per-interval polynomial coefficients for a block, the IMU whole
+    memory = 3 * imu_bytes + 64e6
+    return {"if_bytes": if_bytes, "truth_bytes": truth_bytes, "imu_bytes": imu_bytes, "memory_bytes": memory}
+
+
+def check_outputs(cfg, out_dir, stem):
+    """Refuse before any work: output names invalid or naming the scenario file, not enough free
+    disk or memory for the estimate (:func:`estimate`)."""
+    from ultratight.receiver import io_guard
+    from ultratight.signals.generator import output_paths
+    paths = output_paths(out_dir, stem, cfg["frontend"]["format"])
+    io_guard.check_io([("SCENARIO", cfg.get("source_file"))],
+                      [(f"--out ({k})", str(v)) for k, v in paths.items()], create_parents=True)
+    est = estimate(cfg)
+    total = est["if_bytes"] + est["truth_bytes"] + 2 * est["imu_bytes"]
+    io_guard.check_disk(out_dir, total, f"generating {cfg['duration_s']:g} s at {cfg['frontend']['fs_hz']:g} Hz "
+                                        f"({cfg['frontend']['format']})")
+    io_guard.check_memory(est["memory_bytes"], f"generating {cfg['duration_s']:g} s")
+
+
 def format_overrides(fmt):
     """Front-end overrides implied by choosing sample format ``fmt``."""
     from ultratight.signals.iffile import get_format
@@ -106,6 +141,7 @@ def run(args):
         overrides.update(format_overrides(args.format))
     cfg = load_scenario(args.scenario, overrides)
     out_dir, stem = _out_location(args.out, cfg["name"], list(FORMATS))
+    check_outputs(cfg, out_dir, stem)
 
     from ultratight.signals.generator import generate
 
@@ -118,7 +154,8 @@ def run(args):
     summ = res["summary"]
     files = {k: str(v) for k, v in res.items() if k != "summary"}
     if args.json:
-        print(json.dumps({"files": files, **summ}, indent=1))
+        from ultratight.receiver.io_guard import json_dumps
+        print(json_dumps({"files": files, **summ}, indent=1))
         return 0
     fs = summ["fs_hz"]
     print(f"scenario {cfg['name']}: {summ['duration_s']:.3f} s at {fs / 1e6:g} MHz, IF {summ['if_hz'] / 1e6:g} MHz, "
