@@ -116,7 +116,16 @@ def prepare_data(cfg, seed, out_dir, progress=False):
             d.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise output_error(d, exc, "cannot create cache directory") from None
-        res = generate(c, d, "data", seed=int(seed), progress=progress)
+        try:
+            res = generate(c, d, "data", seed=int(seed), progress=progress)
+        except BaseException as exc:
+            try:
+                d.rmdir()                # only when empty: the generator removed its temporary files
+            except OSError:
+                pass
+            if isinstance(exc, OSError) and not isinstance(exc, (ConfigError, InputFileError)):
+                raise output_error(d, exc, "cannot write scenario data in") from None
+            raise
         files = {k: {"name": Path(v).name, "size": Path(v).stat().st_size} for k, v in res.items() if k != "summary"}
         write_text_atomic(done, json.dumps({"version": CACHE_VERSION, "files": files}))
         return {k: d / v["name"] for k, v in files.items()}, False

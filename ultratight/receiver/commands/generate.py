@@ -148,8 +148,12 @@ def run(args):
     created = _make_dirs(out_dir)
     try:
         res = generate(cfg, out_dir, stem, seed=cfg["seed"], progress=not args.no_progress)
-    except BaseException:
+    except BaseException as exc:
         _remove_empty_dirs(created)     # only directories this run created, and only when empty
+        from ultratight.errors import UltratightError
+        if isinstance(exc, OSError) and not isinstance(exc, UltratightError):
+            from ultratight.receiver.io_guard import output_error
+            raise output_error(f"{out_dir}/{stem}.*", exc) from None
         raise
     summ = res["summary"]
     files = {k: str(v) for k, v in res.items() if k != "summary"}

@@ -213,6 +213,8 @@ def run(args):
     try:
         res = process(source, cfg, ephemerides=eph, out_path=args.out, csv_path=args.csv, kml_path=args.kml,
                       progress=progress, run_config=run_config)
+    except OSError as exc:
+        _raise_output_error(exc, args)
     except NoSignalError as exc:
         if args.json:
             print(json_dumps({"acquired": [], "tracked": [], "fixes": 0, "first_fix_s": None,
@@ -226,6 +228,16 @@ def run(args):
     else:
         _print_human(summ)
     return 0
+
+
+def _raise_output_error(exc, args):
+    """An OSError while writing: one line naming the outputs and the cause (full disk, ...)."""
+    from ultratight.errors import UltratightError
+    from ultratight.receiver.io_guard import output_error
+    if isinstance(exc, UltratightError):
+        raise exc
+    outs = [p for p in (args.out, getattr(args, "csv", None), getattr(args, "kml", None)) if p]
+    raise output_error(", ".join(outs) or "output", exc) from None
 
 
 def _run_ultratight(args):
