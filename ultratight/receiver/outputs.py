@@ -116,11 +116,8 @@ class H5Stream:
 
 
 def _write_atomic(path, text):
-    path = Path(path)
-    tmp = _tmp_path(path)
-    with open(tmp, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
+    from ultratight.receiver.io_guard import write_text_atomic
+    write_text_atomic(path, text)
 
 
 def write_csv(path, pvt_rows):
