@@ -31,8 +31,15 @@ def _load(name):
         raise
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line usage errors (``ultratight process: error: ... (see --help)``), exit 2."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see {self.prog} --help)\n")
+
+
 def build_parser():
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="ultratight",
         description="Software GPS L1 C/A receiver with ultra-tight SINS coupling.",
     )

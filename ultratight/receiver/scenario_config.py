@@ -152,10 +152,10 @@ def _num(cfg, dotted, lo=None, hi=None, lo_open=False, integer=False):
     v = d.get(parts[-1])
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         raise ConfigError(f"{dotted} must be a number, got {v!r}")
-    if integer and int(v) != v:
-        raise ConfigError(f"{dotted} must be an integer, got {v!r}")
     if not math.isfinite(v):
         raise ConfigError(f"{dotted} must be finite, got {v!r}")
+    if integer and int(v) != v:
+        raise ConfigError(f"{dotted} must be an integer, got {v!r}")
     if lo is not None and (v <= lo if lo_open else v < lo):
         raise ConfigError(f"{dotted} must be {'>' if lo_open else '>='} {lo}, got {v!r}")
     if hi is not None and v > hi:
