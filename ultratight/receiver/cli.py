@@ -75,10 +75,7 @@ def main(argv=None):
         return 2
     except KeyboardInterrupt as exc:
         sig = getattr(exc, "name", "SIGINT")
-        parts = io_guard.partial_outputs()
-        what = (f"partial output (complete=false) written to {', '.join(parts)}" if parts
-                else "no output written")
-        print(f"{name}: interrupted by {sig}; {what}", file=sys.stderr)
+        print(f"{name}: interrupted by {sig}; {io_guard.interruption_note()}", file=sys.stderr)
         return getattr(exc, "exit_code", 130)
     except MemoryError:
         print(f"{name}: error: out of memory (shorten the run: --duration, a lower rate)", file=sys.stderr)

@@ -385,13 +385,39 @@ def note_partial(path):
     _partial.append(str(path))
 
 
+_complete = []
+
+
+def note_complete(path):
+    """Record that ``path`` was written complete before the run ended (reported if interrupted later)."""
+    _complete.append(str(path))
+
+
 def partial_outputs():
     """Noted partial outputs that actually exist."""
     return [p for p in _partial if os.path.isfile(p)]
 
 
+def complete_outputs():
+    """Noted complete outputs that actually exist."""
+    return [p for p in _complete if os.path.isfile(p)]
+
+
+def interruption_note():
+    """What an interrupted run left, for the one-line message."""
+    parts, done = partial_outputs(), complete_outputs()
+    if parts:
+        what = f"partial output (complete=false) written to {', '.join(parts)}"
+    else:
+        what = "no partial output written" if done else "no output written"
+    if done:
+        what += f"; complete outputs kept: {', '.join(done)}"
+    return what
+
+
 def reset_partial():
     _partial.clear()
+    _complete.clear()
 
 
 # ------------------------------------------------------------------------------------------

@@ -353,6 +353,9 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
     write_text_atomic(mpath, json.dumps(M.json_clean(js), indent=2))
     hpath = out / "results.h5"
     write_results_h5(hpath, cfg, raw, methods, runs, base_seed)
+    from ultratight.receiver.io_guard import note_complete
+    note_complete(mpath)
+    note_complete(hpath)
     figs = []
     if plots:
         figs = make_plots(out, raw, methods, channel)
