@@ -23,8 +23,9 @@ FLUSH_PIECES = 50
 
 
 def _tmp_path(path):
+    import secrets
     path = Path(path)
-    return path.with_name(f".{path.name}.part-{os.getpid()}")
+    return path.with_name(f".{path.name}.part-{os.getpid()}-{secrets.token_hex(4)}")
 
 
 class H5Stream:
