@@ -6,8 +6,8 @@ silently ignored key. Value ranges are checked afterwards by
 :func:`ultratight.receiver.scenario_config.validate` (which also applies the limits below).
 
 Tables in :data:`PASS_THROUGH_TABLES` belong to other stages, which check their keys. A top-level
-``experiment`` key is accepted; a scenario naming another experiment than the IF-level one keeps
-its own tables (the experiment module validates them), only the tables declared here are checked.
+``experiment`` key is accepted; a scenario naming another experiment than the IF-level one is left
+to that experiment's module (its ``load`` validates its own schema).
 """
 
 from ultratight.receiver.scenario_config import ENGINE_KEYS, check_known_keys
@@ -40,10 +40,10 @@ def check_raw(raw, where="scenario"):
     """ConfigError (with did-you-mean) for unknown tables/keys or wrong table types in a raw TOML dict."""
     if not isinstance(raw, dict):
         raise ConfigError(f"{where}: a scenario must be a TOML table")
-    foreign = raw.get("experiment") not in (None, "if-double-loop")
+    if raw.get("experiment") not in (None, "if-double-loop"):
+        return raw               # another experiment's scenario: its module validates its schema
     allowed = set(TOP_LEVEL_KEYS) | set(TABLES) | set(ARRAY_TABLES) | set(PASS_THROUGH_TABLES)
-    if not foreign:
-        check_known_keys(raw, allowed, f"{where}: top level")
+    check_known_keys(raw, allowed, f"{where}: top level")
     for name, keys in TABLES.items():
         if name not in raw:
             continue
