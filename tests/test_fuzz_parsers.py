@@ -15,7 +15,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from conftest import SHARED_DATA
@@ -44,11 +44,15 @@ def _tmpdir():
     return tempfile.TemporaryDirectory(prefix="ut-fuzz-")
 
 
-def _both(fn, **strategies):
-    """The property as a default-suite test (100 examples) and a slow one (2000)."""
-    fast = FAST(given(**strategies)(fn))
-    slow = pytest.mark.slow(SLOW(given(**strategies)(fn)))
-    return fast, slow
+def _both(fn, examples=(), **strategies):
+    """The property as a default-suite test (100 examples) and a slow one (2000); ``examples``:
+    explicit cases (dicts of arguments) run first in both."""
+    def build(prof):
+        t = given(**strategies)(fn)
+        for ex in examples:
+            t = example(**ex)(t)
+        return prof(t)
+    return build(FAST), pytest.mark.slow(build(SLOW))
 
 
 # ------------------------------------------------------------------------------------------ sidecar JSON
@@ -284,7 +288,11 @@ def _scenario_toml(base, muts):
         assert math.isfinite(cfg["duration_s"]) and cfg["duration_s"] > 0
 
 
-test_fuzz_scenario_toml, test_fuzz_scenario_toml_slow = _both(_scenario_toml, base=st.sampled_from(["static-open-sky", "vehicle-turns", "paper-highdyn"]),
+_SEED_LINE = next(i for i, ln in enumerate(_toml_lines("static-open-sky")) if ln.startswith("seed"))
+_TOML_EXAMPLES = [  # integer fields given non-finite values (found by the slow run)
+    {"base": "static-open-sky", "muts": [("value", _SEED_LINE, v, "a")]} for v in ("nan", "inf", "-inf")]
+
+test_fuzz_scenario_toml, test_fuzz_scenario_toml_slow = _both(_scenario_toml, examples=_TOML_EXAMPLES, base=st.sampled_from(["static-open-sky", "vehicle-turns", "paper-highdyn"]),
        muts=st.lists(toml_mutation, min_size=1, max_size=3))
 
 

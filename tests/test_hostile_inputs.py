@@ -301,7 +301,7 @@ def test_concurrent_scenario_runs_do_not_collide(tmp_path):
     args = [sys.executable, "-m", "ultratight.receiver.cli", "scenario", "vehicle-turns", "--duration", "0.3",
             "--fs-hz", "2.046e6", "--methods", "scalar", "--no-plots", "--quiet", "--out", str(out)]
     procs = [subprocess.Popen(args, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-             for _ in range(2)]
+             for _ in range(3)]
     for p in procs:
         _, err = p.communicate(timeout=300)
         assert p.returncode == 0, err
