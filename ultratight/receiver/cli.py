@@ -59,7 +59,14 @@ def build_parser():
 def main(argv=None):
     from ultratight.receiver import io_guard
 
-    io_guard.install_signal_handlers()
+    previous = io_guard.install_signal_handlers()
+    try:
+        return _main(argv, io_guard)
+    finally:
+        io_guard.restore_signal_handlers(previous)
+
+
+def _main(argv, io_guard):
     io_guard.reset_partial()
     try:
         parser = build_parser()

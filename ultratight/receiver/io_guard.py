@@ -361,18 +361,28 @@ def _handler(signum, frame):
 
 
 def install_signal_handlers():
-    """SIGINT/SIGTERM/SIGHUP -> :class:`Interrupted`; SIGXFSZ ignored (writes fail with EFBIG)."""
-    for s in HANDLED_SIGNALS:
+    """SIGINT/SIGTERM/SIGHUP -> :class:`Interrupted`; SIGXFSZ ignored (writes fail with EFBIG).
+
+    Returns the previous handlers, for :func:`restore_signal_handlers` (the CLI restores them when
+    it returns, so an in-process caller keeps its own handling)."""
+    previous = {}
+    for s in HANDLED_SIGNALS + ((signal.SIGXFSZ,) if hasattr(signal, "SIGXFSZ") else ()):
         try:
-            if signal.getsignal(s) is signal.SIG_IGN and s != signal.SIGINT:
+            old = signal.getsignal(s)
+            if s in HANDLED_SIGNALS and old is signal.SIG_IGN and s != signal.SIGINT:
                 continue           # e.g. nohup: keep ignoring SIGHUP
-            signal.signal(s, _handler)
-        except (OSError, ValueError):   # not the main thread
+            signal.signal(s, _handler if s in HANDLED_SIGNALS else signal.SIG_IGN)
+            previous[s] = old
+        except (OSError, ValueError, TypeError):   # not the main thread
             pass
-    if hasattr(signal, "SIGXFSZ"):
+    return previous
+
+
+def restore_signal_handlers(previous):
+    for s, h in (previous or {}).items():
         try:
-            signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-        except (OSError, ValueError):
+            signal.signal(s, h if h is not None else signal.SIG_DFL)
+        except (OSError, ValueError, TypeError):
             pass
 
 
