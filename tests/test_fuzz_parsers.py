@@ -169,7 +169,8 @@ test_fuzz_rinex_nav, test_fuzz_rinex_nav_slow = _both(_rinex, muts=st.lists(muta
 # ------------------------------------------------------------------------------------------ IMU CSV
 csv_headers = st.one_of(
     st.sampled_from(["t_s,dthx_rad,dthy_rad,dthz_rad,dvx_mps,dvy_mps,dvz_mps",
-                     "t_s,gx_dps,gy_dps,gz_dps,ax_g,ay_g,az_g", "\ufefft_s,gx_radps,gy_radps,gz_radps,ax_mps2,ay_mps2,az_mps2",
+                     "t_s,gx_dps,gy_dps,gz_dps,ax_g,ay_g,az_g",
+                     "\ufefft_s,gx_radps,gy_radps,gz_radps,ax_mps2,ay_mps2,az_mps2",
                      "t_s,gx_foo,gy_dps,gz_dps,ax_g,ay_g,az_g", "t_s", ""]),
     st.text(max_size=40))
 csv_token = st.one_of(st.floats(allow_nan=True, allow_infinity=True).map(repr), st.integers(-5, 5).map(str),
@@ -202,7 +203,8 @@ test_fuzz_imu_csv, test_fuzz_imu_csv_slow = _both(_imu_csv, doc=csv_docs)
 
 # ------------------------------------------------------------------------------------------ IMU HDF5
 h5_text = st.text(alphabet=st.characters(blacklist_categories=("Cs",), blacklist_characters="\x00"), max_size=10)
-attr_values = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-10**6, 10**6), h5_text, st.just("ultratight-imu"), st.lists(st.floats(), max_size=3))
+attr_values = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-10**6, 10**6), h5_text,
+                        st.just("ultratight-imu"), st.lists(st.floats(), max_size=3))
 arrays = st.one_of(
     st.builds(lambda n, cols, fill: np.full((n, cols) if cols else (n,), fill), st.integers(0, 6), st.integers(0, 4),
               st.floats(allow_nan=True, allow_infinity=True)),
@@ -235,11 +237,11 @@ def _imu_h5(fmt, rate, t0, meta, t, dth, dv, truth):
         assert imu.rate_hz > 0 and np.all(np.isfinite(imu.dtheta_b)) and np.all(np.isfinite(imu.t))
 
 
-test_fuzz_imu_h5, test_fuzz_imu_h5_slow = _both(_imu_h5, fmt=st.one_of(st.just("ultratight-imu"), attr_values), rate=st.one_of(st.none(), attr_values),
-       t0=st.one_of(st.none(), attr_values), meta=st.one_of(st.none(), h5_text, st.just("{}")),
-       t=st.one_of(st.none(), arrays), dth=st.one_of(st.none(), arrays), dv=st.one_of(st.none(), arrays),
-       truth=st.one_of(st.none(), st.dictionaries(st.sampled_from(["t", "llh", "vel_l", "q_lb"]), arrays,
-                                                  max_size=4)))
+test_fuzz_imu_h5, test_fuzz_imu_h5_slow = _both(
+    _imu_h5, fmt=st.one_of(st.just("ultratight-imu"), attr_values), rate=st.one_of(st.none(), attr_values),
+    t0=st.one_of(st.none(), attr_values), meta=st.one_of(st.none(), h5_text, st.just("{}")),
+    t=st.one_of(st.none(), arrays), dth=st.one_of(st.none(), arrays), dv=st.one_of(st.none(), arrays),
+    truth=st.one_of(st.none(), st.dictionaries(st.sampled_from(["t", "llh", "vel_l", "q_lb"]), arrays, max_size=4)))
 
 
 # ------------------------------------------------------------------------------------------ scenario TOML
@@ -292,8 +294,10 @@ _SEED_LINE = next(i for i, ln in enumerate(_toml_lines("static-open-sky")) if ln
 _TOML_EXAMPLES = [  # integer fields given non-finite values (found by the slow run)
     {"base": "static-open-sky", "muts": [("value", _SEED_LINE, v, "a")]} for v in ("nan", "inf", "-inf")]
 
-test_fuzz_scenario_toml, test_fuzz_scenario_toml_slow = _both(_scenario_toml, examples=_TOML_EXAMPLES, base=st.sampled_from(["static-open-sky", "vehicle-turns", "paper-highdyn"]),
-       muts=st.lists(toml_mutation, min_size=1, max_size=3))
+test_fuzz_scenario_toml, test_fuzz_scenario_toml_slow = _both(
+    _scenario_toml, examples=_TOML_EXAMPLES,
+    base=st.sampled_from(["static-open-sky", "vehicle-turns", "paper-highdyn"]),
+    muts=st.lists(toml_mutation, min_size=1, max_size=3))
 
 
 def test_every_parser_is_fuzzed():
