@@ -47,7 +47,6 @@ def _load_scenario(name):
 
 
 def run(args):
-    import json
     import math
     import time
     from pathlib import Path
