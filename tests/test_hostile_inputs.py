@@ -177,7 +177,8 @@ CASES = [
     ("scenario-out-is-file", ["scenario", "vehicle-turns", "--out", "c.bin", "--duration", "1"], 2,
      "not a directory"),
     # 6. limits
-    ("ins-rate-huge", ["ins", "paper-highdyn", "--rate", "1e7"], 2, "in memory"),
+    ("ins-rate-huge", ["ins", "paper-highdyn", "--rate", "1e7"], 2, "rate cap"),
+    ("ins-duration-huge", ["ins", "paper-highdyn", "--duration", "1e7"], 2, "in memory"),
     ("generate-duration-huge", ["generate", "static-open-sky", "--duration", "1e9", "--out", "g/"], 2, "needs about"),
     ("toml-duration-huge", ["generate", "huge.toml", "--out", "g/"], 2, "needs about"),
     # 7. silent acceptance of bad numbers

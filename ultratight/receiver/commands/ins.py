@@ -65,6 +65,9 @@ def run(args):
         raise ConfigError(f"--duration must be a finite number > 0, got {args.duration}")
     if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0):
         raise ConfigError(f"--rate must be a finite number > 0, got {args.rate}")
+    from ultratight.receiver.scenario_config import MAX_IMU_RATE_HZ
+    if args.rate is not None and args.rate > MAX_IMU_RATE_HZ:
+        raise ConfigError(f"--rate {args.rate:g} Hz exceeds the IMU rate cap of {MAX_IMU_RATE_HZ:g} Hz")
     if args.seed is not None and args.seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {args.seed}")
     for flag, vals in (("--init-llh", args.init_llh), ("--init-vel", args.init_vel), ("--init-att", args.init_att)):
