@@ -81,7 +81,7 @@ def estimate(cfg):
     fe = cfg["frontend"]
     spec = get_format(fe["format"])
     n = float(cfg["duration_s"]) * float(fe["fs_hz"])
-    if_bytes = n / spec.samples_per_byte if spec.packed2 else n * spec.bytes_per_sample
+    if_bytes = n * spec.bytes_per_sample if spec.bytes_per_sample else n / spec.samples_per_byte
     n_sat = max(len(cfg["satellites"].get("prns") or []), int(cfg["satellites"].get("max_count", 12)))
     rows = float(cfg["duration_s"]) * 1000.0
     truth_bytes = rows * 8 * (12 + 12 * n_sat)

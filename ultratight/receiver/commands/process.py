@@ -89,6 +89,11 @@ def _check_numbers(args):
         raise ConfigError(f"--acq-noncoherent must be in 1..1000, got {args.acq_noncoherent}")
 
 
+# every output flag of this command (flag, argparse dest): checked before any work
+OUTPUT_FLAGS = (("--out", "out"), ("--csv", "csv"), ("--kml", "kml"), ("--rinex-obs", "rinex_obs"),
+                ("--rinex-nav", "rinex_nav"), ("--nmea", "nmea"))
+
+
 def _check_paths(args):
     """Inputs readable, outputs writable and distinct from every input (io_guard.check_io)."""
     from ultratight.receiver import io_guard
@@ -99,7 +104,7 @@ def _check_paths(args):
         if p is not None:
             io_guard.check_input_file(p, f"{flag} file")
             inputs.append((flag, p))
-    io_guard.check_io(inputs, [("--out", args.out), ("--csv", args.csv), ("--kml", args.kml)])
+    io_guard.check_io(inputs, [(flag, getattr(args, dest, None)) for flag, dest in OUTPUT_FLAGS])
 
 
 def add_arguments(p):
@@ -223,7 +228,7 @@ def _raise_output_error(exc, args):
     from ultratight.receiver.io_guard import output_error
     if isinstance(exc, UltratightError):
         raise exc
-    outs = [p for p in (args.out, getattr(args, "csv", None), getattr(args, "kml", None)) if p]
+    outs = [getattr(args, dest) for _, dest in OUTPUT_FLAGS if getattr(args, dest, None)]
     raise output_error(", ".join(outs) or "output", exc) from None
 
 
