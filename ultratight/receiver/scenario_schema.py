@@ -17,7 +17,8 @@ TOP_LEVEL_KEYS = ("name", "description", "duration_s", "seed", "experiment")
 TABLES = {
     "time": ("week", "tow_s"),
     "receiver": ("lat_deg", "lon_deg", "h_m", "clock_bias_m", "clock_drift_mps"),
-    "trajectory": ("kind", "attitude", "att0_deg", "vel0_enu_mps", "speed0_mps", "heading0_deg", "segments"),
+    "trajectory": ("kind", "attitude", "att0_deg", "vel0_enu_mps", "speed0_mps", "heading0_deg", "segments",
+                   "swing_amp_deg", "swing_period_s", "swing_phase_deg"),
     "satellites": ("source", "rinex", "prns", "max_count", "mask_deg", "cn0_dbhz"),
     "frontend": ("fs_hz", "if_hz", "sampling", "format", "bits", "inversion", "filter_bw_hz", "filter_order",
                  "gain", "headroom"),
@@ -36,6 +37,14 @@ def _imu_keys():
     return tuple(sorted(_KNOWN_KEYS))
 
 
+def _declared(name, keys):
+    """``keys`` plus any the stage itself declares (``ultratight.ins.trajectory.CONFIG_KEYS`` ...)."""
+    if name == "trajectory":
+        from ultratight.ins import trajectory
+        return tuple(keys) + tuple(getattr(trajectory, "CONFIG_KEYS", ()))
+    return keys
+
+
 def check_raw(raw, where="scenario"):
     """ConfigError (with did-you-mean) for unknown tables/keys or wrong table types in a raw TOML dict."""
     if not isinstance(raw, dict):
@@ -50,7 +59,7 @@ def check_raw(raw, where="scenario"):
         t = raw[name]
         if not isinstance(t, dict):
             raise ConfigError(f"{where}: [{name}] must be a table, got {type(t).__name__}")
-        check_known_keys(t, _imu_keys() if name == "imu" else keys, f"{where}: [{name}]")
+        check_known_keys(t, _imu_keys() if name == "imu" else _declared(name, keys), f"{where}: [{name}]")
     segs = (raw.get("trajectory") or {}).get("segments") if isinstance(raw.get("trajectory"), dict) else None
     if segs is not None:
         if not isinstance(segs, list) or not all(isinstance(s, dict) for s in segs):
