@@ -33,3 +33,7 @@ class FilterError(UltratightError, ValueError):
 
 class DivergenceError(UltratightError, RuntimeError):
     """A filter or tracking loop diverged and cannot continue."""
+
+
+class OutputError(UltratightError, OSError):
+    """An output cannot be written: full disk, read-only file system, no permission, size limit."""

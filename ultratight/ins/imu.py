@@ -26,7 +26,6 @@ ug/sqrt(Hz), ppm (see the ``*_TO_SI`` constants and docs/ins.md).
 import csv
 import json
 import math
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -327,13 +326,13 @@ IMU_H5_VERSION = 1
 
 
 def write_imu_h5(path, imu, meta=None):
-    """Write :class:`ImuData` to HDF5 (layout in docs/ins.md); temp file then rename."""
-    import h5py
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
+    """Write :class:`ImuData` to HDF5 (layout in docs/ins.md); built in memory, written under a
+    unique temporary name, then renamed (disk errors raise OutputError)."""
+    from ultratight.receiver.io_guard import write_h5_atomic
     allmeta = dict(imu.meta or {})
     allmeta.update(meta or {})
-    with h5py.File(tmp, "w") as f:
+
+    def build(f):
         f.attrs["format"] = IMU_H5_FORMAT
         f.attrs["version"] = IMU_H5_VERSION
         f.attrs["rate_hz"] = float(imu.rate_hz)
@@ -352,39 +351,92 @@ def write_imu_h5(path, imu, meta=None):
                                      "q_lb scalar-first body->ENU"
             for key in ("t", "llh", "vel_l", "q_lb"):
                 g.create_dataset(key, data=np.asarray(imu.truth[key], float))
-    os.replace(tmp, path)
+
+    write_h5_atomic(path, build)
+
+
+def _float_array(f, key, path):
+    ds = f[key]
+    if not hasattr(ds, "dtype") or ds.dtype.kind not in "iuf":
+        raise InputFileError(f"{path}: dataset /{key} must hold numbers, not {getattr(ds, 'dtype', type(ds))}")
+    return np.asarray(ds[()], dtype=float)
+
+
+def _attr_number(f, key, path, default=None):
+    if key not in f.attrs:
+        if default is not None:
+            return default
+        raise InputFileError(f"{path}: missing attribute {key!r}")
+    v = f.attrs[key]
+    try:
+        v = float(np.asarray(v).reshape(-1)[0]) if np.asarray(v).size == 1 else None
+    except (TypeError, ValueError):
+        v = None
+    if v is None or not math.isfinite(v):
+        raise InputFileError(f"{path}: attribute {key!r} must be a finite number, got {f.attrs[key]!r}")
+    return v
 
 
 def read_imu_h5(path):
-    """Read an IMU HDF5 file written by :func:`write_imu_h5` (InputFileError on problems)."""
+    """Read an IMU HDF5 file written by :func:`write_imu_h5` (InputFileError on problems: missing
+    or malformed datasets/attributes, non-finite increments or stamps)."""
     import h5py
     path = Path(path)
     if not path.is_file():
         raise InputFileError(f"{path}: IMU file not found")
     try:
         with h5py.File(path, "r") as f:
-            if f.attrs.get("format") != IMU_H5_FORMAT:
+            fmt = f.attrs.get("format")
+            if isinstance(fmt, bytes):
+                fmt = fmt.decode("utf-8", "replace")
+            if fmt != IMU_H5_FORMAT:
                 raise InputFileError(f"{path}: not an ultratight IMU HDF5 file (attribute format = "
-                                     f"{f.attrs.get('format')!r}, expected {IMU_H5_FORMAT!r})")
+                                     f"{fmt!r}, expected {IMU_H5_FORMAT!r})")
             for key in ("t", "dtheta_b", "dv_b"):
-                if key not in f:
+                if key not in f or not isinstance(f[key], h5py.Dataset):
                     raise InputFileError(f"{path}: missing dataset /{key}")
-            t = f["t"][()]
-            dth = f["dtheta_b"][()]
-            dv = f["dv_b"][()]
-            rate = float(f.attrs["rate_hz"])
-            t0 = float(f.attrs.get("t0_s", t[0] - 1.0 / rate if t.size else 0.0))
-            meta = json.loads(f.attrs.get("meta_json", "{}"))
+            t = _float_array(f, "t", path)
+            dth = _float_array(f, "dtheta_b", path)
+            dv = _float_array(f, "dv_b", path)
+            rate = _attr_number(f, "rate_hz", path)
+            if not rate > 0:
+                raise InputFileError(f"{path}: attribute rate_hz must be > 0 Hz, got {rate}")
+            t0 = _attr_number(f, "t0_s", path, default=float(t.reshape(-1)[0] - 1.0 / rate) if t.size else 0.0)
+            raw_meta = f.attrs.get("meta_json", "{}")
+            if isinstance(raw_meta, bytes):
+                raw_meta = raw_meta.decode("utf-8", "replace")
+            try:
+                meta = json.loads(raw_meta) if isinstance(raw_meta, str) else None
+            except ValueError:
+                meta = None
+            if not isinstance(meta, dict):
+                raise InputFileError(f"{path}: attribute meta_json is not a JSON object")
             truth = None
             if "truth" in f:
-                truth = {k: f["truth"][k][()] for k in f["truth"].keys()}
-    except OSError as exc:
-        if isinstance(exc, InputFileError):
-            raise
-        raise InputFileError(f"{path}: cannot read HDF5 ({exc})") from None
+                if not isinstance(f["truth"], h5py.Group):
+                    raise InputFileError(f"{path}: /truth must be a group")
+                truth = {k: _float_array(f["truth"], k, path) for k in f["truth"].keys()}
+    except InputFileError:
+        raise
+    except (OSError, KeyError, ValueError, TypeError) as exc:
+        raise InputFileError(f"{path}: cannot read HDF5 ({' '.join(str(exc).split())[:200]})") from None
+    if t.ndim != 1:
+        raise InputFileError(f"{path}: /t must be one-dimensional, got shape {t.shape}")
     if dth.shape != (t.size, 3) or dv.shape != (t.size, 3):
         raise InputFileError(f"{path}: dtheta_b {dth.shape} / dv_b {dv.shape} do not match t ({t.size},)")
+    for name, arr in (("dtheta_b", dth), ("dv_b", dv)):
+        bad = np.argwhere(~np.isfinite(arr))
+        if bad.size:
+            raise InputFileError(f"{path}: sample {int(bad[0][0])}: {name} is not a finite number (NaN/inf)")
     _check_stamps(t, path, first_row=0, what="sample")
+    if truth is not None:
+        need = {"t": (t.size + 1,), "llh": (t.size + 1, 3), "vel_l": (t.size + 1, 3), "q_lb": (t.size + 1, 4)}
+        for k, shp in need.items():
+            if k in truth and (truth[k].shape[1:] != shp[1:] or not np.all(np.isfinite(truth[k]))):
+                raise InputFileError(f"{path}: /truth/{k} has shape {truth[k].shape} or non-finite values")
+        if not all(k in truth for k in ("llh", "vel_l", "q_lb")) or min(truth[k].shape[0] for k in
+                                                                          ("llh", "vel_l", "q_lb")) < 1:
+            raise InputFileError(f"{path}: /truth needs llh, vel_l and q_lb with at least one row")
     return ImuData(t=t, dtheta_b=dth, dv_b=dv, rate_hz=rate, t0=t0, truth=truth, meta=meta)
 
 
@@ -433,13 +485,24 @@ def read_imu_csv(path):
     path = Path(path)
     if not path.is_file():
         raise InputFileError(f"{path}: IMU CSV file not found")
-    with open(path, newline="") as fh:
-        lines = [(i + 1, ln) for i, ln in enumerate(fh.read().splitlines())]
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            text = fh.read()
+    except UnicodeDecodeError as exc:
+        raise InputFileError(f"{path}: not a text CSV file (byte {exc.start} is not UTF-8)") from None
+    except OSError as exc:
+        raise InputFileError(f"{path}: cannot read IMU CSV ({exc.strerror or exc})") from None
+    if "\x00" in text:
+        raise InputFileError(f"{path}: not a text CSV file (contains NUL bytes)")
+    lines = [(i + 1, ln) for i, ln in enumerate(text.splitlines())]
     lines = [(i, ln) for i, ln in lines if ln.strip() and not ln.lstrip().startswith("#")]
     if not lines:
         raise InputFileError(f"{path}: empty IMU CSV file")
     hdr_line, hdr = lines[0]
-    cols = [c.strip().lower() for c in next(csv.reader([hdr]))]
+    try:
+        cols = [c.strip().lower() for c in next(csv.reader([hdr]))]
+    except (csv.Error, StopIteration) as exc:
+        raise InputFileError(f"{path}: line {hdr_line}: unreadable CSV header ({exc})") from None
     idx = {c: i for i, c in enumerate(cols)}
     if "t_s" not in idx:
         raise InputFileError(f"{path}: line {hdr_line}: header needs a 't_s' column (seconds); got {cols}")
@@ -479,7 +542,10 @@ def read_imu_csv(path):
     line_no = np.empty(n, dtype=int)
     want = [idx["t_s"]] + ci
     for r, (ln, text) in enumerate(rows):
-        fields = next(csv.reader([text]))
+        try:
+            fields = next(csv.reader([text]))
+        except (csv.Error, StopIteration) as exc:
+            raise InputFileError(f"{path}: line {ln}: unreadable CSV line ({exc})") from None
         line_no[r] = ln
         if len(fields) != len(cols):
             raise InputFileError(f"{path}: line {ln}: {len(fields)} fields, header has {len(cols)}")
@@ -514,15 +580,14 @@ def read_imu_csv(path):
 
 def write_imu_csv(path, imu):
     """Write increments as CSV (t_s, dthx_rad, ..., dvz_mps) -- the format read_imu_csv reads."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w") as fh:
-        fh.write("# ultratight IMU increments, body frame FLU; t_s = end of interval\n")
-        fh.write("t_s,dthx_rad,dthy_rad,dthz_rad,dvx_mps,dvy_mps,dvz_mps\n")
-        for k in range(imu.n):
-            fh.write(f"{imu.t[k]:.9f}," + ",".join(f"{x:.17g}" for x in imu.dtheta_b[k]) + "," +
-                     ",".join(f"{x:.17g}" for x in imu.dv_b[k]) + "\n")
-    os.replace(tmp, path)
+    from ultratight.receiver.io_guard import atomic_path
+    with atomic_path(path) as tmp:
+        with open(tmp, "w") as fh:
+            fh.write("# ultratight IMU increments, body frame FLU; t_s = end of interval\n")
+            fh.write("t_s,dthx_rad,dthy_rad,dthz_rad,dvx_mps,dvy_mps,dvz_mps\n")
+            for k in range(imu.n):
+                fh.write(f"{imu.t[k]:.9f}," + ",".join(f"{x:.17g}" for x in imu.dtheta_b[k]) + "," +
+                         ",".join(f"{x:.17g}" for x in imu.dv_b[k]) + "\n")
 
 
 # ------------------------------------------------------------------ Allan deviation (for tests/benchmarks)

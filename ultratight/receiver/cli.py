@@ -6,8 +6,10 @@ Each subcommand lives in ``ultratight.receiver.commands.<name>`` and exposes
 * ``add_arguments(parser)``: declare its flags (cheap: no heavy imports),
 * ``run(args) -> int``: do the work (import numba-heavy modules here).
 
-User errors (:class:`ultratight.errors.UltratightError`) are printed as one
-line on stderr with exit status 2; Ctrl-C exits with status 130.
+User errors (:class:`ultratight.errors.UltratightError`, also output errors such as a full
+disk, and memory exhaustion) are printed as one line on stderr with exit status 2. SIGINT,
+SIGTERM and SIGHUP stop the run with one line saying whether a partial output (``complete=false``)
+was written, exit status 128 + signal number (130, 143, 129). See docs/reliability.md.
 """
 
 import argparse
@@ -29,8 +31,15 @@ def _load(name):
         raise
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line usage errors (``ultratight process: error: ... (see --help)``), exit 2."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see {self.prog} --help)\n")
+
+
 def build_parser():
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="ultratight",
         description="Software GPS L1 C/A receiver with ultra-tight SINS coupling.",
     )
@@ -48,16 +57,47 @@ def build_parser():
 
 
 def main(argv=None):
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    from ultratight.receiver import io_guard
+
+    previous = io_guard.install_signal_handlers()
+    try:
+        return _main(argv, io_guard)
+    finally:
+        io_guard.restore_signal_handlers(previous)
+
+
+def _main(argv, io_guard):
+    io_guard.reset_partial()
+    try:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+    except KeyboardInterrupt as exc:
+        print("ultratight: interrupted", file=sys.stderr)
+        return getattr(exc, "exit_code", 130)
+    name = f"ultratight {args.command}"
     try:
         return int(args._run(args) or 0)
     except UltratightError as exc:
-        print(f"ultratight {args.command}: error: {exc}", file=sys.stderr)
+        print(f"{name}: error: {_one_line(exc)}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"ultratight {args.command}: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        sig = getattr(exc, "name", "SIGINT")
+        print(f"{name}: interrupted by {sig}; {io_guard.interruption_note()}", file=sys.stderr)
+        return getattr(exc, "exit_code", 130)
+    except MemoryError:
+        print(f"{name}: error: out of memory (shorten the run: --duration, a lower rate)", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        # an OS-level failure no stage turned into a user error: report it in one line
+        path = getattr(exc, "filename", None)
+        where = f" {path}" if path else ""
+        print(f"{name}: error:{where} {io_guard.describe_os_error(exc)}", file=sys.stderr)
+        return 2
+
+
+def _one_line(exc):
+    text = " ".join(str(exc).split())
+    return text if len(text) <= 2000 else text[:2000] + "..."
 
 
 if __name__ == "__main__":

@@ -944,6 +944,10 @@ def check_imu_if_alignment(src, imu, if_path="IF file", imu_path="IMU file", tol
         raise InputFileError(f"{imu_path}: sample {i}: interval {d[i - 1]:.6g} s at t = {t[i]!r} s differs from "
                              f"the nominal {dt:.6g} s ({imu.rate_hz} Hz): gap or irregular sampling")
     t0 = float(getattr(imu, "t0", t[0] - dt))
+    if abs(float(t[0]) - dt) > tol_s:
+        raise InputFileError(f"{imu_path}: first IMU stamp t = {float(t[0]):.6g} s; the first increment must end "
+                             f"one IMU interval ({dt:.6g} s) after the first IF sample (t = 0): IMU/IF time offset "
+                             f"{float(t[0]) - dt:+.6g} s")
     if abs(t0) > tol_s:
         raise InputFileError(f"{imu_path}: IMU time axis starts at t0 = {t0:.6g} s but must start at the first IF "
                              f"sample (t0 = 0 within {tol_s} s); IMU/IF time offset {t0:.6g} s")
@@ -1036,15 +1040,13 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
 
 
 def write_result_h5(path, res, extra_attrs=None):
-    """Write an :class:`EngineResult` to HDF5 (temporary name, then rename; schema in docs/ultratight.md)."""
+    """Write an :class:`EngineResult` to HDF5 (built in memory, written under a unique temporary
+    name, then renamed; schema in docs/ultratight.md). Disk errors raise OutputError."""
     import json
-    import os
-    from pathlib import Path
-    import h5py
     from ultratight import __version__
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with h5py.File(tmp, "w") as f:
+    from ultratight.receiver.io_guard import write_h5_atomic
+
+    def build(f):
         f.attrs["schema"] = "ultratight engine result v1 (docs/ultratight.md)"
         f.attrs["version"] = __version__
         f.attrs["method"] = res.method
@@ -1059,4 +1061,5 @@ def write_result_h5(path, res, extra_attrs=None):
                      ("nav_t_s", res.nav_t), ("nav_pos_e", res.nav_pos_e), ("nav_vel_e", res.nav_vel_e),
                      ("nav_clk", res.nav_clk), ("nav_sigma_doppler_hz", res.nav_sigma_doppler_hz)):
             f.create_dataset(k, data=np.asarray(v), compression="gzip", compression_opts=1)
-    os.replace(tmp, path)
+
+    return write_h5_atomic(path, build)

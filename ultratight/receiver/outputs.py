@@ -23,8 +23,9 @@ FLUSH_PIECES = 50
 
 
 def _tmp_path(path):
+    import secrets
     path = Path(path)
-    return path.with_name(f".{path.name}.part-{os.getpid()}")
+    return path.with_name(f".{path.name}.part-{os.getpid()}-{secrets.token_hex(4)}")
 
 
 class H5Stream:
@@ -116,11 +117,8 @@ class H5Stream:
 
 
 def _write_atomic(path, text):
-    path = Path(path)
-    tmp = _tmp_path(path)
-    with open(tmp, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
+    from ultratight.receiver.io_guard import write_text_atomic
+    write_text_atomic(path, text)
 
 
 def write_csv(path, pvt_rows):

@@ -26,6 +26,13 @@ from pathlib import Path
 
 from ultratight.errors import ConfigError
 
+# limits (docs/reliability.md); the declared key schema is in ultratight.receiver.scenario_schema
+MIN_FS_HZ = 1.023e6            # the receiver needs at least the C/A chipping rate
+MAX_FS_HZ = 100e6
+MIN_NOISE_FACTOR = 1e-3
+MAX_NOISE_FACTOR = 1000.0      # 60 dB above the nominal noise: beyond, the signal quantises to nothing
+MAX_IMU_RATE_HZ = 10000.0
+
 DEFAULTS = {
     "description": "",
     "duration_s": 60.0,
@@ -118,8 +125,10 @@ def locate_scenario(name_or_path):
 
 def load_scenario(name_or_path, overrides=None):
     """Load, complete and validate a scenario (see module doc). Raises ConfigError."""
+    from ultratight.receiver.scenario_schema import check_raw
     path = locate_scenario(name_or_path)
     raw = read_toml(path)
+    check_raw(raw, str(path))           # unknown tables/keys are errors (declared schema)
     cfg = _deep_merge(DEFAULTS, raw)
     cfg.setdefault("name", path.stem)
     if "imu" in cfg:
@@ -143,10 +152,10 @@ def _num(cfg, dotted, lo=None, hi=None, lo_open=False, integer=False):
     v = d.get(parts[-1])
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         raise ConfigError(f"{dotted} must be a number, got {v!r}")
-    if integer and int(v) != v:
-        raise ConfigError(f"{dotted} must be an integer, got {v!r}")
     if not math.isfinite(v):
         raise ConfigError(f"{dotted} must be finite, got {v!r}")
+    if integer and int(v) != v:
+        raise ConfigError(f"{dotted} must be an integer, got {v!r}")
     if lo is not None and (v <= lo if lo_open else v < lo):
         raise ConfigError(f"{dotted} must be {'>' if lo_open else '>='} {lo}, got {v!r}")
     if hi is not None and v > hi:
@@ -237,13 +246,14 @@ def validate(cfg):
                 raise ConfigError(f"noise_events[{i}].{k} must be a number, got {v!r}")
         if not ev["t0_s"] < ev["t1_s"]:
             raise ConfigError(f"noise_events[{i}]: t0_s must be < t1_s")
-        if not ev["noise_factor"] > 0:
-            raise ConfigError(f"noise_events[{i}].noise_factor must be > 0")
+        if not MIN_NOISE_FACTOR <= ev["noise_factor"] <= MAX_NOISE_FACTOR:
+            raise ConfigError(f"noise_events[{i}].noise_factor must be in [{MIN_NOISE_FACTOR:g}, "
+                              f"{MAX_NOISE_FACTOR:g}] (x the nominal noise std), got {ev['noise_factor']!r}")
     fe = _table(cfg, "frontend")
     if fe.get("format") not in FORMATS:
         raise ConfigError(f"frontend.format: unknown IF sample format {fe.get('format')!r}; "
                           f"expected one of {', '.join(FORMATS)}")
-    _num(cfg, "frontend.fs_hz", lo=0, lo_open=True)
+    _num(cfg, "frontend.fs_hz", lo=MIN_FS_HZ, hi=MAX_FS_HZ)
     _num(cfg, "frontend.if_hz")
     _num(cfg, "frontend.bits", integer=True)
     FrontEnd.from_config(fe)       # raises ConfigError for impossible combinations
@@ -256,7 +266,7 @@ def validate(cfg):
         raise ConfigError(f"nav.data_bits must be true or false, got {nav.get('data_bits')!r}")
     if "imu" in cfg:
         _table(cfg, "imu")
-        _num(cfg, "imu.rate_hz", lo=0, lo_open=True)
+        _num(cfg, "imu.rate_hz", lo=0, lo_open=True, hi=MAX_IMU_RATE_HZ)
     if "atmosphere" in cfg:
         _validate_atmosphere(_table(cfg, "atmosphere"))
     if "engine" in cfg:

@@ -17,8 +17,8 @@ figures like the paper's Fig. 4–7 when matplotlib is installed.
 
 import hashlib
 import json
-import os
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -35,8 +35,61 @@ def _cfg_key(cfg):
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
+CACHE_VERSION = 2       # done.json layout: {"version", "files": {kind: {"name", "size"}}}
+
+
+def _cache_entry_ok(d, done):
+    """Paths of a verified cache entry, or None (missing, unparsable, wrong sizes, bad sidecar)."""
+    try:
+        entry = json.loads(done.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if not isinstance(entry, dict) or entry.get("version") != CACHE_VERSION or not isinstance(entry.get("files"), dict):
+        return None
+    paths = {}
+    for kind, rec in entry["files"].items():
+        if not isinstance(rec, dict) or not isinstance(rec.get("name"), str) or "/" in rec["name"]:
+            return None
+        p = d / rec["name"]
+        try:
+            if not p.is_file() or p.stat().st_size != rec.get("size"):
+                return None
+        except OSError:
+            return None
+        paths[kind] = p
+    if "if" not in paths or "truth" not in paths:
+        return None
+    try:
+        from ultratight.signals.iffile import open_if
+        open_if(paths["if"]).close()
+    except (OSError, ValueError):
+        return None
+    return paths
+
+
+@contextmanager
+def _cache_lock(d):
+    """Exclusive per-key lock (``fcntl.flock`` on ``OUT/cache/<key>.lock``): concurrent runs of the same
+    configuration wait for each other instead of writing the same files."""
+    lock_path = d.with_name(d.name + ".lock")
+    fh = open(lock_path, "a+")
+    try:
+        try:
+            import fcntl
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
+        except ImportError:      # pragma: no cover - no fcntl (not POSIX)
+            pass
+        yield
+    finally:
+        fh.close()               # releases the lock
+
+
 def prepare_data(cfg, seed, out_dir, progress=False):
-    """Generate the scenario's files under OUT/cache/<key>/ unless they are already there."""
+    """Generate the scenario's files under OUT/cache/<key>/ unless a verified entry is already there.
+
+    The entry is guarded by a per-key lock; ``done.json`` records every file's name and size and is
+    written last (atomically); an entry that does not verify is regenerated."""
+    from ultratight.receiver.io_guard import output_error, write_text_atomic
     from ultratight.signals.generator import generate
     c = dict(cfg)
     c["seed"] = int(seed)
@@ -45,17 +98,37 @@ def prepare_data(cfg, seed, out_dir, progress=False):
     key = _cfg_key(c)
     d = Path(out_dir) / "cache" / key
     done = d / "done.json"
-    if done.is_file():
-        paths = json.loads(done.read_text())
-        if all(Path(p).is_file() for p in paths.values()):
-            return {k: Path(v) for k, v in paths.items()}, True
-    d.mkdir(parents=True, exist_ok=True)
-    res = generate(c, d, "data", seed=int(seed), progress=progress)
-    paths = {k: str(v) for k, v in res.items() if k != "summary"}
-    tmp = d / "done.json.tmp"
-    tmp.write_text(json.dumps(paths))
-    os.replace(tmp, done)
-    return {k: Path(v) for k, v in paths.items()}, False
+    try:
+        d.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise output_error(d.parent, exc, "cannot create cache directory") from None
+    with _cache_lock(d):
+        paths = _cache_entry_ok(d, done) if done.is_file() else None
+        if paths is not None:
+            return paths, True
+        try:
+            done.unlink()
+        except FileNotFoundError:
+            pass
+        except OSError as exc:
+            raise output_error(done, exc, "cannot remove stale cache entry") from None
+        try:
+            d.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise output_error(d, exc, "cannot create cache directory") from None
+        try:
+            res = generate(c, d, "data", seed=int(seed), progress=progress)
+        except BaseException as exc:
+            try:
+                d.rmdir()                # only when empty: the generator removed its temporary files
+            except OSError:
+                pass
+            if isinstance(exc, OSError) and not isinstance(exc, (ConfigError, InputFileError)):
+                raise output_error(d, exc, "cannot write scenario data in") from None
+            raise
+        files = {k: {"name": Path(v).name, "size": Path(v).stat().st_size} for k, v in res.items() if k != "summary"}
+        write_text_atomic(done, json.dumps({"version": CACHE_VERSION, "files": files}))
+        return {k: d / v["name"] for k, v in files.items()}, False
 
 
 def load_truth(path):
@@ -125,7 +198,6 @@ def run_method(paths, cfg, method, seed, options=None, startup_errors=None, dura
     options = engine_options_for(cfg, options)
     truth = load_truth(paths["truth"])
     src = open_if(paths["if"])
-    imu = read_imu_h5(paths["imu"])
     ephs = ephemerides_for(cfg)
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7]))
     errs = startup_errors or StartupErrors()
@@ -133,6 +205,9 @@ def run_method(paths, cfg, method, seed, options=None, startup_errors=None, dura
     if method == "scalar":
         res = run_scalar(src, truth["prn"], ephs, truth["week"], truth["tow0_s"], init, duration_s)
     else:
+        if "imu" not in paths:
+            raise ConfigError(f"method {method!r} needs the scenario's IMU data; the scenario has no [imu] table")
+        imu = read_imu_h5(paths["imu"])
         eng = UltratightEngine(src, imu, ephs, truth["prn"], truth["week"], truth["tow0_s"], method=method,
                                options=options or EngineOptions(), init_state=init, rng=rng,
                                duration_s=duration_s)
@@ -215,9 +290,22 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
     if fs_hz is not None:
         ov["frontend.fs_hz"] = float(fs_hz)
     cfg = load_scenario(name, ov)
+    if any(m != "scalar" for m in methods) and "imu" not in cfg:
+        # the ultra-tight methods run on an IMU: a scenario without [imu] gets the default one
+        from ultratight.receiver.scenario_config import IMU_DEFAULTS
+        cfg["imu"] = dict(IMU_DEFAULTS)
     base_seed = int(cfg.get("seed", 0) if seed is None else seed)
+    if base_seed < 0:
+        raise ConfigError(f"--seed must be >= 0, got {base_seed}")
+    if isinstance(channel, bool) or not isinstance(channel, int) or channel < 0:
+        raise ConfigError(f"--channel must be an integer >= 0, got {channel}")
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    _check_out_dir(out, cfg, int(runs))
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        from ultratight.receiver.io_guard import output_error
+        raise output_error(out, exc, "cannot create output directory") from None
     dur = float(cfg["duration_s"])
     segs = M.SEGMENTS_S
     per = {m: [] for m in methods}
@@ -226,6 +314,9 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
         s = base_seed + r
         t0 = time.perf_counter()
         paths, cached = prepare_data(cfg, s, out, progress=progress)
+        n_ch = len(load_truth(paths["truth"])["prn"])
+        if channel >= n_ch:
+            raise ConfigError(f"--channel {channel}: the scenario has {n_ch} channel(s) (0..{n_ch - 1})")
         if progress:
             print(f"run {r + 1}/{runs} seed {s}: data {'reused' if cached else 'generated'} "
                   f"({time.perf_counter() - t0:.1f} s)", flush=True)
@@ -257,12 +348,14 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
                                                   "segment_diverged", "noise_events")}
                       for m in methods}, "monitor": mon,
           "per_run": per, "version": __version__, "paper_table3": M.PAPER_TABLE3, "paper_table4_s": M.PAPER_TABLE4_S}
+    from ultratight.receiver.io_guard import write_text_atomic
     mpath = out / "metrics.json"
-    tmp = out / "metrics.json.tmp"
-    tmp.write_text(json.dumps(M.json_clean(js), indent=2))
-    os.replace(tmp, mpath)
+    write_text_atomic(mpath, json.dumps(M.json_clean(js), indent=2))
     hpath = out / "results.h5"
     write_results_h5(hpath, cfg, raw, methods, runs, base_seed)
+    from ultratight.receiver.io_guard import note_complete
+    note_complete(mpath)
+    note_complete(hpath)
     figs = []
     if plots:
         figs = make_plots(out, raw, methods, channel)
@@ -333,11 +426,24 @@ def aggregate(summaries, raw, method, segs, channel):
     }
 
 
+def _check_out_dir(out, cfg, runs):
+    """--out: a directory (existing or creatable) with room for the runs' data (estimate)."""
+    from ultratight.receiver import io_guard
+    from ultratight.receiver.commands.generate import estimate
+    io_guard.check_path_length(out, "--out")
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out} exists and is not a directory")
+    io_guard.check_output_path(out / "metrics.json", "--out", create_parent=True)
+    est = estimate(cfg)
+    io_guard.check_disk(out, runs * (est["if_bytes"] + est["truth_bytes"] + 2 * est["imu_bytes"]),
+                        f"the data of {runs} run(s) of {cfg['duration_s']:g} s")
+    io_guard.check_memory(est["memory_bytes"], f"a run of {cfg['duration_s']:g} s")
+
+
 def write_results_h5(path, cfg, raw, methods, runs, base_seed):
-    import h5py
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    with h5py.File(tmp, "w") as f:
+    from ultratight.receiver.io_guard import write_h5_atomic
+
+    def build(f):
         f.attrs["schema"] = SCHEMA
         f.attrs["version"] = __version__
         f.attrs["config_json"] = json.dumps(cfg, default=str)
@@ -356,7 +462,8 @@ def write_results_h5(path, cfg, raw, methods, runs, base_seed):
                          ("nav_t_s", res.nav_t), ("nav_pos_e", res.nav_pos_e), ("nav_vel_e", res.nav_vel_e),
                          ("nav_clk", res.nav_clk), ("nav_sigma_doppler_hz", res.nav_sigma_doppler_hz)):
                 g.create_dataset(k, data=np.asarray(v), compression="gzip", compression_opts=1)
-    os.replace(tmp, path)
+
+    write_h5_atomic(path, build)
 
 
 def make_plots(out, raw, methods, channel):
@@ -387,7 +494,11 @@ def make_plots(out, raw, methods, channel):
         ax.grid(True, alpha=0.3)
         ax.legend()
         p = Path(out) / name
-        fig.savefig(p, dpi=110, bbox_inches="tight")
-        plt.close(fig)
+        from ultratight.receiver.io_guard import atomic_path
+        try:
+            with atomic_path(p) as tmp:
+                fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
+        finally:
+            plt.close(fig)
         figs.append(str(p))
     return figs

@@ -394,8 +394,8 @@ def noise_factor(events, e):
 
 
 def _tmp(path):
-    path = Path(path)
-    return path.with_name(f".{path.name}.tmp{os.getpid()}")
+    from ultratight.receiver.io_guard import tmp_name
+    return tmp_name(path)
 
 
 class _TruthWriter:

@@ -175,7 +175,27 @@ def _freq(el, what, xml_path):
 
 
 def parse_ion_metadata(xml_path):
-    """Parse a single-stream ION GNSS SDR metadata XML file into sidecar-like fields."""
+    """Parse a single-stream ION GNSS SDR metadata XML file into sidecar-like fields.
+
+    Malformed values (``<ratefactor>x``, ``<quantization>thirtytwo``, non-finite rates) raise
+    FormatError naming the file."""
+    try:
+        info = _parse_ion_metadata(xml_path)
+    except (ValueError, TypeError, AttributeError, RecursionError, UnicodeError) as exc:
+        if isinstance(exc, FormatError):
+            raise
+        raise FormatError(f"{xml_path}: malformed ION metadata ({' '.join(str(exc).split())[:200]})") from None
+    from ultratight.signals.metadata_check import check_sidecar
+    fs = info["fs_hz"]
+    if not (np.isfinite(fs) and fs > 0):
+        raise FormatError(f"{xml_path}: sample rate (freqbase x ratefactor) must be > 0 Hz, got {fs}")
+    if not np.isfinite(info["if_hz"]):
+        raise FormatError(f"{xml_path}: <translatedfreq> must be finite, got {info['if_hz']}")
+    check_sidecar({k: info[k] for k in ("fs_hz", "if_hz")}, xml_path)
+    return info
+
+
+def _parse_ion_metadata(xml_path):
     xml_path = Path(xml_path)
     if not xml_path.is_file():
         raise InputFileError(f"metadata file not found: {xml_path}")
@@ -283,7 +303,8 @@ class IfSource:
         self.file_if_hz = if_hz
         self.if_hz = self.fs_hz / 2.0 - if_hz if self._alt_sign else if_hz
         if not self.path.is_file():
-            raise InputFileError(f"IF file not found: {self.path}")
+            from ultratight.receiver.io_guard import check_input_file
+            check_input_file(self.path, "IF file")
         size = self.path.stat().st_size
         spec = self.spec
         self.packing = None
@@ -301,10 +322,14 @@ class IfSource:
                     f"{self.path}: size {size} bytes is not a whole number of {self.fmt} samples "
                     f"({bps} bytes each)")
             total = size // bps
+        self.warnings = []
         if n_samples is not None:
             if n_samples > total:
-                raise FormatError(f"{self.path}: sidecar says {n_samples} samples but the file holds {total}")
-            total = int(n_samples)
+                # a truncated recording: the data are what they are -- use what is there, say so
+                self.warnings.append(f"{self.path}: truncated recording: the metadata state {int(n_samples)} "
+                                     f"samples but the file holds {total}; processing the {total} present")
+            else:
+                total = int(n_samples)
         self.n_samples = int(total)
         self.duration_s = self.n_samples / self.fs_hz
         dt = np.dtype(dtype or spec.dtype)
@@ -408,11 +433,8 @@ def read_sidecar(path):
     sp = sidecar_path(path)
     if not sp.is_file():
         return None
-    try:
-        with open(sp) as f:
-            return json.load(f)
-    except (OSError, json.JSONDecodeError) as exc:
-        raise FormatError(f"{sp}: unreadable JSON sidecar ({exc})") from None
+    from ultratight.signals.metadata_check import load_json_metadata
+    return load_json_metadata(sp)
 
 
 def open_if(path=None, meta=None, fs_hz=None, if_hz=None, fmt=None, iq_conj=False, packing=None):
@@ -431,7 +453,8 @@ def open_if(path=None, meta=None, fs_hz=None, if_hz=None, fmt=None, iq_conj=Fals
     if meta is not None:
         mp = Path(meta)
         if not mp.is_file() and not str(mp).lower().endswith(".sigmf-data"):
-            raise InputFileError(f"metadata file not found: {mp}")
+            from ultratight.receiver.io_guard import check_input_file
+            check_input_file(mp, "metadata file")
         if str(mp).lower().endswith((".sigmf-meta", ".sigmf-data")):
             from ultratight.signals.sigmf_io import read_sigmf
             info = read_sigmf(mp)
@@ -444,15 +467,14 @@ def open_if(path=None, meta=None, fs_hz=None, if_hz=None, fmt=None, iq_conj=Fals
                     raise FormatError(f"{mp}: no <file><url> and no data path given")
                 path = info["data_file"]
         else:
-            try:
-                info = json.loads(mp.read_text())
-            except (OSError, json.JSONDecodeError) as exc:
-                raise FormatError(f"{mp}: unreadable JSON metadata ({exc})") from None
+            from ultratight.signals.metadata_check import load_json_metadata
+            info = load_json_metadata(mp)
     if path is None:
         raise InputFileError("no IF file given")
     path = Path(path)
     if not path.is_file():
-        raise InputFileError(f"IF file not found: {path}")
+        from ultratight.receiver.io_guard import check_input_file
+        check_input_file(path, "IF file")
     if meta is None:
         info = read_sidecar(path) or {}
     fmt = fmt or info.get("format")
@@ -482,8 +504,8 @@ def _encode2(levels):
 
 
 def _tmp_name(path):
-    path = Path(path)
-    return path.with_name(f".{path.name}.tmp{os.getpid()}")
+    from ultratight.receiver.io_guard import tmp_name
+    return tmp_name(path)
 
 
 class IfWriter:
@@ -514,6 +536,7 @@ class IfWriter:
         self.n_samples = 0
         self._carry = np.zeros(0, dtype=np.float32)   # 2-bit components not yet packed
         self._tmp = _tmp_name(self.path)
+        self._side_tmp = _tmp_name(sidecar_path(self.path))
         self._f = open(self._tmp, "wb")
         self._closed = False
 
@@ -566,7 +589,7 @@ class IfWriter:
             self._carry = np.zeros(0, dtype=np.float32)
         self._f.close()
         self.sidecar["n_samples"] = int(self.n_samples)
-        side_tmp = _tmp_name(sidecar_path(self.path))
+        side_tmp = self._side_tmp
         with open(side_tmp, "w") as f:
             json.dump(self.sidecar, f, indent=1, default=_json_default)
         os.replace(self._tmp, self.path)
@@ -579,7 +602,7 @@ class IfWriter:
         try:
             self._f.close()
         finally:
-            for p in (self._tmp, _tmp_name(sidecar_path(self.path))):
+            for p in (self._tmp, self._side_tmp):
                 try:
                     os.unlink(p)
                 except FileNotFoundError:

@@ -206,12 +206,23 @@ def _record(lines, i, path, version):
 
 
 def read_rinex_nav(path):
-    """Read a RINEX 2.x / 3.x navigation file; returns :class:`NavData` (GPS records only)."""
+    """Read a RINEX 2.x / 3.x navigation file; returns :class:`NavData` (GPS records only).
+
+    Values no field check anticipated (non-finite numbers, out-of-range dates) raise NavDataError too."""
+    try:
+        return _read_rinex_nav(path)
+    except (ValueError, OverflowError, IndexError, TypeError) as exc:
+        if isinstance(exc, NavDataError):
+            raise
+        raise NavDataError(f"{path}: malformed navigation record ({' '.join(str(exc).split())[:200]})") from None
+
+
+def _read_rinex_nav(path):
     path = Path(path)
     try:
         text = path.read_text(encoding="ascii", errors="replace")
     except OSError as exc:
-        raise InputFileError(f"{path}: cannot read RINEX navigation file: {exc}") from exc
+        raise InputFileError(f"{path}: cannot read RINEX navigation file: {exc.strerror or exc}") from None
     lines = [ln.rstrip("\r\n").ljust(80) for ln in text.splitlines()]
     version, info, i = _parse_header(lines, path)
     if version < 2 or version >= 4:

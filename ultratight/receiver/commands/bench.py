@@ -71,6 +71,8 @@ def run(args):
     from ultratight import __version__
     from ultratight.errors import ConfigError
 
+    from ultratight.receiver import io_guard
+    io_guard.check_io([], [("--json", args.json)])
     d = _bench_dir(args.dir)
     scripts = sorted(d.glob("bench_*.py"))
     names = [s.stem[len("bench_"):] for s in scripts]
@@ -92,19 +94,19 @@ def run(args):
             proc = subprocess.run(cmd, capture_output=True, text=True)
             entry = {"wall_s": round(time.perf_counter() - t0, 3), "returncode": proc.returncode}
             if proc.returncode == 0 and os.path.exists(out):
-                with open(out) as fh:
-                    entry["results"] = json.load(fh)
+                try:
+                    with open(out) as fh:
+                        entry["results"] = json.load(fh)
+                except (OSError, ValueError) as exc:
+                    entry["error"] = f"unreadable report ({exc})"
             else:
                 entry["error"] = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
             report["benchmarks"][name] = entry
             status = "ok" if "results" in entry else f"FAILED: {entry['error']}"
             print(f"[bench] {name}: {status} ({entry['wall_s']:.1f} s)", file=sys.stderr, flush=True)
     report["total_wall_s"] = round(time.perf_counter() - t_all, 3)
-    tmp_path = args.json + ".tmp"
-    with open(tmp_path, "w") as fh:
-        json.dump(report, fh, indent=2)
-    os.replace(tmp_path, args.json)
-    print(json.dumps({k: v for k, v in report.items() if k != "benchmarks"}))
+    io_guard.write_text_atomic(args.json, io_guard.json_dumps(report, indent=2))
+    print(io_guard.json_dumps({k: v for k, v in report.items() if k != "benchmarks"}))
     print(f"report written to {args.json}")
     failed = [n for n, e in report["benchmarks"].items() if "results" not in e]
     return 1 if failed else 0

@@ -74,6 +74,41 @@ def _remove_empty_dirs(dirs):
             break
 
 
+def estimate(cfg):
+    """Up-front estimate of a generation: ``{"if_bytes", "truth_bytes", "imu_bytes", "memory_bytes"}``.
+
+    IF bytes = duration x fs x sample size; truth: one row (~40 numbers + 12 per satellite) per
+    1 ms interval; IMU + trajectory: ~40 numbers per IMU sample (written from memory)."""
+    from ultratight.signals.iffile import get_format
+    fe = cfg["frontend"]
+    spec = get_format(fe["format"])
+    n = float(cfg["duration_s"]) * float(fe["fs_hz"])
+    if_bytes = n * spec.bytes_per_sample if spec.bytes_per_sample else n / spec.samples_per_byte
+    n_sat = max(len(cfg["satellites"].get("prns") or []), int(cfg["satellites"].get("max_count", 12)))
+    rows = float(cfg["duration_s"]) * 1000.0
+    truth_bytes = rows * 8 * (12 + 12 * n_sat)
+    imu_rows = float(cfg["duration_s"]) * float((cfg.get("imu") or {}).get("rate_hz", 0.0)) if cfg.get("imu") else 0.0
+    imu_bytes = imu_rows * 8 * 40
+    # the generator's plan holds per-interval polynomial coefficients for a block, the IMU whole
+    memory = 3 * imu_bytes + 64e6
+    return {"if_bytes": if_bytes, "truth_bytes": truth_bytes, "imu_bytes": imu_bytes, "memory_bytes": memory}
+
+
+def check_outputs(cfg, out_dir, stem):
+    """Refuse before any work: output names invalid or naming the scenario file, not enough free
+    disk or memory for the estimate (:func:`estimate`)."""
+    from ultratight.receiver import io_guard
+    from ultratight.signals.generator import output_paths
+    paths = output_paths(out_dir, stem, cfg["frontend"]["format"])
+    io_guard.check_io([("SCENARIO", cfg.get("source_file"))],
+                      [(f"--out ({k})", str(v)) for k, v in paths.items()], create_parents=True)
+    est = estimate(cfg)
+    total = est["if_bytes"] + est["truth_bytes"] + 2 * est["imu_bytes"]
+    io_guard.check_disk(out_dir, total, f"generating {cfg['duration_s']:g} s at {cfg['frontend']['fs_hz']:g} Hz "
+                                        f"({cfg['frontend']['format']})")
+    io_guard.check_memory(est["memory_bytes"], f"generating {cfg['duration_s']:g} s")
+
+
 def format_overrides(fmt):
     """Front-end overrides implied by choosing sample format ``fmt``."""
     from ultratight.signals.iffile import get_format
@@ -113,14 +148,19 @@ def run(args):
             raise ConfigError(f"--sigmf: SigMF has no datatype for the {cfg['frontend']['format']!r} format "
                               f"(use one of {', '.join(FORMAT_TO_DATATYPE)})")
     out_dir, stem = _out_location(args.out, cfg["name"], list(FORMATS))
+    check_outputs(cfg, out_dir, stem)
 
     from ultratight.signals.generator import generate
 
     created = _make_dirs(out_dir)
     try:
         res = generate(cfg, out_dir, stem, seed=cfg["seed"], progress=not args.no_progress)
-    except BaseException:
+    except BaseException as exc:
         _remove_empty_dirs(created)     # only directories this run created, and only when empty
+        from ultratight.errors import UltratightError
+        if isinstance(exc, OSError) and not isinstance(exc, UltratightError):
+            from ultratight.receiver.io_guard import output_error
+            raise output_error(f"{out_dir}/{stem}.*", exc) from None
         raise
     summ = res["summary"]
     if getattr(args, "sigmf", False):
@@ -132,7 +172,8 @@ def run(args):
                                         description=f"ultratight generate {cfg['name']} (seed {summ['seed']})")
     files = {k: str(v) for k, v in res.items() if k != "summary"}
     if args.json:
-        print(json.dumps({"files": files, **summ}, indent=1))
+        from ultratight.receiver.io_guard import json_dumps
+        print(json_dumps({"files": files, **summ}, indent=1))
         return 0
     fs = summ["fs_hz"]
     print(f"scenario {cfg['name']}: {summ['duration_s']:.3f} s at {fs / 1e6:g} MHz, IF {summ['if_hz'] / 1e6:g} MHz, "

@@ -47,7 +47,6 @@ def _load_scenario(name):
 
 
 def run(args):
-    import json
     import math
     import time
     from pathlib import Path
@@ -62,10 +61,28 @@ def run(args):
     src = args.source
     path = Path(src)
     is_file = path.suffix.lower() in (".h5", ".hdf5", ".csv") and (path.exists() or "/" in src)
-    if args.duration is not None and not args.duration > 0:
-        raise ConfigError(f"--duration must be > 0, got {args.duration}")
-    if args.rate is not None and not args.rate > 0:
-        raise ConfigError(f"--rate must be > 0, got {args.rate}")
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise ConfigError(f"--duration must be a finite number > 0, got {args.duration}")
+    if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0):
+        raise ConfigError(f"--rate must be a finite number > 0, got {args.rate}")
+    from ultratight.receiver.scenario_config import MAX_IMU_RATE_HZ
+    if args.rate is not None and args.rate > MAX_IMU_RATE_HZ:
+        raise ConfigError(f"--rate {args.rate:g} Hz exceeds the IMU rate cap of {MAX_IMU_RATE_HZ:g} Hz")
+    if args.seed is not None and args.seed < 0:
+        raise ConfigError(f"--seed must be >= 0, got {args.seed}")
+    for flag, vals in (("--init-llh", args.init_llh), ("--init-vel", args.init_vel), ("--init-att", args.init_att)):
+        if vals is not None and not all(math.isfinite(v) for v in vals):
+            raise ConfigError(f"{flag} must be finite numbers, got {' '.join(str(v) for v in vals)}")
+    if args.init_llh is not None:
+        lat, lon, h = args.init_llh
+        if not (-90 <= lat <= 90 and -180 <= lon <= 360 and -1e4 <= h <= 1e8):
+            raise ConfigError(f"--init-llh: latitude in [-90, 90] deg, longitude in [-180, 360] deg, height in "
+                              f"[-1e4, 1e8] m; got {lat} {lon} {h}")
+    from ultratight.receiver import io_guard
+    inputs = [("SOURCE", src)] if (path.exists() or "/" in src) else []
+    if is_file:
+        io_guard.check_input_file(path, "IMU file")
+    io_guard.check_io(inputs, [("--save-imu", args.save_imu)])
 
     preset = None
     if is_file:
@@ -84,6 +101,10 @@ def run(args):
         if args.rate is not None:
             imu_cfg["rate_hz"] = args.rate
         rate = float(imu_cfg.get("rate_hz", 100.0))
+        # synthesis holds ~40 float64 per IMU sample (increments, truth, quadrature) plus the SINS output
+        io_guard.check_memory(duration * rate * 8 * 60, f"an IMU of {duration:g} s at {rate:g} Hz")
+        if args.save_imu:
+            io_guard.check_disk(Path(args.save_imu).parent, duration * rate * 8 * 20, f"--save-imu {args.save_imu}")
         errors = imu_mod.imu_errors_from_config(imu_cfg)
         preset = errors.preset
         seed = int(args.seed if args.seed is not None else cfg.get("seed", 1))
@@ -139,7 +160,7 @@ def run(args):
         for k in list(range(0, m, step)) + ([m - 1] if (m - 1) % step else []):
             table.append((k * dt, pe[k], ve[k], ae[k]))
     if args.json:
-        print(json.dumps(out, indent=2))
+        print(io_guard.json_dumps(out, indent=2))
         return 0
     print(f"ultratight ins: {label}  ({n} IMU steps at {imu.rate_hz:g} Hz"
           + (f", errors '{preset}'" if preset else "") + ")")

@@ -6,9 +6,10 @@
 file (HDF5 or CSV) whose time axis starts at the first IF sample.
 """
 
-import json
 import math
 import sys
+
+from ultratight.receiver.io_guard import json_dumps, note_partial
 
 HELP = ("run the GPS receiver on an IF file: scalar (acquisition, tracking, LNAV, PVT) or, with --mode ultratight "
         "--imu, the ultra-tight GPS/INS engine")
@@ -33,6 +34,18 @@ class _EngineMethods:
 
 
 def _prn_list(text):
+    """``1,3,7-12`` -> [1, 3, 7, ..., 12]; ConfigError for anything but decimal PRNs 1..32."""
+    from ultratight.errors import ConfigError
+
+    def num(tok):
+        tok = tok.strip()
+        if not tok.isdigit() or not tok.isascii():
+            raise ConfigError(f"--prn: {tok!r} is not a PRN number (expected e.g. 1,3,7-12 with PRNs 1..32)")
+        v = int(tok)
+        if not 1 <= v <= 32:
+            raise ConfigError(f"--prn: PRN must be in 1..32, got {v}")
+        return v
+
     out = []
     for part in str(text).split(","):
         part = part.strip()
@@ -40,10 +53,58 @@ def _prn_list(text):
             continue
         if "-" in part:
             a, b = part.split("-", 1)
-            out.extend(range(int(a), int(b) + 1))
+            lo, hi = num(a), num(b)
+            if lo > hi:
+                raise ConfigError(f"--prn: range {part!r} is empty (first PRN > last)")
+            out.extend(range(lo, hi + 1))
         else:
-            out.append(int(part))
+            out.append(num(part))
+    if not out:
+        raise ConfigError(f"--prn: no PRN given in {text!r}")
+    if len(set(out)) != len(out):
+        raise ConfigError(f"--prn: PRN listed twice in {text!r}")
     return out
+
+
+def _check_numbers(args):
+    """Finite, in-range numeric flags (before any file is opened)."""
+    from ultratight.errors import ConfigError
+    for flag, v in (("--fs", args.fs), ("--if", args.if_hz), ("--start", args.start),
+                    ("--duration", args.duration), ("--obs-rate", args.obs_rate), ("--pll-bw", args.pll_bw),
+                    ("--acq-min-cn0", args.acq_min_cn0), ("--doppler-range", args.doppler_range),
+                    ("--mask", args.mask)):
+        if v is not None and not math.isfinite(v):
+            raise ConfigError(f"{flag} must be a finite number, got {v}")
+    if args.start is not None and args.start < 0:
+        raise ConfigError(f"--start must be >= 0 s, got {args.start}")
+    if args.duration is not None and not args.duration > 0:
+        raise ConfigError(f"--duration must be > 0 s, got {args.duration}")
+    if args.pll_bw is not None and not args.pll_bw > 0:
+        raise ConfigError(f"--pll-bw must be > 0 Hz, got {args.pll_bw}")
+    if not args.doppler_range > 0:
+        raise ConfigError(f"--doppler-range must be > 0 Hz, got {args.doppler_range}")
+    if not 1 <= args.acq_coherent <= 10:
+        raise ConfigError(f"--acq-coherent must be in 1..10 ms, got {args.acq_coherent}")
+    if not 1 <= args.acq_noncoherent <= 1000:
+        raise ConfigError(f"--acq-noncoherent must be in 1..1000, got {args.acq_noncoherent}")
+
+
+# every output flag of this command (flag, argparse dest): checked before any work
+OUTPUT_FLAGS = (("--out", "out"), ("--csv", "csv"), ("--kml", "kml"), ("--rinex-obs", "rinex_obs"),
+                ("--rinex-nav", "rinex_nav"), ("--nmea", "nmea"))
+
+
+def _check_paths(args):
+    """Inputs readable, outputs writable and distinct from every input (io_guard.check_io)."""
+    from ultratight.receiver import io_guard
+    from ultratight.signals.iffile import sidecar_path
+    io_guard.check_input_file(args.iffile, "IF file")
+    inputs = [("IFFILE", args.iffile), ("sidecar", str(sidecar_path(args.iffile)))]
+    for flag, p in (("--meta", args.meta), ("--imu", getattr(args, "imu", None)), ("--ephemeris", args.ephemeris)):
+        if p is not None:
+            io_guard.check_input_file(p, f"{flag} file")
+            inputs.append((flag, p))
+    io_guard.check_io(inputs, [(flag, getattr(args, dest, None)) for flag, dest in OUTPUT_FLAGS])
 
 
 def add_arguments(p):
@@ -106,19 +167,6 @@ def add_arguments(p):
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def _jsonable(o):
-    import numpy as np
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    if isinstance(o, (np.floating,)):
-        return None if not np.isfinite(o) else float(o)
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, float) and not math.isfinite(o):
-        return None
-    return str(o)
-
-
 def _clean(o):
     if isinstance(o, float) and not math.isfinite(o):
         return None
@@ -132,6 +180,8 @@ def _clean(o):
 def run(args):
     from ultratight.errors import ConfigError
 
+    _check_numbers(args)
+    _check_paths(args)
     if getattr(args, "mode", "scalar") == "ultratight":
         return _run_ultratight(args)
     if getattr(args, "imu", None):
@@ -170,28 +220,37 @@ def run(args):
         eph = read_rinex_nav(args.ephemeris)
     progress = not args.no_progress and not args.json and sys.stderr.isatty()
     run_config = {k: v for k, v in vars(args).items() if not k.startswith("_")}
+    if args.out:
+        note_partial(args.out)          # reported by the CLI only if the file exists
     try:
         res = process(source, cfg, ephemerides=eph, out_path=args.out, csv_path=args.csv, kml_path=args.kml,
                       progress=progress, run_config=run_config, rinex_obs_path=args.rinex_obs,
                       rinex_nav_path=args.rinex_nav, nmea_path=args.nmea)
+    except OSError as exc:
+        _raise_output_error(exc, args)
     except NoSignalError as exc:
         if args.json:
-            print(json.dumps({"acquired": [], "tracked": [], "fixes": 0, "first_fix_s": None,
+            print(json_dumps({"acquired": [], "tracked": [], "fixes": 0, "first_fix_s": None,
                               "position_ecef_m": None, "position_llh": None, "error": str(exc)}))
         raise
-    except KeyboardInterrupt:
-        if args.out:
-            print(f"ultratight process: interrupted; partial output (complete=false) written to {args.out}",
-                  file=sys.stderr)
-        raise
     summ = _clean(res.summary())
-    for w in res.warnings:
+    for w in list(getattr(source, "warnings", [])) + list(res.warnings):
         print(f"ultratight process: warning: {w}", file=sys.stderr)
     if args.json:
-        print(json.dumps(summ, default=_jsonable))
+        print(json_dumps(summ))
     else:
         _print_human(summ)
     return 0
+
+
+def _raise_output_error(exc, args):
+    """An OSError while writing: one line naming the outputs and the cause (full disk, ...)."""
+    from ultratight.errors import UltratightError
+    from ultratight.receiver.io_guard import output_error
+    if isinstance(exc, UltratightError):
+        raise exc
+    outs = [getattr(args, dest) for _, dest in OUTPUT_FLAGS if getattr(args, dest, None)]
+    raise output_error(", ".join(outs) or "output", exc) from None
 
 
 def _run_ultratight(args):
@@ -236,7 +295,7 @@ def _run_ultratight(args):
         "out": args.out,
     }
     if args.json:
-        print(json.dumps(_clean(summ), default=_jsonable))
+        print(json_dumps(summ))
     else:
         print(f"ultratight {summ['method']}: PRN {', '.join(str(p) for p in summ['prns'])}")
         rtf = summ["realtime_factor"]

@@ -58,10 +58,10 @@ def _methods(args):
 
 
 def _print_summary(args, summary):
-    import json
     import sys
     if args.json:
-        print(json.dumps(summary["json"], indent=2))
+        from ultratight.receiver.io_guard import json_dumps
+        print(json_dumps(summary["json"], indent=2))
     else:
         print(summary["text"])
         print(f"\nwrote {summary['metrics_path']} and {summary['h5_path']}", file=sys.stderr)

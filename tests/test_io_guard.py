@@ -1,0 +1,108 @@
+"""Unit tests of ultratight.receiver.io_guard (paths, atomic writers, errno lines, JSON, signals)."""
+
+import errno
+import json
+import os
+import signal
+
+import numpy as np
+import pytest
+
+from ultratight.errors import ConfigError, InputFileError, OutputError
+from ultratight.receiver import io_guard
+
+
+def test_tmp_names_are_unique_and_hidden(tmp_path):
+    names = {io_guard.tmp_name(tmp_path / "x.h5") for _ in range(50)}
+    assert len(names) == 50
+    for n in names:
+        assert n.parent == tmp_path and n.name.startswith(".x.h5.tmp-") and str(os.getpid()) in n.name
+
+
+def test_atomic_path_cleans_up_on_error_and_interrupt(tmp_path):
+    target = tmp_path / "out.bin"
+    for exc in (RuntimeError("x"), KeyboardInterrupt()):
+        with pytest.raises(type(exc)):
+            with io_guard.atomic_path(target) as tmp:
+                tmp.write_bytes(b"partial")
+                raise exc
+    assert list(tmp_path.iterdir()) == []
+    io_guard.write_text_atomic(target, "ok")
+    assert target.read_text() == "ok" and list(tmp_path.iterdir()) == [target]
+
+
+def test_atomic_path_maps_os_errors_to_one_line(tmp_path):
+    with pytest.raises(OutputError, match="no space left on device"):
+        with io_guard.atomic_path(tmp_path / "y"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_h5_image_round_trip(tmp_path):
+    import h5py
+    p = io_guard.write_h5_atomic(tmp_path / "r.h5", lambda f: f.create_dataset("a", data=np.arange(5)))
+    with h5py.File(p, "r") as f:
+        assert f["a"][()].tolist() == [0, 1, 2, 3, 4]
+
+
+def test_describe_os_error_reads_hdf5_messages():
+    exc = OSError("Unable to create file (file write failed: errno = 28, error message = 'x')")
+    assert io_guard.describe_os_error(exc) == "no space left on device"
+    assert io_guard.describe_os_error(OSError(errno.EROFS, "ro")) == "read-only file system"
+
+
+def test_check_io_refuses_inputs_as_outputs_and_duplicates(tmp_path):
+    src = tmp_path / "in.bin"
+    src.write_bytes(b"abc")
+    os.link(src, tmp_path / "hard.bin")
+    os.symlink(src, tmp_path / "soft.bin")
+    for alias in ("in.bin", "hard.bin", "soft.bin", "./in.bin"):
+        with pytest.raises(ConfigError, match="refusing to overwrite"):
+            io_guard.check_io([("IN", src)], [("--out", tmp_path / alias)])
+    (tmp_path / "sub").mkdir()
+    with pytest.raises(ConfigError, match="name the same file"):
+        io_guard.check_io([], [("--out", tmp_path / "a"), ("--csv", tmp_path / "sub" / ".." / "a")])
+    with pytest.raises(ConfigError, match="does not exist"):
+        io_guard.check_io([], [("--out", tmp_path / "no" / "a")])
+    with pytest.raises(ConfigError, match="is a directory"):
+        io_guard.check_io([], [("--out", tmp_path)])
+    with pytest.raises(ConfigError, match="too long"):
+        io_guard.check_io([], [("--out", tmp_path / ("n" * 400))])
+    io_guard.check_io([("IN", src)], [("--out", tmp_path / "new.h5")])
+
+
+def test_check_input_file_names_the_problem(tmp_path):
+    with pytest.raises(InputFileError, match="is a directory"):
+        io_guard.check_input_file(tmp_path)
+    with pytest.raises(InputFileError, match="not found"):
+        io_guard.check_input_file(tmp_path / "missing")
+
+
+def test_resource_checks_state_the_estimate(tmp_path):
+    with pytest.raises(ConfigError, match="needs about"):
+        io_guard.check_disk(tmp_path, 1e30, "this run")
+    with pytest.raises(ConfigError, match="in memory"):
+        io_guard.check_memory(1e30, "this run")
+    io_guard.check_disk(tmp_path, 1, "this run")
+    io_guard.check_memory(1, "this run")
+
+
+def test_json_dumps_is_strict():
+    text = io_guard.json_dumps({"a": float("nan"), "b": [np.float32("inf"), np.int64(3)], "c": np.array([1.5]),
+                                "d": np.bool_(True)})
+    assert json.loads(text) == {"a": None, "b": [None, 3], "c": [1.5], "d": True}
+    assert "NaN" not in text and "Infinity" not in text
+
+
+def test_signal_handlers_raise_interrupted_and_are_restored():
+    previous = io_guard.install_signal_handlers()
+    try:
+        with pytest.raises(io_guard.Interrupted) as ei:
+            os.kill(os.getpid(), signal.SIGTERM)
+            for _ in range(1000):
+                pass
+        assert ei.value.exit_code == 128 + signal.SIGTERM and ei.value.name == "SIGTERM"
+        assert isinstance(ei.value, KeyboardInterrupt)
+    finally:
+        io_guard.restore_signal_handlers(previous)
+    assert signal.getsignal(signal.SIGTERM) == previous.get(signal.SIGTERM, signal.SIG_DFL)

@@ -1,0 +1,468 @@
+"""Guards every command applies to its inputs, outputs, resources and signals (docs/reliability.md).
+
+* :func:`check_io` resolves and checks a command's input and output paths **before any work**:
+  inputs exist and are readable regular files; an output may not be (or link to) an input or
+  another output, may not be a directory, its parent directory must exist (unless the command
+  creates it) and be writable, and its name must fit the file system's limits.
+* :func:`tmp_name`, :func:`atomic_path`, :func:`write_bytes_atomic`, :func:`write_text_atomic`,
+  :func:`h5_image`: atomic writers. Temporary files carry the process id and a random suffix
+  (``.NAME.tmp-PID-RANDOM`` beside the target, so concurrent runs never share one) and are removed
+  on every exit path; the target appears only complete (``os.replace``).
+* :func:`describe_os_error` / :func:`output_error`: ``ENOSPC``, ``EROFS``, ``EACCES``, ``EFBIG`` ...
+  as one line naming the path and the cause (:class:`ultratight.errors.OutputError`).
+* :func:`install_signal_handlers`: SIGINT, SIGTERM and SIGHUP all raise :class:`Interrupted` (a
+  ``KeyboardInterrupt``), so every cleanup path written for Ctrl-C also runs for ``kill`` and a
+  closed terminal; SIGXFSZ is ignored so that a file-size limit ends in an ``EFBIG`` error instead
+  of killing the process. Exit status ``128 + signal number`` (130, 143, 129).
+* :func:`check_disk`, :func:`check_memory`: up-front resource estimates against free disk space,
+  available memory and :data:`MEMORY_FRACTION`; refused with the estimate in the message.
+* :func:`json_dumps`: strict JSON (non-finite numbers become ``null``) for every ``--json``.
+"""
+
+import errno
+import json
+import math
+import os
+import re
+import secrets
+import shutil
+import signal
+from contextlib import contextmanager
+from pathlib import Path
+
+from ultratight.errors import ConfigError, InputFileError, OutputError
+
+# exit status of a run stopped by a signal: 128 + signal number (the shell's convention)
+HANDLED_SIGNALS = tuple(s for s in (getattr(signal, "SIGINT", None), getattr(signal, "SIGTERM", None),
+                                    getattr(signal, "SIGHUP", None)) if s is not None)
+# a run may plan to hold at most this fraction of the memory available when it starts
+MEMORY_FRACTION = 0.8
+
+_ERRNO_TEXT = {
+    errno.ENOSPC: "no space left on device",
+    errno.EDQUOT: "disk quota exceeded",
+    errno.EFBIG: "file too large (file-size limit reached)",
+    errno.EROFS: "read-only file system",
+    errno.EACCES: "permission denied",
+    errno.EPERM: "operation not permitted",
+    errno.ENOENT: "no such file or directory",
+    errno.ENOTDIR: "a path component is not a directory",
+    errno.EISDIR: "is a directory",
+    errno.ENAMETOOLONG: "file name too long",
+    errno.EIO: "input/output error",
+    errno.EMFILE: "too many open files",
+    errno.ENOMEM: "out of memory",
+    errno.EEXIST: "already exists",
+    errno.EXDEV: "cross-device rename",
+}
+_H5_ERRNO = re.compile(r"errno\s*=\s*(\d+)")
+
+
+def os_errno(exc):
+    """The errno of an OSError, also when HDF5 only quotes it in the message (``errno = 28``)."""
+    if getattr(exc, "errno", None):
+        return exc.errno
+    m = _H5_ERRNO.search(str(exc))
+    return int(m.group(1)) if m else None
+
+
+def describe_os_error(exc):
+    """Short cause of an OSError (``no space left on device``, ...)."""
+    code = os_errno(exc)
+    if code in _ERRNO_TEXT:
+        return _ERRNO_TEXT[code]
+    if code is not None:
+        return os.strerror(code).lower()
+    text = str(exc).strip().splitlines()
+    return (text[0] if text else type(exc).__name__)[:200]
+
+
+def output_error(path, exc, action="cannot write"):
+    """:class:`OutputError` ``"{action} {path}: {cause}"``."""
+    return OutputError(f"{action} {path}: {describe_os_error(exc)}")
+
+
+# ------------------------------------------------------------------------------------------
+# temporary names and atomic writers
+# ------------------------------------------------------------------------------------------
+def tmp_name(path):
+    """A temporary name beside ``path``, unique per process and call: ``.NAME.tmp-PID-RANDOM``."""
+    path = Path(path)
+    return path.with_name(f".{path.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
+
+
+def _unlink_quiet(p):
+    try:
+        os.unlink(p)
+    except OSError:
+        pass
+
+
+@contextmanager
+def atomic_path(path):
+    """Yield a temporary path beside ``path``; on success rename it onto ``path``, on any exception
+    (also an interruption) remove it. OSError becomes :class:`OutputError` naming ``path``."""
+    path = Path(path)
+    tmp = tmp_name(path)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except OutputError:
+        _unlink_quiet(tmp)
+        raise
+    except OSError as exc:
+        _unlink_quiet(tmp)
+        if isinstance(exc, InputFileError):
+            raise
+        raise output_error(path, exc) from None
+    except BaseException:
+        _unlink_quiet(tmp)
+        raise
+
+
+def write_bytes_atomic(path, data):
+    """Write ``data`` to ``path`` atomically (see :func:`atomic_path`); returns the path."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+    return Path(path)
+
+
+def write_text_atomic(path, text):
+    return write_bytes_atomic(path, text.encode("utf-8"))
+
+
+def h5_image(build):
+    """Build an HDF5 file in memory (``build(h5py.File)``) and return its bytes.
+
+    HDF5 writing straight to a file that hits a full disk can leave the library in a state that
+    crashes the interpreter; building the image in memory and writing it with plain file I/O turns
+    every disk error into an ordinary OSError (use for outputs of bounded size)."""
+    import h5py
+
+    with h5py.File(f"mem-{secrets.token_hex(6)}.h5", "w", driver="core", backing_store=False) as f:
+        build(f)
+        f.flush()
+        return f.id.get_file_image()
+
+
+def write_h5_atomic(path, build):
+    """:func:`h5_image` written atomically to ``path``."""
+    return write_bytes_atomic(path, h5_image(build))
+
+
+# ------------------------------------------------------------------------------------------
+# path checks before any work
+# ------------------------------------------------------------------------------------------
+def _name_max(d):
+    try:
+        return os.pathconf(d, "PC_NAME_MAX")
+    except (OSError, ValueError, AttributeError):
+        return 255
+
+
+def _path_max(d):
+    try:
+        return os.pathconf(d, "PC_PATH_MAX")
+    except (OSError, ValueError, AttributeError):
+        return 4096
+
+
+def _existing_ancestor(p):
+    q = Path(os.path.abspath(p))
+    while not os.path.exists(q) and q.parent != q:
+        q = q.parent
+    return q
+
+
+def check_input_file(path, what="input file"):
+    """Refuse (InputFileError) a path that is missing, not a regular file, or unreadable."""
+    p = Path(path)
+    if str(path) == "":
+        raise InputFileError(f"{what}: empty path")
+    try:
+        st = p.stat()
+    except FileNotFoundError:
+        raise InputFileError(f"{what} not found: {p}") from None
+    except OSError as exc:
+        raise InputFileError(f"{what} {p}: {describe_os_error(exc)}") from None
+    import stat as _stat
+    if _stat.S_ISDIR(st.st_mode):
+        raise InputFileError(f"{what} {p} is a directory, not a file")
+    if not _stat.S_ISREG(st.st_mode):
+        raise InputFileError(f"{what} {p} is not a regular file (a FIFO, socket or device)")
+    if not os.access(p, os.R_OK):
+        raise InputFileError(f"{what} {p}: permission denied (not readable)")
+    return p
+
+
+def _same(a, b):
+    if os.path.realpath(a) == os.path.realpath(b):
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def check_path_length(path, flag="--out"):
+    """ConfigError when a path or one of its components exceeds the file system's limits."""
+    s = str(path)
+    anc = _existing_ancestor(os.path.dirname(os.path.abspath(s)) or ".")
+    nmax, pmax = _name_max(anc), _path_max(anc)
+    if len(os.fsencode(os.path.abspath(s))) >= pmax:
+        raise ConfigError(f"{flag}: path too long ({len(os.fsencode(os.path.abspath(s)))} bytes, limit {pmax})")
+    for part in Path(s).parts:
+        if len(os.fsencode(part)) > nmax:
+            raise ConfigError(f"{flag}: file name too long ({len(os.fsencode(part))} bytes, limit {nmax}): "
+                              f"{part[:32]}...")
+
+
+def check_output_path(path, flag="--out", create_parent=False):
+    """Refuse an output path that cannot be written (one line naming ``flag``)."""
+    s = str(path)
+    if s == "" or s.endswith(("/", os.sep)) and not Path(s).is_dir():
+        raise ConfigError(f"{flag}: not a file name: {s!r}")
+    p = Path(s)
+    if "\x00" in s:
+        raise ConfigError(f"{flag}: the path contains a NUL character")
+    check_path_length(s, flag)
+    if p.is_dir():
+        raise ConfigError(f"{flag} {p} is a directory; give a file name")
+    parent = p.parent if str(p.parent) else Path(".")
+    anc = _existing_ancestor(parent)
+    if not parent.exists():
+        if not create_parent:
+            raise ConfigError(f"{flag}: directory {parent} does not exist")
+        if not anc.is_dir():
+            raise ConfigError(f"{flag}: {anc} is not a directory")
+        if not os.access(anc, os.W_OK | os.X_OK):
+            raise ConfigError(f"{flag}: directory {anc} is not writable (permission denied)")
+        return p
+    if not parent.is_dir():
+        raise ConfigError(f"{flag}: {parent} is not a directory")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"{flag}: directory {parent} is not writable (permission denied)")
+    try:
+        st = os.statvfs(parent)
+        if st.f_flag & getattr(os, "ST_RDONLY", 1):
+            raise ConfigError(f"{flag}: directory {parent} is on a read-only file system")
+    except (OSError, AttributeError):
+        pass
+    if p.exists() and not p.is_file():
+        raise ConfigError(f"{flag} {p} exists and is not a regular file")
+    return p
+
+
+def check_io(inputs=(), outputs=(), create_parents=False):
+    """Check a command's paths before it starts (module doc). ``inputs``/``outputs``: iterables of
+    ``(flag, path)``; ``None`` paths are skipped. Outputs may not equal an input or each other."""
+    ins = [(f, p) for f, p in inputs if p is not None]
+    outs = [(f, p) for f, p in outputs if p is not None]
+    for flag, p in outs:
+        check_output_path(p, flag, create_parent=create_parents)
+    for flag, p in outs:
+        for iflag, ip in ins:
+            if Path(ip).exists() and _same(p, ip):
+                raise ConfigError(f"{flag} {p} is the input {iflag} {ip}; refusing to overwrite an input file")
+    for i, (fa, pa) in enumerate(outs):
+        for fb, pb in outs[i + 1:]:
+            if _same(pa, pb):
+                raise ConfigError(f"{fa} and {fb} name the same file {pa}")
+
+
+# ------------------------------------------------------------------------------------------
+# resources
+# ------------------------------------------------------------------------------------------
+def human_bytes(n):
+    n = float(n)
+    for unit in ("B", "kB", "MB", "GB", "TB", "PB"):
+        if abs(n) < 1000 or unit == "PB":
+            return f"{n:.3g} {unit}"
+        n /= 1000.0
+    return f"{n:.3g} PB"
+
+
+def available_memory():
+    """Bytes of memory available to a new allocation (MemAvailable; sysconf fallback)."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
+def free_disk(path):
+    """Free bytes on the file system holding ``path`` (or its nearest existing ancestor)."""
+    try:
+        return shutil.disk_usage(_existing_ancestor(path)).free
+    except OSError:
+        return None
+
+
+def check_disk(path, nbytes, what):
+    """ConfigError when ``nbytes`` (estimate) exceed the free space where ``path`` will be written."""
+    if not math.isfinite(nbytes):
+        raise ConfigError(f"{what}: size estimate is not finite")
+    free = free_disk(path)
+    if free is not None and nbytes > free:
+        raise ConfigError(f"{what} needs about {human_bytes(nbytes)} but only {human_bytes(free)} is free "
+                          f"on the file system of {path}")
+
+
+def check_memory(nbytes, what):
+    """ConfigError when a run plans to hold more than MEMORY_FRACTION of the available memory."""
+    if not math.isfinite(nbytes):
+        raise ConfigError(f"{what}: memory estimate is not finite")
+    avail = available_memory()
+    if avail is not None and nbytes > MEMORY_FRACTION * avail:
+        raise ConfigError(f"{what} would hold about {human_bytes(nbytes)} in memory, more than "
+                          f"{MEMORY_FRACTION:.0%} of the {human_bytes(avail)} available")
+
+
+# ------------------------------------------------------------------------------------------
+# signals
+# ------------------------------------------------------------------------------------------
+class Interrupted(KeyboardInterrupt):
+    """A run stopped by SIGINT, SIGTERM or SIGHUP (a KeyboardInterrupt, so cleanup paths agree)."""
+
+    def __init__(self, signum=signal.SIGINT):
+        super().__init__(signum)
+        self.signum = int(signum)
+
+    @property
+    def name(self):
+        try:
+            return signal.Signals(self.signum).name
+        except ValueError:
+            return f"signal {self.signum}"
+
+    @property
+    def exit_code(self):
+        return 128 + self.signum
+
+
+def _handler(signum, frame):
+    # one interruption per run: later signals are ignored so that the cleanup can finish
+    for s in HANDLED_SIGNALS:
+        try:
+            signal.signal(s, signal.SIG_IGN)
+        except (OSError, ValueError):
+            pass
+    raise Interrupted(signum)
+
+
+def install_signal_handlers():
+    """SIGINT/SIGTERM/SIGHUP -> :class:`Interrupted`; SIGXFSZ ignored (writes fail with EFBIG).
+
+    Returns the previous handlers, for :func:`restore_signal_handlers` (the CLI restores them when
+    it returns, so an in-process caller keeps its own handling)."""
+    previous = {}
+    for s in HANDLED_SIGNALS + ((signal.SIGXFSZ,) if hasattr(signal, "SIGXFSZ") else ()):
+        try:
+            old = signal.getsignal(s)
+            if s in HANDLED_SIGNALS and old is signal.SIG_IGN and s != signal.SIGINT:
+                continue           # e.g. nohup: keep ignoring SIGHUP
+            signal.signal(s, _handler if s in HANDLED_SIGNALS else signal.SIG_IGN)
+            previous[s] = old
+        except (OSError, ValueError, TypeError):   # not the main thread
+            pass
+    return previous
+
+
+def restore_signal_handlers(previous):
+    for s, h in (previous or {}).items():
+        try:
+            signal.signal(s, h if h is not None else signal.SIG_DFL)
+        except (OSError, ValueError, TypeError):
+            pass
+
+
+# partial output a command left for an interrupted run (set by the command, reported by the CLI)
+_partial = []
+
+
+def note_partial(path):
+    """Record that ``path`` holds a partial output (``complete=false``) if the run is interrupted."""
+    _partial.append(str(path))
+
+
+_complete = []
+
+
+def note_complete(path):
+    """Record that ``path`` was written complete before the run ended (reported if interrupted later)."""
+    _complete.append(str(path))
+
+
+def partial_outputs():
+    """Noted partial outputs that actually exist."""
+    return [p for p in _partial if os.path.isfile(p)]
+
+
+def complete_outputs():
+    """Noted complete outputs that actually exist."""
+    return [p for p in _complete if os.path.isfile(p)]
+
+
+def interruption_note():
+    """What an interrupted run left, for the one-line message."""
+    parts, done = partial_outputs(), complete_outputs()
+    if parts:
+        what = f"partial output (complete=false) written to {', '.join(parts)}"
+    else:
+        what = "no partial output written" if done else "no output written"
+    if done:
+        what += f"; complete outputs kept: {', '.join(done)}"
+    return what
+
+
+def reset_partial():
+    _partial.clear()
+    _complete.clear()
+
+
+# ------------------------------------------------------------------------------------------
+# strict JSON
+# ------------------------------------------------------------------------------------------
+def json_clean(o):
+    """Replace non-finite floats by None, numpy scalars/arrays by Python values (recursively)."""
+    try:
+        import numpy as np
+    except ImportError:     # pragma: no cover
+        np = None
+    if isinstance(o, bool) or o is None or isinstance(o, str):
+        return o
+    if isinstance(o, float):
+        return o if math.isfinite(o) else None
+    if isinstance(o, int):
+        return o
+    if isinstance(o, dict):
+        return {str(k): json_clean(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [json_clean(v) for v in o]
+    if np is not None:
+        if isinstance(o, np.bool_):
+            return bool(o)
+        if isinstance(o, np.integer):
+            return int(o)
+        if isinstance(o, np.floating):
+            return json_clean(float(o))
+        if isinstance(o, np.ndarray):
+            return json_clean(o.tolist())
+    if isinstance(o, Path):
+        return str(o)
+    return str(o)
+
+
+def json_dumps(obj, **kw):
+    """Strict JSON text of ``obj`` (see :func:`json_clean`); never emits NaN/Infinity."""
+    return json.dumps(json_clean(obj), allow_nan=False, **kw)
