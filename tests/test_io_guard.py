@@ -1,4 +1,4 @@
-"""Unit tests of ultratight.receiver.io_guard (paths, atomic writers, errno lines, JSON, signals)."""
+"""Unit tests of ultratight.io_guard (paths, atomic writers, errno lines, JSON, signals)."""
 
 import errno
 import json
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from ultratight.errors import ConfigError, InputFileError, OutputError
-from ultratight.receiver import io_guard
+from ultratight import io_guard
 
 
 def test_tmp_names_are_unique_and_hidden(tmp_path):

@@ -328,7 +328,7 @@ IMU_H5_VERSION = 1
 def write_imu_h5(path, imu, meta=None):
     """Write :class:`ImuData` to HDF5 (layout in docs/ins.md); built in memory, written under a
     unique temporary name, then renamed (disk errors raise OutputError)."""
-    from ultratight.receiver.io_guard import write_h5_atomic
+    from ultratight.io_guard import write_h5_atomic
     allmeta = dict(imu.meta or {})
     allmeta.update(meta or {})
 
@@ -580,7 +580,7 @@ def read_imu_csv(path):
 
 def write_imu_csv(path, imu):
     """Write increments as CSV (t_s, dthx_rad, ..., dvz_mps) -- the format read_imu_csv reads."""
-    from ultratight.receiver.io_guard import atomic_path
+    from ultratight.io_guard import atomic_path
     with atomic_path(path) as tmp:
         with open(tmp, "w") as fh:
             fh.write("# ultratight IMU increments, body frame FLU; t_s = end of interval\n")

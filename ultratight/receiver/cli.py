@@ -57,7 +57,7 @@ def build_parser():
 
 
 def main(argv=None):
-    from ultratight.receiver import io_guard
+    from ultratight import io_guard
 
     previous = io_guard.install_signal_handlers()
     try:

@@ -1044,7 +1044,7 @@ def write_result_h5(path, res, extra_attrs=None):
     name, then renamed; schema in docs/ultratight.md). Disk errors raise OutputError."""
     import json
     from ultratight import __version__
-    from ultratight.receiver.io_guard import write_h5_atomic
+    from ultratight.io_guard import write_h5_atomic
 
     def build(f):
         f.attrs["schema"] = "ultratight engine result v1 (docs/ultratight.md)"

@@ -117,7 +117,7 @@ class H5Stream:
 
 
 def _write_atomic(path, text):
-    from ultratight.receiver.io_guard import write_text_atomic
+    from ultratight.io_guard import write_text_atomic
     write_text_atomic(path, text)
 
 

@@ -89,7 +89,7 @@ def prepare_data(cfg, seed, out_dir, progress=False):
 
     The entry is guarded by a per-key lock; ``done.json`` records every file's name and size and is
     written last (atomically); an entry that does not verify is regenerated."""
-    from ultratight.receiver.io_guard import output_error, write_text_atomic
+    from ultratight.io_guard import output_error, write_text_atomic
     from ultratight.signals.generator import generate
     c = dict(cfg)
     c["seed"] = int(seed)
@@ -304,7 +304,7 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        from ultratight.receiver.io_guard import output_error
+        from ultratight.io_guard import output_error
         raise output_error(out, exc, "cannot create output directory") from None
     dur = float(cfg["duration_s"])
     segs = M.SEGMENTS_S
@@ -348,12 +348,12 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
                                                   "segment_diverged", "noise_events")}
                       for m in methods}, "monitor": mon,
           "per_run": per, "version": __version__, "paper_table3": M.PAPER_TABLE3, "paper_table4_s": M.PAPER_TABLE4_S}
-    from ultratight.receiver.io_guard import write_text_atomic
+    from ultratight.io_guard import write_text_atomic
     mpath = out / "metrics.json"
     write_text_atomic(mpath, json.dumps(M.json_clean(js), indent=2))
     hpath = out / "results.h5"
     write_results_h5(hpath, cfg, raw, methods, runs, base_seed)
-    from ultratight.receiver.io_guard import note_complete
+    from ultratight.io_guard import note_complete
     note_complete(mpath)
     note_complete(hpath)
     figs = []
@@ -428,7 +428,7 @@ def aggregate(summaries, raw, method, segs, channel):
 
 def _check_out_dir(out, cfg, runs):
     """--out: a directory (existing or creatable) with room for the runs' data (estimate)."""
-    from ultratight.receiver import io_guard
+    from ultratight import io_guard
     from ultratight.receiver.commands.generate import estimate
     io_guard.check_path_length(out, "--out")
     if out.exists() and not out.is_dir():
@@ -441,7 +441,7 @@ def _check_out_dir(out, cfg, runs):
 
 
 def write_results_h5(path, cfg, raw, methods, runs, base_seed):
-    from ultratight.receiver.io_guard import write_h5_atomic
+    from ultratight.io_guard import write_h5_atomic
 
     def build(f):
         f.attrs["schema"] = SCHEMA
@@ -494,7 +494,7 @@ def make_plots(out, raw, methods, channel):
         ax.grid(True, alpha=0.3)
         ax.legend()
         p = Path(out) / name
-        from ultratight.receiver.io_guard import atomic_path
+        from ultratight.io_guard import atomic_path
         try:
             with atomic_path(p) as tmp:
                 fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")

@@ -394,7 +394,7 @@ def noise_factor(events, e):
 
 
 def _tmp(path):
-    from ultratight.receiver.io_guard import tmp_name
+    from ultratight.io_guard import tmp_name
     return tmp_name(path)
 
 

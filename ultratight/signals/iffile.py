@@ -303,7 +303,7 @@ class IfSource:
         self.file_if_hz = if_hz
         self.if_hz = self.fs_hz / 2.0 - if_hz if self._alt_sign else if_hz
         if not self.path.is_file():
-            from ultratight.receiver.io_guard import check_input_file
+            from ultratight.io_guard import check_input_file
             check_input_file(self.path, "IF file")
         size = self.path.stat().st_size
         spec = self.spec
@@ -453,7 +453,7 @@ def open_if(path=None, meta=None, fs_hz=None, if_hz=None, fmt=None, iq_conj=Fals
     if meta is not None:
         mp = Path(meta)
         if not mp.is_file() and not str(mp).lower().endswith(".sigmf-data"):
-            from ultratight.receiver.io_guard import check_input_file
+            from ultratight.io_guard import check_input_file
             check_input_file(mp, "metadata file")
         if str(mp).lower().endswith((".sigmf-meta", ".sigmf-data")):
             from ultratight.signals.sigmf_io import read_sigmf
@@ -473,7 +473,7 @@ def open_if(path=None, meta=None, fs_hz=None, if_hz=None, fmt=None, iq_conj=Fals
         raise InputFileError("no IF file given")
     path = Path(path)
     if not path.is_file():
-        from ultratight.receiver.io_guard import check_input_file
+        from ultratight.io_guard import check_input_file
         check_input_file(path, "IF file")
     if meta is None:
         info = read_sidecar(path) or {}
@@ -504,7 +504,7 @@ def _encode2(levels):
 
 
 def _tmp_name(path):
-    from ultratight.receiver.io_guard import tmp_name
+    from ultratight.io_guard import tmp_name
     return tmp_name(path)
 
 

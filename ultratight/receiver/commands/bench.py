@@ -71,7 +71,7 @@ def run(args):
     from ultratight import __version__
     from ultratight.errors import ConfigError
 
-    from ultratight.receiver import io_guard
+    from ultratight import io_guard
     io_guard.check_io([], [("--json", args.json)])
     d = _bench_dir(args.dir)
     scripts = sorted(d.glob("bench_*.py"))

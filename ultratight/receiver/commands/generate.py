@@ -97,7 +97,7 @@ def estimate(cfg):
 def check_outputs(cfg, out_dir, stem):
     """Refuse before any work: output names invalid or naming the scenario file, not enough free
     disk or memory for the estimate (:func:`estimate`)."""
-    from ultratight.receiver import io_guard
+    from ultratight import io_guard
     from ultratight.signals.generator import output_paths
     paths = output_paths(out_dir, stem, cfg["frontend"]["format"])
     io_guard.check_io([("SCENARIO", cfg.get("source_file"))],
@@ -159,7 +159,7 @@ def run(args):
         _remove_empty_dirs(created)     # only directories this run created, and only when empty
         from ultratight.errors import UltratightError
         if isinstance(exc, OSError) and not isinstance(exc, UltratightError):
-            from ultratight.receiver.io_guard import output_error
+            from ultratight.io_guard import output_error
             raise output_error(f"{out_dir}/{stem}.*", exc) from None
         raise
     summ = res["summary"]
@@ -172,7 +172,7 @@ def run(args):
                                         description=f"ultratight generate {cfg['name']} (seed {summ['seed']})")
     files = {k: str(v) for k, v in res.items() if k != "summary"}
     if args.json:
-        from ultratight.receiver.io_guard import json_dumps
+        from ultratight.io_guard import json_dumps
         print(json_dumps({"files": files, **summ}, indent=1))
         return 0
     fs = summ["fs_hz"]

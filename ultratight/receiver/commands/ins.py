@@ -78,7 +78,7 @@ def run(args):
         if not (-90 <= lat <= 90 and -180 <= lon <= 360 and -1e4 <= h <= 1e8):
             raise ConfigError(f"--init-llh: latitude in [-90, 90] deg, longitude in [-180, 360] deg, height in "
                               f"[-1e4, 1e8] m; got {lat} {lon} {h}")
-    from ultratight.receiver import io_guard
+    from ultratight import io_guard
     inputs = [("SOURCE", src)] if (path.exists() or "/" in src) else []
     if is_file:
         io_guard.check_input_file(path, "IMU file")

@@ -9,7 +9,7 @@ file (HDF5 or CSV) whose time axis starts at the first IF sample.
 import math
 import sys
 
-from ultratight.receiver.io_guard import json_dumps, note_partial
+from ultratight.io_guard import json_dumps, note_partial
 
 HELP = ("run the GPS receiver on an IF file: scalar (acquisition, tracking, LNAV, PVT) or, with --mode ultratight "
         "--imu, the ultra-tight GPS/INS engine")
@@ -96,7 +96,7 @@ OUTPUT_FLAGS = (("--out", "out"), ("--csv", "csv"), ("--kml", "kml"), ("--rinex-
 
 def _check_paths(args):
     """Inputs readable, outputs writable and distinct from every input (io_guard.check_io)."""
-    from ultratight.receiver import io_guard
+    from ultratight import io_guard
     from ultratight.signals.iffile import sidecar_path
     io_guard.check_input_file(args.iffile, "IF file")
     inputs = [("IFFILE", args.iffile), ("sidecar", str(sidecar_path(args.iffile)))]
@@ -246,7 +246,7 @@ def run(args):
 def _raise_output_error(exc, args):
     """An OSError while writing: one line naming the outputs and the cause (full disk, ...)."""
     from ultratight.errors import UltratightError
-    from ultratight.receiver.io_guard import output_error
+    from ultratight.io_guard import output_error
     if isinstance(exc, UltratightError):
         raise exc
     outs = [getattr(args, dest) for _, dest in OUTPUT_FLAGS if getattr(args, dest, None)]

@@ -60,7 +60,7 @@ def _methods(args):
 def _print_summary(args, summary):
     import sys
     if args.json:
-        from ultratight.receiver.io_guard import json_dumps
+        from ultratight.io_guard import json_dumps
         print(json_dumps(summary["json"], indent=2))
     else:
         print(summary["text"])
