@@ -184,6 +184,10 @@ CASES = [
     # 7. silent acceptance of bad numbers
     ("imu-nan", ["ins", "nan.imu.h5", "--json", "--init-llh", "41", "2", "50"], 2, "not a finite number"),
     ("imu-stamps-shifted", P + ["v.ci8", "--mode", "ultratight", "--imu", "shift.imu.h5"], 2, "time offset"),
+    ("ut-iono-flag", P + ["v.ci8", "--mode", "ultratight", "--imu", "v.imu.h5", "--iono", "off"], 2,
+     "--iono/--tropo not supported with --mode ultratight"),
+    ("ut-packing-flag", P + ["v.ci8", "--mode", "ultratight", "--imu", "v.imu.h5", "--packing", "lsb-first"], 2,
+     "--packing not supported with --mode ultratight"),
     ("init-llh-nan", ["ins", "v.imu.h5", "--init-llh", "nan", "0", "0"], 2, "must be finite"),
     ("toml-typo-table", ["generate", "typo_table.toml", "--out", "g/"], 2, "did you mean 'imu'"),
     ("toml-typo-key", ["generate", "typo_key.toml", "--out", "g/"], 2, "did you mean 'duration_s'"),

@@ -406,6 +406,14 @@ class _TruthWriter:
 
         self.path = Path(path)
         self.tmp = _tmp(self.path)
+        self.f = None
+        try:
+            self._create(h5py, nsat, attrs)
+        except BaseException:          # also an interruption while the file is being set up
+            self.abort()
+            raise
+
+    def _create(self, h5py, nsat, attrs):
         self.f = h5py.File(self.tmp, "w")
         for k, v in attrs.items():
             self.f.attrs[k] = v
@@ -433,7 +441,8 @@ class _TruthWriter:
 
     def abort(self):
         try:
-            self.f.close()
+            if self.f is not None:
+                self.f.close()
         except Exception:
             pass
         try:
@@ -522,14 +531,14 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
              "format": spec.name, "week": week, "tow0_s": tow0, "samples_per_row": L,
              "prn": plan.prns, "cn0_dbhz_config": plan.cn0_dbhz, "seed": int(seed),
              "n_samples": n_total, "schema": "ultratight generator truth v1 (docs/generator.md)"}
-    writer = IfWriter(paths["if"], spec.name, fe.fs_hz, fe.if_hz, inversion=fe.inversion,
-                      start_week=week, start_tow_s=tow0, bits=fe.bits,
-                      extra={"generator": resolved, "prn": plan.prns.tolist(),
-                             "cn0_dbhz": plan.cn0_dbhz.tolist(), "frontend": fe.to_dict()})
-    truth = None
+    writer = truth = None
     extra_tmps = []
     bar = _progress(duration, progress, f"generate {stem}")
     try:
+        writer = IfWriter(paths["if"], spec.name, fe.fs_hz, fe.if_hz, inversion=fe.inversion,
+                          start_week=week, start_tow_s=tow0, bits=fe.bits,
+                          extra={"generator": resolved, "prn": plan.prns.tolist(),
+                                 "cn0_dbhz": plan.cn0_dbhz.tolist(), "frontend": fe.to_dict()})
         truth = _TruthWriter(paths["truth"], len(ephs), attrs)
         nsat = len(ephs)
         comps = 2 if fe.is_complex else 1
@@ -604,7 +613,8 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
         for tmp, final in extra_tmps:
             os.replace(tmp, final)
     except BaseException:
-        writer.abort()
+        if writer is not None:
+            writer.abort()
         if truth is not None:
             truth.abort()
         for tmp, _ in extra_tmps:

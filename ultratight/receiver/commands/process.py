@@ -152,10 +152,10 @@ def add_arguments(p):
     p.add_argument("--doppler-range", type=float, default=10e3, metavar="HZ",
                    help="acquisition Doppler search half-width (default 10 kHz)")
     p.add_argument("--mask", type=float, default=5.0, metavar="DEG", help="elevation mask (default 5 deg)")
-    p.add_argument("--iono", choices=("klobuchar", "off"), default="klobuchar",
+    p.add_argument("--iono", choices=("klobuchar", "off"), default=None,
                    help="ionospheric correction: broadcast Klobuchar model (default; applied once alpha/beta "
                         "are known from subframe 4 page 18 or the --ephemeris RINEX header) or off")
-    p.add_argument("--tropo", choices=("saastamoinen", "off"), default="saastamoinen",
+    p.add_argument("--tropo", choices=("saastamoinen", "off"), default=None,
                    help="tropospheric correction: Saastamoinen with a standard atmosphere (default) or off")
     p.add_argument("--out", metavar="OUT.h5", help="HDF5 output (schema in docs/process.md)")
     p.add_argument("--csv", metavar="OUT.csv", help="also write the fixes as CSV")
@@ -186,6 +186,8 @@ def run(args):
         return _run_ultratight(args)
     if getattr(args, "imu", None):
         raise ConfigError("--imu is only used with --mode ultratight")
+    args.iono = args.iono or "klobuchar"           # defaults of the scalar receiver (recorded resolved)
+    args.tropo = args.tropo or "saastamoinen"
     from ultratight.signals.iffile import open_if
     from ultratight.receiver.process import NoSignalError, ProcessConfig, process
     from ultratight.receiver.tracking import TrackingConfig
@@ -266,11 +268,16 @@ def _run_ultratight(args):
                                      ("--format", args.fmt is not None), ("--iq-conj", args.iq_conj),
                                      ("--start", args.start != 0.0), ("--csv", args.csv), ("--kml", args.kml),
                                      ("--rinex-obs", args.rinex_obs), ("--rinex-nav", args.rinex_nav),
-                                     ("--nmea", args.nmea))
+                                     ("--nmea", args.nmea), ("--packing", args.packing),
+                                     ("--encoding", args.encoding), ("--word-size", args.word_size),
+                                     ("--endian", args.endian))
                if on]
     if ignored:
         raise ConfigError(f"{', '.join(ignored)} not supported with --mode ultratight (the IF parameters come "
                           "from the sidecar / --meta)")
+    if args.iono is not None or args.tropo is not None:
+        raise ConfigError("--iono/--tropo not supported with --mode ultratight (the tight filter's pseudorange "
+                          "model has no atmosphere terms yet)")
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise ConfigError(f"--duration must be > 0 s, got {args.duration}")
     prns = _prn_list(args.prn) if args.prn else None
