@@ -43,24 +43,29 @@ def state(h_m):
             "a": _out(atm.speed_of_sound, h)}
 
 
-def pressure(h_m):
+def _property(h_m, name):
     h = _h(h_m)
-    return _out(Atmosphere(h.reshape(-1)).pressure, h)
+    return _out(getattr(Atmosphere(h.reshape(-1)), name), h)
+
+
+def pressure(h_m):
+    """Static pressure (Pa)."""
+    return _property(h_m, "pressure")
 
 
 def temperature(h_m):
-    h = _h(h_m)
-    return _out(Atmosphere(h.reshape(-1)).temperature, h)
+    """Temperature (K)."""
+    return _property(h_m, "temperature")
 
 
 def density(h_m):
-    h = _h(h_m)
-    return _out(Atmosphere(h.reshape(-1)).density, h)
+    """Density (kg/m³)."""
+    return _property(h_m, "density")
 
 
 def speed_of_sound(h_m):
-    h = _h(h_m)
-    return _out(Atmosphere(h.reshape(-1)).speed_of_sound, h)
+    """Speed of sound a = sqrt(γ R T) (m/s)."""
+    return _property(h_m, "speed_of_sound")
 
 
 def altitude_from_pressure(p_pa):
