@@ -86,3 +86,18 @@ def test_cli_json_and_outputs(tmp_path, capsys):
     pytest.importorskip("matplotlib")
     assert (out / "fig6_max_aoa_deg.png").is_file()
     assert not list(out.glob(".*part*"))
+
+
+@pytest.mark.parametrize("override", [{"fads.altitude_mode": "pressure"},
+                                      {"atmosphere.wind_esd_mps": [30.0, -20.0, 0.0]}])
+def test_pressure_altitude_mode_and_known_wind(mod_cfg, override):
+    """The 'pressure' FADS altitude and a known constant wind keep the FADS gain on the flow angles
+    (a wind left out of V_F would put |W|/|V| ≈ 0.1 rad into them)."""
+    mod, path, raw, _ = mod_cfg
+    cfg = mod.load(path, raw, {"duration_s": 40.0, **override})
+    r = mod.run_one(cfg, ["gnss-ins", "fads-ckf"], 1)["methods"]
+    assert r["fads-ckf"]["sideslip_deg"]["std"] < 0.6 * r["gnss-ins"]["sideslip_deg"]["std"]
+    assert r["fads-ckf"]["sideslip_deg"]["max_settled"] < 0.1
+    if "fads.altitude_mode" in override:
+        # FADS pressure altitude at ~1-3 km: sigma ~15-20 m (p_inf to ~160 Pa), blended with GNSS
+        assert 3.0 < r["fads-ckf"]["altitude_m"]["std"] < 20.0

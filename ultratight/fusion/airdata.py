@@ -192,7 +192,7 @@ def adaptive_altitude_variance(vz, R_min, R_max, v_min=1.0):
 
 # ------------------------------------------------------------------ the filter loop
 
-def fads_velocity_h(C_pred, c_f):
+def fads_velocity_h(C_pred, c_f, wind_n=None):
     """Measurement function (rows X (N, 9) → (N, 6)) of the pre-fused observation ``[λ_G, L_G, h_GF, V_GF]``.
 
     V_GF = (1 − c_F) V_G + c_F V_F with ``V_F = C_pred v_b,F``: the FADS air velocity (body axes) turned
@@ -200,17 +200,19 @@ def fads_velocity_h(C_pred, c_f):
     ``(1 − c_F) V + c_F C_pred C_nb(X) V``: the FADS part depends on the state's attitude (it equals V
     only at X's attitude = C_pred). Eq. 3 as printed (h linear) ignores this, and the filter then
     trusts a velocity that carries its own attitude error (|V| δψ ≈ 4 m/s at Mach 8 per 0.1°): it
-    diverges (AoA errors of tens of degrees in this scenario)."""
+    diverges (AoA errors of tens of degrees in this scenario). With a known constant wind W the FADS
+    ground velocity is ``C_pred v_b,F + W`` and its expectation ``C_pred C_nb(X) (V − W) + W``."""
     from ultratight.airdata.frames import euler_to_dcm
     c_f = np.asarray(c_f, float)
+    w = np.zeros(3) if wind_n is None else np.asarray(wind_n, float)
 
     def h(X):
         X = np.atleast_2d(X)
         C = euler_to_dcm(X[:, I_PITCH], X[:, I_YAW], X[:, I_ROLL])
-        v_b = np.einsum("nji,nj->ni", C, X[:, VEL])                 # C_nb(X) V
+        v_b = np.einsum("nji,nj->ni", C, X[:, VEL] - w)             # C_nb(X) (V - W)
         out = np.empty((X.shape[0], N_OBS))
         out[:, :3] = X[:, POS]
-        out[:, 3:6] = (1.0 - c_f) * X[:, VEL] + c_f * (v_b @ C_pred.T)
+        out[:, 3:6] = (1.0 - c_f) * X[:, VEL] + c_f * (v_b @ C_pred.T + w)
         return out
     return h
 

@@ -293,13 +293,13 @@ def run_method(cfg, sim, method):
 
         def measure(k, x, P):
             C = euler_to_dcm(x[AF.I_PITCH], x[AF.I_YAW], x[AF.I_ROLL])               # INS attitude
-            v_f = C @ v_b[k]                                                            # V_F of SPEC §8
+            v_f = C @ v_b[k] + wind                                                     # V_F of SPEC §8 (+ known wind)
             v_gf = AF.blend(zg[k, 2], zg[k, 3:6], v_f, Rv_g, Rv1, Rv2)                 # eq. 4, velocities
             z = np.concatenate([zg[k, :2], [h_gf[k]], v_gf])
             R = np.diag(np.concatenate([sg[k, :2] ** 2,
                                         [AF.adaptive_altitude_variance(x[AF.I_VZ], R_kmin[k], R_g, v_min)],  # eq. 10
                                         R_vel[k]]))
-            return z, R, AF.fads_velocity_h(C, c_f[k])
+            return z, R, AF.fads_velocity_h(C, c_f[k], wind)
     kind = "ekf" if method == "fads-ekf" else "ckf"
     t0, c0 = time.perf_counter(), time.process_time()
     xs, pdiag, nis = AF.run(kind, sim["x0"], P0, Q, sim["dtheta"], sim["dv"], sim["dt"], sim["per_epoch"], measure)
