@@ -101,3 +101,21 @@ def test_pressure_altitude_mode_and_known_wind(mod_cfg, override):
     if "fads.altitude_mode" in override:
         # FADS pressure altitude at ~1-3 km: sigma ~15-20 m (p_inf to ~160 Pa), blended with GNSS
         assert 3.0 < r["fads-ckf"]["altitude_m"]["std"] < 20.0
+
+
+@pytest.mark.slow
+def test_monte_carlo_reproduction_100_runs(tmp_path):
+    """The 100-run campaign (``ultratight scenario paper-fads --runs 100 --seed 1``; ~15 min on 2 idle
+    cores): the FADS CKF beats GNSS/INS on the flow angles (std, and max after the initial transient),
+    every flow-angle and Mach figure is within 2x of the paper's or better, CKF and EKF agree to 10 %."""
+    path, raw, mod = experiments.resolve("paper-fads")
+    s = experiments.run_experiment(mod, path, raw, runs=100, seed=1, out_dir=tmp_path, plots=False, progress=False)
+    t = s["table"]
+    for row in ("aoa_deg", "sideslip_deg"):
+        assert t["fads-ckf"][row]["std"] < t["gnss-ins"][row]["std"]
+        assert t["fads-ckf"][row]["max_settled"] < t["gnss-ins"][row]["max_settled"]
+        assert t["fads-ekf"][row]["std"] == pytest.approx(t["fads-ckf"][row]["std"], rel=0.1)
+    for m in mod.METHODS:
+        for row in ("aoa_deg", "sideslip_deg", "mach"):
+            for i, k in enumerate(("max", "std")):
+                assert t[m][row][k] <= 2.0 * mod.PAPER_TABLE3[m][row][i]

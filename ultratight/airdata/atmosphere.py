@@ -84,9 +84,12 @@ def dpressure_dh(h_m):
     return _out(-atm.density * atm.grav_accel, h)
 
 
-def wind_esd(cfg_wind):
+def wind_esd(cfg_wind, field="atmosphere.wind_esd_mps"):
     """Constant wind vector (m/s, ESD: East, South, Down) from a config list; zero by default."""
-    w = np.zeros(3) if cfg_wind is None else np.asarray(cfg_wind, dtype=float).reshape(-1)
+    try:
+        w = np.zeros(3) if cfg_wind is None else np.asarray(cfg_wind, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        w = np.zeros(0)
     if w.shape != (3,) or not np.all(np.isfinite(w)):
-        raise ConfigError(f"wind_esd_mps must be 3 finite numbers (East, South, Down), got {cfg_wind!r}")
+        raise ConfigError(f"{field} must be 3 finite numbers (East, South, Down), got {cfg_wind!r}")
     return w

@@ -40,8 +40,12 @@ def default_ports():
 
 
 def ports_from_config(cone_deg, clock_deg):
-    cone = np.asarray(cone_deg, dtype=float).reshape(-1)
-    clock = np.asarray(clock_deg, dtype=float).reshape(-1)
+    """(cone, clock) in rad from the scenario's degree lists; ConfigError naming the field when wrong."""
+    try:
+        cone = np.asarray(cone_deg, dtype=float).reshape(-1)
+        clock = np.asarray(clock_deg, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise ConfigError("fads.cone_deg and fads.clock_deg must be lists of numbers (deg)") from None
     if cone.shape != clock.shape or cone.size < 4:
         raise ConfigError("fads.cone_deg and fads.clock_deg must be lists of the same length (>= 4 ports)")
     if not (np.all(np.isfinite(cone)) and np.all(np.isfinite(clock))) or np.any(cone < 0) or np.any(cone >= 90):

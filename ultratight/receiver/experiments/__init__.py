@@ -93,6 +93,8 @@ def run_experiment(module, path, raw, *, methods=None, runs=1, seed=None, out_di
     base_seed = int(cfg.get("seed", 0) if seed is None else seed)
     if base_seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {base_seed}")
+    if Path(out_dir).exists() and not Path(out_dir).is_dir():
+        raise ConfigError(f"--out {out_dir}: exists and is not a directory")
     results = []
     seeds = [base_seed + r for r in range(int(runs))]
     if hasattr(module, "run_many") and int(runs) > 1:
