@@ -72,10 +72,11 @@ POSITIVE = {"imu": ("rate_hz", "accel_sigma_mps2", "gyro_sigma_dps"), "gnss": ("
 
 def _number(table, key, where, positive=False):
     v = table[key]
+    name = key if where is None else f"{where}.{key}"
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise ConfigError(f"{where}.{key} must be a finite number, got {v!r}")
+        raise ConfigError(f"{name} must be a finite number, got {v!r}")
     if positive and not v > 0:
-        raise ConfigError(f"{where}.{key} must be > 0, got {v!r}")
+        raise ConfigError(f"{name} must be > 0, got {v!r}")
     return float(v)
 
 
@@ -96,7 +97,7 @@ def load(path, raw, overrides):
             if k in ("cone_deg", "clock_deg", "altitude_mode", "wind_esd_mps"):
                 continue
             cfg[name][k] = _number(cfg[name], k, name, k in POSITIVE.get(name, ()))
-    cfg["duration_s"] = _number(cfg, "duration_s", "top", True)
+    cfg["duration_s"] = _number(cfg, "duration_s", None, True)
     if isinstance(cfg["seed"], bool) or not isinstance(cfg["seed"], int) or cfg["seed"] < 0:
         raise ConfigError(f"seed must be an integer >= 0, got {cfg['seed']!r}")
     if cfg["fads"]["altitude_mode"] not in ("direct", "pressure"):
