@@ -105,7 +105,7 @@ def test_pressure_altitude_mode_and_known_wind(mod_cfg, override):
 
 @pytest.mark.slow
 def test_monte_carlo_reproduction_100_runs(tmp_path):
-    """The 100-run campaign (``ultratight scenario paper-fads --runs 100 --seed 1``; ~15 min on 2 idle
+    """The 100-run campaign (``ultratight scenario paper-fads --runs 100 --seed 1``; 14 min at load 3 on 2
     cores): the FADS CKF beats GNSS/INS on the flow angles (std, and max after the initial transient),
     every flow-angle and Mach figure is within 2x of the paper's or better, CKF and EKF agree to 10 %."""
     path, raw, mod = experiments.resolve("paper-fads")
