@@ -22,8 +22,11 @@ and exposes
   "h5_path", "figures"}``: ``metrics.json``, ``results.h5`` (atomic writes) and
   figures when matplotlib is installed.
 
-:func:`run_experiment` is the sequential driver ``ultratight scenario`` uses:
-seeds ``seed, seed+1, ...``, one ``run_one`` each. The IF-level experiment keeps
+:func:`run_experiment` is the driver ``ultratight scenario`` uses: seeds ``seed, seed+1, ...``,
+one ``run_one`` each, sequentially — or, when the module has the optional hook
+``run_many(cfg, methods, seeds, progress) -> [run_one results in seed order]``, through it (e.g. in
+worker processes on all cores). ``run_many`` must return exactly what the sequential loop would:
+each run's randomness depends only on its seed. The IF-level experiment keeps
 its own driver (``scenario_runner.run_scenario``: it manages an on-disk data
 cache), reached through the same :func:`run_experiment`.
 """
@@ -92,8 +95,13 @@ def run_experiment(module, path, raw, *, methods=None, runs=1, seed=None, out_di
     base_seed = int(cfg.get("seed", 0) if seed is None else seed)
     if base_seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {base_seed}")
+    if Path(out_dir).exists() and not Path(out_dir).is_dir():
+        raise ConfigError(f"--out {out_dir}: exists and is not a directory")
     results = []
-    for r in range(int(runs)):
+    seeds = [base_seed + r for r in range(int(runs))]
+    if hasattr(module, "run_many") and int(runs) > 1:
+        results = module.run_many(cfg, methods, seeds, progress=progress)
+    for r in range(0 if results else int(runs)):
         t0 = time.perf_counter()
         res = module.run_one(cfg, methods, base_seed + r, progress=progress)
         results.append(res)

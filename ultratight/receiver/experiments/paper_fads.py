@@ -1,0 +1,503 @@
+"""Seed 004's experiment ``paper-fads``: air data (α, β, Mach) from FADS/GNSS/INS (SPEC §8).
+
+Per run (one seed): the analytic flight of :mod:`ultratight.airdata.flight` (the same in every run),
+Table 1 noise drawn from ``numpy.random.SeedSequence(seed).spawn(4)`` streams (IMU, GNSS, FADS,
+initial error), then three methods on the same data and the same initial state:
+
+* ``gnss-ins``: the 9-state total-state CKF with the GNSS position/velocity (eqs. 2–3, fixed R);
+* ``fads-ekf`` / ``fads-ckf``: FADS/GNSS/INS — altitude and velocity pre-fused by eq. 4 (GNSS
+  latitude/longitude unchanged), the eq. 10 adaptive altitude noise, EKF (eqs. 7–8, linearized) or
+  CKF; same Q, R, P0 and data.
+
+Air data from each filter output (SPEC §8): ``v_b = C_nb V̂``, α, β, ``Ma = |V̂|/a(ĥ)``; altitude row
+ĥ for GNSS/INS and h_GF for the FADS variants (the paper's reading: altitude is not part of the main
+filter); the FADS filters' own ĥ is reported too. Table 3 reading: Max = max |error| over all runs,
+Std = std of the pooled errors and, the other reading, the mean of per-run stds.
+
+FADS velocity variances at 1 and 10 km for eq. 4 (not given): the mean first-order covariance of the
+FADS air velocity (true attitude) over the epochs within 100 m of 1 km and 10 km altitude of the
+run's flight (the covariance is checked against the inversion's actual errors in
+``tests/test_airdata.py``). FADS altitude: "direct" (σ_F log-linear 1 → 100 m) by default, or
+"pressure" (from the inverted p_∞).
+"""
+
+import json
+import math
+import os
+import secrets
+import time
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from ultratight import __version__
+from ultratight.errors import ConfigError
+
+METHODS = ("gnss-ins", "fads-ekf", "fads-ckf")
+DEFAULT_METHODS = METHODS
+ROWS = ("aoa_deg", "sideslip_deg", "mach", "altitude_m")
+ROW_LABEL = {"aoa_deg": "AoA (deg)", "sideslip_deg": "sideslip (deg)", "mach": "Mach", "altitude_m": "altitude (m)"}
+# SPEC §8, the paper's Tables 2 and 3: (max, std)
+PAPER_TABLE2 = {"gnss-ins": {"aoa_deg": (0.2617, 0.0473), "sideslip_deg": (0.1835, 0.0278), "mach": (0.0117, 0.0045),
+                             "altitude_m": (69.54, 16.84)},
+                "fads-ckf": {"aoa_deg": (0.1222, 0.0201), "sideslip_deg": (0.1116, 0.0183), "mach": (0.0070, 0.0025),
+                             "altitude_m": (69.54, 9.397)}}
+PAPER_TABLE3 = {"gnss-ins": {"aoa_deg": (0.3704, 0.0420), "sideslip_deg": (0.2629, 0.0275), "mach": (0.0137, 0.0047),
+                             "altitude_m": (96.64, 17.00)},
+                "fads-ekf": {"aoa_deg": (0.2882, 0.0240), "sideslip_deg": (0.2503, 0.0286), "mach": (0.0110, 0.0016),
+                             "altitude_m": (88.54, 9.559)},
+                "fads-ckf": {"aoa_deg": (0.2281, 0.0206), "sideslip_deg": (0.2210, 0.0175), "mach": (0.0090, 0.0025),
+                             "altitude_m": (88.54, 9.559)}}
+LABEL = {"gnss-ins": "GNSS/INS", "fads-ekf": "FADS/GNSS/INS EKF", "fads-ckf": "FADS/GNSS/INS CKF"}
+
+SCHEMA = {
+    "top": ("name", "experiment", "description", "duration_s", "profile_duration_s", "seed", "flight", "imu", "gnss", "fads",
+            "atmosphere", "filter"),
+    "flight": ("lat_deg", "lon_deg", "t_climb_s", "t_descent_s", "h0_m", "h_cruise_m", "h_end_m", "mach0",
+               "mach_cruise", "mach_end", "aoa0_deg", "aoa_amp_deg", "aoa_period_s", "sideslip_amp_deg",
+               "sideslip_period_s"),
+    "imu": ("rate_hz", "accel_sigma_mps2", "gyro_sigma_dps"),
+    "gnss": ("pos_sigma_m", "alt_sigma_m", "vel_sigma_mps"),
+    "fads": ("noise_pa", "cone_deg", "clock_deg", "epsilon", "altitude_mode", "sigma_h_0km_m", "sigma_h_20km_m"),
+    "atmosphere": ("wind_esd_mps",),
+    "filter": ("rate_hz", "p0_pos_m", "p0_alt_m", "p0_vel_mps", "p0_att_deg", "q_scale", "v_min_mps"),
+}
+POSITIVE = {"imu": ("rate_hz", "accel_sigma_mps2", "gyro_sigma_dps"), "gnss": ("pos_sigma_m", "alt_sigma_m", "vel_sigma_mps"),
+            "fads": ("noise_pa", "sigma_h_0km_m", "sigma_h_20km_m"),
+            "filter": ("rate_hz", "p0_pos_m", "p0_alt_m", "p0_vel_mps", "p0_att_deg", "q_scale")}
+
+
+# ------------------------------------------------------------------ configuration
+
+def _number(table, key, where, positive=False):
+    v = table[key]
+    name = key if where is None else f"{where}.{key}"
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise ConfigError(f"{name} must be a finite number, got {v!r}")
+    if positive and not v > 0:
+        raise ConfigError(f"{name} must be > 0, got {v!r}")
+    return float(v)
+
+
+def load(path, raw, overrides):
+    """Complete and check a paper-fads scenario (unknown tables/keys refused with a did-you-mean)."""
+    from ultratight.receiver.scenario_config import _apply_overrides, _deep_merge, check_known_keys
+    defaults = _deep_merge({}, _default_raw())
+    cfg = _deep_merge(defaults, raw)
+    cfg = _apply_overrides(cfg, overrides or {})
+    check_known_keys(cfg, SCHEMA["top"], "top level")
+    for name, keys in SCHEMA.items():
+        if name == "top":
+            continue
+        if not isinstance(cfg[name], dict):
+            raise ConfigError(f"[{name}] must be a table")
+        check_known_keys(cfg[name], keys, f"[{name}]")
+        for k in keys:
+            if k in ("cone_deg", "clock_deg", "altitude_mode", "wind_esd_mps"):
+                continue
+            cfg[name][k] = _number(cfg[name], k, name, k in POSITIVE.get(name, ()))
+    cfg["duration_s"] = _number(cfg, "duration_s", None, True)
+    if isinstance(cfg["seed"], bool) or not isinstance(cfg["seed"], int) or cfg["seed"] < 0:
+        raise ConfigError(f"seed must be an integer >= 0, got {cfg['seed']!r}")
+    if cfg["fads"]["altitude_mode"] not in ("direct", "pressure"):
+        raise ConfigError(f"fads.altitude_mode must be 'direct' or 'pressure', got {cfg['fads']['altitude_mode']!r}")
+    from ultratight.airdata.atmosphere import wind_esd
+    from ultratight.airdata.fads import ports_from_config
+    ports_from_config(cfg["fads"]["cone_deg"], cfg["fads"]["clock_deg"])
+    cfg["atmosphere"]["wind_esd_mps"] = [float(x) for x in wind_esd(cfg["atmosphere"]["wind_esd_mps"])]
+    per = cfg["imu"]["rate_hz"] / cfg["filter"]["rate_hz"]
+    if abs(per - round(per)) > 1e-9 or round(per) < 1:
+        raise ConfigError("imu.rate_hz must be an integer multiple of filter.rate_hz")
+    # the flight profile is defined over the scenario's duration; --duration cuts the run short
+    cfg["profile_duration_s"] = float(cfg.get("profile_duration_s", raw.get("duration_s", 1000.0)))
+    if not 0.0 < cfg["duration_s"] <= cfg["profile_duration_s"]:
+        raise ConfigError(f"duration_s must be in (0, {cfg['profile_duration_s']:g}] s (the flight's length), "
+                          f"got {cfg['duration_s']:g}")
+    if abs(cfg["duration_s"] * cfg["filter"]["rate_hz"] - round(cfg["duration_s"] * cfg["filter"]["rate_hz"])) > 1e-6:
+        raise ConfigError("duration_s must be a whole number of filter epochs")
+    _flight(_flight_key(cfg))          # validates the profile
+    cfg["name"] = str(cfg.get("name") or Path(path).stem)
+    cfg["scenario_path"] = str(path)
+    return cfg
+
+
+def _default_raw():
+    from ultratight.receiver.scenario_config import read_toml, locate_scenario
+    raw = read_toml(locate_scenario("paper-fads"))
+    return {k: v for k, v in raw.items() if k not in ("name", "description")}
+
+
+def _flight_key(cfg):
+    fl = dict(cfg["flight"])
+    fl["duration_s"] = cfg["profile_duration_s"]
+    return tuple(sorted(fl.items()))
+
+
+@lru_cache(maxsize=2)
+def _flight(key):
+    from ultratight.airdata.flight import Flight
+    return Flight(dict(key))
+
+
+@lru_cache(maxsize=2)
+def _truth(key, imu_rate, filter_rate, duration_s):
+    """Truth shared by all runs of a flight: epochs' truth and ideal IMU increments (cached per process)."""
+    fl = _flight(key)
+    n_ep = int(round(duration_s * filter_rate))
+    t = np.arange(n_ep + 1) / filter_rate
+    tr = fl.truth(t)
+    dth, dv = fl.imu_increments(imu_rate, duration_s)
+    return tr, dth, dv
+
+
+# ------------------------------------------------------------------ one run
+
+def _state(tr, i):
+    return np.array([tr["lon"][i], tr["lat"][i], tr["h"][i], *tr["vel"][i], tr["pitch"][i], tr["yaw"][i],
+                     tr["roll"][i]])
+
+
+def simulate(cfg, seed):
+    """Truth and sensor data of one run (dict of arrays; see module doc)."""
+    from ultratight.airdata import atmosphere, fads
+    from ultratight.ins.earth import radii
+    from ultratight.ins.imu import ImuErrors, apply_errors
+    imu_rate, f_rate = cfg["imu"]["rate_hz"], cfg["filter"]["rate_hz"]
+    tr, dth0, dv0 = _truth(_flight_key(cfg), imu_rate, f_rate, cfg["duration_s"])
+    ss_imu, ss_gnss, ss_fads, ss_p0 = np.random.SeedSequence(int(seed)).spawn(4)
+    dt = 1.0 / imu_rate
+    # Table 1 as 1-sigma white noise per sample (SPEC §8): increments get sigma * dt
+    err = ImuErrors(gyro_arw=np.full(3, math.radians(cfg["imu"]["gyro_sigma_dps"]) * math.sqrt(dt)),
+                    accel_vrw=np.full(3, cfg["imu"]["accel_sigma_mps2"] * math.sqrt(dt)))
+    dth, dv = apply_errors(dth0, dv0, err, np.random.default_rng(ss_imu), dt)
+    ep = slice(1, None)                                  # measurement epochs t_k, k = 1..n
+    lat, h, vel = tr["lat"][ep], tr["h"][ep], tr["vel"][ep]
+    rm, rn = np.vectorize(radii)(lat)
+    g = cfg["gnss"]
+    sig_g = np.stack([g["pos_sigma_m"] / ((rn + h) * np.cos(lat)), g["pos_sigma_m"] / (rm + h),
+                      np.full(h.shape, g["alt_sigma_m"]), *(np.full((3,) + h.shape, g["vel_sigma_mps"]))], axis=1)
+    truth_z = np.column_stack([tr["lon"][ep], lat, h, vel])
+    rng_g = np.random.default_rng(ss_gnss)
+    z_gnss = truth_z + rng_g.standard_normal(truth_z.shape) * sig_g
+    # FADS: port pressures of the true air data (+ constant wind), 100 Pa noise, per-epoch inversion
+    f = cfg["fads"]
+    cone, clock = fads.ports_from_config(f["cone_deg"], f["clock_deg"])
+    wind = np.asarray(cfg["atmosphere"]["wind_esd_mps"])
+    v_air_n = vel - wind
+    v_air_b = np.einsum("nji,nj->ni", tr["C_bn"][ep], v_air_n)
+    tas = np.linalg.norm(v_air_b, axis=1)
+    alpha = np.arctan2(v_air_b[:, 2], v_air_b[:, 0])
+    beta = np.arcsin(v_air_b[:, 1] / tas)
+    atm = atmosphere.state(h)
+    mach = tas / atm["a"]
+    qc = atm["p"] * fads.impact_ratio(mach)
+    rng_f = np.random.default_rng(ss_fads)
+    p = fads.port_pressures(alpha, beta, qc, atm["p"], cone, clock, f["epsilon"])
+    p_meas = p + rng_f.standard_normal(p.shape) * f["noise_pa"]
+    y, cov = fads.invert(p_meas, cone, clock, f["noise_pa"], f["epsilon"])
+    d = fads.derived(y, cov, tr["C_bn"][ep])
+    if f["altitude_mode"] == "direct":
+        sig_h = fads.direct_altitude_sigma(h, f["sigma_h_0km_m"], f["sigma_h_20km_m"])
+        h_f = h + rng_f.standard_normal(h.shape) * sig_h
+        R_f1 = fads.direct_altitude_sigma(1000.0, f["sigma_h_0km_m"], f["sigma_h_20km_m"]) ** 2
+        R_f2 = fads.direct_altitude_sigma(10000.0, f["sigma_h_0km_m"], f["sigma_h_20km_m"]) ** 2
+    else:
+        h_f = d["h_m"]
+        R_f1, R_f2 = _calibrate(h, d["var_h"][:, None])
+        R_f1, R_f2 = float(R_f1[0]), float(R_f2[0])
+    Rv1, Rv2 = _calibrate(h, np.diagonal(d["cov_vel_n"], axis1=1, axis2=2))
+    # initial error from P0
+    fc = cfg["filter"]
+    x_true0 = _state(tr, 0)
+    rm0, rn0 = radii(x_true0[1])
+    sd0 = np.array([fc["p0_pos_m"] / ((rn0 + x_true0[2]) * math.cos(x_true0[1])), fc["p0_pos_m"] / (rm0 + x_true0[2]),
+                    fc["p0_alt_m"], *([fc["p0_vel_mps"]] * 3), *([math.radians(fc["p0_att_deg"])] * 3)])
+    x0 = x_true0 + np.random.default_rng(ss_p0).standard_normal(9) * sd0
+    return {"truth": tr, "dtheta": dth, "dv": dv, "z_gnss": z_gnss, "sig_gnss": sig_g, "h_fads": h_f,
+            "R_f": (R_f1, R_f2), "R_vf": (Rv1, Rv2), "fads": d, "fads_y": y, "alpha": alpha, "beta": beta,
+            "mach": mach, "x0": x0, "sd0": sd0, "per_epoch": int(round(imu_rate / f_rate)), "dt": dt}
+
+
+def _calibrate(h, var, band_m=100.0):
+    """Mean of per-epoch variances (n, k) over the epochs within ``band_m`` of 1 km and of 10 km."""
+    out = []
+    for ref in (1000.0, 10000.0):
+        sel = np.abs(h - ref) <= band_m
+        if not np.any(sel):
+            sel = np.argsort(np.abs(h - ref))[:10]
+        out.append(np.mean(var[sel], axis=0))
+    return out
+
+
+def process_noise(cfg, sd0):
+    """Q per filter step from Table 1 white noise over the IMU samples of a step (× q_scale)."""
+    per = cfg["imu"]["rate_hz"] / cfg["filter"]["rate_hz"]
+    dt = 1.0 / cfg["imu"]["rate_hz"]
+    step = per * dt
+    var_v = per * (cfg["imu"]["accel_sigma_mps2"] * dt) ** 2
+    var_a = per * (math.radians(cfg["imu"]["gyro_sigma_dps"]) * dt) ** 2
+    var_p = max(var_v * step ** 2 / 3.0, 1e-6)                 # m^2 (floor keeps P well conditioned)
+    to_rad = sd0[:2] / cfg["filter"]["p0_pos_m"]               # rad per metre (lon, lat)
+    q = np.array([var_p * to_rad[0] ** 2, var_p * to_rad[1] ** 2, var_p, var_v, var_v, var_v, var_a, var_a, var_a])
+    return np.diag(q * cfg["filter"]["q_scale"])
+
+
+def _air_errors(xs, tr, h_row, wind):
+    from ultratight.airdata import fads
+    from ultratight.airdata.frames import euler_to_dcm
+    C = euler_to_dcm(xs[:, 6], xs[:, 7], xs[:, 8])
+    ad = fads.air_data(xs[:, 3:6], C, np.clip(xs[:, 2], -4000.0, 80000.0), wind)
+    ep = slice(1, None)
+    v_true = tr["vel"][ep] - wind
+    vb = np.einsum("nji,nj->ni", tr["C_bn"][ep], v_true)
+    from ultratight.airdata import atmosphere
+    m_true = np.linalg.norm(vb, axis=1) / atmosphere.speed_of_sound(tr["h"][ep])
+    return {"aoa_deg": np.degrees(ad["alpha"] - np.arctan2(vb[:, 2], vb[:, 0])),
+            "sideslip_deg": np.degrees(ad["beta"] - np.arcsin(vb[:, 1] / np.linalg.norm(vb, axis=1))),
+            "mach": ad["mach"] - m_true, "altitude_m": h_row - tr["h"][ep]}
+
+
+SETTLE_S = 20.0      # the "after the initial transient" maxima skip this much of the flight
+
+
+def _stats(e, settle_epochs=0):
+    return {"max": float(np.max(np.abs(e))), "std": float(np.std(e)), "sum": float(np.sum(e)),
+            "sumsq": float(np.sum(e * e)), "n": int(e.size),
+            "max_settled": float(np.max(np.abs(e[settle_epochs:]))) if e.size > settle_epochs else float("nan")}
+
+
+def run_method(cfg, sim, method):
+    """One filter over one run's data → (errors dict of arrays, extras)."""
+    from ultratight.fusion import airdata as AF
+    from ultratight.airdata.frames import euler_to_dcm
+    tr = sim["truth"]
+    Q = process_noise(cfg, sim["sd0"])
+    P0 = np.diag(sim["sd0"] ** 2)
+    zg, sg = sim["z_gnss"], sim["sig_gnss"]
+    wind = np.asarray(cfg["atmosphere"]["wind_esd_mps"])
+    if method == "gnss-ins":
+        def measure(k, x, P):
+            return zg[k], np.diag(sg[k] ** 2)
+        h_gf = None
+    else:
+        R_g = cfg["gnss"]["alt_sigma_m"] ** 2
+        R_f1, R_f2 = sim["R_f"]
+        h_gf = AF.blend(zg[:, 2], zg[:, 2], sim["h_fads"], R_g, R_f1, R_f2)          # eq. 4
+        R_kmin = AF.fused_variance(zg[:, 2], R_g, R_f1, R_f2)                          # SPEC choice
+        Rv_g = cfg["gnss"]["vel_sigma_mps"] ** 2
+        Rv1, Rv2 = sim["R_vf"]
+        R_vel = AF.fused_variance(zg[:, 2:3], Rv_g, Rv1, Rv2)                            # (n, 3)
+        v_b = sim["fads"]["vel_b"]
+        v_min = cfg["filter"]["v_min_mps"]
+        c_f = AF.fads_weight(zg[:, 2:3], Rv_g, Rv1, Rv2)                              # (n, 3)
+
+        def measure(k, x, P):
+            C = euler_to_dcm(x[AF.I_PITCH], x[AF.I_YAW], x[AF.I_ROLL])               # INS attitude
+            v_f = C @ v_b[k] + wind                                                     # V_F of SPEC §8 (+ known wind)
+            v_gf = AF.blend(zg[k, 2], zg[k, 3:6], v_f, Rv_g, Rv1, Rv2)                 # eq. 4, velocities
+            z = np.concatenate([zg[k, :2], [h_gf[k]], v_gf])
+            R = np.diag(np.concatenate([sg[k, :2] ** 2,
+                                        [AF.adaptive_altitude_variance(x[AF.I_VZ], R_kmin[k], R_g, v_min)],  # eq. 10
+                                        R_vel[k]]))
+            return z, R, AF.fads_velocity_h(C, c_f[k], wind)
+    kind = "ekf" if method == "fads-ekf" else "ckf"
+    t0, c0 = time.perf_counter(), time.process_time()
+    xs, pdiag, nis = AF.run(kind, sim["x0"], P0, Q, sim["dtheta"], sim["dv"], sim["dt"], sim["per_epoch"], measure)
+    runtime, cpu = time.perf_counter() - t0, time.process_time() - c0
+    h_row = xs[:, 2] if h_gf is None else h_gf
+    errs = _air_errors(xs, tr, h_row, wind)
+    extras = {"filter_altitude_m": xs[:, 2] - tr["h"][1:], "nis_mean": float(np.nanmean(nis)), "runtime_s": runtime,
+              "cpu_s": cpu}
+    return errs, extras
+
+
+def run_one(cfg, methods, seed, progress=False):
+    """One Monte-Carlo run: {"seed", "methods": {m: {row: stats, ..., "runtime_s"}}, "series": ...}."""
+    t0 = time.perf_counter()
+    sim = simulate(cfg, seed)
+    t_sim = time.perf_counter() - t0
+    out = {"seed": int(seed), "methods": {}, "simulate_s": t_sim}
+    series = {}
+    settle = int(round(SETTLE_S * cfg["filter"]["rate_hz"]))
+    for m in methods:
+        errs, extras = run_method(cfg, sim, m)
+        res = {row: _stats(errs[row], settle) for row in ROWS}
+        res["filter_altitude_m"] = _stats(extras["filter_altitude_m"], settle)
+        res["nis_mean"] = extras["nis_mean"]
+        res["runtime_s"] = extras["runtime_s"]
+        res["cpu_s"] = extras["cpu_s"]
+        out["methods"][m] = res
+        series[m] = np.stack([errs[row][9::10] for row in ROWS], axis=1)       # 1 Hz for the HDF5 file
+    out["series_1hz"] = series
+    return out
+
+
+def run_many(cfg, methods, seeds, progress=False):
+    """``run_one`` for each seed in worker processes (all cores); results in seed order, identical to sequential."""
+    from concurrent.futures import ProcessPoolExecutor
+    workers = min(len(seeds), os.cpu_count() or 1)
+    if workers <= 1:
+        return [run_one(cfg, methods, s, progress) for s in seeds]
+    out = []
+    with ProcessPoolExecutor(max_workers=workers) as ex:
+        for i, res in enumerate(ex.map(run_one, [cfg] * len(seeds), [methods] * len(seeds), seeds,
+                                       [False] * len(seeds))):
+            out.append(res)
+            if progress:
+                print(f"run {i + 1}/{len(seeds)} seed {seeds[i]} done", flush=True)
+    return out
+
+
+# ------------------------------------------------------------------ summary
+
+def _pool(runs, m, row):
+    st = [r["methods"][m][row] for r in runs]
+    n = sum(s["n"] for s in st)
+    mean = sum(s["sum"] for s in st) / n
+    pooled = math.sqrt(max(sum(s["sumsq"] for s in st) / n - mean * mean, 0.0))
+    return {"max": max(s["max"] for s in st), "std": pooled, "std_run_mean": float(np.mean([s["std"] for s in st])),
+            "max_settled": max(s["max_settled"] for s in st), "max_per_run": [s["max"] for s in st]}
+
+
+def summarize(cfg, runs):
+    methods = list(runs[0]["methods"])
+    table = {m: {row: _pool(runs, m, row) for row in ROWS} for m in methods}
+    for m in methods:
+        table[m]["filter_altitude_m"] = _pool(runs, m, "filter_altitude_m")
+        table[m]["runtime_s"] = float(np.mean([r["methods"][m]["runtime_s"] for r in runs]))
+        table[m]["cpu_s"] = float(np.mean([r["methods"][m]["cpu_s"] for r in runs]))
+    nd = {"aoa_deg": 4, "sideslip_deg": 4, "mach": 5, "altitude_m": 2}
+    lines = [f"paper-fads: {len(runs)} run(s), seeds {runs[0]['seed']}..{runs[-1]['seed']} "
+             f"(FADS altitude '{cfg['fads']['altitude_mode']}')", "",
+             "Table 3 (Max = max |error| over all runs (after the first 20 s); Std = pooled std [mean of per-run stds])"
+             " — ours | paper"]
+    for row in ROWS:
+        lines.append(f"  {ROW_LABEL[row]}")
+        for m in methods:
+            t = table[m][row]
+            p = PAPER_TABLE3[m][row]
+            lines.append(f"    {LABEL[m]:<19} max {t['max']:10.{nd[row]}f} ({t['max_settled']:.{nd[row]}f}) "
+                         f"std {t['std']:9.{nd[row]}f} "
+                         f"[{t['std_run_mean']:.{nd[row]}f}]  | paper max {p[0]:.{nd[row]}f} std {p[1]:.{nd[row]}f}")
+    lines.append("  FADS filters' own altitude (main-filter h, not the paper's row): " + ", ".join(
+        f"{LABEL[m]} max {table[m]['filter_altitude_m']['max']:.2f} std {table[m]['filter_altitude_m']['std']:.2f}"
+        for m in methods if m != "gnss-ins"))
+    r0 = runs[0]
+    lines += ["", f"Table 2 (one run, seed {r0['seed']}) — ours | paper"]
+    for row in ROWS:
+        for m in methods:
+            s = r0["methods"][m][row]
+            p = PAPER_TABLE2.get(m, {}).get(row)
+            ptxt = f"| paper max {p[0]:.{nd[row]}f} std {p[1]:.{nd[row]}f}" if p else ""
+            lines.append(f"  {ROW_LABEL[row]:<15} {LABEL[m]:<19} max {s['max']:10.{nd[row]}f} std {s['std']:9.{nd[row]}f} {ptxt}")
+    checks = acceptance(table)
+    lines += ["", "checks: " + ", ".join(f"{k} {'yes' if v else 'NO'}" for k, v in checks.items() if isinstance(v, bool))]
+    if "ckf_beats_gnss_ins_rows" in checks:
+        lines.append("  FADS CKF < GNSS/INS: " + "; ".join(
+            f"{r} max {'yes' if v['max'] else 'no'} std {'yes' if v['std'] else 'no'}"
+            for r, v in checks["ckf_beats_gnss_ins_rows"].items()))
+    if "ckf_vs_ekf" in checks:
+        lines.append("  CKF vs EKF (smaller figure): " + "; ".join(
+            f"{r} max {v['max']} std {v['std']}" for r, v in checks["ckf_vs_ekf"].items()))
+    lines.append("runtime per run, wall [CPU] (s): " + ", ".join(
+        f"{m} {table[m]['runtime_s']:.2f} [{table[m]['cpu_s']:.2f}]" for m in methods))
+    js = {"scenario": cfg["name"], "seed": runs[0]["seed"], "runs": len(runs), "version": __version__,
+          "methods": {m: {**{row: {"max": table[m][row]["max"], "std": table[m][row]["std"],
+                                   "std_run_mean": table[m][row]["std_run_mean"],
+                                   "max_settled": table[m][row]["max_settled"]} for row in ROWS},
+                          "runtime_s": table[m]["runtime_s"], "cpu_s": table[m]["cpu_s"]} for m in methods},
+          "checks": checks}
+    from ultratight.receiver.metrics import json_clean
+    return {"text": "\n".join(lines), "json": json_clean(js), "table": table}
+
+
+def acceptance(table):
+    """Issue checks, per row and overall: the FADS CKF beats GNSS/INS (max and std); every figure is
+    ≤ 2 × the paper's; and which of CKF / EKF has the smaller figure (ties within 0.5 % are "tie")."""
+    out = {}
+    stats = ("max", "std")
+    if "fads-ckf" in table and "gnss-ins" in table:
+        rows = {r: {k: bool(table["fads-ckf"][r][k] < table["gnss-ins"][r][k]) for k in stats} for r in ROWS}
+        out["ckf_beats_gnss_ins_rows"] = rows
+        out["ckf_beats_gnss_ins"] = all(v for d in rows.values() for v in d.values())
+    within = {m: {r: {k: bool(table[m][r][k] <= 2.0 * PAPER_TABLE3[m][r][i]) for i, k in enumerate(stats)}
+                  for r in ROWS} for m in table}
+    out["within_2x_of_paper_rows"] = within
+    out["within_2x_of_paper"] = all(v for d in within.values() for e in d.values() for v in e.values())
+    if "fads-ckf" in table and "fads-ekf" in table:
+        def winner(r, k):
+            c, e = table["fads-ckf"][r][k], table["fads-ekf"][r][k]
+            return "tie" if abs(c - e) <= 0.005 * max(c, e) else ("ckf" if c < e else "ekf")
+        out["ckf_vs_ekf"] = {r: {k: winner(r, k) for k in stats} for r in ROWS}
+    return out
+
+
+# ------------------------------------------------------------------ outputs
+
+def _atomic_tmp(path):
+    path = Path(path)
+    return path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.part")
+
+
+def write_outputs(cfg, runs, summary, out_dir, plots):
+    import h5py
+    from ultratight.receiver.metrics import json_clean
+    out_dir = Path(out_dir)
+    table = summary["table"]
+    js = dict(summary["json"])
+    js["config"] = cfg
+    js["paper_table3"] = PAPER_TABLE3
+    js["paper_table2"] = PAPER_TABLE2
+    js["per_run"] = [{"seed": r["seed"], "methods": {m: {row: {"max": v[row]["max"], "std": v[row]["std"]}
+                                                          for row in ROWS} | {"runtime_s": v["runtime_s"],
+                                                                               "nis_mean": v["nis_mean"]}
+                                                      for m, v in r["methods"].items()}} for r in runs]
+    mpath = out_dir / "metrics.json"
+    tmp = _atomic_tmp(mpath)
+    tmp.write_text(json.dumps(json_clean(js), indent=2))
+    os.replace(tmp, mpath)
+    hpath = out_dir / "results.h5"
+    tmp = _atomic_tmp(hpath)
+    with h5py.File(tmp, "w") as f:
+        f.attrs["version"] = __version__
+        f.attrs["config_json"] = json.dumps(cfg)
+        f.attrs["rows"] = ",".join(ROWS)
+        f.attrs["seeds"] = np.array([r["seed"] for r in runs])
+        for m in table:
+            g = f.create_group(m)
+            for row in ROWS:
+                g.create_dataset(f"max_per_run/{row}", data=np.array(table[m][row]["max_per_run"]))
+            g.create_dataset("errors_1hz_first_run", data=runs[0]["series_1hz"][m])
+            g["errors_1hz_first_run"].attrs["columns"] = ",".join(ROWS)
+    os.replace(tmp, hpath)
+    figs = _figures(table, out_dir) if plots else []
+    return {"metrics_path": str(mpath), "h5_path": str(hpath), "figures": figs}
+
+
+def _figures(table, out_dir):
+    """Histograms of per-run maxima like the paper's Figs. 6–8 (skipped without matplotlib)."""
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return []
+    figs = []
+    for row, fig_no in (("aoa_deg", 6), ("sideslip_deg", 7), ("mach", 8)):
+        fig, ax = plt.subplots(figsize=(6, 4))
+        data = [np.array(table[m][row]["max_per_run"]) for m in table]
+        bins = np.linspace(0.0, max(d.max() for d in data) * 1.05, 25)
+        for m, d in zip(table, data):
+            ax.hist(d, bins=bins, alpha=0.5, label=LABEL[m])
+        ax.set_xlabel(f"per-run max |error| {ROW_LABEL[row]}")
+        ax.set_ylabel("runs")
+        ax.set_title(f"paper-fads (cf. paper Fig. {fig_no})")
+        ax.legend()
+        p = out_dir / f"fig{fig_no}_max_{row}.png"
+        tmp = _atomic_tmp(p).with_suffix(".png")
+        fig.savefig(tmp, dpi=100)
+        plt.close(fig)
+        os.replace(tmp, p)
+        figs.append(str(p))
+    return figs
