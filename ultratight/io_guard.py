@@ -153,6 +153,27 @@ def write_h5_atomic(path, build):
     return write_bytes_atomic(path, h5_image(build))
 
 
+@contextmanager
+def h5_atomic(path):
+    """``with h5_atomic(path) as f:`` fill an HDF5 file built in memory (:func:`h5_image`); it is
+    written atomically to ``path`` when the block ends without an exception."""
+    import h5py
+
+    with h5py.File(f"mem-{secrets.token_hex(6)}.h5", "w", driver="core", backing_store=False) as f:
+        yield f
+        f.flush()
+        image = f.id.get_file_image()
+    write_bytes_atomic(path, image)
+
+
+def savefig_atomic(fig, path, dpi=110, **kwargs):
+    """``fig.savefig`` through :func:`atomic_path` (format from the target's suffix, PNG by default)."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format=path.suffix.lstrip(".") or "png", dpi=dpi, **kwargs)
+    return path
+
+
 # ------------------------------------------------------------------------------------------
 # path checks before any work
 # ------------------------------------------------------------------------------------------

@@ -267,7 +267,6 @@ def _aukf_predict_kernel(q, v, p, b, Lp, Lq, Lr, xi, wm, wc, dtheta, dv, dt, g_n
     """
     n_x = Lp.shape[0]
     n_w = Lq.shape[0]
-    n_v = Lr.shape[0]
     N = xi.shape[0]
     X = np.ascontiguousarray(xi[:, :n_x]) @ np.ascontiguousarray(Lp.T)
     W = np.ascontiguousarray(xi[:, n_x:n_x + n_w]) @ np.ascontiguousarray(Lq.T)

@@ -11,12 +11,12 @@ correction options used.
 """
 
 import math
-import os
 from datetime import timedelta
 from pathlib import Path
 
 from ultratight import __version__
 from ultratight.errors import InputFileError
+from ultratight.io_guard import write_text_atomic
 from ultratight.receiver.rinex_out import gps_to_datetime
 
 DEFAULT_LEAP_S = 18
@@ -102,8 +102,5 @@ def write_nmea(path, fixes, leap_s=DEFAULT_LEAP_S, options=None):
         if f.get("gps_week") is None:
             continue
         lines += fix_sentences(f, leap_s)
-    tmp = path.with_name(f".{path.name}.part-{os.getpid()}")
-    with open(tmp, "w", newline="") as fh:
-        fh.write("".join(lines))
-    os.replace(tmp, path)
+    write_text_atomic(path, "".join(lines))
     return len(lines)

@@ -23,9 +23,8 @@ FLUSH_PIECES = 50
 
 
 def _tmp_path(path):
-    import secrets
-    path = Path(path)
-    return path.with_name(f".{path.name}.part-{os.getpid()}-{secrets.token_hex(4)}")
+    from ultratight.io_guard import tmp_name
+    return tmp_name(path)
 
 
 class H5Stream:
@@ -151,54 +150,3 @@ def write_kml(path, pvt_rows, name="ultratight track", options=None):
 </Document></kml>
 """
     _write_atomic(path, text)
-
-
-def atomic_tmp(path):
-    """A temporary name next to ``path`` carrying the pid and a random token (for temp + rename)."""
-    import secrets
-    path = Path(path)
-    return path.with_name(f".{path.name}.part-{os.getpid()}-{secrets.token_hex(4)}")
-
-
-def atomic_write_text(path, text):
-    """Write ``text`` to ``path`` atomically (temp name with pid + random, then ``os.replace``)."""
-    tmp = atomic_tmp(path)
-    try:
-        with open(tmp, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
-class atomic_h5:
-    """``with atomic_h5(path) as f:`` an h5py.File written under a temporary name, renamed on success."""
-
-    def __init__(self, path):
-        self.path = Path(path)
-        self.tmp = atomic_tmp(self.path)
-
-    def __enter__(self):
-        self.f = h5py.File(self.tmp, "w")
-        return self.f
-
-    def __exit__(self, exc_type, exc, tb):
-        self.f.close()
-        if exc_type is None:
-            os.replace(self.tmp, self.path)
-        elif self.tmp.exists():
-            self.tmp.unlink()
-        return False
-
-
-def atomic_savefig(fig, path, **kwargs):
-    """``fig.savefig`` to a temporary name, then rename (PNG by the target's suffix)."""
-    path = Path(path)
-    tmp = atomic_tmp(path)
-    try:
-        fig.savefig(tmp, format=path.suffix.lstrip(".") or "png", dpi=kwargs.pop("dpi", 110), **kwargs)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()

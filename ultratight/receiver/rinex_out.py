@@ -30,6 +30,7 @@ import numpy as np
 
 from ultratight import __version__
 from ultratight.errors import InputFileError
+from ultratight.io_guard import tmp_name, write_text_atomic
 
 GPS_EPOCH = datetime(1980, 1, 6)
 OBS_TYPES = ("C1C", "L1C", "D1C", "S1C")
@@ -45,8 +46,7 @@ def _hline(text, label):
 
 
 def _tmp(path):
-    path = Path(path)
-    return path.with_name(f".{path.name}.part-{os.getpid()}")
+    return tmp_name(path)
 
 
 def ssi(cn0_dbhz):
@@ -213,7 +213,5 @@ def write_rinex_nav(path, ephemerides, iono=None, leap_seconds=None, comments=()
         for row in orbit:
             lines.append("    " + "".join(_d19(float(v)) for v in row))
         recs.append("\n".join(lines) + "\n")
-    tmp = _tmp(path)
-    tmp.write_text("".join(h) + "".join(recs))
-    os.replace(tmp, path)
+    write_text_atomic(path, "".join(h) + "".join(recs))
     return len(recs)

@@ -17,11 +17,11 @@ Writing (:func:`write_sigmf_meta`): ``<stem>.sigmf-meta`` beside an IF file, nam
 """
 
 import json
-import os
 from pathlib import Path
 
 from ultratight.constants import F_L1
 from ultratight.errors import FormatError, InputFileError
+from ultratight.io_guard import write_text_atomic
 
 META_EXT = ".sigmf-meta"
 DATA_EXT = ".sigmf-data"
@@ -122,7 +122,5 @@ def write_sigmf_meta(data_path, fmt, fs_hz, if_hz=0.0, iq_conj=False, inversion=
            "annotations": []}
     stem = data_path.name.rsplit(".", 1)[0]
     meta = data_path.with_name(stem + META_EXT)
-    tmp = meta.with_name(f".{meta.name}.tmp{os.getpid()}")
-    tmp.write_text(json.dumps(doc, indent=1))
-    os.replace(tmp, meta)
+    write_text_atomic(meta, json.dumps(doc, indent=1))
     return meta

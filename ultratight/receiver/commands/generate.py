@@ -127,7 +127,6 @@ def format_overrides(fmt):
 
 
 def run(args):
-    import json
     import sys
 
     from ultratight.errors import ConfigError

@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import secrets
 from pathlib import Path
 
 import numpy as np
 
 from ultratight import __version__
 from ultratight.errors import ConfigError
+from ultratight.io_guard import h5_atomic, savefig_atomic, write_text_atomic
 from ultratight.fusion.integration import nees_band
 from ultratight.ins import error_model as em
 from ultratight.receiver.metrics import json_clean
@@ -153,24 +152,15 @@ def json_methods(agg):
     return out
 
 
-def _tmp(path):
-    path = Path(path)
-    return path.with_name(f".{path.name}.part-{os.getpid()}-{secrets.token_hex(4)}")
-
-
 def write_common(cfg, runs, summary, out_dir, plots, figure_fn):
     """``metrics.json`` + ``results.h5`` (atomic) and the figures of ``figure_fn(out_dir, run0)``."""
-    import h5py
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     mpath = out / "metrics.json"
     doc = {"version": __version__, "config": cfg, **summary["json"], "details": summary.get("details", {})}
-    tmp = _tmp(mpath)
-    tmp.write_text(json.dumps(json_clean(doc), indent=2, default=str))
-    os.replace(tmp, mpath)
+    write_text_atomic(mpath, json.dumps(json_clean(doc), indent=2, default=str))
     hpath = out / "results.h5"
-    tmp = _tmp(hpath)
-    with h5py.File(tmp, "w") as f:
+    with h5_atomic(hpath) as f:
         f.attrs["schema"] = "ultratight-sins-gnss-results/1"
         f.attrs["version"] = __version__
         f.attrs["config_json"] = json.dumps(json_clean(cfg), default=str)
@@ -183,7 +173,6 @@ def write_common(cfg, runs, summary, out_dir, plots, figure_fn):
                     g.create_dataset(k, data=np.asarray(v), compression="gzip", compression_opts=1)
                 for k, v in r["methods"][m].items():
                     g.attrs[k] = np.asarray(v, float)
-    os.replace(tmp, hpath)
     figs = []
     if plots and runs:
         try:
@@ -215,8 +204,8 @@ def error_figure(path, series, methods, block, labels, ylabel, title, t_max=None
     axs[0].set_title(title)
     axs[-1].set_xlabel("time (s)")
     fig.tight_layout()
-    tmp = _tmp(path).with_suffix(".png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    os.replace(tmp, path)
+    try:
+        savefig_atomic(fig, path)
+    finally:
+        plt.close(fig)
     return str(path)

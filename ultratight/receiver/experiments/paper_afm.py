@@ -452,12 +452,12 @@ def _ordering(exp, runs, methods):
 
 def write_outputs(cfg, runs, summary, out_dir, plots):
     import json
-    from ultratight.receiver.outputs import atomic_h5, atomic_write_text
+    from ultratight.io_guard import h5_atomic, write_text_atomic
     name = str(cfg["name"]).replace("/", "_")
     mpath = out_dir / f"{name}_metrics.json"
-    atomic_write_text(mpath, json.dumps(summary["json"], indent=2, allow_nan=False))
+    write_text_atomic(mpath, json.dumps(summary["json"], indent=2, allow_nan=False))
     hpath = out_dir / f"{name}_results.h5"
-    with atomic_h5(hpath) as f:
+    with h5_atomic(hpath) as f:
         f.attrs["config_json"] = json.dumps(summary["json"]["config"])
         f.attrs["version"] = summary["json"]["version"]
         f.attrs["schema"] = ("per seed group seed_<s>/<method>: t (s), att_err_deg (n,3 roll/pitch/yaw, "
@@ -484,7 +484,7 @@ def _figures(cfg, runs, out_dir, name):
         import matplotlib.pyplot as plt
     except ImportError:
         return []
-    from ultratight.receiver.outputs import atomic_savefig
+    from ultratight.io_guard import savefig_atomic
     r = runs[0]
     figures = []
     panels = (("attitude_error", "att_err_deg", AXES, "error (°)", "attitude error", "Figs. 1, 4, 5"),
@@ -502,7 +502,7 @@ def _figures(cfg, runs, out_dir, name):
         axs[-1].set_xlabel("t (s)")
         axs[0].set_title(f"{cfg['name']}: {title}, seed {r['seed']} (cf. seed 002 {ref})")
         path = out_dir / f"{name}_{tag}.png"
-        atomic_savefig(fig, path)
+        savefig_atomic(fig, path)
         plt.close(fig)
         figures.append(str(path))
     return figures

@@ -24,7 +24,6 @@ run's flight (the covariance is checked against the inversion's actual errors in
 import json
 import math
 import os
-import secrets
 import time
 from functools import lru_cache
 from pathlib import Path
@@ -33,6 +32,7 @@ import numpy as np
 
 from ultratight import __version__
 from ultratight.errors import ConfigError
+from ultratight.io_guard import h5_atomic, savefig_atomic, write_text_atomic
 
 METHODS = ("gnss-ins", "fads-ekf", "fads-ckf")
 DEFAULT_METHODS = METHODS
@@ -435,13 +435,7 @@ def acceptance(table):
 
 # ------------------------------------------------------------------ outputs
 
-def _atomic_tmp(path):
-    path = Path(path)
-    return path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.part")
-
-
 def write_outputs(cfg, runs, summary, out_dir, plots):
-    import h5py
     from ultratight.receiver.metrics import json_clean
     out_dir = Path(out_dir)
     table = summary["table"]
@@ -454,12 +448,9 @@ def write_outputs(cfg, runs, summary, out_dir, plots):
                                                                                "nis_mean": v["nis_mean"]}
                                                       for m, v in r["methods"].items()}} for r in runs]
     mpath = out_dir / "metrics.json"
-    tmp = _atomic_tmp(mpath)
-    tmp.write_text(json.dumps(json_clean(js), indent=2))
-    os.replace(tmp, mpath)
+    write_text_atomic(mpath, json.dumps(json_clean(js), indent=2))
     hpath = out_dir / "results.h5"
-    tmp = _atomic_tmp(hpath)
-    with h5py.File(tmp, "w") as f:
+    with h5_atomic(hpath) as f:
         f.attrs["version"] = __version__
         f.attrs["config_json"] = json.dumps(cfg)
         f.attrs["rows"] = ",".join(ROWS)
@@ -470,7 +461,6 @@ def write_outputs(cfg, runs, summary, out_dir, plots):
                 g.create_dataset(f"max_per_run/{row}", data=np.array(table[m][row]["max_per_run"]))
             g.create_dataset("errors_1hz_first_run", data=runs[0]["series_1hz"][m])
             g["errors_1hz_first_run"].attrs["columns"] = ",".join(ROWS)
-    os.replace(tmp, hpath)
     figs = _figures(table, out_dir) if plots else []
     return {"metrics_path": str(mpath), "h5_path": str(hpath), "figures": figs}
 
@@ -495,9 +485,9 @@ def _figures(table, out_dir):
         ax.set_title(f"paper-fads (cf. paper Fig. {fig_no})")
         ax.legend()
         p = out_dir / f"fig{fig_no}_max_{row}.png"
-        tmp = _atomic_tmp(p).with_suffix(".png")
-        fig.savefig(tmp, dpi=100)
-        plt.close(fig)
-        os.replace(tmp, p)
+        try:
+            savefig_atomic(fig, p, dpi=100)
+        finally:
+            plt.close(fig)
         figs.append(str(p))
     return figs
