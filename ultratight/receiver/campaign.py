@@ -344,10 +344,10 @@ def run_campaign(scenario, *, runs, methods=None, seed=None, workers=None, sched
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out} exists and is not a directory")
     io_guard.check_output_path(out / "runs" / "run-00000.h5", "--out", create_parent=True)
-    if getattr(module, "USES_DATA_DIR", False):
-        cfg = module.with_data_dir(cfg, out)
     seeds = run_seeds(base_seed, runs)
     keys = [run_key(cfg, methods, s) for s in seeds]
+    if getattr(module, "USES_DATA_DIR", False):
+        cfg = module.with_data_dir(cfg, out)     # where the runs keep generated data (not part of a run's key)
     try:
         (out / "runs").mkdir(parents=True, exist_ok=True)
     except OSError as exc:
