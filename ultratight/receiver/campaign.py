@@ -97,13 +97,13 @@ def _put(parent, name, value):
         ds.attrs["kind"] = "str"
         ds.attrs["value"] = value
         return
-    if isinstance(value, _PLAIN):
-        ds = parent.create_dataset(name, data=value)
-        ds.attrs["kind"] = type(value).__name__
-        return
-    if isinstance(value, np.generic):
+    if isinstance(value, np.generic):          # before the plain types: numpy.float64 is a float
         ds = parent.create_dataset(name, data=value)
         ds.attrs["kind"] = "npscalar"
+        return
+    if type(value) in _PLAIN:
+        ds = parent.create_dataset(name, data=value)
+        ds.attrs["kind"] = type(value).__name__
         return
     if isinstance(value, np.ndarray):
         if value.dtype.kind not in "biufc":
@@ -317,7 +317,8 @@ def check_workers(workers):
 
 
 def run_campaign(scenario, *, runs, methods=None, seed=None, workers=None, scheduler=None, out_dir="campaign_out",
-                 resume=False, overrides=None, progress=True, client=None, log=None):
+                 resume=False, overrides=None, progress=True, client=None, log=None,
+                 connect_timeout_s=SCHEDULER_TIMEOUT_S):
     """Run a campaign (module doc); returns ``{"json", "text", "campaign_path", "runs_dir", ...}``.
 
     ``client``: an existing ``distributed.Client`` to use (then ``workers``/``scheduler`` are ignored)."""
@@ -328,6 +329,8 @@ def run_campaign(scenario, *, runs, methods=None, seed=None, workers=None, sched
         raise ConfigError(f"--runs must be an integer >= 1, got {runs}")
     runs = int(runs)
     workers = check_workers(workers)
+    if not connect_timeout_s > 0:
+        raise ConfigError(f"--connect-timeout must be > 0 s, got {connect_timeout_s}")
     if workers is not None and scheduler is not None:
         raise ConfigError("--workers and --scheduler exclude each other (the scheduler's workers run the campaign)")
     path, raw, module = experiments.resolve(scenario)
@@ -366,7 +369,7 @@ def run_campaign(scenario, *, runs, methods=None, seed=None, workers=None, sched
         own = client is None
         cluster = None
         if own:
-            client, cluster, where = start_client(workers, scheduler)
+            client, cluster, where = start_client(workers, scheduler, connect_timeout_s)
         else:
             where = "given client"
         try:

@@ -14,6 +14,8 @@ def add_arguments(parser):
                        help="LocalCluster worker processes, one thread each (default: the free cores)")
     where.add_argument("--scheduler", default=None, metavar="ADDRESS",
                        help="run on an existing Dask scheduler (e.g. tcp://127.0.0.1:8786)")
+    parser.add_argument("--connect-timeout", type=float, default=10.0, metavar="S",
+                        help="--scheduler: give up connecting after S seconds (default 10)")
     parser.add_argument("--out", default="campaign_out", help="output directory (runs/ and campaign.json)")
     parser.add_argument("--resume", action="store_true", help="keep the complete run files of this campaign in "
                                                                "OUT/runs and run only the missing ones")
@@ -36,7 +38,7 @@ def run(args):
         overrides["duration_s"] = float(args.duration)
     res = run_campaign(args.scenario, runs=args.runs, methods=methods, seed=args.seed, workers=args.workers,
                        scheduler=args.scheduler, out_dir=args.out, resume=args.resume, overrides=overrides,
-                       progress=not args.quiet)
+                       progress=not args.quiet, connect_timeout_s=args.connect_timeout)
     if args.json:
         print(json_dumps(res["json"], indent=2))
     else:
