@@ -58,7 +58,7 @@ def sequential():
     cfg = mod.load(path, raw, {"duration_s": DURATION})
     methods = list(mod.DEFAULT_METHODS)
     results = [mod.run_one(cfg, methods, s) for s in C.run_seeds(SEED, RUNS)]
-    js = {"metrics": C.aggregate(results), "summary": json_clean(mod.summarize(cfg, results)["json"]),
+    js = {"metrics": json_clean(C.aggregate(results)), "summary": json_clean(mod.summarize(cfg, results)["json"]),
           "run_seeds": C.run_seeds(SEED, RUNS)}
     return _figures(js)
 
@@ -217,3 +217,39 @@ def test_user_errors_are_one_line(tmp_path, capsys):
     assert "unknown scenario" in capsys.readouterr().err
     with pytest.raises(ConfigError, match="exclude each other"):
         C.run_campaign(SCENARIO, runs=1, workers=1, scheduler="tcp://127.0.0.1:9", out_dir=tmp_path / "x")
+
+
+def _if_equal_to_run_scenario(tmp_path, methods):
+    from ultratight.receiver.experiments import if_double_loop as X
+    from ultratight.receiver.scenario_runner import run_scenario
+    seed = 11
+    ref = run_scenario("static-open-sky", methods=methods, runs=1, seed=seed, out_dir=tmp_path / "s",
+                       duration_s=0.5, plots=False, progress=False)
+    path, raw, mod = experiments.resolve("static-open-sky")
+    assert mod is X
+    cfg = X.with_data_dir(X.load(path, raw, {"duration_s": 0.5}), tmp_path / "s")
+    summ = X.summarize(cfg, [X.run_one(cfg, methods, seed)])
+    assert _strip_timing(summ["json"]["methods"]) == _strip_timing(ref["json"]["methods"])
+    assert len(list((tmp_path / "s" / "cache").iterdir())) == 2     # one entry (+ its lock): the cache is shared
+
+
+def test_if_level_run_one_and_summarize_match_run_scenario(tmp_path):
+    _if_equal_to_run_scenario(tmp_path, ["scalar"])
+
+
+@pytest.mark.slow
+def test_if_level_run_one_and_summarize_match_run_scenario_double_loop(tmp_path):
+    _if_equal_to_run_scenario(tmp_path, ["dlb-rackf", "pb-kf-utc"])
+
+
+@pytest.mark.slow
+def test_if_level_campaign_equals_sequential(client, tmp_path):
+    path, raw, mod = experiments.resolve("static-open-sky")
+    methods = ["dlb-rackf"]
+    res = C.run_campaign("static-open-sky", runs=2, seed=3, methods=methods, out_dir=tmp_path / "c",
+                         overrides={"duration_s": 0.5}, progress=False, client=client)
+    cfg = mod.with_data_dir(mod.load(path, raw, {"duration_s": 0.5}), tmp_path / "c")
+    results = [mod.run_one(cfg, methods, s) for s in C.run_seeds(3, 2)]       # reuses the cached data
+    seq = {"metrics": json_clean(C.aggregate(results)), "summary": json_clean(mod.summarize(cfg, results)["json"]),
+           "run_seeds": C.run_seeds(3, 2)}
+    assert _figures(res["json"]) == _figures(seq)

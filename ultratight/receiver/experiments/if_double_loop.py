@@ -31,17 +31,13 @@ def run_scenario(scenario, **kwargs):
 
 
 def load(path, raw, overrides):
-    """The resolved scenario (``scenario_config.load_scenario``) with the default IMU when it has none
-    (the ultra-tight methods run on one; ``run_scenario`` adds it the same way)."""
+    """The resolved scenario (``scenario_config.load_scenario``)."""
     from ultratight.errors import ConfigError
-    from ultratight.receiver.scenario_config import IMU_DEFAULTS, load_scenario
+    from ultratight.receiver.scenario_config import load_scenario
     ov = dict(overrides or {})
     if "duration_s" in ov and not float(ov["duration_s"]) > 0:
         raise ConfigError(f"--duration must be > 0 s, got {ov['duration_s']}")
-    cfg = load_scenario(path, ov)
-    if "imu" not in cfg:
-        cfg["imu"] = dict(IMU_DEFAULTS)
-    return cfg
+    return load_scenario(path, ov)
 
 
 def with_data_dir(cfg, out_dir):
@@ -57,6 +53,10 @@ def run_one(cfg, methods, seed, progress=False):
     from ultratight.receiver.scenario_runner import errors_vs_truth, prepare_data, run_method
     c = dict(cfg)
     data_dir = c.pop(DATA_DIR_KEY, "scenario_out")
+    if any(m != "scalar" for m in methods) and "imu" not in c:
+        # the ultra-tight methods run on an IMU: the default one, as run_scenario adds it
+        from ultratight.receiver.scenario_config import IMU_DEFAULTS
+        c["imu"] = dict(IMU_DEFAULTS)
     paths, _cached = prepare_data(c, int(seed), data_dir, progress=progress)
     out = {"seed": int(seed), "methods": {}, "series": {}}
     for m in methods:
