@@ -41,11 +41,9 @@ def _figures(js):
 
 @pytest.fixture(scope="module")
 def client():
-    distributed = pytest.importorskip("distributed")
-    import logging
-    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
-                                       silence_logs=logging.ERROR, env=dict(C.WORKER_ENV))
-    cl = distributed.Client(cluster)
+    pytest.importorskip("distributed")
+    cl, cluster, where = C.start_client(workers=2)       # the campaign's own LocalCluster (processes=True)
+    assert where == "LocalCluster of 2 worker(s) x 1 thread"
     yield cl
     cl.close()
     cluster.close()
@@ -122,6 +120,14 @@ def test_local_cluster_campaign_equals_sequential_runs(local_campaign, sequentia
     assert _figures(on_disk) == sequential
     assert sorted(p.name for p in (out / "runs").iterdir()) == [f"run-{i:05d}.h5" for i in range(RUNS)]
     assert res["json"]["timing"]["computed_runs"] == RUNS
+
+
+def test_local_cluster_workers_are_single_threaded_processes(client):
+    info = client.scheduler_info()["workers"]
+    assert len(info) == 2 and all(w["nthreads"] == 1 for w in info.values())
+    env = client.run(lambda: (os.environ.get("NUMBA_NUM_THREADS"), os.getpid()))
+    assert {v[0] for v in env.values()} == {"1"}
+    assert len({v[1] for v in env.values()} | {os.getpid()}) == 3        # two processes besides this one
 
 
 def test_cli_on_scheduler_address_json(client, local_campaign, tmp_path, capsys):
