@@ -25,7 +25,9 @@ and exposes
 :func:`run_experiment` is the sequential driver ``ultratight scenario`` uses:
 seeds ``seed, seed+1, ...``, one ``run_one`` each. The IF-level experiment keeps
 its own driver (``scenario_runner.run_scenario``: it manages an on-disk data
-cache), reached through the same :func:`run_experiment`.
+cache), reached through the same :func:`run_experiment`; for campaigns it also has ``load`` /
+``run_one`` / ``summarize``. :mod:`ultratight.receiver.campaign` (``ultratight campaign``) runs
+``run_one`` of any experiment on dask.distributed with seeds from ``SeedSequence(seed).spawn(N)``.
 """
 
 import importlib
