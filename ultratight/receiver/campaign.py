@@ -43,7 +43,7 @@ from ultratight.errors import ConfigError
 SCHEMA = "ultratight campaign run v1 (docs/campaign.md)"
 MAX_METRIC_SIZE = 64          # a numeric leaf with more elements is a series, not a metric
 SCHEDULER_TIMEOUT_S = 10.0    # --scheduler: give up connecting after this long
-TIMING_KEYS = ("runtime_s", "realtime_factor")   # wall-clock figures: not reproducible across runs
+TIMING_KEYS = ("runtime_s", "realtime_factor", "cpu_s", "simulate_s")   # timings: not reproducible
 
 
 # ------------------------------------------------------------------------------------------
