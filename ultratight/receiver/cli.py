@@ -19,7 +19,7 @@ import sys
 from ultratight import __version__
 from ultratight.errors import UltratightError
 
-SUBCOMMANDS = ("generate", "process", "ins", "scenario", "bench")
+SUBCOMMANDS = ("generate", "process", "ins", "scenario", "campaign", "bench")
 
 
 def _load(name):

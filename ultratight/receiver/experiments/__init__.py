@@ -28,7 +28,9 @@ one ``run_one`` each, sequentially — or, when the module has the optional hook
 worker processes on all cores). ``run_many`` must return exactly what the sequential loop would:
 each run's randomness depends only on its seed. The IF-level experiment keeps
 its own driver (``scenario_runner.run_scenario``: it manages an on-disk data
-cache), reached through the same :func:`run_experiment`.
+cache), reached through the same :func:`run_experiment`; for campaigns it also has ``load`` /
+``run_one`` / ``summarize``. :mod:`ultratight.receiver.campaign` (``ultratight campaign``) runs
+``run_one`` of any experiment on dask.distributed with seeds from ``SeedSequence(seed).spawn(N)``.
 """
 
 import importlib
