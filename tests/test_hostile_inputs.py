@@ -376,7 +376,7 @@ def test_sigterm_during_scalar_process_leaves_a_marked_partial_output(long_rec, 
         os.symlink(long_rec / f, tmp_path / f)
     before = snapshot(long_rec)
     rc, err = _run_and_signal(["process", "v.ci8", "--out", "p.h5", "--no-progress"], tmp_path, signal.SIGTERM,
-                              _tmp_appears(tmp_path, ".p.h5.part-*"))
+                              _tmp_appears(tmp_path, ".p.h5.tmp-*"))
     assert rc == 128 + signal.SIGTERM, err
     lines = err.strip().splitlines()
     assert len(lines) == 1 and "interrupted by SIGTERM" in lines[0], err
