@@ -45,6 +45,7 @@ from numba import njit
 
 from ultratight.constants import CA_LEN, CHIP_M, F_CA, F_L1, LAMBDA_L1, T_CA
 from ultratight.errors import ConfigError, InputFileError
+from ultratight.receiver.blockstream import BlockStream, NoiseFloor  # noqa: F401 (NoiseFloor: public here too)
 
 METHODS = ("pb-kf-utc", "dlb-ukf", "dlb-ckf", "dlb-rackf", "scalar")
 DEFAULT_METHOD = "dlb-rackf"
@@ -140,27 +141,6 @@ def _epoch_post(k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, i_ptau, i_pf, ring
 
 
 @njit(cache=True)
-def _complex_block_sigma(v):
-    """``sqrt(mean(|x - mean x|^2) / 2)`` of a complex block given as its float32 (re, im) view:
-    the noise std per arm of :func:`ultratight.receiver.correlator.estimate_sigma_arm` for complex
-    input, in one pass without temporaries (two-pass mean removal, float64 sums)."""
-    n = v.shape[0] // 2
-    mr = 0.0
-    mi = 0.0
-    for k in range(n):
-        mr += v[2 * k]
-        mi += v[2 * k + 1]
-    mr /= n
-    mi /= n
-    s = 0.0
-    for k in range(n):
-        a = v[2 * k] - mr
-        b = v[2 * k + 1] - mi
-        s += a * a + b * b
-    return math.sqrt(s / n / 2.0)
-
-
-@njit(cache=True)
 def _lock_monitor(out, D, win_i, win_c, sums_i, sums_c, ptr, count, present, thr_off, thr_on, events, phase):
     """Per-channel signal/lock monitor on the wiped prompt (unit noise per arm).
 
@@ -239,35 +219,6 @@ def check_method(method):
     if method not in METHODS:
         raise ConfigError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
     return method
-
-
-class NoiseFloor:
-    """Noise-floor estimator that normalises the correlator outputs (noise std per arm).
-
-    Fed with the estimate of every IF block (``block_s`` long) in order, :meth:`update`
-    returns the value to use for that block: ``tau_s = 0`` the block's own estimate (follows
-    every noise change: with an AGC front end a noise burst then looks like a fade with a
-    correct noise model); ``0 < tau_s < inf`` the square root of an exponential average of the
-    block variances, ``v += min(1, block_s / tau_s) (s^2 - v)`` started on the first block (a
-    slow tracker); ``tau_s = inf`` the first block's estimate held (start-up calibration: a
-    noise burst on a fixed-gain front end reaches the prefilters as unknown extra noise).
-    """
-
-    def __init__(self, tau_s, block_s):
-        tau = float(tau_s)
-        if not tau >= 0.0:
-            raise ConfigError(f"EngineOptions.noise_tau_s must be >= 0 s (0: per block, inf: start-up "
-                              f"calibration), got {tau_s!r}")
-        self.alpha = 1.0 if tau == 0.0 else min(1.0, float(block_s) / tau)
-        self.var = None
-
-    def update(self, sigma_block):
-        s2 = float(sigma_block) ** 2
-        if self.var is None or self.alpha >= 1.0:
-            self.var = s2
-        else:
-            self.var += self.alpha * (s2 - self.var)
-        return math.sqrt(self.var)
 
 
 def _outer_freq_update(x, P, sel, resid_hz, r_var):
@@ -438,7 +389,7 @@ class UltratightEngine:
                               "(ultratight.receiver.scenario_runner.run_scalar)")
         from ultratight.fusion import tight as tightmod
         from ultratight.fusion.innerloop import InnerLoop
-        from ultratight.receiver.correlator import CorrelatorBank, estimate_sigma_arm
+        from ultratight.receiver.correlator import CorrelatorBank
         from ultratight.receiver.outer_loop import OuterLoop
         from ultratight.receiver.startup import BitWipeoff, first_period_ms, predict_channels
 
@@ -604,13 +555,8 @@ class UltratightEngine:
 
         # ---- IF buffer
         blk = int(round(opt.block_ms * 1e-3 * fs))
-        fast_sigma = self.src.is_complex
         n_total = int(min(self.src.n_samples, round(self.duration_s * fs)))
-        n_blocks = n_total // blk + 2
-        sigma_blk = np.full(n_blocks, np.nan)
-        noise_floor = NoiseFloor(opt.noise_tau_s, blk / fs)
-        buf = np.zeros(0, dtype=np.complex64 if self.src.is_complex else np.float32)
-        buf_start = 0
+        stream = BlockStream(self.src, blk, floor=NoiseFloor(opt.noise_tau_s, blk / fs))
         per_max = int(math.ceil(fs * T_CA * 1.001)) + 4
         use_aid = np.ones(n_ch, dtype=bool)
         mode_now = np.full(n_ch, MODE_OUTER if self.method == "pb-kf-utc" else MODE_COMBINED, dtype=np.int8)
@@ -625,31 +571,9 @@ class UltratightEngine:
             hi = sp_max + per_max
             if hi > n_total or k_ep >= n_ep_max:
                 break
-            buf_end = buf_start + buf.shape[0]
-            if hi > buf_end:
-                lo = int(sp.min())
-                keep = buf[max(0, lo - buf_start):]
-                new_start = buf_end
-                new = []
-                while buf_end < hi:
-                    x = self.src.read(buf_end, blk)
-                    b_idx = buf_end // blk
-                    if x.shape[0] == 0:
-                        break
-                    if b_idx < n_blocks:
-                        if fast_sigma and x.dtype == np.complex64 and x.flags.c_contiguous:
-                            sg = _complex_block_sigma(x.view(np.float32))
-                            sg = sg if sg > 0.0 else estimate_sigma_arm(x, True)
-                        else:
-                            sg = estimate_sigma_arm(x, self.src.is_complex)
-                        sigma_blk[b_idx] = noise_floor.update(sg)
-                    new.append(x)
-                    buf_end += x.shape[0]
-                del new_start
-                buf = np.concatenate([keep] + new) if new else keep
-                buf_start = buf_end - buf.shape[0]
-                if hi > buf_end:
-                    break
+            if not stream.ensure(hi, keep_from=int(sp.min())):
+                break
+            buf, buf_start = stream.buf, stream.buf_start
             # ---- SINS + outer loop run ahead so the aiding of the next interval exists
             tw = time.perf_counter()
             j_need = int((sp_max + per_max) / fs * 1000.0) + 2
@@ -673,7 +597,7 @@ class UltratightEngine:
             tw = time.perf_counter()
             cp0[:] = bank.code_phase
             f0[:] = bank.carr_freq
-            sig = sigma_blk[np.minimum(sp // blk, n_blocks - 1)]
+            sig = stream.sigma_at(sp)
             out, t_start, n_s = bank.step(buf, buf_start, sig)
             if n_s.min() <= 0:
                 raise InputFileError(f"{self.src.path}: correlator could not integrate channels "

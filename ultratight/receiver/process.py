@@ -34,6 +34,7 @@ import numpy as np
 from ultratight import __version__
 from ultratight.constants import C, LAMBDA_L1, T_CA
 from ultratight.errors import ConfigError, InputFileError, UltratightError
+from ultratight.receiver.blockstream import BlockStream
 from ultratight.receiver.navdecode import ChannelNav
 from ultratight.receiver.observables import CarrierSmoother, ChannelHistory, observe, pseudorange
 from ultratight.receiver.pvt import atmosphere_delays, solve_pvt
@@ -357,6 +358,7 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
     n_ch = len(found) + len(idle_prns)
     block_len = int(round(cfg.block_ms * 1e-3 * fs))
     margin = int(math.ceil(2.2e-3 * fs))
+    stream = BlockStream(source, block_len, on_zero=1.0)
     tracker = ScalarTracker(n_ch, fs, source.if_hz, source.is_complex, cfg.tracking,
                             max_rows=int(cfg.block_ms * 1.1) + 8, parallel=cfg.parallel)
     ref_week = source.start_week
@@ -650,17 +652,9 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             if s + margin >= stop:
                 break
             n_read = min(block_len + margin, stop - s)
-            buf = source.read(s, n_read)
+            buf, sigma_arm = stream.read_at(s, n_read, SIGMA_SAMPLES)
             if buf.shape[0] < margin:
                 break
-            sub = buf[:SIGMA_SAMPLES]
-            if source.is_complex:
-                xc = sub - sub.mean()
-                sigma_arm = math.sqrt(float(np.mean(xc.real ** 2 + xc.imag ** 2)) / 2.0)
-            else:
-                sigma_arm = float(np.std(sub)) / math.sqrt(2.0)
-            if not sigma_arm > 0:
-                sigma_arm = 1.0
             rf, ri, nr = tracker.run(buf, s, sigma_arm, stop_sample=stop)
             n_blocks_done += 1
             if n_blocks_done % RELEASE_EVERY == 0:

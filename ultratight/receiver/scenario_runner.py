@@ -220,7 +220,7 @@ def run_scalar(src, prns, ephs, week, tow0, init, duration_s=None, block_ms=100)
     EngineResult-like record of the per-epoch NCO Doppler and code phase."""
     import time as _time
     from ultratight.ins.earth import dcm_ecef_from_enu, llh_to_ecef
-    from ultratight.receiver.correlator import estimate_sigma_arm
+    from ultratight.receiver.blockstream import BlockStream
     from ultratight.receiver.engine import EngineResult
     from ultratight.receiver.startup import predict_channels
     from ultratight.receiver.tracking import REC_F_NAMES, REC_I_NAMES, ScalarTracker
@@ -240,16 +240,18 @@ def run_scalar(src, prns, ephs, week, tow0, init, duration_s=None, block_ms=100)
     i_cp, i_f = REC_F_NAMES.index("code_phase_chips"), REC_F_NAMES.index("doppler_hz")
     i_s = REC_I_NAMES.index("sample_index")
     rows_t, rows_f, rows_c = [[] for _ in range(n_ch)], [[] for _ in range(n_ch)], [[] for _ in range(n_ch)]
+    stream = BlockStream(src, blk, sigma_stop=n_total)
     start = 0
     while start < n_total:
         lo = trk.next_needed_sample()
         if lo is None:
             break
         lo = min(lo, start)
-        buf = src.read(lo, start + blk - lo)
+        stream.ensure(start + blk, keep_from=lo)
+        buf, lo = stream.view(lo)
         if buf.shape[0] == 0:
             break
-        sig = estimate_sigma_arm(src.read(start, min(blk, n_total - start)), src.is_complex)
+        sig = float(stream.sigma_at(start))
         rf, ri, nr = trk.run(buf, lo, sig, stop_sample=min(start + blk, n_total))
         for ch in range(n_ch):
             k = nr[ch]
