@@ -46,9 +46,8 @@ from numba import njit
 from ultratight.constants import CA_LEN, CHIP_M, F_CA, F_L1, LAMBDA_L1, T_CA
 from ultratight.errors import ConfigError, InputFileError
 from ultratight.receiver.blockstream import BlockStream, NoiseFloor  # noqa: F401 (NoiseFloor: public here too)
+from ultratight.receiver.methods import DEFAULT_METHOD, METHODS, check_method, method_spec  # noqa: F401
 
-METHODS = ("pb-kf-utc", "dlb-ukf", "dlb-ckf", "dlb-rackf", "scalar")
-DEFAULT_METHOD = "dlb-rackf"
 
 MODE_INNER = 0
 MODE_COMBINED = 1
@@ -189,8 +188,7 @@ class _BankProxy:
         self.active = bank.active.copy()
 
     def note_correction(self, dx):
-        if hasattr(self._bank, "note_correction"):
-            self._bank.note_correction(dx)
+        self._bank.note_correction(dx)
 
 
 MONITOR_MODES = {
@@ -213,12 +211,6 @@ def monitor_mode(opt):
         if v == {"lock_monitor": opt.lock_monitor, "monitor_gates_tight": opt.monitor_gates_tight}:
             return k
     return "coast-only"
-
-
-def check_method(method):
-    if method not in METHODS:
-        raise ConfigError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
-    return method
 
 
 def _outer_freq_update(x, P, sel, resid_hz, r_var):
@@ -366,6 +358,7 @@ class UltratightEngine:
     def __init__(self, source, imu, ephs, prns, week, tow0_s, method=DEFAULT_METHOD, options=None,
                  init_state=None, rng=None, duration_s=None):
         self.method = check_method(method)
+        self.spec = method_spec(method)
         self.opt = options or EngineOptions()
         self.src = source
         self.imu = imu
@@ -384,9 +377,10 @@ class UltratightEngine:
         self.init_state = init_state
 
     def run(self, progress=False):
-        if self.method == "scalar":
-            raise ConfigError("method 'scalar' runs through the scalar tracking pipeline "
-                              "(ultratight.receiver.scenario_runner.run_scalar)")
+        if self.spec.scalar:
+            from ultratight.receiver.scenario_runner import run_scalar
+            return run_scalar(self.src, self.prns, self.ephs, self.week, self.tow0, self.init_state,
+                              self.duration_s)
         from ultratight.fusion import tight as tightmod
         from ultratight.fusion.innerloop import InnerLoop
         from ultratight.receiver.correlator import CorrelatorBank
@@ -472,14 +466,14 @@ class UltratightEngine:
         have_acc = True
 
         # ---- prefilters + inner loop
-        if self.method == "pb-kf-utc":
+        if self.spec.bank == "pbkf":
             from ultratight.fusion import pbkf
             pref = pbkf.PbKfBank(n_ch, cn0_dbhz_init=opt.cn0_init_dbhz)
             pref.reset(rows)
             inner = InnerLoop(n_ch, T=T_CA, if_hz=self.if_hz)
         else:
             from ultratight.fusion.prefilter import PrefilterBank, default_initial_covariance
-            kind = self.method.split("-", 1)[1]
+            kind = self.spec.bank
             pref = PrefilterBank(n_ch, kind=kind, q=opt.prefilter_q, huber_c=opt.huber_c,
                                  correction_period=opt.rackf_period, robust_mode=opt.robust_mode,
                                  cn0_dbhz_init=opt.cn0_init_dbhz,
@@ -525,8 +519,8 @@ class UltratightEngine:
         ms = np.asarray(ms, dtype=np.int64).copy()
         init_left = int(opt.phase_init_ms)
         proxy = _BankProxy(pref)
-        i_ptau, i_pf = (0, 2) if self.method == "pb-kf-utc" else (1, 3)
-        mode_aided = MODE_OUTER if self.method == "pb-kf-utc" else MODE_COMBINED
+        i_ptau, i_pf = pref.P_ITAU, pref.P_IF          # code / frequency error in the bank's covariance
+        mode_aided = MODE_COMBINED if self.spec.double_loop else MODE_OUTER
         init_acc = np.zeros(n_ch, dtype=np.complex128)
         W = int(opt.lock_window_ms)
         lm_i = np.zeros((n_ch, W))
@@ -559,7 +553,7 @@ class UltratightEngine:
         stream = BlockStream(self.src, blk, floor=NoiseFloor(opt.noise_tau_s, blk / fs))
         per_max = int(math.ceil(fs * T_CA * 1.001)) + 4
         use_aid = np.ones(n_ch, dtype=bool)
-        mode_now = np.full(n_ch, MODE_OUTER if self.method == "pb-kf-utc" else MODE_COMBINED, dtype=np.int8)
+        mode_now = np.full(n_ch, mode_aided, dtype=np.int8)
         two_pi = 2.0 * math.pi
         k_ep = 0
         n_feedback = 0
@@ -719,14 +713,14 @@ class UltratightEngine:
                     ring_cp += dcp
                     ring_f += dfp
                     dfp_all = dfp
-                    if self.method != "pb-kf-utc":
+                    if self.spec.double_loop:
                         outer.offset_hz += dfp   # double loop: corrections do not jump the NCOs
                     ring_r[i1] = pr_fix["code_rate_cps"]
                     vel_e_prev = vel_e.copy()
                 sig_dopp = tightmod.doppler_sigma_hz(tf.P, los_l, LAMBDA_L1)
-                if self.method != "pb-kf-utc":
+                if self.spec.double_loop:
                     use_aid = (sig_dopp < opt.arbitration_sigma_hz)
-                if opt.outer_freq_update and self.method != "pb-kf-utc":
+                if opt.outer_freq_update and self.spec.double_loop:
                     # frequency pseudo-measurement from the outer loop for channels the tight filter
                     # did not use (independent information: no double counting)
                     sel = ok & present & ~valid & pref.active & np.isfinite(m_f)
@@ -761,7 +755,7 @@ class UltratightEngine:
             "n_lock_lost_events": n_lost_events,
             "n_prefilter_restarts": n_regained,
             "timing_s": timing,
-            "prefilter": pref.describe() if hasattr(pref, "describe") else {},
+            "prefilter": pref.describe(),
             "prefilter_resets": np.asarray(getattr(pref, "n_resets", np.zeros(n_ch))).tolist(),
             "arbitration_rule": "combined when sigma_doppler_i = sqrt(u'Pvv u + Pdd - 2u'Pvd)/lambda < "
                                 f"{opt.arbitration_sigma_hz} Hz (tight filter P), else inner loop alone",
@@ -800,7 +794,7 @@ class UltratightEngine:
         # continuous across the (re)start.  (df0 = 0 started the filter one aiding increment
         # off -- up to 0.5 Hz at 20 g -- which it then pulled in over ~0.5 s.)
         x0[:, 3] = 2.0 * math.pi * (aid[chans] - (bank.carr_freq[chans] - self.if_hz))
-        if self.method == "pb-kf-utc":
+        if self.spec.bank == "pbkf":
             pref.reset(chans, x0=x0)
         else:
             from ultratight.fusion.prefilter import default_initial_covariance
@@ -911,9 +905,9 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
     from ultratight.ins.imu import read_imu_csv, read_imu_h5
     from ultratight.receiver.startup import StartupErrors, perturb_state
     from ultratight.signals.iffile import open_if
-    check_method(method)
-    if method == "scalar":
-        raise ConfigError("method 'scalar' is the scalar receiver: use `ultratight process` without --mode ultratight")
+    if not method_spec(method).needs_imu:
+        raise ConfigError(f"method {method!r} is the scalar receiver: use `ultratight process` without "
+                          f"--mode ultratight")
     src = open_if(if_path, meta=meta)
     if src.start_tow_s is None or src.start_week is None:
         raise InputFileError(f"{if_path}: the IF start time (start_week, start_tow_s) is unknown; "

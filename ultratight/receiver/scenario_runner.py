@@ -191,10 +191,11 @@ def engine_options_for(cfg, options=None):
 def run_method(paths, cfg, method, seed, options=None, startup_errors=None, duration_s=None):
     """Run one method on generated files; returns (EngineResult, truth dict)."""
     from ultratight.ins.imu import read_imu_h5
-    from ultratight.receiver.engine import EngineOptions, UltratightEngine, check_method
+    from ultratight.receiver.engine import EngineOptions, UltratightEngine
+    from ultratight.receiver.methods import method_spec
     from ultratight.receiver.startup import StartupErrors, perturb_state
     from ultratight.signals.iffile import open_if
-    check_method(method)
+    spec = method_spec(method)
     options = engine_options_for(cfg, options)
     truth = load_truth(paths["truth"])
     src = open_if(paths["if"])
@@ -202,7 +203,7 @@ def run_method(paths, cfg, method, seed, options=None, startup_errors=None, dura
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7]))
     errs = startup_errors or StartupErrors()
     init = perturb_state(truth_initial_state(cfg), errs, rng)
-    if method == "scalar":
+    if spec.scalar:
         res = run_scalar(src, truth["prn"], ephs, truth["week"], truth["tow0_s"], init, duration_s)
     else:
         if "imu" not in paths:
