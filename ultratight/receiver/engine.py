@@ -47,6 +47,7 @@ from ultratight.constants import CA_LEN, CHIP_M, F_CA, F_L1, LAMBDA_L1, T_CA
 from ultratight.errors import ConfigError, InputFileError
 from ultratight.receiver.blockstream import BlockStream, NoiseFloor  # noqa: F401 (NoiseFloor: public here too)
 from ultratight.receiver.methods import DEFAULT_METHOD, METHODS, check_method, method_spec  # noqa: F401
+from ultratight.signals.signal import GPS_L1CA
 
 
 MODE_INNER = 0
@@ -65,12 +66,13 @@ DLB_PREFILTER_Q = {
 
 
 @njit(cache=True)
-def _wipe_bits(bits, t0_ms, ms, out):
-    """Assisted data bit of the code period starting at transmit millisecond ms (per channel);
+def _wipe_bits(bits, t0_ms, ms, out, per_bit):
+    """Assisted data bit of the code period starting at transmit code-period count ms (per channel;
+    ``per_bit`` code periods per bit, :attr:`ultratight.signals.signal.SignalDescription.codes_per_bit`);
     advances ms by one period."""
     nb = bits.shape[1]
     for c in range(bits.shape[0]):
-        k = (ms[c] - t0_ms[c]) // 20
+        k = (ms[c] - t0_ms[c]) // per_bit
         if k < 0:
             k = 0
         if k > nb - 1:
@@ -356,8 +358,9 @@ class UltratightEngine:
     """Runs one method over an IF source + IMU data (see module docstring)."""
 
     def __init__(self, source, imu, ephs, prns, week, tow0_s, method=DEFAULT_METHOD, options=None,
-                 init_state=None, rng=None, duration_s=None):
+                 init_state=None, rng=None, duration_s=None, signal=GPS_L1CA):
         self.method = check_method(method)
+        self.signal = signal
         self.spec = method_spec(method)
         self.opt = options or EngineOptions()
         self.src = source
@@ -413,7 +416,7 @@ class UltratightEngine:
             bank.init_channel(ch, prn, pred0["code_phase_chips"][ch], pred0["doppler_hz"][ch], 0,
                               carr_phase_cycles=0.0, align=True)
         ms = first_period_ms(pred0["t_tx_tow"], pred0["code_phase_chips"])
-        wipe = BitWipeoff(self.ephs, self.prns, self.week, self.tow0, self.duration_s + 1.0)
+        wipe = BitWipeoff(self.ephs, self.prns, self.week, self.tow0, self.duration_s + 1.0, signal=self.signal)
 
         # ---- tight filter
         P0 = tightmod.initial_covariance(ins.llh, st.get("sigmas", {}), self.imu_noise)
@@ -598,7 +601,7 @@ class UltratightEngine:
                                      f"{np.flatnonzero(n_s <= 0).tolist()} (buffer management)")
             timing["correlate"] += time.perf_counter() - tw
             tw = time.perf_counter()
-            _wipe_bits(wipe.bits, wipe.t0_ms, ms, D)
+            _wipe_bits(wipe.bits, wipe.t0_ms, ms, D, self.signal.codes_per_bit)
             restart = None
             init_now = init_left > 0
             if init_now:

@@ -41,6 +41,7 @@ from ultratight.receiver.pvt import atmosphere_delays, solve_pvt
 from ultratight.receiver.tracking import (
     FL_BIT_DONE, FL_BIT_SYNC, FL_PLL_LOCK, MODE_LOST, MODE_TRACK, R_BIT, R_CN0, R_CODE_PHASE, R_DOPP, R_IP,
     REC_F_NAMES, REC_I_NAMES, RI_EPOCH, RI_FLAGS, RI_MODE, RI_PTR, S_MODE, ScalarTracker, TrackingConfig)
+from ultratight.signals.signal import GPS_L1CA
 
 RX_T0_OFFSET_S = 0.075       # initial guess of the signal travel time
 CLOCK_STEER_S = 1e-3         # re-steer the receiver time when |bias| exceeds this
@@ -693,9 +694,10 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
                         e1 = int(i_ch[synced[0], RI_EPOCH])
                         ip_all = np.concatenate(pre_ip[ch])
                         ep_all = np.concatenate(pre_ep[ch])
-                        starts = e1 - 20 * np.arange((e1 - ep_all[0]) // 20, 0, -1)
+                        per_bit = GPS_L1CA.codes_per_bit
+                        starts = e1 - per_bit * np.arange((e1 - ep_all[0]) // per_bit, 0, -1)
                         if starts.size and np.all(np.diff(ep_all) == 1):
-                            idx = (starts - ep_all[0])[:, None] + np.arange(20)[None, :]
+                            idx = (starts - ep_all[0])[:, None] + np.arange(per_bit)[None, :]
                             navs[ch].feed(ip_all[idx].sum(axis=1), starts, e1)
                         pre_ip[ch], pre_ep[ch] = [], []
                     elif sum(a.size for a in pre_ip[ch]) > PRE_SYNC_KEEP:

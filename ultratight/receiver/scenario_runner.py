@@ -26,6 +26,7 @@ import numpy as np
 from ultratight import __version__
 from ultratight.errors import ConfigError, InputFileError
 from ultratight.receiver import metrics as M
+from ultratight.signals.signal import GPS_L1CA
 
 SCHEMA = "ultratight scenario results v1 (docs/ultratight.md)"
 
@@ -265,7 +266,7 @@ def run_scalar(src, prns, ephs, week, tow0, init, duration_s=None, block_ms=100)
     t = cat(rows_t)
     empty = np.zeros((0, 3))
     return EngineResult(method="scalar", prns=list(prns), t_start=t, doppler_hz=cat(rows_f),
-                        code_phase_chips=np.mod(cat(rows_c), 1023.0), amp=np.full(t.shape, np.nan),
+                        code_phase_chips=np.mod(cat(rows_c), float(GPS_L1CA.code_length)), amp=np.full(t.shape, np.nan),
                         mode=np.zeros(t.shape, dtype=np.int8), nav_t=np.zeros(0), nav_pos_e=empty,
                         nav_vel_e=empty, nav_clk=np.zeros((0, 2)), nav_sigma_doppler_hz=np.zeros((0, n_ch)),
                         runtime_s=_time.perf_counter() - t0, duration_s=n * 1e-3,

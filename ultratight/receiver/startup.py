@@ -21,6 +21,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from ultratight.constants import C, CA_LEN, F_CA
+from ultratight.signals.signal import GPS_L1CA
 
 WIPEOFF_ASSISTED = "assisted-bits"
 WIPEOFF_NONE = "none"
@@ -97,17 +98,19 @@ def predict_channels(ephs, prns, week, tow_rx_s, pos_e, vel_e, clk_bias_m, clk_d
 
 
 class BitWipeoff:
-    """Assisted LNAV bits per channel, indexed by the transmit-time millisecond count.
+    """Assisted navigation-data bits per channel, indexed by the transmit-time millisecond count.
 
-    ``bits[ch]`` holds ±1 bits starting at transmit time ``t0_ms[ch]`` ms (a multiple of
-    20 ms); :meth:`signs` gives the bit of the code period that *starts* at transmit
-    millisecond ``ms`` (int64 array).
+    ``bits[ch]`` holds ±1 bits starting at transmit time ``t0_ms[ch]`` ms (a multiple of the
+    signal's data-bit period, ``signal.bit_period_s``: 20 ms for GPS L1 C/A); :meth:`signs` gives
+    the bit of the code period that *starts* at transmit millisecond ``ms`` (int64 array).
     """
 
-    def __init__(self, ephs, prns, week, tow_start_s, duration_s):
+    def __init__(self, ephs, prns, week, tow_start_s, duration_s, signal=GPS_L1CA):
         self.mode = WIPEOFF_ASSISTED
-        n_bits = int(np.ceil(duration_s / 0.02)) + 20
-        t0 = np.floor(tow_start_s / 0.02) * 0.02 - 0.2
+        self.signal = signal
+        t_bit = signal.bit_period_s
+        n_bits = int(np.ceil(duration_s / t_bit)) + 20
+        t0 = np.floor(tow_start_s / t_bit) * t_bit - 10 * t_bit
         self.t0_ms = np.full(len(prns), int(round(t0 * 1000.0)), dtype=np.int64)
         self.bits = np.ones((len(prns), n_bits), dtype=np.int8)
         try:
@@ -121,7 +124,7 @@ class BitWipeoff:
         self._rows = np.arange(len(prns))
 
     def signs(self, ms):
-        k = (np.asarray(ms, dtype=np.int64) - self.t0_ms) // 20
+        k = self.signal.bit_index(np.asarray(ms, dtype=np.int64), self.t0_ms)
         k = np.clip(k, 0, self.bits.shape[1] - 1)
         return self.bits[self._rows, k].astype(np.float64)
 
