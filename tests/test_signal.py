@@ -29,3 +29,15 @@ def test_bit_wipeoff_follows_the_description():
     ms = w.t0_ms[0] + np.arange(12)
     np.testing.assert_array_equal(w.signs(ms[:, None])[:, 0], np.repeat([-1.0, 1.0, -1.0], 4))
     assert w.t0_ms[0] % 4 == 0
+
+
+@pytest.mark.parametrize("module", ["ultratight.receiver.engine", "ultratight.receiver.startup"])
+def test_stages_take_the_signal_from_its_description(module):
+    """The engine and the start-up stage read carrier, chip rate, code length and bit period from
+    a SignalDescription, not from the GPS L1 C/A constants."""
+    import importlib
+    import inspect
+    import re
+    src = inspect.getsource(importlib.import_module(module))
+    for name in ("F_L1", "F_CA", "CA_LEN", "T_CA", "CHIP_M", "LAMBDA_L1", "CODE_PER_BIT", "1575.42e6"):
+        assert not re.search(r"\b" + re.escape(name) + r"\b", src), name

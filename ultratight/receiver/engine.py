@@ -43,7 +43,6 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from numba import njit
 
-from ultratight.constants import CA_LEN, CHIP_M, F_CA, F_L1, LAMBDA_L1, T_CA
 from ultratight.errors import ConfigError, InputFileError
 from ultratight.receiver.blockstream import BlockStream, NoiseFloor  # noqa: F401 (NoiseFloor: public here too)
 from ultratight.receiver.methods import DEFAULT_METHOD, METHODS, check_method, method_spec  # noqa: F401
@@ -84,21 +83,21 @@ def _wipe_bits(bits, t0_ms, ms, out, per_bit):
 @njit(cache=True)
 def _epoch_post(k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, i_ptau, i_pf, ring_t, ring_cp, ring_r, ring_f, ring_k,
                 imu_dt, t_next_upd, acc, rec_t, rec_f, rec_cp, rec_a, rec_mode, mode_now,
-                aid_grid, n_filled, sample_ptr, half_period_s, aid_out, aid_dt=0.0):
+                aid_grid, n_filled, sample_ptr, half_period_s, code_len, aid_out, aid_dt=0.0):
     """Per-epoch bookkeeping for all channels in one compiled call.
 
     Records the estimates (NCO + prefilter at the interval start), forms the residuals against
     the exact SINS predictions (ring of 100 Hz predictions, linear in between), accumulates
     them in the decimator window (acc rows: n, code, doppler, P_tautau, P_ff, amplitude) and
     interpolates the 1 kHz outer-loop Doppler aiding at the middle of each channel's next
-    interval.
+    interval. ``code_len``: chips per code period (the signal description's ``code_length``).
     """
     two_pi = 2.0 * math.pi
     n_ch = t_start.shape[0]
     ring_n = ring_t.shape[0]
     i1 = (ring_k - 1) % ring_n
     t_last = ring_t[i1]
-    half = 0.5 * CA_LEN
+    half = 0.5 * code_len
     for c in range(n_ch):
         tk = float(t_start[c]) / fs
         # Doppler estimate for the middle of the interval: NCO + df + da T/2 (state at the start)
@@ -106,7 +105,7 @@ def _epoch_post(k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, i_ptau, i_pf, ring
         cp_meas = cp0[c] + x_post[c, 1]
         rec_t[k_ep, c] = tk
         rec_f[k_ep, c] = f_meas
-        rec_cp[k_ep, c] = cp_meas % CA_LEN
+        rec_cp[k_ep, c] = cp_meas % code_len
         rec_a[k_ep, c] = x_post[c, 0]
         rec_mode[k_ep, c] = mode_now[c]
         back = int(math.floor((t_last - tk) / imu_dt)) + 1
@@ -122,7 +121,7 @@ def _epoch_post(k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, i_ptau, i_pf, ring
         # the Doppler estimate is the interval mean: compare with the prediction at mid-interval
         w += half_period_s / imu_dt
         f_pred = ring_f[ia, c] + w * (ring_f[ib, c] - ring_f[ia, c])
-        r_cp = (cp_meas - cp_pred + half) % CA_LEN - half
+        r_cp = (cp_meas - cp_pred + half) % code_len - half
         r_f = f_meas - f_pred
         if tk < t_next_upd:
             acc[0, c] += 1.0
@@ -391,6 +390,7 @@ class UltratightEngine:
         from ultratight.receiver.startup import BitWipeoff, first_period_ms, predict_channels
 
         opt = self.opt
+        sgl = self.signal
         t_wall0 = time.perf_counter()
         n_ch = len(self.prns)
         fs = self.fs
@@ -410,13 +410,13 @@ class UltratightEngine:
         # ---- hot start predictions (from the perturbed state, not truth)
         pos_e, vel_e, C_el = ins.pos_vel_e()
         pred0 = predict_channels(self.ephs, self.prns, self.week, self.tow0, pos_e, vel_e,
-                                 ins.clk_b, ins.clk_d)
+                                 ins.clk_b, ins.clk_d, signal=sgl)
         bank = CorrelatorBank(self.prns, fs, self.if_hz, self.src.is_complex)
         for ch, prn in enumerate(self.prns):
             bank.init_channel(ch, prn, pred0["code_phase_chips"][ch], pred0["doppler_hz"][ch], 0,
                               carr_phase_cycles=0.0, align=True)
-        ms = first_period_ms(pred0["t_tx_tow"], pred0["code_phase_chips"])
-        wipe = BitWipeoff(self.ephs, self.prns, self.week, self.tow0, self.duration_s + 1.0, signal=self.signal)
+        ms = first_period_ms(pred0["t_tx_tow"], pred0["code_phase_chips"], signal=sgl)
+        wipe = BitWipeoff(self.ephs, self.prns, self.week, self.tow0, self.duration_s + 1.0, signal=sgl)
 
         # ---- tight filter
         P0 = tightmod.initial_covariance(ins.llh, st.get("sigmas", {}), self.imu_noise)
@@ -431,7 +431,7 @@ class UltratightEngine:
                           rate_hz=1.0 / imu_dt, cic_order=opt.cic_order)
         pr_now = outer.predict(t_sins, pos_e, vel_e, ins.clk_b, ins.clk_d)
         los_l = pr_now["los_e"] @ C_el
-        sig_dopp = tightmod.doppler_sigma_hz(tf.P, los_l, LAMBDA_L1)
+        sig_dopp = tightmod.doppler_sigma_hz(tf.P, los_l, sgl.wavelength_m)
         # initial acceleration from the first IMU interval (a trial SINS step on a copy)
         x_try = ins.x.copy()
         ins._sins.sins_step(x_try, imu_dth[0], imu_dv[0], float(imu_t[0] - t_sins))
@@ -473,7 +473,7 @@ class UltratightEngine:
             from ultratight.fusion import pbkf
             pref = pbkf.PbKfBank(n_ch, cn0_dbhz_init=opt.cn0_init_dbhz)
             pref.reset(rows)
-            inner = InnerLoop(n_ch, T=T_CA, if_hz=self.if_hz)
+            inner = InnerLoop(n_ch, T=sgl.code_period_s, if_hz=self.if_hz)
         else:
             from ultratight.fusion.prefilter import PrefilterBank, default_initial_covariance
             kind = self.spec.bank
@@ -481,28 +481,28 @@ class UltratightEngine:
                                  correction_period=opt.rackf_period, robust_mode=opt.robust_mode,
                                  cn0_dbhz_init=opt.cn0_init_dbhz,
                                  **(dict(opt.rackf_kwargs) if kind == "rackf" else {}), **opt.prefilter_kwargs)
-            sig_code_chips = tightmod.code_sigma_m(tf.P, los_l, M_pos) / CHIP_M
+            sig_code_chips = tightmod.code_sigma_m(tf.P, los_l, M_pos) / sgl.chip_m
             P_init = np.zeros((n_ch, 5, 5))
-            base = default_initial_covariance(opt.cn0_init_dbhz, T_CA)
+            base = default_initial_covariance(opt.cn0_init_dbhz, sgl.code_period_s)
             for ch in range(n_ch):
                 P_init[ch] = base
                 P_init[ch, 1, 1] = (sig_code_chips[ch] + opt.code_sigma_margin_chips) ** 2
                 P_init[ch, 3, 3] = (2 * math.pi * (3.0 * sig_dopp[ch] + 0.5)) ** 2
                 P_init[ch, 4, 4] = (2 * math.pi * 2.0) ** 2
             pref.reset(rows, P0=P_init)
-            inner = InnerLoop(n_ch, T=T_CA, if_hz=self.if_hz)
+            inner = InnerLoop(n_ch, T=sgl.code_period_s, if_hz=self.if_hz)
 
         # ---- NCO Doppler at the middle of each channel's first interval, aiding history consistent
-        t1 = bank.sample_ptr / fs + 0.5 * T_CA
+        t1 = bank.sample_ptr / fs + 0.5 * sgl.code_period_s
         u1 = t1 * 1000.0
         j1 = np.clip(np.floor(u1).astype(np.int64), 0, outer.n_filled - 2)
         a1 = outer.aid_doppler[j1, rows] * (1.0 - (u1 - j1)) + outer.aid_doppler[j1 + 1, rows] * (u1 - j1)
         bank.carr_freq[:] = self.if_hz + a1
-        bank.code_rate[:] = F_CA * (1.0 + a1 / F_L1)
+        bank.code_rate[:] = sgl.code_rate_cps(a1)
         aid_prev_ff = a1.copy()
         if opt.phase_init_ms <= 0:
-            rate1 = (self._aid_at(outer, t1 + T_CA) - a1) / T_CA
-            inner.prime_aiding(pref, a1 - rate1 * T_CA, rate1)
+            rate1 = (self._aid_at(outer, t1 + sgl.code_period_s) - a1) / sgl.code_period_s
+            inner.prime_aiding(pref, a1 - rate1 * sgl.code_period_s, rate1)
 
         # ---- records
         n_ep_max = int(self.duration_s * 1000.0 * 1.001) + 8
@@ -535,8 +535,8 @@ class UltratightEngine:
         present = np.ones(n_ch, dtype=np.bool_)
         lm_events = np.zeros(n_ch, dtype=np.int64)
         lm_phase = np.zeros(n_ch)
-        thr_off = float(np.sqrt(2.0 * 10 ** (opt.lock_off_dbhz / 10.0) * T_CA))
-        thr_on = float(np.sqrt(2.0 * 10 ** (opt.lock_on_dbhz / 10.0) * T_CA))
+        thr_off = float(np.sqrt(2.0 * 10 ** (opt.lock_off_dbhz / 10.0) * sgl.code_period_s))
+        thr_on = float(np.sqrt(2.0 * 10 ** (opt.lock_on_dbhz / 10.0) * sgl.code_period_s))
         n_lost_events = 0
         n_regained = 0
         xp_view = np.zeros((n_ch, 5))
@@ -554,7 +554,7 @@ class UltratightEngine:
         blk = int(round(opt.block_ms * 1e-3 * fs))
         n_total = int(min(self.src.n_samples, round(self.duration_s * fs)))
         stream = BlockStream(self.src, blk, floor=NoiseFloor(opt.noise_tau_s, blk / fs))
-        per_max = int(math.ceil(fs * T_CA * 1.001)) + 4
+        per_max = int(math.ceil(fs * sgl.code_period_s * 1.001)) + 4
         use_aid = np.ones(n_ch, dtype=bool)
         mode_now = np.full(n_ch, mode_aided, dtype=np.int8)
         two_pi = 2.0 * math.pi
@@ -654,10 +654,12 @@ class UltratightEngine:
             _epoch_post(k_ep, t_start, fs, self.if_hz, f0, cp0, xp_rec, pref.P, i_ptau, i_pf,
                         ring_t, ring_cp, ring_r, ring_f, ring_k, imu_dt, t_next_upd, acc, rec_t, rec_f,
                         rec_cp, rec_a, rec_mode, mode_now, outer.aid_doppler, outer.n_filled,
-                        bank.sample_ptr, 0.5 * T_CA, aid, opt.aid_time_offset_s)
+                        bank.sample_ptr, 0.5 * sgl.code_period_s, float(sgl.code_length), aid,
+                        opt.aid_time_offset_s)
             # ---- NCO commands for the next interval
             if restart is not None:
-                rate = (self._aid_at(outer, bank.sample_ptr / fs + 1.5 * T_CA) - aid) / T_CA
+                t_code = sgl.code_period_s
+                rate = (self._aid_at(outer, bank.sample_ptr / fs + 1.5 * t_code) - aid) / t_code
                 self._restart_channels(pref, inner, bank, restart, restart_phase, restart_amp, aid, rate)
                 if init_now:
                     ff_any = False
@@ -665,7 +667,7 @@ class UltratightEngine:
             if ff_any:
                 d_aid = np.where(ff, aid - aid_prev_ff, 0.0)
                 bank.carr_freq += d_aid
-                bank.code_rate[ff] = F_CA * (1.0 + (bank.carr_freq[ff] - self.if_hz) / F_L1)
+                bank.code_rate[ff] = sgl.code_rate_cps(bank.carr_freq[ff] - self.if_hz)
                 proxy.active = pref.active & ~ff
                 inner.apply(proxy, bank, aid_doppler_hz=aid, use_aid=use_aid)
             else:
@@ -674,7 +676,7 @@ class UltratightEngine:
             if opt.lock_monitor:
                 if rollback.any():
                     bank.carr_freq += rollback
-                    bank.code_rate[:] = F_CA * (1.0 + (bank.carr_freq - self.if_hz) / F_L1)
+                    bank.code_rate[:] = sgl.code_rate_cps(bank.carr_freq - self.if_hz)
                     rollback[:] = 0.0
                 off_ring[k_ep % W] = bank.carr_freq - self.if_hz - aid
             timing["prefilter"] += time.perf_counter() - tw
@@ -688,10 +690,10 @@ class UltratightEngine:
                 m_cp = acc_cp / nn
                 m_f = acc_f / nn
                 m_a = acc_a / nn
-                dz_pr = CHIP_M * m_cp
-                dz_prr = LAMBDA_L1 * m_f
-                var_pr = CHIP_M ** 2 * (acc_pt / nn) * opt.meas_corr_factor + opt.pr_sigma_floor_m ** 2
-                var_prr = (LAMBDA_L1 / two_pi) ** 2 * (acc_pf / nn) * opt.meas_corr_factor \
+                dz_pr = sgl.chip_m * m_cp
+                dz_prr = sgl.wavelength_m * m_f
+                var_pr = sgl.chip_m ** 2 * (acc_pt / nn) * opt.meas_corr_factor + opt.pr_sigma_floor_m ** 2
+                var_prr = (sgl.wavelength_m / two_pi) ** 2 * (acc_pf / nn) * opt.meas_corr_factor \
                     + opt.prr_sigma_floor_mps ** 2
                 valid = ok & (np.abs(m_a) > opt.amp_min) & present & gate_ok   # (A < 0: half a cycle off)
                 pos_e, vel_e, C_el = ins.pos_vel_e()
@@ -711,7 +713,8 @@ class UltratightEngine:
                     pos_e, vel_e, C_el = ins.pos_vel_e()
                     pr_fix = outer.predict(t_sins, pos_e, vel_e, ins.clk_b, ins.clk_d)
                     i1 = (ring_k - 1) % ring_n
-                    dcp = np.mod(pr_fix["code_phase_chips"] - ring_cp[i1] + 0.5 * CA_LEN, CA_LEN) - 0.5 * CA_LEN
+                    half_code = 0.5 * sgl.code_length
+                    dcp = np.mod(pr_fix["code_phase_chips"] - ring_cp[i1] + half_code, sgl.code_length) - half_code
                     dfp = pr_fix["doppler_hz"] - ring_f[i1]
                     ring_cp += dcp
                     ring_f += dfp
@@ -720,7 +723,7 @@ class UltratightEngine:
                         outer.offset_hz += dfp   # double loop: corrections do not jump the NCOs
                     ring_r[i1] = pr_fix["code_rate_cps"]
                     vel_e_prev = vel_e.copy()
-                sig_dopp = tightmod.doppler_sigma_hz(tf.P, los_l, LAMBDA_L1)
+                sig_dopp = tightmod.doppler_sigma_hz(tf.P, los_l, sgl.wavelength_m)
                 if self.spec.double_loop:
                     use_aid = (sig_dopp < opt.arbitration_sigma_hz)
                 if opt.outer_freq_update and self.spec.double_loop:
@@ -771,7 +774,7 @@ class UltratightEngine:
             nav_t=np.asarray(nav["t"]), nav_pos_e=np.asarray(nav["pos_e"]).reshape(-1, 3),
             nav_vel_e=np.asarray(nav["vel_e"]).reshape(-1, 3), nav_clk=np.asarray(nav["clk"]).reshape(-1, 2),
             nav_sigma_doppler_hz=np.asarray(nav["sig"]).reshape(-1, n_ch), runtime_s=runtime,
-            duration_s=n * T_CA, info=info)
+            duration_s=n * sgl.code_period_s, info=info)
 
     @staticmethod
     def _aid_at(outer, t):
@@ -786,7 +789,8 @@ class UltratightEngine:
         (amplitude from the coherent magnitude, startup-like covariance) and hand the aiding
         history to the inner loop (outer-loop Doppler rate injected into the acceleration state)."""
         chans = np.atleast_1d(np.asarray(chans))
-        a_min = float(np.sqrt(2.0 * 10 ** (self.opt.cn0_min_dbhz / 10.0) * T_CA))
+        sgl = self.signal
+        a_min = float(np.sqrt(2.0 * 10 ** (self.opt.cn0_min_dbhz / 10.0) * sgl.code_period_s))
         for c in chans:
             bank.carr_phase[c] = (bank.carr_phase[c] + phase[c] / (2.0 * math.pi)) % 1.0
         x0 = np.zeros((len(chans), 5))
@@ -801,7 +805,7 @@ class UltratightEngine:
             pref.reset(chans, x0=x0)
         else:
             from ultratight.fusion.prefilter import default_initial_covariance
-            base = default_initial_covariance(self.opt.cn0_init_dbhz, T_CA)
+            base = default_initial_covariance(self.opt.cn0_init_dbhz, sgl.code_period_s)
             P0 = np.zeros((len(chans), 5, 5))
             for i, c in enumerate(chans):
                 P0[i] = base
@@ -811,7 +815,7 @@ class UltratightEngine:
                 P0[i, 3, 3] = (2 * math.pi * self.opt.reinit_sigma_f_hz) ** 2
                 P0[i, 4, 4] = (2 * math.pi * self.opt.reinit_sigma_a_hzps) ** 2
             pref.reset(chans, x0=x0, P0=P0)
-        inner.prime_aiding(pref, aid - rate * T_CA, rate, channels=chans)
+        inner.prime_aiding(pref, aid - rate * sgl.code_period_s, rate, channels=chans)
 
 
 def ring_los(outer, pos_e, vel_e, ins, t):

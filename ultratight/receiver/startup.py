@@ -20,7 +20,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from ultratight.constants import C, CA_LEN, F_CA
+from ultratight.constants import C
 from ultratight.signals.signal import GPS_L1CA
 
 WIPEOFF_ASSISTED = "assisted-bits"
@@ -75,7 +75,7 @@ def perturb_state(truth0, errors, rng):
     }
 
 
-def predict_channels(ephs, prns, week, tow_rx_s, pos_e, vel_e, clk_bias_m, clk_drift_mps):
+def predict_channels(ephs, prns, week, tow_rx_s, pos_e, vel_e, clk_bias_m, clk_drift_mps, signal=GPS_L1CA):
     """Predicted code phase (chips), Doppler (Hz) and transmit time for each PRN.
 
     ``tow_rx_s`` is the *receiver-clock* time of the sample the prediction refers to; the
@@ -94,7 +94,7 @@ def predict_channels(ephs, prns, week, tow_rx_s, pos_e, vel_e, clk_bias_m, clk_d
         dop[i] = r["doppler_hz"][0]
         ttx[i] = r["t_tx_tow"][0]
     return {"code_phase_chips": cp, "doppler_hz": dop, "t_tx_tow": ttx,
-            "code_rate_cps": F_CA * (1.0 + dop / 1575.42e6)}
+            "code_rate_cps": signal.code_rate_cps(dop)}
 
 
 class BitWipeoff:
@@ -129,14 +129,17 @@ class BitWipeoff:
         return self.bits[self._rows, k].astype(np.float64)
 
 
-def first_period_ms(t_tx_tow, code_phase_chips):
-    """Transmit-time millisecond count of the first *full* code period after the start.
+def first_period_ms(t_tx_tow, code_phase_chips, signal=GPS_L1CA):
+    """Transmit-time count of code periods (milliseconds for GPS L1 C/A) of the first *full* code
+    period after the start.
 
     The correlator aligns each channel to its next code-period start, whose transmit
-    time is ``floor(t_tx * 1000) + 1`` ms (consistent with the predicted code phase).
+    time is ``floor(t_tx / T) + 1`` periods (T = ``signal.code_period_s``; consistent with the
+    predicted code phase).
     """
-    ms = np.floor(np.asarray(t_tx_tow) * 1000.0).astype(np.int64)
+    per_s = 1.0 / signal.code_period_s
+    ms = np.floor(np.asarray(t_tx_tow) * per_s).astype(np.int64)
     # guard the rounding at a period boundary: the code phase says how far into it we are
-    frac = np.asarray(code_phase_chips) / CA_LEN
-    ms_fix = np.round(np.asarray(t_tx_tow) * 1000.0 - frac).astype(np.int64)
+    frac = np.asarray(code_phase_chips) / signal.code_length
+    ms_fix = np.round(np.asarray(t_tx_tow) * per_s - frac).astype(np.int64)
     return np.where(np.abs(ms - ms_fix) <= 1, ms_fix, ms) + 1
