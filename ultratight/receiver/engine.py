@@ -494,14 +494,12 @@ class UltratightEngine:
 
         # ---- NCO Doppler at the middle of each channel's first interval, aiding history consistent
         t1 = bank.sample_ptr / fs + 0.5 * sgl.code_period_s
-        u1 = t1 * 1000.0
-        j1 = np.clip(np.floor(u1).astype(np.int64), 0, outer.n_filled - 2)
-        a1 = outer.aid_doppler[j1, rows] * (1.0 - (u1 - j1)) + outer.aid_doppler[j1 + 1, rows] * (u1 - j1)
+        a1 = outer.aiding_at(t1)
         bank.carr_freq[:] = self.if_hz + a1
         bank.code_rate[:] = sgl.code_rate_cps(a1)
         aid_prev_ff = a1.copy()
         if opt.phase_init_ms <= 0:
-            rate1 = (self._aid_at(outer, t1 + sgl.code_period_s) - a1) / sgl.code_period_s
+            rate1 = (outer.aiding_at(t1 + sgl.code_period_s) - a1) / sgl.code_period_s
             inner.prime_aiding(pref, a1 - rate1 * sgl.code_period_s, rate1)
 
         # ---- records
@@ -659,7 +657,7 @@ class UltratightEngine:
             # ---- NCO commands for the next interval
             if restart is not None:
                 t_code = sgl.code_period_s
-                rate = (self._aid_at(outer, bank.sample_ptr / fs + 1.5 * t_code) - aid) / t_code
+                rate = (outer.aiding_at(bank.sample_ptr / fs + 1.5 * t_code) - aid) / t_code
                 self._restart_channels(pref, inner, bank, restart, restart_phase, restart_amp, aid, rate)
                 if init_now:
                     ff_any = False
@@ -775,13 +773,6 @@ class UltratightEngine:
             nav_vel_e=np.asarray(nav["vel_e"]).reshape(-1, 3), nav_clk=np.asarray(nav["clk"]).reshape(-1, 2),
             nav_sigma_doppler_hz=np.asarray(nav["sig"]).reshape(-1, n_ch), runtime_s=runtime,
             duration_s=n * sgl.code_period_s, info=info)
-
-    @staticmethod
-    def _aid_at(outer, t):
-        u = np.asarray(t) * 1000.0
-        j = np.clip(np.floor(u).astype(np.int64), 0, outer.n_filled - 2)
-        r = np.arange(u.shape[0])
-        return outer.aid_doppler[j, r] * (1.0 - (u - j)) + outer.aid_doppler[j + 1, r] * (u - j)
 
     def _restart_channels(self, pref, inner, bank, chans, phase, amp, aid, rate):
         """(Re)start channels' prefilters on a coherent carrier-phase estimate: rotate the carrier
