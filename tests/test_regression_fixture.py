@@ -1,5 +1,7 @@
 """No behaviour change across the receiver's restructuring: every ultra-tight method on a short
-generated paper-highdyn cut, the scenario's ``scalar`` method on the same cut, and ``process`` on a
+generated paper-highdyn cut, the scenario's ``scalar`` method on the same cut, three methods with
+the signal monitor in ``coast`` mode through a x20 noise burst (loss of lock, coasting and
+prefilter restarts), and ``process`` on a
 generated static file of 8.5 s (time of week decoded, fixes), compared with values stored in ``tests/data/regression_v1.npz``.
 
 The stored values were computed by the receiver before its stages were separated (issue 11); a
@@ -21,6 +23,10 @@ STATIC = {"duration_s": 8.5, "frontend.fs_hz": 2.046e6, "satellites.max_count": 
 TOL = 1e-9
 STRIDE = 2          # every second epoch is stored (closed loops carry any change to later epochs)
 STRIDE_STATIC = 5
+BURST = {"duration_s": 2.5, "frontend.fs_hz": 2.046e6, "satellites.max_count": 3}
+BURST_EVENTS = [{"t0_s": 0.8, "t1_s": 1.6, "noise_factor": 20.0}]
+BURST_METHODS = ("pb-kf-utc", "dlb-ckf", "dlb-rackf")
+STRIDE_BURST = 4
 
 
 def _highdyn(out):
@@ -41,6 +47,25 @@ def _highdyn(out):
             vals[k + "nav_pos_e"] = np.asarray(res.nav_pos_e, float)
             vals[k + "nav_vel_e"] = np.asarray(res.nav_vel_e, float)
             vals[k + "nav_clk"] = np.asarray(res.nav_clk, float)
+    return vals
+
+
+def _burst(out):
+    from ultratight.receiver.engine import EngineOptions, monitor_options
+    from ultratight.receiver.scenario_config import load_scenario
+    from ultratight.receiver.scenario_runner import prepare_data, run_method
+    cfg = load_scenario("paper-highdyn", BURST)
+    cfg["noise_events"] = BURST_EVENTS
+    paths, _ = prepare_data(cfg, 2, out)
+    vals = {}
+    for m in BURST_METHODS:
+        res, _ = run_method(paths, cfg, m, 2, options=EngineOptions(**monitor_options("coast")))
+        k = f"burst/{m}/"
+        vals[k + "doppler_hz"] = np.asarray(res.doppler_hz, float)[::STRIDE_BURST]
+        vals[k + "code_phase_chips"] = np.asarray(res.code_phase_chips, float)[::STRIDE_BURST]
+        vals[k + "mode"] = np.asarray(res.mode, float)
+        vals[k + "nav_pos_e"] = np.asarray(res.nav_pos_e, float)
+        vals[k + "events"] = np.array([res.info["n_lock_lost_events"], res.info["n_prefilter_restarts"]], float)
     return vals
 
 
@@ -68,7 +93,7 @@ def _static(out):
 
 
 def compute(out):
-    return {**_highdyn(out), **_static(out)}
+    return {**_highdyn(out), **_burst(out), **_static(out)}
 
 
 @pytest.fixture(scope="module")
@@ -89,6 +114,8 @@ def test_regression_fixture_is_not_trivial(current):
     for m in METHODS:
         d = current[f"hd/{m}/doppler_hz"]
         assert d.shape[0] > 400 and np.all(np.isfinite(d))
+    for m in BURST_METHODS:                      # the burst drives the coast and restart paths
+        assert current[f"burst/{m}/events"].min() >= 5 and np.any(current[f"burst/{m}/mode"] == 3)
     assert sum(k.startswith("st/prn") for k in current) == 15 and current["st/fix_pos_e"].shape[0] >= 10
 
 
