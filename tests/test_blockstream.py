@@ -79,3 +79,17 @@ def test_estimator_closed_forms_and_zero_power():
     with pytest.raises(ConfigError, match="zero noise power"):
         BlockStream(Flat(), 50).ensure(60, 0)
     assert BlockStream(Flat(), 50, on_zero=1.0).read_at(0, 50, 10)[1] == 1.0
+
+
+def test_release_keeps_samples_readable(src):
+    st = BlockStream(src, 2000)
+    st.release(8000)
+    x, _ = BlockStream(src, 2000, on_zero=1.0).read_at(0, 100, 100)
+    np.testing.assert_array_equal(st.read_at(0, 100, 100)[0], x)
+
+    class NoRelease:
+        is_complex, n_samples = False, 10
+
+        def read(self, start, count):
+            return np.arange(10, dtype=np.float32)[start:start + count]
+    assert BlockStream(NoRelease(), 5).release(5) == 0

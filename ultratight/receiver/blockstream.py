@@ -177,6 +177,12 @@ class BlockStream:
         """Noise std per arm of the aligned block holding each ``sample`` (an int or an int array)."""
         return self._sigma[:self._n_sigma][np.asarray(sample) // self.block_len]
 
+    def release(self, upto_sample):
+        """Drop the file-mapping pages before ``upto_sample`` from the resident set when the source
+        can (``IfSource.release``); the samples stay readable. Returns the bytes released."""
+        release = getattr(self.src, "release", None)
+        return release(upto_sample) if release is not None else 0
+
     def read_at(self, start, count, head):
         """``(samples [start, start + count), noise std per arm of their first head samples)``."""
         x = self.src.read(start, count)

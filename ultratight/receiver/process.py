@@ -1,12 +1,14 @@
 """The scalar receiver pipeline: IF blocks -> acquisition -> tracking channels -> LNAV -> observables -> PVT.
 
 :func:`process` runs on an opened :class:`ultratight.signals.iffile.IfSource` (or a path) and
-returns a :class:`ProcessResult`; it is what ``ultratight process`` runs and what the scenario
-runner's ``scalar`` method calls on generated IF files (``record_epochs=True`` keeps the
-per-channel, per-epoch Doppler / code phase estimates with their sample indices in memory:
-``result.epochs[prn]``).
+returns a :class:`ProcessResult`; it is what ``ultratight process`` runs (``record_epochs=True``
+keeps the per-channel, per-epoch Doppler / code phase estimates with their sample indices in
+memory: ``result.epochs[prn]``). The scenario runner's ``scalar`` method runs the same tracking
+channels from hot-start predictions instead of acquisition
+(:func:`ultratight.receiver.scenario_runner.run_scalar`).
 
-Streaming: the file is read in blocks of ``block_ms`` (default 100 ms), tracking runs in one
+Streaming: the file is read through :class:`ultratight.receiver.blockstream.BlockStream` in
+blocks of ``block_ms`` (default 200 ms) where the channels need samples, tracking runs in one
 numba call per block (:mod:`ultratight.receiver.tracking`), per-epoch series are appended to the
 HDF5 output as they come (nothing per-epoch is kept in memory unless ``record_epochs``), so the
 memory use does not depend on the file length.
@@ -659,9 +661,7 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             rf, ri, nr = tracker.run(buf, s, sigma_arm, stop_sample=stop)
             n_blocks_done += 1
             if n_blocks_done % RELEASE_EVERY == 0:
-                release = getattr(source, "release", None)   # IfSource: keeps RSS flat on long files
-                if release is not None:
-                    release(s - margin)
+                stream.release(s - margin)              # keeps the resident set flat on long files
             for ch in range(n_ch):
                 m = int(nr[ch])
                 if m == 0:
