@@ -10,7 +10,8 @@ channels)::
              ─► tight 17-state filter ⇄ SINS (100 Hz, feedback) ─► OuterLoop (100 Hz
                  predictions, CIC to 1 kHz) ─► aiding of the next epochs
 
-Methods (all on the same IF/IMU data):
+Methods (all on the same IF/IMU data; each is a spec of the registry
+:mod:`ultratight.receiver.methods`, naming its tracking bank and loop structure):
 
 * ``dlb-rackf`` (default), ``dlb-ckf``, ``dlb-ukf``: double loop — each channel's prefilter
   (the numba bank of fusion.prefilter) closes its own inner loop every epoch; the outer loop feeds the
@@ -19,7 +20,8 @@ Methods (all on the same IF/IMU data):
 * ``pb-kf-utc``: single loop baseline — discriminator outputs into a linear KF per channel
   (``ultratight.fusion.pbkf``); the NCOs are driven by the outer loop only (absolute
   SINS-predicted Doppler and code phase, no inner loop).
-* ``scalar``: the scalar tracking pipeline of receiver.tracking (no INS), for reference.
+* ``scalar``: the scalar tracking pipeline of receiver.tracking (no INS), for reference;
+  :meth:`UltratightEngine.run` hands it to :func:`ultratight.receiver.scenario_runner.run_scalar`.
 
 Arbitration (double loop, logged per channel per epoch in ``mode``): after every tight
 update the 1-sigma of each channel's predicted Doppler is computed from the tight filter
