@@ -138,9 +138,11 @@ class InnerLoop:
     ``k_f`` in [0, 1] (1 = full error-state feedback every epoch), ``k_da`` (1: centre the
     frequency on the next interval using the acceleration estimate).
 
-    ``apply(bank, nco, aid_doppler_hz=None, use_aid=None)``: ``bank`` has ``x`` (n_ch, 5)
-    (modified in place) and ``active``; ``nco`` has float arrays ``code_phase``, ``code_rate``,
-    ``carr_phase``, ``carr_freq`` (a CorrelatorBank or corrsim.SimNco).  ``aid_doppler_hz``
+    ``apply(bank, nco, aid_doppler_hz=None, use_aid=None)``: ``bank`` is a tracking bank
+    (``PrefilterBank``, ``PbKfBank`` or a view of one) with ``x`` (n_ch, 5) (modified in place),
+    ``active`` (n_ch,) bool and ``note_correction(dx)`` (told the correction just applied);
+    ``nco`` has float arrays ``code_phase``, ``code_rate``, ``carr_phase``, ``carr_freq``
+    (a CorrelatorBank or corrsim.SimNco), moved in place.  ``aid_doppler_hz``
     (n_ch,) is the outer loop's Doppler prediction for the next interval (None: no aiding);
     ``use_aid`` (n_ch,) bool is the arbitration mask (None: aid every channel when aiding is
     given).  Returns dx (n_ch, 5), the state change booked into the bank.
@@ -190,11 +192,7 @@ class InnerLoop:
                 mask = use_aid
             if aid_now.shape != (self.n_ch,) or mask.shape != (self.n_ch,):
                 raise FilterError(f"InnerLoop.apply: aid_doppler_hz and use_aid must have shape ({self.n_ch},)")
-        active = getattr(bank, "_active_i", None)
-        if active is None:
-            active = bank.active
-        _feedback_kernel(x, active, nco.code_phase, nco.code_rate, nco.carr_phase, nco.carr_freq,
+        _feedback_kernel(x, bank.active, nco.code_phase, nco.code_rate, nco.carr_phase, nco.carr_freq,
                          aid_now, self.aid_prev, self.rate_prev, self.hist, mask, self.prm, self.dx)
-        if hasattr(bank, "note_correction"):
-            bank.note_correction(self.dx)
+        bank.note_correction(self.dx)
         return self.dx

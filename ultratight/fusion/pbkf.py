@@ -302,6 +302,7 @@ class PbKfBank:
     """
 
     kind = "pbkf"
+    P_ITAU, P_IF = 0, 2       # code and frequency errors in the covariance P (states dtau, dphi, df, da)
 
     def __init__(self, n_ch, T=T_CA, spacing_chips=1.0, q=None, cn0_dbhz_init=35.0, amp_tau_s=1.0,
                  cn0_min_dbhz=15.0, p_limits=None):

@@ -744,6 +744,8 @@ class PrefilterBank:
     ``diverged`` (n_ch,) bool for the last epoch, ``n_resets`` (n_ch,), ``active`` (n_ch,).
     """
 
+    P_ITAU, P_IF = ITAU, IF        # code and frequency errors in the covariance P (the bank's state layout)
+
     def __init__(self, n_ch, kind="rackf", T=T_CA, spacing_chips=1.0, q=None, huber_c=1.5,
                  correction_period=50, robust_mode="every", adaptive_stat="mean", adapt_ksig=3.0,
                  theta_min=1e-3, phi_sigma_max=0.8,
@@ -918,6 +920,10 @@ class PrefilterBank:
     def state_sigma(self):
         """1-sigma of each state (n_ch, 5)."""
         return np.sqrt(np.maximum(np.diagonal(self.P, axis1=1, axis2=2), 0.0))
+
+    def note_correction(self, dx):
+        """Called by the inner-loop law after it moved the NCOs by ``dx``: the prefilter's state is
+        already corrected in place (``x``), nothing else to update."""
 
     def describe(self):
         """Parameters for logs and outputs."""

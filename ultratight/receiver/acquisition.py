@@ -95,8 +95,8 @@ from scipy.special import gammainccinv
 
 from ultratight.constants import CA_LEN, F_CA, F_L1
 from ultratight.errors import ConfigError
+from ultratight.receiver.blockstream import block_sigma_arm
 from ultratight.signals.ca_code import PRNS, ca_code
-from ultratight.signals.corr_model import noise_sigma_arm
 
 MAX_COHERENT_MS = 10
 _T_SUB = 1e-3              # sub-block length for fine Doppler / C/N0 (s)
@@ -428,14 +428,10 @@ def _row_statistics(surf, jrow, m, exclude, noncoherent, pfa, n_cells, self_r2):
 
 
 def _sigma_arm(x, is_complex):
-    if is_complex:
-        xc = x.astype(np.complex128)
-        sigma = math.sqrt(float(np.mean(np.abs(xc - xc.mean()) ** 2)) / 2.0)
-    else:
-        sigma = float(np.std(x.astype(np.float64)))
-    if not sigma > 0.0:
+    sigma_arm = block_sigma_arm(x, is_complex)
+    if not sigma_arm > 0.0:
         raise ConfigError("acquire: the samples have zero power (all equal)")
-    return noise_sigma_arm(sigma, is_complex)
+    return sigma_arm
 
 
 def _parabolic(ym, y0, yp):

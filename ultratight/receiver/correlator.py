@@ -70,8 +70,8 @@ from numba import njit
 
 from ultratight.constants import CA_LEN, F_CA, F_L1
 from ultratight.errors import ConfigError
+from ultratight.receiver.blockstream import block_sigma_arm
 from ultratight.signals.ca_code import ca_code
-from ultratight.signals.corr_model import noise_sigma_arm as _sigma_arm_from_sigma
 
 LUT_BITS = 14                   # carrier table: 2**LUT_BITS entries, indexed by the top phase bits
 LUT_SIZE = 1 << LUT_BITS
@@ -113,19 +113,16 @@ def estimate_sigma_arm(block, is_complex):
     complex input ``sigma = sqrt(mean(|x|^2)/2)``; real input ``sigma = rms(x)``,
     then :func:`ultratight.signals.corr_model.noise_sigma_arm` (``/sqrt(2)`` for real).
     The mean is removed first (front-end DC offsets would otherwise count as noise).
+    The estimator is :func:`ultratight.receiver.blockstream.block_sigma_arm`; this raises on an
+    empty block or one without power.
     """
     x = np.asarray(block)
     if x.size == 0:
         raise ConfigError("estimate_sigma_arm: empty block (need samples to estimate the noise power)")
-    if is_complex:
-        xc = x.astype(np.complex128, copy=False)
-        sigma = math.sqrt(float(np.mean(np.abs(xc - xc.mean()) ** 2)) / 2.0)
-    else:
-        xr = x.astype(np.float64, copy=False)
-        sigma = float(np.std(xr))
-    if not sigma > 0.0:
+    sigma_arm = block_sigma_arm(x, is_complex)
+    if not sigma_arm > 0.0:
         raise ConfigError("estimate_sigma_arm: block has zero noise power (all samples equal)")
-    return _sigma_arm_from_sigma(sigma, is_complex)
+    return sigma_arm
 
 
 @njit(cache=True)

@@ -10,7 +10,8 @@ channels)::
              ─► tight 17-state filter ⇄ SINS (100 Hz, feedback) ─► OuterLoop (100 Hz
                  predictions, CIC to 1 kHz) ─► aiding of the next epochs
 
-Methods (all on the same IF/IMU data):
+Methods (all on the same IF/IMU data; each is a spec of the registry
+:mod:`ultratight.receiver.methods`, naming its tracking bank and loop structure):
 
 * ``dlb-rackf`` (default), ``dlb-ckf``, ``dlb-ukf``: double loop — each channel's prefilter
   (the numba bank of fusion.prefilter) closes its own inner loop every epoch; the outer loop feeds the
@@ -19,7 +20,8 @@ Methods (all on the same IF/IMU data):
 * ``pb-kf-utc``: single loop baseline — discriminator outputs into a linear KF per channel
   (``ultratight.fusion.pbkf``); the NCOs are driven by the outer loop only (absolute
   SINS-predicted Doppler and code phase, no inner loop).
-* ``scalar``: the scalar tracking pipeline of receiver.tracking (no INS), for reference.
+* ``scalar``: the scalar tracking pipeline of receiver.tracking (no INS), for reference;
+  :meth:`UltratightEngine.run` hands it to :func:`ultratight.receiver.scenario_runner.run_scalar`.
 
 Arbitration (double loop, logged per channel per epoch in ``mode``): after every tight
 update the 1-sigma of each channel's predicted Doppler is computed from the tight filter
@@ -43,11 +45,11 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from numba import njit
 
-from ultratight.constants import CA_LEN, CHIP_M, F_CA, F_L1, LAMBDA_L1, T_CA
 from ultratight.errors import ConfigError, InputFileError
+from ultratight.receiver.blockstream import BlockStream, NoiseFloor  # noqa: F401 (NoiseFloor: public here too)
+from ultratight.receiver.methods import DEFAULT_METHOD, METHODS, check_method, method_spec  # noqa: F401
+from ultratight.signals.signal import GPS_L1CA
 
-METHODS = ("pb-kf-utc", "dlb-ukf", "dlb-ckf", "dlb-rackf", "scalar")
-DEFAULT_METHOD = "dlb-rackf"
 
 MODE_INNER = 0
 MODE_COMBINED = 1
@@ -65,12 +67,13 @@ DLB_PREFILTER_Q = {
 
 
 @njit(cache=True)
-def _wipe_bits(bits, t0_ms, ms, out):
-    """Assisted data bit of the code period starting at transmit millisecond ms (per channel);
+def _wipe_bits(bits, t0_ms, ms, out, per_bit):
+    """Assisted data bit of the code period starting at transmit code-period count ms (per channel;
+    ``per_bit`` code periods per bit, :attr:`ultratight.signals.signal.SignalDescription.codes_per_bit`);
     advances ms by one period."""
     nb = bits.shape[1]
     for c in range(bits.shape[0]):
-        k = (ms[c] - t0_ms[c]) // 20
+        k = (ms[c] - t0_ms[c]) // per_bit
         if k < 0:
             k = 0
         if k > nb - 1:
@@ -82,21 +85,21 @@ def _wipe_bits(bits, t0_ms, ms, out):
 @njit(cache=True)
 def _epoch_post(k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, i_ptau, i_pf, ring_t, ring_cp, ring_r, ring_f, ring_k,
                 imu_dt, t_next_upd, acc, rec_t, rec_f, rec_cp, rec_a, rec_mode, mode_now,
-                aid_grid, n_filled, sample_ptr, half_period_s, aid_out, aid_dt=0.0):
+                aid_grid, n_filled, sample_ptr, half_period_s, code_len, aid_out, aid_dt=0.0):
     """Per-epoch bookkeeping for all channels in one compiled call.
 
     Records the estimates (NCO + prefilter at the interval start), forms the residuals against
     the exact SINS predictions (ring of 100 Hz predictions, linear in between), accumulates
     them in the decimator window (acc rows: n, code, doppler, P_tautau, P_ff, amplitude) and
     interpolates the 1 kHz outer-loop Doppler aiding at the middle of each channel's next
-    interval.
+    interval. ``code_len``: chips per code period (the signal description's ``code_length``).
     """
     two_pi = 2.0 * math.pi
     n_ch = t_start.shape[0]
     ring_n = ring_t.shape[0]
     i1 = (ring_k - 1) % ring_n
     t_last = ring_t[i1]
-    half = 0.5 * CA_LEN
+    half = 0.5 * code_len
     for c in range(n_ch):
         tk = float(t_start[c]) / fs
         # Doppler estimate for the middle of the interval: NCO + df + da T/2 (state at the start)
@@ -104,7 +107,7 @@ def _epoch_post(k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, i_ptau, i_pf, ring
         cp_meas = cp0[c] + x_post[c, 1]
         rec_t[k_ep, c] = tk
         rec_f[k_ep, c] = f_meas
-        rec_cp[k_ep, c] = cp_meas % CA_LEN
+        rec_cp[k_ep, c] = cp_meas % code_len
         rec_a[k_ep, c] = x_post[c, 0]
         rec_mode[k_ep, c] = mode_now[c]
         back = int(math.floor((t_last - tk) / imu_dt)) + 1
@@ -120,7 +123,7 @@ def _epoch_post(k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, i_ptau, i_pf, ring
         # the Doppler estimate is the interval mean: compare with the prediction at mid-interval
         w += half_period_s / imu_dt
         f_pred = ring_f[ia, c] + w * (ring_f[ib, c] - ring_f[ia, c])
-        r_cp = (cp_meas - cp_pred + half) % CA_LEN - half
+        r_cp = (cp_meas - cp_pred + half) % code_len - half
         r_f = f_meas - f_pred
         if tk < t_next_upd:
             acc[0, c] += 1.0
@@ -137,27 +140,6 @@ def _epoch_post(k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, i_ptau, i_pf, ring
             j = n_filled - 2
         fr = u - j
         aid_out[c] = aid_grid[j, c] * (1.0 - fr) + aid_grid[j + 1, c] * fr
-
-
-@njit(cache=True)
-def _complex_block_sigma(v):
-    """``sqrt(mean(|x - mean x|^2) / 2)`` of a complex block given as its float32 (re, im) view:
-    the noise std per arm of :func:`ultratight.receiver.correlator.estimate_sigma_arm` for complex
-    input, in one pass without temporaries (two-pass mean removal, float64 sums)."""
-    n = v.shape[0] // 2
-    mr = 0.0
-    mi = 0.0
-    for k in range(n):
-        mr += v[2 * k]
-        mi += v[2 * k + 1]
-    mr /= n
-    mi /= n
-    s = 0.0
-    for k in range(n):
-        a = v[2 * k] - mr
-        b = v[2 * k + 1] - mi
-        s += a * a + b * b
-    return math.sqrt(s / n / 2.0)
 
 
 @njit(cache=True)
@@ -209,8 +191,7 @@ class _BankProxy:
         self.active = bank.active.copy()
 
     def note_correction(self, dx):
-        if hasattr(self._bank, "note_correction"):
-            self._bank.note_correction(dx)
+        self._bank.note_correction(dx)
 
 
 MONITOR_MODES = {
@@ -233,41 +214,6 @@ def monitor_mode(opt):
         if v == {"lock_monitor": opt.lock_monitor, "monitor_gates_tight": opt.monitor_gates_tight}:
             return k
     return "coast-only"
-
-
-def check_method(method):
-    if method not in METHODS:
-        raise ConfigError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
-    return method
-
-
-class NoiseFloor:
-    """Noise-floor estimator that normalises the correlator outputs (noise std per arm).
-
-    Fed with the estimate of every IF block (``block_s`` long) in order, :meth:`update`
-    returns the value to use for that block: ``tau_s = 0`` the block's own estimate (follows
-    every noise change: with an AGC front end a noise burst then looks like a fade with a
-    correct noise model); ``0 < tau_s < inf`` the square root of an exponential average of the
-    block variances, ``v += min(1, block_s / tau_s) (s^2 - v)`` started on the first block (a
-    slow tracker); ``tau_s = inf`` the first block's estimate held (start-up calibration: a
-    noise burst on a fixed-gain front end reaches the prefilters as unknown extra noise).
-    """
-
-    def __init__(self, tau_s, block_s):
-        tau = float(tau_s)
-        if not tau >= 0.0:
-            raise ConfigError(f"EngineOptions.noise_tau_s must be >= 0 s (0: per block, inf: start-up "
-                              f"calibration), got {tau_s!r}")
-        self.alpha = 1.0 if tau == 0.0 else min(1.0, float(block_s) / tau)
-        self.var = None
-
-    def update(self, sigma_block):
-        s2 = float(sigma_block) ** 2
-        if self.var is None or self.alpha >= 1.0:
-            self.var = s2
-        else:
-            self.var += self.alpha * (s2 - self.var)
-        return math.sqrt(self.var)
 
 
 def _outer_freq_update(x, P, sel, resid_hz, r_var):
@@ -413,8 +359,10 @@ class UltratightEngine:
     """Runs one method over an IF source + IMU data (see module docstring)."""
 
     def __init__(self, source, imu, ephs, prns, week, tow0_s, method=DEFAULT_METHOD, options=None,
-                 init_state=None, rng=None, duration_s=None):
+                 init_state=None, rng=None, duration_s=None, signal=GPS_L1CA):
         self.method = check_method(method)
+        self.signal = signal
+        self.spec = method_spec(method)
         self.opt = options or EngineOptions()
         self.src = source
         self.imu = imu
@@ -433,16 +381,18 @@ class UltratightEngine:
         self.init_state = init_state
 
     def run(self, progress=False):
-        if self.method == "scalar":
-            raise ConfigError("method 'scalar' runs through the scalar tracking pipeline "
-                              "(ultratight.receiver.scenario_runner.run_scalar)")
+        if self.spec.scalar:
+            from ultratight.receiver.scenario_runner import run_scalar
+            return run_scalar(self.src, self.prns, self.ephs, self.week, self.tow0, self.init_state,
+                              self.duration_s)
         from ultratight.fusion import tight as tightmod
         from ultratight.fusion.innerloop import InnerLoop
-        from ultratight.receiver.correlator import CorrelatorBank, estimate_sigma_arm
+        from ultratight.receiver.correlator import CorrelatorBank
         from ultratight.receiver.outer_loop import OuterLoop
         from ultratight.receiver.startup import BitWipeoff, first_period_ms, predict_channels
 
         opt = self.opt
+        sgl = self.signal
         t_wall0 = time.perf_counter()
         n_ch = len(self.prns)
         fs = self.fs
@@ -462,13 +412,13 @@ class UltratightEngine:
         # ---- hot start predictions (from the perturbed state, not truth)
         pos_e, vel_e, C_el = ins.pos_vel_e()
         pred0 = predict_channels(self.ephs, self.prns, self.week, self.tow0, pos_e, vel_e,
-                                 ins.clk_b, ins.clk_d)
+                                 ins.clk_b, ins.clk_d, signal=sgl)
         bank = CorrelatorBank(self.prns, fs, self.if_hz, self.src.is_complex)
         for ch, prn in enumerate(self.prns):
             bank.init_channel(ch, prn, pred0["code_phase_chips"][ch], pred0["doppler_hz"][ch], 0,
                               carr_phase_cycles=0.0, align=True)
-        ms = first_period_ms(pred0["t_tx_tow"], pred0["code_phase_chips"])
-        wipe = BitWipeoff(self.ephs, self.prns, self.week, self.tow0, self.duration_s + 1.0)
+        ms = first_period_ms(pred0["t_tx_tow"], pred0["code_phase_chips"], signal=sgl)
+        wipe = BitWipeoff(self.ephs, self.prns, self.week, self.tow0, self.duration_s + 1.0, signal=sgl)
 
         # ---- tight filter
         P0 = tightmod.initial_covariance(ins.llh, st.get("sigmas", {}), self.imu_noise)
@@ -483,7 +433,7 @@ class UltratightEngine:
                           rate_hz=1.0 / imu_dt, cic_order=opt.cic_order)
         pr_now = outer.predict(t_sins, pos_e, vel_e, ins.clk_b, ins.clk_d)
         los_l = pr_now["los_e"] @ C_el
-        sig_dopp = tightmod.doppler_sigma_hz(tf.P, los_l, LAMBDA_L1)
+        sig_dopp = tightmod.doppler_sigma_hz(tf.P, los_l, sgl.wavelength_m)
         # initial acceleration from the first IMU interval (a trial SINS step on a copy)
         x_try = ins.x.copy()
         ins._sins.sins_step(x_try, imu_dth[0], imu_dv[0], float(imu_t[0] - t_sins))
@@ -521,40 +471,38 @@ class UltratightEngine:
         have_acc = True
 
         # ---- prefilters + inner loop
-        if self.method == "pb-kf-utc":
+        if self.spec.bank == "pbkf":
             from ultratight.fusion import pbkf
             pref = pbkf.PbKfBank(n_ch, cn0_dbhz_init=opt.cn0_init_dbhz)
             pref.reset(rows)
-            inner = InnerLoop(n_ch, T=T_CA, if_hz=self.if_hz)
+            inner = InnerLoop(n_ch, T=sgl.code_period_s, if_hz=self.if_hz)
         else:
             from ultratight.fusion.prefilter import PrefilterBank, default_initial_covariance
-            kind = self.method.split("-", 1)[1]
+            kind = self.spec.bank
             pref = PrefilterBank(n_ch, kind=kind, q=opt.prefilter_q, huber_c=opt.huber_c,
                                  correction_period=opt.rackf_period, robust_mode=opt.robust_mode,
                                  cn0_dbhz_init=opt.cn0_init_dbhz,
                                  **(dict(opt.rackf_kwargs) if kind == "rackf" else {}), **opt.prefilter_kwargs)
-            sig_code_chips = tightmod.code_sigma_m(tf.P, los_l, M_pos) / CHIP_M
+            sig_code_chips = tightmod.code_sigma_m(tf.P, los_l, M_pos) / sgl.chip_m
             P_init = np.zeros((n_ch, 5, 5))
-            base = default_initial_covariance(opt.cn0_init_dbhz, T_CA)
+            base = default_initial_covariance(opt.cn0_init_dbhz, sgl.code_period_s)
             for ch in range(n_ch):
                 P_init[ch] = base
                 P_init[ch, 1, 1] = (sig_code_chips[ch] + opt.code_sigma_margin_chips) ** 2
                 P_init[ch, 3, 3] = (2 * math.pi * (3.0 * sig_dopp[ch] + 0.5)) ** 2
                 P_init[ch, 4, 4] = (2 * math.pi * 2.0) ** 2
             pref.reset(rows, P0=P_init)
-            inner = InnerLoop(n_ch, T=T_CA, if_hz=self.if_hz)
+            inner = InnerLoop(n_ch, T=sgl.code_period_s, if_hz=self.if_hz)
 
         # ---- NCO Doppler at the middle of each channel's first interval, aiding history consistent
-        t1 = bank.sample_ptr / fs + 0.5 * T_CA
-        u1 = t1 * 1000.0
-        j1 = np.clip(np.floor(u1).astype(np.int64), 0, outer.n_filled - 2)
-        a1 = outer.aid_doppler[j1, rows] * (1.0 - (u1 - j1)) + outer.aid_doppler[j1 + 1, rows] * (u1 - j1)
+        t1 = bank.sample_ptr / fs + 0.5 * sgl.code_period_s
+        a1 = outer.aiding_at(t1)
         bank.carr_freq[:] = self.if_hz + a1
-        bank.code_rate[:] = F_CA * (1.0 + a1 / F_L1)
+        bank.code_rate[:] = sgl.code_rate_cps(a1)
         aid_prev_ff = a1.copy()
         if opt.phase_init_ms <= 0:
-            rate1 = (self._aid_at(outer, t1 + T_CA) - a1) / T_CA
-            inner.prime_aiding(pref, a1 - rate1 * T_CA, rate1)
+            rate1 = (outer.aiding_at(t1 + sgl.code_period_s) - a1) / sgl.code_period_s
+            inner.prime_aiding(pref, a1 - rate1 * sgl.code_period_s, rate1)
 
         # ---- records
         n_ep_max = int(self.duration_s * 1000.0 * 1.001) + 8
@@ -574,8 +522,8 @@ class UltratightEngine:
         ms = np.asarray(ms, dtype=np.int64).copy()
         init_left = int(opt.phase_init_ms)
         proxy = _BankProxy(pref)
-        i_ptau, i_pf = (0, 2) if self.method == "pb-kf-utc" else (1, 3)
-        mode_aided = MODE_OUTER if self.method == "pb-kf-utc" else MODE_COMBINED
+        i_ptau, i_pf = pref.P_ITAU, pref.P_IF          # code / frequency error in the bank's covariance
+        mode_aided = MODE_COMBINED if self.spec.double_loop else MODE_OUTER
         init_acc = np.zeros(n_ch, dtype=np.complex128)
         W = int(opt.lock_window_ms)
         lm_i = np.zeros((n_ch, W))
@@ -587,8 +535,8 @@ class UltratightEngine:
         present = np.ones(n_ch, dtype=np.bool_)
         lm_events = np.zeros(n_ch, dtype=np.int64)
         lm_phase = np.zeros(n_ch)
-        thr_off = float(np.sqrt(2.0 * 10 ** (opt.lock_off_dbhz / 10.0) * T_CA))
-        thr_on = float(np.sqrt(2.0 * 10 ** (opt.lock_on_dbhz / 10.0) * T_CA))
+        thr_off = float(np.sqrt(2.0 * 10 ** (opt.lock_off_dbhz / 10.0) * sgl.code_period_s))
+        thr_on = float(np.sqrt(2.0 * 10 ** (opt.lock_on_dbhz / 10.0) * sgl.code_period_s))
         n_lost_events = 0
         n_regained = 0
         xp_view = np.zeros((n_ch, 5))
@@ -604,16 +552,11 @@ class UltratightEngine:
 
         # ---- IF buffer
         blk = int(round(opt.block_ms * 1e-3 * fs))
-        fast_sigma = self.src.is_complex
         n_total = int(min(self.src.n_samples, round(self.duration_s * fs)))
-        n_blocks = n_total // blk + 2
-        sigma_blk = np.full(n_blocks, np.nan)
-        noise_floor = NoiseFloor(opt.noise_tau_s, blk / fs)
-        buf = np.zeros(0, dtype=np.complex64 if self.src.is_complex else np.float32)
-        buf_start = 0
-        per_max = int(math.ceil(fs * T_CA * 1.001)) + 4
+        stream = BlockStream(self.src, blk, floor=NoiseFloor(opt.noise_tau_s, blk / fs))
+        per_max = int(math.ceil(fs * sgl.code_period_s * 1.001)) + 4
         use_aid = np.ones(n_ch, dtype=bool)
-        mode_now = np.full(n_ch, MODE_OUTER if self.method == "pb-kf-utc" else MODE_COMBINED, dtype=np.int8)
+        mode_now = np.full(n_ch, mode_aided, dtype=np.int8)
         two_pi = 2.0 * math.pi
         k_ep = 0
         n_feedback = 0
@@ -625,31 +568,9 @@ class UltratightEngine:
             hi = sp_max + per_max
             if hi > n_total or k_ep >= n_ep_max:
                 break
-            buf_end = buf_start + buf.shape[0]
-            if hi > buf_end:
-                lo = int(sp.min())
-                keep = buf[max(0, lo - buf_start):]
-                new_start = buf_end
-                new = []
-                while buf_end < hi:
-                    x = self.src.read(buf_end, blk)
-                    b_idx = buf_end // blk
-                    if x.shape[0] == 0:
-                        break
-                    if b_idx < n_blocks:
-                        if fast_sigma and x.dtype == np.complex64 and x.flags.c_contiguous:
-                            sg = _complex_block_sigma(x.view(np.float32))
-                            sg = sg if sg > 0.0 else estimate_sigma_arm(x, True)
-                        else:
-                            sg = estimate_sigma_arm(x, self.src.is_complex)
-                        sigma_blk[b_idx] = noise_floor.update(sg)
-                    new.append(x)
-                    buf_end += x.shape[0]
-                del new_start
-                buf = np.concatenate([keep] + new) if new else keep
-                buf_start = buf_end - buf.shape[0]
-                if hi > buf_end:
-                    break
+            if not stream.ensure(hi, keep_from=int(sp.min())):
+                break
+            buf, buf_start = stream.buf, stream.buf_start
             # ---- SINS + outer loop run ahead so the aiding of the next interval exists
             tw = time.perf_counter()
             j_need = int((sp_max + per_max) / fs * 1000.0) + 2
@@ -673,14 +594,14 @@ class UltratightEngine:
             tw = time.perf_counter()
             cp0[:] = bank.code_phase
             f0[:] = bank.carr_freq
-            sig = sigma_blk[np.minimum(sp // blk, n_blocks - 1)]
+            sig = stream.sigma_at(sp)
             out, t_start, n_s = bank.step(buf, buf_start, sig)
             if n_s.min() <= 0:
                 raise InputFileError(f"{self.src.path}: correlator could not integrate channels "
                                      f"{np.flatnonzero(n_s <= 0).tolist()} (buffer management)")
             timing["correlate"] += time.perf_counter() - tw
             tw = time.perf_counter()
-            _wipe_bits(wipe.bits, wipe.t0_ms, ms, D)
+            _wipe_bits(wipe.bits, wipe.t0_ms, ms, D, self.signal.codes_per_bit)
             restart = None
             init_now = init_left > 0
             if init_now:
@@ -733,10 +654,12 @@ class UltratightEngine:
             _epoch_post(k_ep, t_start, fs, self.if_hz, f0, cp0, xp_rec, pref.P, i_ptau, i_pf,
                         ring_t, ring_cp, ring_r, ring_f, ring_k, imu_dt, t_next_upd, acc, rec_t, rec_f,
                         rec_cp, rec_a, rec_mode, mode_now, outer.aid_doppler, outer.n_filled,
-                        bank.sample_ptr, 0.5 * T_CA, aid, opt.aid_time_offset_s)
+                        bank.sample_ptr, 0.5 * sgl.code_period_s, float(sgl.code_length), aid,
+                        opt.aid_time_offset_s)
             # ---- NCO commands for the next interval
             if restart is not None:
-                rate = (self._aid_at(outer, bank.sample_ptr / fs + 1.5 * T_CA) - aid) / T_CA
+                t_code = sgl.code_period_s
+                rate = (outer.aiding_at(bank.sample_ptr / fs + 1.5 * t_code) - aid) / t_code
                 self._restart_channels(pref, inner, bank, restart, restart_phase, restart_amp, aid, rate)
                 if init_now:
                     ff_any = False
@@ -744,7 +667,7 @@ class UltratightEngine:
             if ff_any:
                 d_aid = np.where(ff, aid - aid_prev_ff, 0.0)
                 bank.carr_freq += d_aid
-                bank.code_rate[ff] = F_CA * (1.0 + (bank.carr_freq[ff] - self.if_hz) / F_L1)
+                bank.code_rate[ff] = sgl.code_rate_cps(bank.carr_freq[ff] - self.if_hz)
                 proxy.active = pref.active & ~ff
                 inner.apply(proxy, bank, aid_doppler_hz=aid, use_aid=use_aid)
             else:
@@ -753,7 +676,7 @@ class UltratightEngine:
             if opt.lock_monitor:
                 if rollback.any():
                     bank.carr_freq += rollback
-                    bank.code_rate[:] = F_CA * (1.0 + (bank.carr_freq - self.if_hz) / F_L1)
+                    bank.code_rate[:] = sgl.code_rate_cps(bank.carr_freq - self.if_hz)
                     rollback[:] = 0.0
                 off_ring[k_ep % W] = bank.carr_freq - self.if_hz - aid
             timing["prefilter"] += time.perf_counter() - tw
@@ -767,10 +690,10 @@ class UltratightEngine:
                 m_cp = acc_cp / nn
                 m_f = acc_f / nn
                 m_a = acc_a / nn
-                dz_pr = CHIP_M * m_cp
-                dz_prr = LAMBDA_L1 * m_f
-                var_pr = CHIP_M ** 2 * (acc_pt / nn) * opt.meas_corr_factor + opt.pr_sigma_floor_m ** 2
-                var_prr = (LAMBDA_L1 / two_pi) ** 2 * (acc_pf / nn) * opt.meas_corr_factor \
+                dz_pr = sgl.chip_m * m_cp
+                dz_prr = sgl.wavelength_m * m_f
+                var_pr = sgl.chip_m ** 2 * (acc_pt / nn) * opt.meas_corr_factor + opt.pr_sigma_floor_m ** 2
+                var_prr = (sgl.wavelength_m / two_pi) ** 2 * (acc_pf / nn) * opt.meas_corr_factor \
                     + opt.prr_sigma_floor_mps ** 2
                 valid = ok & (np.abs(m_a) > opt.amp_min) & present & gate_ok   # (A < 0: half a cycle off)
                 pos_e, vel_e, C_el = ins.pos_vel_e()
@@ -790,19 +713,20 @@ class UltratightEngine:
                     pos_e, vel_e, C_el = ins.pos_vel_e()
                     pr_fix = outer.predict(t_sins, pos_e, vel_e, ins.clk_b, ins.clk_d)
                     i1 = (ring_k - 1) % ring_n
-                    dcp = np.mod(pr_fix["code_phase_chips"] - ring_cp[i1] + 0.5 * CA_LEN, CA_LEN) - 0.5 * CA_LEN
+                    half_code = 0.5 * sgl.code_length
+                    dcp = np.mod(pr_fix["code_phase_chips"] - ring_cp[i1] + half_code, sgl.code_length) - half_code
                     dfp = pr_fix["doppler_hz"] - ring_f[i1]
                     ring_cp += dcp
                     ring_f += dfp
                     dfp_all = dfp
-                    if self.method != "pb-kf-utc":
+                    if self.spec.double_loop:
                         outer.offset_hz += dfp   # double loop: corrections do not jump the NCOs
                     ring_r[i1] = pr_fix["code_rate_cps"]
                     vel_e_prev = vel_e.copy()
-                sig_dopp = tightmod.doppler_sigma_hz(tf.P, los_l, LAMBDA_L1)
-                if self.method != "pb-kf-utc":
+                sig_dopp = tightmod.doppler_sigma_hz(tf.P, los_l, sgl.wavelength_m)
+                if self.spec.double_loop:
                     use_aid = (sig_dopp < opt.arbitration_sigma_hz)
-                if opt.outer_freq_update and self.method != "pb-kf-utc":
+                if opt.outer_freq_update and self.spec.double_loop:
                     # frequency pseudo-measurement from the outer loop for channels the tight filter
                     # did not use (independent information: no double counting)
                     sel = ok & present & ~valid & pref.active & np.isfinite(m_f)
@@ -837,7 +761,7 @@ class UltratightEngine:
             "n_lock_lost_events": n_lost_events,
             "n_prefilter_restarts": n_regained,
             "timing_s": timing,
-            "prefilter": pref.describe() if hasattr(pref, "describe") else {},
+            "prefilter": pref.describe(),
             "prefilter_resets": np.asarray(getattr(pref, "n_resets", np.zeros(n_ch))).tolist(),
             "arbitration_rule": "combined when sigma_doppler_i = sqrt(u'Pvv u + Pdd - 2u'Pvd)/lambda < "
                                 f"{opt.arbitration_sigma_hz} Hz (tight filter P), else inner loop alone",
@@ -850,14 +774,7 @@ class UltratightEngine:
             nav_t=np.asarray(nav["t"]), nav_pos_e=np.asarray(nav["pos_e"]).reshape(-1, 3),
             nav_vel_e=np.asarray(nav["vel_e"]).reshape(-1, 3), nav_clk=np.asarray(nav["clk"]).reshape(-1, 2),
             nav_sigma_doppler_hz=np.asarray(nav["sig"]).reshape(-1, n_ch), runtime_s=runtime,
-            duration_s=n * T_CA, info=info)
-
-    @staticmethod
-    def _aid_at(outer, t):
-        u = np.asarray(t) * 1000.0
-        j = np.clip(np.floor(u).astype(np.int64), 0, outer.n_filled - 2)
-        r = np.arange(u.shape[0])
-        return outer.aid_doppler[j, r] * (1.0 - (u - j)) + outer.aid_doppler[j + 1, r] * (u - j)
+            duration_s=n * sgl.code_period_s, info=info)
 
     def _restart_channels(self, pref, inner, bank, chans, phase, amp, aid, rate):
         """(Re)start channels' prefilters on a coherent carrier-phase estimate: rotate the carrier
@@ -865,7 +782,8 @@ class UltratightEngine:
         (amplitude from the coherent magnitude, startup-like covariance) and hand the aiding
         history to the inner loop (outer-loop Doppler rate injected into the acceleration state)."""
         chans = np.atleast_1d(np.asarray(chans))
-        a_min = float(np.sqrt(2.0 * 10 ** (self.opt.cn0_min_dbhz / 10.0) * T_CA))
+        sgl = self.signal
+        a_min = float(np.sqrt(2.0 * 10 ** (self.opt.cn0_min_dbhz / 10.0) * sgl.code_period_s))
         for c in chans:
             bank.carr_phase[c] = (bank.carr_phase[c] + phase[c] / (2.0 * math.pi)) % 1.0
         x0 = np.zeros((len(chans), 5))
@@ -876,11 +794,11 @@ class UltratightEngine:
         # continuous across the (re)start.  (df0 = 0 started the filter one aiding increment
         # off -- up to 0.5 Hz at 20 g -- which it then pulled in over ~0.5 s.)
         x0[:, 3] = 2.0 * math.pi * (aid[chans] - (bank.carr_freq[chans] - self.if_hz))
-        if self.method == "pb-kf-utc":
+        if self.spec.bank == "pbkf":
             pref.reset(chans, x0=x0)
         else:
             from ultratight.fusion.prefilter import default_initial_covariance
-            base = default_initial_covariance(self.opt.cn0_init_dbhz, T_CA)
+            base = default_initial_covariance(self.opt.cn0_init_dbhz, sgl.code_period_s)
             P0 = np.zeros((len(chans), 5, 5))
             for i, c in enumerate(chans):
                 P0[i] = base
@@ -890,7 +808,7 @@ class UltratightEngine:
                 P0[i, 3, 3] = (2 * math.pi * self.opt.reinit_sigma_f_hz) ** 2
                 P0[i, 4, 4] = (2 * math.pi * self.opt.reinit_sigma_a_hzps) ** 2
             pref.reset(chans, x0=x0, P0=P0)
-        inner.prime_aiding(pref, aid - rate * T_CA, rate, channels=chans)
+        inner.prime_aiding(pref, aid - rate * sgl.code_period_s, rate, channels=chans)
 
 
 def ring_los(outer, pos_e, vel_e, ins, t):
@@ -987,9 +905,9 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
     from ultratight.ins.imu import read_imu_csv, read_imu_h5
     from ultratight.receiver.startup import StartupErrors, perturb_state
     from ultratight.signals.iffile import open_if
-    check_method(method)
-    if method == "scalar":
-        raise ConfigError("method 'scalar' is the scalar receiver: use `ultratight process` without --mode ultratight")
+    if not method_spec(method).needs_imu:
+        raise ConfigError(f"method {method!r} is the scalar receiver: use `ultratight process` without "
+                          f"--mode ultratight")
     src = open_if(if_path, meta=meta)
     if src.start_tow_s is None or src.start_week is None:
         raise InputFileError(f"{if_path}: the IF start time (start_week, start_tow_s) is unknown; "

@@ -291,6 +291,14 @@ class OuterLoop:
         t_true = self.tow0 + t - clk_bias_m / C
         return self.lt.solve(pos_e, vel_e, t_true, clk_bias_m, clk_drift_mps)
 
+    def aiding_at(self, t):
+        """Doppler aiding (Hz) of each channel at its receiver time ``t[c]`` (s since the first
+        sample): linear interpolation on the output grid, clamped to the filled part."""
+        u = np.asarray(t) * self.out_rate_hz
+        j = np.clip(np.floor(u).astype(np.int64), 0, self.n_filled - 2)
+        r = np.arange(u.shape[0])
+        return self.aid_doppler[j, r] * (1.0 - (u - j)) + self.aid_doppler[j + 1, r] * (u - j)
+
     def push(self, t_s, pos_e, vel_e, acc_e, clk_bias_m, clk_drift_mps, jerk_e=None):
         """Feed the SINS state of epoch ``t_s``; appends 1 kHz aiding samples.
 

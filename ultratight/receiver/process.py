@@ -1,12 +1,14 @@
 """The scalar receiver pipeline: IF blocks -> acquisition -> tracking channels -> LNAV -> observables -> PVT.
 
 :func:`process` runs on an opened :class:`ultratight.signals.iffile.IfSource` (or a path) and
-returns a :class:`ProcessResult`; it is what ``ultratight process`` runs and what the scenario
-runner's ``scalar`` method calls on generated IF files (``record_epochs=True`` keeps the
-per-channel, per-epoch Doppler / code phase estimates with their sample indices in memory:
-``result.epochs[prn]``).
+returns a :class:`ProcessResult`; it is what ``ultratight process`` runs (``record_epochs=True``
+keeps the per-channel, per-epoch Doppler / code phase estimates with their sample indices in
+memory: ``result.epochs[prn]``). The scenario runner's ``scalar`` method runs the same tracking
+channels from hot-start predictions instead of acquisition
+(:func:`ultratight.receiver.scenario_runner.run_scalar`).
 
-Streaming: the file is read in blocks of ``block_ms`` (default 100 ms), tracking runs in one
+Streaming: the file is read through :class:`ultratight.receiver.blockstream.BlockStream` in
+blocks of ``block_ms`` (default 200 ms) where the channels need samples, tracking runs in one
 numba call per block (:mod:`ultratight.receiver.tracking`), per-epoch series are appended to the
 HDF5 output as they come (nothing per-epoch is kept in memory unless ``record_epochs``), so the
 memory use does not depend on the file length.
@@ -34,12 +36,14 @@ import numpy as np
 from ultratight import __version__
 from ultratight.constants import C, LAMBDA_L1, T_CA
 from ultratight.errors import ConfigError, InputFileError, UltratightError
+from ultratight.receiver.blockstream import BlockStream
 from ultratight.receiver.navdecode import ChannelNav
 from ultratight.receiver.observables import CarrierSmoother, ChannelHistory, observe, pseudorange
 from ultratight.receiver.pvt import atmosphere_delays, solve_pvt
 from ultratight.receiver.tracking import (
     FL_BIT_DONE, FL_BIT_SYNC, FL_PLL_LOCK, MODE_LOST, MODE_TRACK, R_BIT, R_CN0, R_CODE_PHASE, R_DOPP, R_IP,
     REC_F_NAMES, REC_I_NAMES, RI_EPOCH, RI_FLAGS, RI_MODE, RI_PTR, S_MODE, ScalarTracker, TrackingConfig)
+from ultratight.signals.signal import GPS_L1CA
 
 RX_T0_OFFSET_S = 0.075       # initial guess of the signal travel time
 CLOCK_STEER_S = 1e-3         # re-steer the receiver time when |bias| exceeds this
@@ -357,6 +361,7 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
     n_ch = len(found) + len(idle_prns)
     block_len = int(round(cfg.block_ms * 1e-3 * fs))
     margin = int(math.ceil(2.2e-3 * fs))
+    stream = BlockStream(source, block_len, on_zero=1.0)
     tracker = ScalarTracker(n_ch, fs, source.if_hz, source.is_complex, cfg.tracking,
                             max_rows=int(cfg.block_ms * 1.1) + 8, parallel=cfg.parallel)
     ref_week = source.start_week
@@ -650,23 +655,13 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
             if s + margin >= stop:
                 break
             n_read = min(block_len + margin, stop - s)
-            buf = source.read(s, n_read)
+            buf, sigma_arm = stream.read_at(s, n_read, SIGMA_SAMPLES)
             if buf.shape[0] < margin:
                 break
-            sub = buf[:SIGMA_SAMPLES]
-            if source.is_complex:
-                xc = sub - sub.mean()
-                sigma_arm = math.sqrt(float(np.mean(xc.real ** 2 + xc.imag ** 2)) / 2.0)
-            else:
-                sigma_arm = float(np.std(sub)) / math.sqrt(2.0)
-            if not sigma_arm > 0:
-                sigma_arm = 1.0
             rf, ri, nr = tracker.run(buf, s, sigma_arm, stop_sample=stop)
             n_blocks_done += 1
             if n_blocks_done % RELEASE_EVERY == 0:
-                release = getattr(source, "release", None)   # IfSource: keeps RSS flat on long files
-                if release is not None:
-                    release(s - margin)
+                stream.release(s - margin)              # keeps the resident set flat on long files
             for ch in range(n_ch):
                 m = int(nr[ch])
                 if m == 0:
@@ -699,9 +694,10 @@ def process(source, config=None, ephemerides=None, out_path=None, csv_path=None,
                         e1 = int(i_ch[synced[0], RI_EPOCH])
                         ip_all = np.concatenate(pre_ip[ch])
                         ep_all = np.concatenate(pre_ep[ch])
-                        starts = e1 - 20 * np.arange((e1 - ep_all[0]) // 20, 0, -1)
+                        per_bit = GPS_L1CA.codes_per_bit
+                        starts = e1 - per_bit * np.arange((e1 - ep_all[0]) // per_bit, 0, -1)
                         if starts.size and np.all(np.diff(ep_all) == 1):
-                            idx = (starts - ep_all[0])[:, None] + np.arange(20)[None, :]
+                            idx = (starts - ep_all[0])[:, None] + np.arange(per_bit)[None, :]
                             navs[ch].feed(ip_all[idx].sum(axis=1), starts, e1)
                         pre_ip[ch], pre_ep[ch] = [], []
                     elif sum(a.size for a in pre_ip[ch]) > PRE_SYNC_KEEP:

@@ -26,6 +26,7 @@ import numpy as np
 from ultratight import __version__
 from ultratight.errors import ConfigError, InputFileError
 from ultratight.receiver import metrics as M
+from ultratight.signals.signal import GPS_L1CA
 
 SCHEMA = "ultratight scenario results v1 (docs/ultratight.md)"
 
@@ -191,10 +192,11 @@ def engine_options_for(cfg, options=None):
 def run_method(paths, cfg, method, seed, options=None, startup_errors=None, duration_s=None):
     """Run one method on generated files; returns (EngineResult, truth dict)."""
     from ultratight.ins.imu import read_imu_h5
-    from ultratight.receiver.engine import EngineOptions, UltratightEngine, check_method
+    from ultratight.receiver.engine import EngineOptions, UltratightEngine
+    from ultratight.receiver.methods import method_spec
     from ultratight.receiver.startup import StartupErrors, perturb_state
     from ultratight.signals.iffile import open_if
-    check_method(method)
+    spec = method_spec(method)
     options = engine_options_for(cfg, options)
     truth = load_truth(paths["truth"])
     src = open_if(paths["if"])
@@ -202,7 +204,7 @@ def run_method(paths, cfg, method, seed, options=None, startup_errors=None, dura
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7]))
     errs = startup_errors or StartupErrors()
     init = perturb_state(truth_initial_state(cfg), errs, rng)
-    if method == "scalar":
+    if spec.scalar:
         res = run_scalar(src, truth["prn"], ephs, truth["week"], truth["tow0_s"], init, duration_s)
     else:
         if "imu" not in paths:
@@ -220,7 +222,7 @@ def run_scalar(src, prns, ephs, week, tow0, init, duration_s=None, block_ms=100)
     EngineResult-like record of the per-epoch NCO Doppler and code phase."""
     import time as _time
     from ultratight.ins.earth import dcm_ecef_from_enu, llh_to_ecef
-    from ultratight.receiver.correlator import estimate_sigma_arm
+    from ultratight.receiver.blockstream import BlockStream
     from ultratight.receiver.engine import EngineResult
     from ultratight.receiver.startup import predict_channels
     from ultratight.receiver.tracking import REC_F_NAMES, REC_I_NAMES, ScalarTracker
@@ -240,16 +242,18 @@ def run_scalar(src, prns, ephs, week, tow0, init, duration_s=None, block_ms=100)
     i_cp, i_f = REC_F_NAMES.index("code_phase_chips"), REC_F_NAMES.index("doppler_hz")
     i_s = REC_I_NAMES.index("sample_index")
     rows_t, rows_f, rows_c = [[] for _ in range(n_ch)], [[] for _ in range(n_ch)], [[] for _ in range(n_ch)]
+    stream = BlockStream(src, blk, sigma_stop=n_total)
     start = 0
     while start < n_total:
         lo = trk.next_needed_sample()
         if lo is None:
             break
         lo = min(lo, start)
-        buf = src.read(lo, start + blk - lo)
+        stream.ensure(start + blk, keep_from=lo)
+        buf, lo = stream.view(lo)
         if buf.shape[0] == 0:
             break
-        sig = estimate_sigma_arm(src.read(start, min(blk, n_total - start)), src.is_complex)
+        sig = float(stream.sigma_at(start))
         rf, ri, nr = trk.run(buf, lo, sig, stop_sample=min(start + blk, n_total))
         for ch in range(n_ch):
             k = nr[ch]
@@ -262,7 +266,7 @@ def run_scalar(src, prns, ephs, week, tow0, init, duration_s=None, block_ms=100)
     t = cat(rows_t)
     empty = np.zeros((0, 3))
     return EngineResult(method="scalar", prns=list(prns), t_start=t, doppler_hz=cat(rows_f),
-                        code_phase_chips=np.mod(cat(rows_c), 1023.0), amp=np.full(t.shape, np.nan),
+                        code_phase_chips=np.mod(cat(rows_c), float(GPS_L1CA.code_length)), amp=np.full(t.shape, np.nan),
                         mode=np.zeros(t.shape, dtype=np.int8), nav_t=np.zeros(0), nav_pos_e=empty,
                         nav_vel_e=empty, nav_clk=np.zeros((0, 2)), nav_sigma_doppler_hz=np.zeros((0, n_ch)),
                         runtime_s=_time.perf_counter() - t0, duration_s=n * 1e-3,

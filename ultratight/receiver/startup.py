@@ -20,7 +20,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from ultratight.constants import C, CA_LEN, F_CA
+from ultratight.constants import C
+from ultratight.signals.signal import GPS_L1CA
 
 WIPEOFF_ASSISTED = "assisted-bits"
 WIPEOFF_NONE = "none"
@@ -74,7 +75,7 @@ def perturb_state(truth0, errors, rng):
     }
 
 
-def predict_channels(ephs, prns, week, tow_rx_s, pos_e, vel_e, clk_bias_m, clk_drift_mps):
+def predict_channels(ephs, prns, week, tow_rx_s, pos_e, vel_e, clk_bias_m, clk_drift_mps, signal=GPS_L1CA):
     """Predicted code phase (chips), Doppler (Hz) and transmit time for each PRN.
 
     ``tow_rx_s`` is the *receiver-clock* time of the sample the prediction refers to; the
@@ -93,21 +94,23 @@ def predict_channels(ephs, prns, week, tow_rx_s, pos_e, vel_e, clk_bias_m, clk_d
         dop[i] = r["doppler_hz"][0]
         ttx[i] = r["t_tx_tow"][0]
     return {"code_phase_chips": cp, "doppler_hz": dop, "t_tx_tow": ttx,
-            "code_rate_cps": F_CA * (1.0 + dop / 1575.42e6)}
+            "code_rate_cps": signal.code_rate_cps(dop)}
 
 
 class BitWipeoff:
-    """Assisted LNAV bits per channel, indexed by the transmit-time millisecond count.
+    """Assisted navigation-data bits per channel, indexed by the transmit-time millisecond count.
 
-    ``bits[ch]`` holds ±1 bits starting at transmit time ``t0_ms[ch]`` ms (a multiple of
-    20 ms); :meth:`signs` gives the bit of the code period that *starts* at transmit
-    millisecond ``ms`` (int64 array).
+    ``bits[ch]`` holds ±1 bits starting at transmit time ``t0_ms[ch]`` ms (a multiple of the
+    signal's data-bit period, ``signal.bit_period_s``: 20 ms for GPS L1 C/A); :meth:`signs` gives
+    the bit of the code period that *starts* at transmit millisecond ``ms`` (int64 array).
     """
 
-    def __init__(self, ephs, prns, week, tow_start_s, duration_s):
+    def __init__(self, ephs, prns, week, tow_start_s, duration_s, signal=GPS_L1CA):
         self.mode = WIPEOFF_ASSISTED
-        n_bits = int(np.ceil(duration_s / 0.02)) + 20
-        t0 = np.floor(tow_start_s / 0.02) * 0.02 - 0.2
+        self.signal = signal
+        t_bit = signal.bit_period_s
+        n_bits = int(np.ceil(duration_s / t_bit)) + 20
+        t0 = np.floor(tow_start_s / t_bit) * t_bit - 10 * t_bit
         self.t0_ms = np.full(len(prns), int(round(t0 * 1000.0)), dtype=np.int64)
         self.bits = np.ones((len(prns), n_bits), dtype=np.int8)
         try:
@@ -121,19 +124,22 @@ class BitWipeoff:
         self._rows = np.arange(len(prns))
 
     def signs(self, ms):
-        k = (np.asarray(ms, dtype=np.int64) - self.t0_ms) // 20
+        k = self.signal.bit_index(np.asarray(ms, dtype=np.int64), self.t0_ms)
         k = np.clip(k, 0, self.bits.shape[1] - 1)
         return self.bits[self._rows, k].astype(np.float64)
 
 
-def first_period_ms(t_tx_tow, code_phase_chips):
-    """Transmit-time millisecond count of the first *full* code period after the start.
+def first_period_ms(t_tx_tow, code_phase_chips, signal=GPS_L1CA):
+    """Transmit-time count of code periods (milliseconds for GPS L1 C/A) of the first *full* code
+    period after the start.
 
     The correlator aligns each channel to its next code-period start, whose transmit
-    time is ``floor(t_tx * 1000) + 1`` ms (consistent with the predicted code phase).
+    time is ``floor(t_tx / T) + 1`` periods (T = ``signal.code_period_s``; consistent with the
+    predicted code phase).
     """
-    ms = np.floor(np.asarray(t_tx_tow) * 1000.0).astype(np.int64)
+    per_s = 1.0 / signal.code_period_s
+    ms = np.floor(np.asarray(t_tx_tow) * per_s).astype(np.int64)
     # guard the rounding at a period boundary: the code phase says how far into it we are
-    frac = np.asarray(code_phase_chips) / CA_LEN
-    ms_fix = np.round(np.asarray(t_tx_tow) * 1000.0 - frac).astype(np.int64)
+    frac = np.asarray(code_phase_chips) / signal.code_length
+    ms_fix = np.round(np.asarray(t_tx_tow) * per_s - frac).astype(np.int64)
     return np.where(np.abs(ms - ms_fix) <= 1, ms_fix, ms) + 1

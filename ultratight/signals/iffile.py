@@ -55,7 +55,6 @@ to the XML when ``path`` is None.
 import json
 import os
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -64,21 +63,53 @@ from ultratight.errors import FormatError, InputFileError
 from ultratight.signals.packing import ION_ENCODINGS, PackedLayout
 
 
-@dataclass(frozen=True)
-class FormatSpec:
-    name: str
-    dtype: str          # numpy dtype of one stored component / byte
-    is_complex: bool
-    packed2: bool = False   # 2-bit packed
-    packed4: bool = False   # 4-bit packed (read only)
+class SampleFormat:
+    """One IF sample format: how its samples are stored, decoded and encoded.
+
+    ``name``; ``dtype``, the numpy dtype of one stored component (packed formats: of one byte);
+    ``is_complex``; ``comps`` (1 or 2 stored components per sample). The reader and the writer
+    only call the methods below, so a new format is a new subclass (or instance) plus an entry
+    in :data:`FORMATS` (or :data:`READ_ONLY_FORMATS`):
+
+    * ``layout(packing, path)``: the per-file packing layout (None for byte-aligned formats);
+    * ``count(size_bytes, layout, path)``: samples held by a file of ``size_bytes``;
+    * ``nbytes(n, layout)``: bytes holding the first ``n`` samples (whole words);
+    * ``decode(store, start, count, layout)``: float32 components of samples
+      ``[start, start + count)`` from the memory-mapped store;
+    * ``encoder()``: a streaming encoder (``encode(comps, exact) -> bytes``, ``flush() -> bytes``);
+    * ``quantiser_bits``: the front-end quantiser width the format stores (0: float);
+      ``check_bits(bits, field)``: ConfigError unless a quantiser width can be stored.
+    """
+
+    packed_bits = 0
+    writable = True
+
+    def __init__(self, name, dtype, is_complex):
+        self.name = name
+        self.dtype = dtype
+        self.is_complex = bool(is_complex)
+
+    def __repr__(self):
+        return f"{type(self).__name__}({self.name!r}, {self.dtype!r}, is_complex={self.is_complex})"
+
+    def __eq__(self, other):
+        return type(self) is type(other) and (self.name, self.dtype, self.is_complex, self.packed_bits) == (
+            other.name, other.dtype, other.is_complex, other.packed_bits)
+
+    def __hash__(self):
+        return hash((type(self).__name__, self.name, self.dtype, self.is_complex))
 
     @property
     def packed(self):
-        return self.packed2 or self.packed4
+        return self.packed_bits > 0
 
     @property
-    def packed_bits(self):
-        return 2 if self.packed2 else (4 if self.packed4 else 0)
+    def packed2(self):
+        return self.packed_bits == 2
+
+    @property
+    def packed4(self):
+        return self.packed_bits == 4
 
     @property
     def comps(self):
@@ -86,37 +117,170 @@ class FormatSpec:
 
     @property
     def samples_per_byte(self):
-        if not self.packed:
-            return None
+        return None
+
+    @property
+    def bytes_per_sample(self):
+        return np.dtype(self.dtype).itemsize * self.comps
+
+    @property
+    def quantiser_bits(self):
+        dt = np.dtype(self.dtype)
+        return 0 if dt.kind == "f" else 8 * dt.itemsize
+
+    def check_bits(self, bits, field="frontend"):
+        from ultratight.errors import ConfigError
+        q = self.quantiser_bits
+        if q == 8 and bits not in (1, 2, 4, 8):
+            raise ConfigError(f"{field}.format {self.name!r} stores 8-bit samples; {field}.bits must be 1, 2, 4 "
+                              f"or 8 (got {bits})")
+        if q == 16 and bits == 0:
+            raise ConfigError(f"{field}.format {self.name!r} stores integers; {field}.bits must not be 0 (float)")
+
+    def layout(self, packing=None, path=""):
+        return None
+
+    def count(self, size_bytes, layout=None, path=""):
+        bps = self.bytes_per_sample
+        if size_bytes % bps:
+            raise FormatError(f"{path}: size {size_bytes} bytes is not a whole number of {self.name} samples "
+                              f"({bps} bytes each)")
+        return size_bytes // bps
+
+    def nbytes(self, n, layout=None):
+        return n * self.bytes_per_sample
+
+    def decode(self, store, start, count, layout=None):
+        c = self.comps
+        return np.asarray(store[start * c:(start + count) * c]).astype(np.float32)
+
+    def encoder(self):
+        return _PlainEncoder(np.dtype(self.dtype))
+
+
+class PackedFormat(SampleFormat):
+    """2- or 4-bit samples packed into words in a :class:`ultratight.signals.packing.PackedLayout`."""
+
+    def __init__(self, name, is_complex, bits, writable=True):
+        super().__init__(name, "u1", is_complex)
+        self.packed_bits = int(bits)
+        self.writable = bool(writable)
+
+    @property
+    def samples_per_byte(self):
         return 8 // self.packed_bits // self.comps
 
     @property
     def bytes_per_sample(self):
-        if self.packed:
-            return None
-        return np.dtype(self.dtype).itemsize * self.comps
+        return None
 
+    @property
+    def quantiser_bits(self):
+        return self.packed_bits
+
+    def check_bits(self, bits, field="frontend"):
+        from ultratight.errors import ConfigError
+        if not self.writable:
+            raise ConfigError(f"{field}.format {self.name!r} is read only (no writer for "
+                              f"{self.packed_bits}-bit packed samples)")
+        if bits not in (1, self.packed_bits):
+            raise ConfigError(f"{field}.format {self.name!r} stores {self.packed_bits}-bit samples; {field}.bits "
+                              f"must be 1 or {self.packed_bits} (got {bits})")
+
+    def layout(self, packing=None, path=""):
+        lay = packing if isinstance(packing, PackedLayout) else PackedLayout(**{"bits": self.packed_bits,
+                                                                                **(packing or {})})
+        if lay.bits != self.packed_bits:
+            raise FormatError(f"{path}: packing of {lay.bits}-bit samples given for format {self.name}")
+        return lay
+
+    def count(self, size_bytes, layout=None, path=""):
+        return size_bytes // layout.word_bytes * layout.per_word // self.comps
+
+    def nbytes(self, n, layout=None):
+        return n * self.comps // layout.per_word * layout.word_bytes
+
+    def decode(self, store, start, count, layout=None):
+        comp_start = start * self.comps
+        comp_stop = (start + count) * self.comps
+        w0, w1 = comp_start // layout.per_word, -(-comp_stop // layout.per_word)
+        vals = layout.unpack(np.asarray(store[w0 * layout.word_bytes:w1 * layout.word_bytes]))
+        off = comp_start - layout.per_word * w0
+        return np.ascontiguousarray(vals[off: off + count * self.comps], dtype=np.float32)
+
+    def encoder(self):
+        if not self.writable:
+            raise FormatError(f"format {self.name!r} is read only (no writer for {self.packed_bits}-bit "
+                              f"packed samples)")
+        return _Packed2Encoder()
+
+
+class _PlainEncoder:
+    """float components -> bytes of ``dtype`` (integers rounded and clipped unless ``exact``)."""
+
+    def __init__(self, dt):
+        self.dt = dt
+
+    def encode(self, comps, exact=False):
+        dt = self.dt
+        if dt.kind == "i" and exact:
+            out = comps.astype(dt)
+        elif dt.kind == "i":
+            info = np.iinfo(dt)
+            out = np.clip(np.rint(comps), info.min, info.max).astype(dt)
+        else:
+            out = comps.astype(dt)
+        return out.tobytes()
+
+    def flush(self):
+        return b""
+
+
+class _Packed2Encoder:
+    """float components -> 2-bit sign-magnitude codes, four to a byte, the first in the high bits
+    (the ``i2packed``/``ci2packed`` layout); components that do not fill a byte are carried to the
+    next call, and ``flush`` pads the last byte with level +1 (code 0)."""
+
+    def __init__(self):
+        self._carry = np.zeros(0, dtype=np.float32)
+
+    def encode(self, comps, exact=False):
+        comps = np.concatenate([self._carry, comps]) if self._carry.size else comps
+        n4 = comps.size // 4 * 4
+        self._carry = comps[n4:].copy()
+        c = _encode2(comps[:n4]).reshape(-1, 4)
+        b = (c[:, 0] << 6) | (c[:, 1] << 4) | (c[:, 2] << 2) | c[:, 3]
+        return b.astype(np.uint8).tobytes()
+
+    def flush(self):
+        if not self._carry.size:
+            return b""
+        pad = np.zeros(4 - self._carry.size, dtype=np.float32) + 1.0
+        c = _encode2(np.concatenate([self._carry, pad]))
+        self._carry = np.zeros(0, dtype=np.float32)
+        return bytes([int((c[0] << 6) | (c[1] << 4) | (c[2] << 2) | c[3])])
+
+
+FormatSpec = SampleFormat        # earlier name of the format description
 
 FORMATS = {
-    "i8": FormatSpec("i8", "<i1", False),
-    "i16": FormatSpec("i16", "<i2", False),
-    "f32": FormatSpec("f32", "<f4", False),
-    "ci8": FormatSpec("ci8", "<i1", True),
-    "ci16": FormatSpec("ci16", "<i2", True),
-    "cf32": FormatSpec("cf32", "<f4", True),
-    "i2packed": FormatSpec("i2packed", "u1", False, packed2=True),
-    "ci2packed": FormatSpec("ci2packed", "u1", True, packed2=True),
+    "i8": SampleFormat("i8", "<i1", False),
+    "i16": SampleFormat("i16", "<i2", False),
+    "f32": SampleFormat("f32", "<f4", False),
+    "ci8": SampleFormat("ci8", "<i1", True),
+    "ci16": SampleFormat("ci16", "<i2", True),
+    "cf32": SampleFormat("cf32", "<f4", True),
+    "i2packed": PackedFormat("i2packed", False, 2),
+    "ci2packed": PackedFormat("ci2packed", True, 2),
 }
 # formats the reader accepts but nothing here writes
 READ_ONLY_FORMATS = {
-    "i4packed": FormatSpec("i4packed", "u1", False, packed4=True),
-    "ci4packed": FormatSpec("ci4packed", "u1", True, packed4=True),
+    "i4packed": PackedFormat("i4packed", False, 4, writable=False),
+    "ci4packed": PackedFormat("ci4packed", True, 4, writable=False),
 }
 
 # 2-bit code -> level (sign-magnitude): 0:+1, 1:+3, 2:-1, 3:-3
 CODE2_LEVEL = np.array([1.0, 3.0, -1.0, -3.0], dtype=np.float32)
-# byte -> 4 levels (MSB first)
-_BYTE_LUT = np.stack([CODE2_LEVEL[(np.arange(256) >> s) & 3] for s in (6, 4, 2, 0)], axis=1).astype(np.float32)
 
 
 def get_format(name):
@@ -129,19 +293,7 @@ def get_format(name):
 
 def check_bits_for_format(fmt, bits, field="frontend"):
     """ConfigError unless quantiser width ``bits`` (0 = float) can be stored in format ``fmt``."""
-    from ultratight.errors import ConfigError
-
-    spec = get_format(fmt)
-    if spec.packed4:
-        raise ConfigError(f"{field}.format {spec.name!r} is read only (no writer for 4-bit packed samples)")
-    if spec.packed2 and bits not in (1, 2):
-        raise ConfigError(f"{field}.format {spec.name!r} stores 2-bit samples; {field}.bits must be 1 or 2 "
-                          f"(got {bits})")
-    if spec.dtype.endswith("i1") and bits not in (1, 2, 4, 8):
-        raise ConfigError(f"{field}.format {spec.name!r} stores 8-bit samples; {field}.bits must be 1, 2, 4 "
-                          f"or 8 (got {bits})")
-    if spec.dtype.endswith("i2") and bits == 0:
-        raise ConfigError(f"{field}.format {spec.name!r} stores integers; {field}.bits must not be 0 (float)")
+    get_format(fmt).check_bits(bits, field)
 
 
 def sidecar_path(path):
@@ -262,7 +414,7 @@ def _parse_ion_metadata(xml_path):
         if url:
             break
     packing = None
-    if name.endswith("packed"):
+    if get_format(name).packed:
         # the encoding comes from the XML; samples are read byte by byte, first sample in the high
         # bits (the chunk's sizeword / endian are not applied to packed samples: give --word-size,
         # --endian and --packing for other layouts)
@@ -307,21 +459,8 @@ class IfSource:
             check_input_file(self.path, "IF file")
         size = self.path.stat().st_size
         spec = self.spec
-        self.packing = None
-        if spec.packed:
-            lay = packing if isinstance(packing, PackedLayout) else PackedLayout(**{"bits": spec.packed_bits,
-                                                                                    **(packing or {})})
-            if lay.bits != spec.packed_bits:
-                raise FormatError(f"{self.path}: packing of {lay.bits}-bit samples given for format {self.fmt}")
-            self.packing = lay
-            total = size // lay.word_bytes * lay.per_word // spec.comps
-        else:
-            bps = spec.bytes_per_sample
-            if size % bps:
-                raise FormatError(
-                    f"{self.path}: size {size} bytes is not a whole number of {self.fmt} samples "
-                    f"({bps} bytes each)")
-            total = size // bps
+        self.packing = spec.layout(packing, self.path)
+        total = spec.count(size, self.packing, self.path)
         self.warnings = []
         if n_samples is not None:
             if n_samples > total:
@@ -365,11 +504,7 @@ class IfSource:
         upto = min(int(upto_sample), self.n_samples)
         if upto <= 0:
             return 0
-        spec = self.spec
-        if spec.packed:
-            nbytes = upto * spec.comps // self.packing.per_word * self.packing.word_bytes
-        else:
-            nbytes = upto * spec.bytes_per_sample
+        nbytes = self.spec.nbytes(upto, self.packing)
         # np.memmap maps from the page boundary at or below its offset; here the offset is 0
         start = int(getattr(self._mm, "offset", 0) or 0)
         end = min((start + nbytes) // _mmap.PAGESIZE * _mmap.PAGESIZE, len(raw))
@@ -391,18 +526,7 @@ class IfSource:
         if start < 0:
             raise ValueError("start must be >= 0")
         count = max(0, min(int(count), self.n_samples - start))
-        spec = self.spec
-        if spec.packed:
-            lay = self.packing
-            comp_start = start * spec.comps
-            comp_stop = (start + count) * spec.comps
-            w0, w1 = comp_start // lay.per_word, -(-comp_stop // lay.per_word)
-            vals = lay.unpack(np.asarray(self._mm[w0 * lay.word_bytes:w1 * lay.word_bytes]))
-            off = comp_start - lay.per_word * w0
-            raw = np.ascontiguousarray(vals[off: off + count * spec.comps], dtype=np.float32)
-        else:
-            c = spec.comps
-            raw = np.asarray(self._mm[start * c:(start + count) * c]).astype(np.float32)
+        raw = self.spec.decode(self._mm, start, count, self.packing)
         if self.is_complex:
             if self._iq_swap:
                 raw = raw.reshape(-1, 2)[:, ::-1].copy().reshape(-1)
@@ -520,8 +644,9 @@ class IfWriter:
                  start_tow_s=None, bits=None, extra=None):
         self.path = Path(path)
         self.spec = get_format(fmt)
-        if self.spec.packed4:
-            raise FormatError(f"{self.path}: format {fmt!r} is read only (no writer for 4-bit packed samples)")
+        if not self.spec.writable:
+            raise FormatError(f"{self.path}: format {fmt!r} is read only (no writer for "
+                              f"{self.spec.packed_bits}-bit packed samples)")
         self.fs_hz = float(fs_hz)
         self.if_hz = float(if_hz)
         self.sidecar = {"format": self.spec.name, "fs_hz": self.fs_hz, "if_hz": self.if_hz,
@@ -534,7 +659,7 @@ class IfWriter:
         if extra:
             self.sidecar.update(extra)
         self.n_samples = 0
-        self._carry = np.zeros(0, dtype=np.float32)   # 2-bit components not yet packed
+        self._enc = self.spec.encoder()
         self._tmp = _tmp_name(self.path)
         self._side_tmp = _tmp_name(sidecar_path(self.path))
         self._f = open(self._tmp, "wb")
@@ -561,32 +686,12 @@ class IfWriter:
                 raise FormatError(f"{self.path}: complex samples given for real format {spec.name}")
             comps = np.ascontiguousarray(x, dtype=np.float32).reshape(-1)
         self.n_samples += comps.size // spec.comps
-        if spec.packed2:
-            comps = np.concatenate([self._carry, comps]) if self._carry.size else comps
-            n4 = comps.size // 4 * 4
-            self._carry = comps[n4:].copy()
-            c = _encode2(comps[:n4]).reshape(-1, 4)
-            b = (c[:, 0] << 6) | (c[:, 1] << 4) | (c[:, 2] << 2) | c[:, 3]
-            self._f.write(b.astype(np.uint8).tobytes())
-            return
-        dt = np.dtype(spec.dtype)
-        if dt.kind == "i" and exact:
-            out = comps.astype(dt)
-        elif dt.kind == "i":
-            info = np.iinfo(dt)
-            out = np.clip(np.rint(comps), info.min, info.max).astype(dt)
-        else:
-            out = comps.astype(dt)
-        self._f.write(out.tobytes())
+        self._f.write(self._enc.encode(comps, exact))
 
     def close(self):
         if self._closed:
             return
-        if self.spec.packed2 and self._carry.size:
-            pad = np.zeros(4 - self._carry.size, dtype=np.float32) + 1.0
-            c = _encode2(np.concatenate([self._carry, pad]))
-            self._f.write(bytes([int((c[0] << 6) | (c[1] << 4) | (c[2] << 2) | c[3])]))
-            self._carry = np.zeros(0, dtype=np.float32)
+        self._f.write(self._enc.flush())
         self._f.close()
         self.sidecar["n_samples"] = int(self.n_samples)
         side_tmp = self._side_tmp

@@ -22,6 +22,7 @@ from pathlib import Path
 from ultratight.constants import F_L1
 from ultratight.errors import FormatError, InputFileError
 from ultratight.io_guard import write_text_atomic
+from ultratight.signals.iffile import get_format
 
 META_EXT = ".sigmf-meta"
 DATA_EXT = ".sigmf-data"
@@ -78,7 +79,7 @@ def read_sigmf(path):
     if freq is None:
         raise FormatError(f"{meta}: the first capture has no core:frequency (needed for the IF)")
     name, dtype = DATATYPES[dt]
-    is_complex = dt.startswith("c")
+    is_complex = get_format(name).is_complex
     if_hz = F_L1 - float(freq)
     inversion = False
     if not is_complex and if_hz < 0:
@@ -100,13 +101,13 @@ def write_sigmf_meta(data_path, fmt, fs_hz, if_hz=0.0, iq_conj=False, inversion=
     SigMF datatype (the packed 2-bit ones) raise FormatError."""
     from ultratight import __version__
     data_path = Path(data_path)
-    is_complex = fmt.startswith("c")
-    if inversion and is_complex:
-        iq_conj = not iq_conj
-    freq = F_L1 + float(if_hz) if (inversion and not is_complex) else F_L1 - float(if_hz)
     if fmt not in FORMAT_TO_DATATYPE:
         raise FormatError(f"SigMF has no datatype for the {fmt!r} sample format "
                           f"(supported: {', '.join(FORMAT_TO_DATATYPE)})")
+    is_complex = get_format(fmt).is_complex
+    if inversion and is_complex:
+        iq_conj = not iq_conj
+    freq = F_L1 + float(if_hz) if (inversion and not is_complex) else F_L1 - float(if_hz)
     g = {"core:datatype": FORMAT_TO_DATATYPE[fmt], "core:sample_rate": float(fs_hz), "core:version": SIGMF_VERSION,
          "core:num_channels": 1, "core:dataset": data_path.name, "core:recorder": f"ultratight {__version__}",
          "core:description": description or "GPS L1 C/A IF samples",

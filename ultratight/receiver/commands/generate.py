@@ -83,7 +83,7 @@ def estimate(cfg):
     fe = cfg["frontend"]
     spec = get_format(fe["format"])
     n = float(cfg["duration_s"]) * float(fe["fs_hz"])
-    if_bytes = n * spec.bytes_per_sample if spec.bytes_per_sample else n / spec.samples_per_byte
+    if_bytes = spec.nbytes(n, spec.layout())
     n_sat = max(len(cfg["satellites"].get("prns") or []), int(cfg["satellites"].get("max_count", 12)))
     rows = float(cfg["duration_s"]) * 1000.0
     truth_bytes = rows * 8 * (12 + 12 * n_sat)
@@ -114,16 +114,8 @@ def format_overrides(fmt):
     from ultratight.signals.iffile import get_format
 
     spec = get_format(fmt)
-    ov = {"frontend.format": spec.name, "frontend.sampling": "complex" if spec.is_complex else "real"}
-    if spec.packed2:
-        ov["frontend.bits"] = 2
-    elif spec.dtype.endswith("f4"):
-        ov["frontend.bits"] = 0
-    elif spec.dtype.endswith("i2"):
-        ov["frontend.bits"] = 16
-    else:
-        ov["frontend.bits"] = 8
-    return ov
+    return {"frontend.format": spec.name, "frontend.sampling": "complex" if spec.is_complex else "real",
+            "frontend.bits": spec.quantiser_bits}
 
 
 def run(args):

@@ -18,13 +18,13 @@ MODES = ("scalar", "ultratight")
 
 
 class _EngineMethods:
-    """The engine's ultra-tight methods (its ``METHODS`` minus ``scalar``, which is this command's
-    scalar mode) as argparse ``choices``, imported only when argparse needs them (a given --method,
-    --help), so that building the CLI parser stays cheap."""
+    """The ultra-tight methods of the registry (:mod:`ultratight.receiver.methods`; the ones that
+    use IMU data -- ``scalar`` is this command's scalar mode) as argparse ``choices``, imported only
+    when argparse needs them (a given --method, --help), so that building the CLI parser stays cheap."""
 
     def _methods(self):
-        from ultratight.receiver.engine import METHODS
-        return [m for m in METHODS if m != "scalar"]
+        from ultratight.receiver.methods import REGISTRY
+        return [m for m, spec in REGISTRY.items() if spec.needs_imu]
 
     def __iter__(self):
         return iter(self._methods())

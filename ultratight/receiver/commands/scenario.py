@@ -48,9 +48,8 @@ def format_overrides(fmt):
     if fmt not in FORMATS:
         raise ConfigError(f"--format: unknown IF sample format {fmt!r}; expected one of {', '.join(FORMATS)}")
     spec = FORMATS[fmt]
-    bits = 2 if spec.packed2 else 8 if spec.dtype.endswith("i1") else 16 if spec.dtype.endswith("i2") else 0
     return {"frontend.format": fmt, "frontend.sampling": "complex" if spec.is_complex else "real",
-            "frontend.bits": bits}
+            "frontend.bits": spec.quantiser_bits}
 
 
 def _methods(args):

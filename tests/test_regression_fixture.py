@@ -1,0 +1,130 @@
+"""No behaviour change across the receiver's restructuring: every ultra-tight method on a short
+generated paper-highdyn cut, the scenario's ``scalar`` method on the same cut, three methods with
+the signal monitor in ``coast`` mode through a x20 noise burst (loss of lock, coasting and
+prefilter restarts), and ``process`` on a
+generated static file of 8.5 s (time of week decoded, fixes), compared with values stored in ``tests/data/regression_v1.npz``.
+
+The stored values were computed by the receiver before its stages were separated (issue 11); a
+change of any per-epoch Doppler or code estimate, navigation solution, acquisition or fix by more
+than 1e-9 (absolute; 1e-12 relative for ECEF positions) fails. Regenerate the file only for an intended change of behaviour:
+``python tests/test_regression_fixture.py --write``.
+"""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+FIXTURE = Path(__file__).parent / "data" / "regression_v1.npz"
+METHODS = ("pb-kf-utc", "dlb-ukf", "dlb-ckf", "dlb-rackf", "scalar")
+HIGHDYN = {"duration_s": 2.0, "frontend.fs_hz": 2.046e6, "satellites.max_count": 3}
+STATIC = {"duration_s": 8.5, "frontend.fs_hz": 2.046e6, "satellites.max_count": 5}
+TOL = 1e-9
+STRIDE = 2          # every second epoch is stored (closed loops carry any change to later epochs)
+STRIDE_STATIC = 5
+BURST = {"duration_s": 2.5, "frontend.fs_hz": 2.046e6, "satellites.max_count": 3}
+BURST_EVENTS = [{"t0_s": 0.8, "t1_s": 1.6, "noise_factor": 20.0}]
+BURST_METHODS = ("pb-kf-utc", "dlb-ckf", "dlb-rackf")
+STRIDE_BURST = 4
+
+
+def _highdyn(out):
+    from ultratight.receiver.scenario_config import load_scenario
+    from ultratight.receiver.scenario_runner import prepare_data, run_method
+    cfg = load_scenario("paper-highdyn", HIGHDYN)
+    paths, _ = prepare_data(cfg, 1, out)
+    vals = {}
+    for m in METHODS:
+        res, _ = run_method(paths, cfg, m, 1)
+        k = f"hd/{m}/"
+        vals[k + "doppler_hz"] = np.asarray(res.doppler_hz, float)[::STRIDE]
+        vals[k + "code_phase_chips"] = np.asarray(res.code_phase_chips, float)[::STRIDE]
+        if m == "scalar":
+            vals[k + "t_start"] = np.asarray(res.t_start, float)[::STRIDE]
+        else:
+            vals[k + "mode"] = np.asarray(res.mode, float)
+            vals[k + "nav_pos_e"] = np.asarray(res.nav_pos_e, float)
+            vals[k + "nav_vel_e"] = np.asarray(res.nav_vel_e, float)
+            vals[k + "nav_clk"] = np.asarray(res.nav_clk, float)
+    return vals
+
+
+def _burst(out):
+    from ultratight.receiver.engine import EngineOptions, monitor_options
+    from ultratight.receiver.scenario_config import load_scenario
+    from ultratight.receiver.scenario_runner import prepare_data, run_method
+    cfg = load_scenario("paper-highdyn", BURST)
+    cfg["noise_events"] = BURST_EVENTS
+    paths, _ = prepare_data(cfg, 2, out)
+    vals = {}
+    for m in BURST_METHODS:
+        res, _ = run_method(paths, cfg, m, 2, options=EngineOptions(**monitor_options("coast")))
+        k = f"burst/{m}/"
+        vals[k + "doppler_hz"] = np.asarray(res.doppler_hz, float)[::STRIDE_BURST]
+        vals[k + "code_phase_chips"] = np.asarray(res.code_phase_chips, float)[::STRIDE_BURST]
+        vals[k + "mode"] = np.asarray(res.mode, float)
+        vals[k + "nav_pos_e"] = np.asarray(res.nav_pos_e, float)
+        vals[k + "events"] = np.array([res.info["n_lock_lost_events"], res.info["n_prefilter_restarts"]], float)
+    return vals
+
+
+def _static(out):
+    from ultratight.receiver.process import ProcessConfig, process
+    from ultratight.receiver.scenario_config import load_scenario
+    from ultratight.receiver.scenario_runner import prepare_data
+    from ultratight.signals.constellation import nominal_ephemerides
+    from ultratight.signals.iffile import open_if
+    cfg = load_scenario("static-open-sky", STATIC)
+    paths, _ = prepare_data(cfg, 2, out)
+    week, tow = int(cfg["time"]["week"]), float(cfg["time"]["tow_s"])
+    pcfg = ProcessConfig(n_channels=5, record_epochs=True, iono="off", tropo="off", acq_min_cn0_dbhz=30.0)
+    res = process(open_if(paths["if"]), pcfg, ephemerides=nominal_ephemerides(week, tow))
+    vals = {}
+    acq = sorted(res.acquisition, key=lambda a: a.prn)
+    vals["st/acq"] = np.array([[a.prn, float(a.detected), a.doppler_hz, a.code_phase_chips] for a in acq], float)
+    for prn in sorted(res.epochs):
+        e = res.epochs[prn]
+        for name in ("sample_index", "doppler_hz", "code_phase_chips"):
+            vals[f"st/prn{prn:02d}/{name}"] = np.asarray(e[name], float)[::STRIDE_STATIC]
+    vals["st/fix_pos_e"] = np.array([f["pos_e"] for f in res.fixes], float).reshape(-1, 3)
+    vals["st/fix_sample_index"] = np.array([f["sample_index"] for f in res.fixes], float)
+    return vals
+
+
+def compute(out):
+    return {**_highdyn(out), **_burst(out), **_static(out)}
+
+
+@pytest.fixture(scope="module")
+def current(tmp_path_factory):
+    return compute(tmp_path_factory.mktemp("regress"))
+
+
+def test_regression_fixture_unchanged(current):
+    ref = np.load(FIXTURE)
+    assert sorted(ref.files) == sorted(current)
+    for k in ref.files:
+        a, b = current[k], ref[k]
+        assert a.shape == b.shape, k
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=TOL, err_msg=k)
+
+
+def test_regression_fixture_is_not_trivial(current):
+    for m in METHODS:
+        d = current[f"hd/{m}/doppler_hz"]
+        assert d.shape[0] > 400 and np.all(np.isfinite(d))
+    for m in BURST_METHODS:                      # the burst drives the coast and restart paths
+        assert current[f"burst/{m}/events"].min() >= 5 and np.any(current[f"burst/{m}/mode"] == 3)
+    assert sum(k.startswith("st/prn") for k in current) == 15 and current["st/fix_pos_e"].shape[0] >= 10
+
+
+if __name__ == "__main__":          # python tests/test_regression_fixture.py --write
+    import tempfile
+    if "--write" not in sys.argv:
+        sys.exit("usage: python tests/test_regression_fixture.py --write")
+    with tempfile.TemporaryDirectory() as d:
+        v = compute(Path(d))
+    FIXTURE.parent.mkdir(exist_ok=True)
+    np.savez_compressed(FIXTURE, **v)
+    print(FIXTURE, FIXTURE.stat().st_size, "bytes,", len(v), "arrays")
