@@ -144,23 +144,28 @@ def load_scenario(name_or_path, overrides=None):
 # ------------------------------------------------------------------------------------------
 # validation
 # ------------------------------------------------------------------------------------------
+def check_number(v, name, lo=None, hi=None, lo_open=False, integer=False):
+    """``v`` as a checked scenario number (ConfigError naming ``name``): a real number, finite, an
+    integer when asked, inside ``[lo, hi]`` (``(lo, hi]`` with ``lo_open``). Returns ``v``."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise ConfigError(f"{name} must be a number, got {v!r}")
+    if not math.isfinite(v):
+        raise ConfigError(f"{name} must be finite, got {v!r}")
+    if integer and int(v) != v:
+        raise ConfigError(f"{name} must be an integer, got {v!r}")
+    if lo is not None and (v <= lo if lo_open else v < lo):
+        raise ConfigError(f"{name} must be {'>' if lo_open else '>='} {lo}, got {v!r}")
+    if hi is not None and v > hi:
+        raise ConfigError(f"{name} must be <= {hi}, got {v!r}")
+    return v
+
+
 def _num(cfg, dotted, lo=None, hi=None, lo_open=False, integer=False):
     d = cfg
     parts = dotted.split(".")
     for p in parts[:-1]:
         d = d.get(p, {})
-    v = d.get(parts[-1])
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise ConfigError(f"{dotted} must be a number, got {v!r}")
-    if not math.isfinite(v):
-        raise ConfigError(f"{dotted} must be finite, got {v!r}")
-    if integer and int(v) != v:
-        raise ConfigError(f"{dotted} must be an integer, got {v!r}")
-    if lo is not None and (v <= lo if lo_open else v < lo):
-        raise ConfigError(f"{dotted} must be {'>' if lo_open else '>='} {lo}, got {v!r}")
-    if hi is not None and v > hi:
-        raise ConfigError(f"{dotted} must be <= {hi}, got {v!r}")
-    return v
+    return check_number(d.get(parts[-1]), dotted, lo=lo, hi=hi, lo_open=lo_open, integer=integer)
 
 
 def check_known_keys(table, allowed, where):

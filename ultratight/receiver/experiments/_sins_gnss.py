@@ -23,7 +23,7 @@ from ultratight.io_guard import h5_atomic, savefig_atomic, write_text_atomic
 from ultratight.fusion.integration import nees_band
 from ultratight.ins import error_model as em
 from ultratight.receiver.metrics import json_clean
-from ultratight.receiver.scenario_config import check_known_keys
+from ultratight.receiver.scenario_config import check_known_keys, check_number
 
 AXES = {"vel": ["E", "N", "U"], "pos": ["N (lat)", "E (lon)", "U (h)"]}
 G0 = 9.80665
@@ -35,17 +35,8 @@ MAX_DURATION_S = 86400.0     # one day of 100 Hz IMU data is ~0.5 GB of incremen
 
 def num(table, key, where, lo=None, hi=None, lo_open=False, integer=False):
     """A number of a TOML table (ConfigError naming ``where.key`` when absent or out of range)."""
-    v = table.get(key)
     name = f"{where}.{key}" if where else key
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise ConfigError(f"{name} must be a finite number, got {v!r}")
-    if integer and int(v) != v:
-        raise ConfigError(f"{name} must be an integer, got {v!r}")
-    if lo is not None and (v <= lo if lo_open else v < lo):
-        raise ConfigError(f"{name} must be {'>' if lo_open else '>='} {lo}, got {v!r}")
-    if hi is not None and v > hi:
-        raise ConfigError(f"{name} must be <= {hi}, got {v!r}")
-    return float(v)
+    return float(check_number(table.get(key), name, lo=lo, hi=hi, lo_open=lo_open, integer=integer))
 
 
 def tables(raw, schema, overrides):

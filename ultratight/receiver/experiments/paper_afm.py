@@ -33,7 +33,7 @@ from ultratight.ins.attitude import dcm_to_quat, rotvec_to_quat, quat_mult, quat
 from ultratight.ins.imu import (DPH_TO_RADPS, DPRH_TO_RADPRS, apply_errors, ideal_increments,
                                 imu_errors_from_config)
 from ultratight.ins.trajectory import build_trajectory
-from ultratight.receiver.scenario_config import check_known_keys
+from ultratight.receiver.scenario_config import check_known_keys, check_number
 
 METHODS = ("ukf", "aff", "afm", "ekf")
 DEFAULT_METHODS = ("ukf", "aff", "afm")
@@ -82,13 +82,7 @@ DEFAULTS = {
 
 
 def _num(value, field, lo=None, hi=None, lo_open=False):
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise ConfigError(f"{field} must be a finite number, got {value!r}")
-    if lo is not None and (value <= lo if lo_open else value < lo):
-        raise ConfigError(f"{field} must be {'>' if lo_open else '>='} {lo}, got {value}")
-    if hi is not None and value > hi:
-        raise ConfigError(f"{field} must be <= {hi}, got {value}")
-    return float(value)
+    return float(check_number(value, field, lo=lo, hi=hi, lo_open=lo_open))
 
 
 def _merge(raw, key):

@@ -71,13 +71,9 @@ POSITIVE = {"imu": ("rate_hz", "accel_sigma_mps2", "gyro_sigma_dps"), "gnss": ("
 # ------------------------------------------------------------------ configuration
 
 def _number(table, key, where, positive=False):
-    v = table[key]
+    from ultratight.receiver.scenario_config import check_number
     name = key if where is None else f"{where}.{key}"
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise ConfigError(f"{name} must be a finite number, got {v!r}")
-    if positive and not v > 0:
-        raise ConfigError(f"{name} must be > 0, got {v!r}")
-    return float(v)
+    return float(check_number(table[key], name, lo=0 if positive else None, lo_open=True))
 
 
 def load(path, raw, overrides):
