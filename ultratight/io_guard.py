@@ -371,7 +371,21 @@ class Interrupted(KeyboardInterrupt):
         return 128 + self.signum
 
 
+# the signal received, kept after the handler raised: an exception raised while the interpreter runs
+# a finaliser (a weakref callback, ``__del__``) is printed and dropped, so long loops also call
+# :func:`check_interrupted` and the CLI calls it when a command returns
+_pending_signal = None
+
+
+def check_interrupted():
+    """Raise :class:`Interrupted` again if a handled signal arrived (see ``_pending_signal``)."""
+    if _pending_signal is not None:
+        raise Interrupted(_pending_signal)
+
+
 def _handler(signum, frame):
+    global _pending_signal
+    _pending_signal = int(signum)
     # one interruption per run: later signals are ignored so that the cleanup can finish
     for s in HANDLED_SIGNALS:
         try:
@@ -386,6 +400,8 @@ def install_signal_handlers():
 
     Returns the previous handlers, for :func:`restore_signal_handlers` (the CLI restores them when
     it returns, so an in-process caller keeps its own handling)."""
+    global _pending_signal
+    _pending_signal = None
     previous = {}
     for s in HANDLED_SIGNALS + ((signal.SIGXFSZ,) if hasattr(signal, "SIGXFSZ") else ()):
         try:

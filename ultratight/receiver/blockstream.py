@@ -25,6 +25,7 @@ import numpy as np
 from numba import njit
 
 from ultratight.errors import ConfigError
+from ultratight.io_guard import check_interrupted
 from ultratight.signals.corr_model import noise_sigma_arm
 
 
@@ -145,6 +146,7 @@ class BlockStream:
         buf_end = self.buf_end
         if hi <= buf_end:
             return True
+        check_interrupted()
         keep = self.buf[max(0, int(keep_from) - self.buf_start):]
         new = []
         while buf_end < hi:
@@ -185,5 +187,6 @@ class BlockStream:
 
     def read_at(self, start, count, head):
         """``(samples [start, start + count), noise std per arm of their first head samples)``."""
+        check_interrupted()
         x = self.src.read(start, count)
         return x, self._block_sigma(x, start, head)

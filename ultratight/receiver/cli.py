@@ -76,7 +76,9 @@ def _main(argv, io_guard):
         return getattr(exc, "exit_code", 130)
     name = f"ultratight {args.command}"
     try:
-        return int(args._run(args) or 0)
+        rc = int(args._run(args) or 0)
+        io_guard.check_interrupted()      # a signal whose exception a finaliser swallowed
+        return rc
     except UltratightError as exc:
         print(f"{name}: error: {_one_line(exc)}", file=sys.stderr)
         return 2

@@ -60,6 +60,7 @@ from pathlib import Path
 import numpy as np
 
 from ultratight.errors import FormatError, InputFileError
+from ultratight.io_guard import check_interrupted
 from ultratight.signals.packing import ION_ENCODINGS, PackedLayout
 
 
@@ -677,6 +678,7 @@ class IfWriter:
     def write(self, x, exact=False):
         """Append samples. ``exact=True`` promises the values are already integers inside the
         format's range (e.g. quantiser output), which skips rounding and clipping."""
+        check_interrupted()
         spec = self.spec
         x = np.asarray(x)
         if spec.is_complex:
