@@ -27,6 +27,7 @@ import re
 import secrets
 import shutil
 import signal
+import sys
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -377,6 +378,15 @@ class Interrupted(KeyboardInterrupt):
 _pending_signal = None
 
 
+def _unraisable_hook(unraisable):
+    # an Interrupted raised inside a finaliser is recorded in _pending_signal and raised again by
+    # check_interrupted(); the interpreter's "Exception ignored in ..." report would only add a
+    # traceback to the one-line message
+    if isinstance(unraisable.exc_value, Interrupted):
+        return
+    sys.__unraisablehook__(unraisable)
+
+
 def check_interrupted():
     """Raise :class:`Interrupted` again if a handled signal arrived (see ``_pending_signal``)."""
     if _pending_signal is not None:
@@ -402,7 +412,8 @@ def install_signal_handlers():
     it returns, so an in-process caller keeps its own handling)."""
     global _pending_signal
     _pending_signal = None
-    previous = {}
+    previous = {"unraisablehook": sys.unraisablehook}
+    sys.unraisablehook = _unraisable_hook
     for s in HANDLED_SIGNALS + ((signal.SIGXFSZ,) if hasattr(signal, "SIGXFSZ") else ()):
         try:
             old = signal.getsignal(s)
@@ -416,7 +427,10 @@ def install_signal_handlers():
 
 
 def restore_signal_handlers(previous):
-    for s, h in (previous or {}).items():
+    previous = dict(previous or {})
+    if "unraisablehook" in previous:
+        sys.unraisablehook = previous.pop("unraisablehook")
+    for s, h in previous.items():
         try:
             signal.signal(s, h if h is not None else signal.SIG_DFL)
         except (OSError, ValueError, TypeError):
