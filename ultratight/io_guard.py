@@ -379,12 +379,17 @@ _pending_signal = None
 
 
 def _unraisable_hook(unraisable):
-    # an Interrupted raised inside a finaliser is recorded in _pending_signal and raised again by
-    # check_interrupted(); the interpreter's "Exception ignored in ..." report would only add a
-    # traceback to the one-line message
-    if isinstance(unraisable.exc_value, Interrupted):
+    # Once a handled signal has arrived the run is ending: an Interrupted raised inside a finaliser
+    # is recorded in _pending_signal and raised again by check_interrupted(), and the finalisers of
+    # objects the signal cut short (half-built library objects, e.g. during numba compilation)
+    # fail on their own. The interpreter's "Exception ignored in ..." reports of either would only
+    # add tracebacks to the one-line message.
+    if _pending_signal is not None or isinstance(unraisable.exc_value, Interrupted):
         return
-    sys.__unraisablehook__(unraisable)
+    (_outer_unraisablehook or sys.__unraisablehook__)(unraisable)
+
+
+_outer_unraisablehook = None       # the hook in place before install_signal_handlers
 
 
 def check_interrupted():
@@ -410,10 +415,12 @@ def install_signal_handlers():
 
     Returns the previous handlers, for :func:`restore_signal_handlers` (the CLI restores them when
     it returns, so an in-process caller keeps its own handling)."""
-    global _pending_signal
+    global _pending_signal, _outer_unraisablehook
     _pending_signal = None
-    previous = {"unraisablehook": sys.unraisablehook}
+    if sys.unraisablehook is not _unraisable_hook:
+        _outer_unraisablehook = sys.unraisablehook
     sys.unraisablehook = _unraisable_hook
+    previous = {}
     for s in HANDLED_SIGNALS + ((signal.SIGXFSZ,) if hasattr(signal, "SIGXFSZ") else ()):
         try:
             old = signal.getsignal(s)
@@ -427,10 +434,11 @@ def install_signal_handlers():
 
 
 def restore_signal_handlers(previous):
-    previous = dict(previous or {})
-    if "unraisablehook" in previous:
-        sys.unraisablehook = previous.pop("unraisablehook")
-    for s, h in previous.items():
+    if _pending_signal is None and _outer_unraisablehook is not None:
+        # after an interrupted run the quiet hook stays for the interpreter's shutdown, whose
+        # finalisers are the ones that would report; the next install starts clean
+        sys.unraisablehook = _outer_unraisablehook
+    for s, h in (previous or {}).items():
         try:
             signal.signal(s, h if h is not None else signal.SIG_DFL)
         except (OSError, ValueError, TypeError):
