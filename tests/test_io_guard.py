@@ -149,3 +149,28 @@ def test_a_signal_swallowed_by_a_finaliser_still_ends_the_run(tmp_path):
     finally:
         io_guard.restore_signal_handlers(previous)
     assert sys.unraisablehook is caller_hook        # the caller's hook is back
+
+
+def test_an_interrupted_cleanup_that_fails_still_reports_the_interruption(monkeypatch, capsys):
+    """A signal whose exception the interrupted code swallowed, followed by a different failure of
+    that code (a half-built library object, a file closed mid-write): one line, exit 128 + N."""
+    import signal as _signal
+
+    from ultratight.receiver import cli
+    from ultratight.receiver.commands import ins
+
+    def run(args):
+        try:
+            _signal.raise_signal(_signal.SIGTERM)
+        except KeyboardInterrupt:
+            pass                                  # e.g. caught inside a library
+        raise RuntimeError("library object left in a bad state")
+
+    monkeypatch.setattr(ins, "run", run)
+    assert cli.main(["ins", "paper-highdyn"]) == 128 + _signal.SIGTERM
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["ultratight ins: interrupted by SIGTERM; no output written"]
+    # without a signal the same failure is a bug and shows its traceback
+    monkeypatch.setattr(ins, "run", lambda args: (_ for _ in ()).throw(RuntimeError("bug")))
+    with pytest.raises(RuntimeError):
+        cli.main(["ins", "paper-highdyn"])

@@ -392,6 +392,11 @@ def _unraisable_hook(unraisable):
 _outer_unraisablehook = None       # the hook in place before install_signal_handlers
 
 
+def interrupted_signal():
+    """The handled signal this run received (a number), or None."""
+    return _pending_signal
+
+
 def check_interrupted():
     """Raise :class:`Interrupted` again if a handled signal arrived (see ``_pending_signal``)."""
     if _pending_signal is not None:

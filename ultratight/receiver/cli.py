@@ -80,6 +80,8 @@ def _main(argv, io_guard):
         io_guard.check_interrupted()      # a signal whose exception a finaliser swallowed
         return rc
     except UltratightError as exc:
+        if io_guard.interrupted_signal() is not None:
+            return _interrupted(name, io_guard)
         print(f"{name}: error: {_one_line(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
@@ -90,11 +92,25 @@ def _main(argv, io_guard):
         print(f"{name}: error: out of memory (shorten the run: --duration, a lower rate)", file=sys.stderr)
         return 2
     except OSError as exc:
+        if io_guard.interrupted_signal() is not None:
+            return _interrupted(name, io_guard)
         # an OS-level failure no stage turned into a user error: report it in one line
         path = getattr(exc, "filename", None)
         where = f" {path}" if path else ""
         print(f"{name}: error:{where} {io_guard.describe_os_error(exc)}", file=sys.stderr)
         return 2
+    except Exception:
+        # a signal arrived and the code it interrupted then failed in another way (a library
+        # object left half-built, a file closed mid-write): the run was still interrupted
+        if io_guard.interrupted_signal() is not None:
+            return _interrupted(name, io_guard)
+        raise
+
+
+def _interrupted(name, io_guard):
+    exc = io_guard.Interrupted(io_guard.interrupted_signal())
+    print(f"{name}: interrupted by {exc.name}; {io_guard.interruption_note()}", file=sys.stderr)
+    return exc.exit_code
 
 
 def _one_line(exc):
