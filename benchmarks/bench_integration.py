@@ -22,12 +22,7 @@ from _common import add_common_args, best, finish
 def best_cpu(fn, repeat):
     """Best process CPU time in s of ``repeat`` calls (the wall time of a shared machine includes
     the other processes' share)."""
-    ts = []
-    for _ in range(repeat):
-        t0 = time.process_time()
-        fn()
-        ts.append(time.process_time() - t0)
-    return min(ts)
+    return best(fn, repeat, clock=time.process_time)
 
 
 def main():
