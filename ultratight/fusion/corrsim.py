@@ -49,6 +49,7 @@ from numba import njit
 from ultratight.constants import CA_LEN, CODE_PER_BIT, F_CA, F_L1, T_CA
 from ultratight.errors import ConfigError
 from ultratight.signals import corr_model
+from ultratight.signals.nco import NcoBank
 
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(8)
 GL_NODES = 0.5 * (_GL_X + 1.0)        # on [0, 1]
@@ -56,15 +57,11 @@ GL_WEIGHTS = 0.5 * _GL_W              # sum to 1
 TWO_PI = 2.0 * math.pi
 
 
-class SimNco:
-    """NCO arrays with the CorrelatorBank names (complex baseband: carr_freq = Doppler)."""
+class SimNco(NcoBank):
+    """The simulator's NCOs (complex baseband: IF = 0, carr_freq = Doppler)."""
 
     def __init__(self, n_ch):
-        self.code_phase = np.zeros(n_ch)   # chips at the start of the next interval
-        self.code_rate = np.full(n_ch, F_CA)
-        self.carr_phase = np.zeros(n_ch)   # cycles
-        self.carr_freq = np.zeros(n_ch)    # Hz
-        self.if_hz = 0.0
+        super().__init__(n_ch, 0.0, F_CA)
 
 
 @dataclass

@@ -56,6 +56,7 @@ from numba import njit
 
 from ultratight.constants import F_CA, F_L1, T_CA
 from ultratight.errors import FilterError
+from ultratight.signals.nco import NcoBank
 
 NX = 5
 ITAU, IPHI, IF, IDA = 1, 2, 3, 4
@@ -63,12 +64,9 @@ TWO_PI = 2.0 * math.pi
 
 
 @njit(cache=True)
-def _feedback_kernel(x, active, code_phase, code_rate, carr_phase, carr_freq, aid_now, aid_prev,
-                     rate_prev, hist, use_aid, prm, dx):
-    """prm = [T, if_hz, k_tau, k_phi, k_f, k_da, f_ca, f_l1].
-
-    hist[c]: 0 = no aiding history, 1 = previous aiding value known, 2 = previous rate known.
-    """
+def feedback_one(c, x, active, code_phase, code_rate, carr_phase, carr_freq, aid_now, aid_prev,
+                 rate_prev, hist, use_aid, prm, dx):
+    """The law for channel ``c`` (the loop body of :func:`feedback_kernel`; touches only row ``c``)."""
     T = prm[0]
     if_hz = prm[1]
     k_tau = prm[2]
@@ -77,43 +75,53 @@ def _feedback_kernel(x, active, code_phase, code_rate, carr_phase, carr_freq, ai
     k_da = prm[5]
     f_ca = prm[6]
     f_l1 = prm[7]
-    n = x.shape[0]
-    for c in range(n):
-        for i in range(NX):
-            dx[c, i] = 0.0
-        if not active[c]:
-            continue
-        # outer-loop aiding: its Doppler rate is a known input to the error acceleration
-        if use_aid[c] and aid_now[c] == aid_now[c]:
-            if hist[c] >= 1:
-                rate = (aid_now[c] - aid_prev[c]) / T
-                if hist[c] >= 2:
-                    d_in = TWO_PI * (rate - rate_prev[c])
-                    x[c, IDA] += d_in
-                    dx[c, IDA] = -d_in
-                rate_prev[c] = rate
-                hist[c] = 2
-            else:
-                hist[c] = 1
-            aid_prev[c] = aid_now[c]
+    for i in range(NX):
+        dx[c, i] = 0.0
+    if not active[c]:
+        return
+    # outer-loop aiding: its Doppler rate is a known input to the error acceleration
+    if use_aid[c] and aid_now[c] == aid_now[c]:
+        if hist[c] >= 1:
+            rate = (aid_now[c] - aid_prev[c]) / T
+            if hist[c] >= 2:
+                d_in = TWO_PI * (rate - rate_prev[c])
+                x[c, IDA] += d_in
+                dx[c, IDA] = -d_in
+            rate_prev[c] = rate
+            hist[c] = 2
         else:
-            hist[c] = 0
-        f_old = carr_freq[c]
-        u_f = k_f * (x[c, IF] + k_da * x[c, IDA] * 0.5 * T)      # rad/s
-        f_new = f_old + u_f / TWO_PI
-        carr_freq[c] = f_new
-        dphi = k_phi * x[c, IPHI]
-        ph = carr_phase[c] + dphi / TWO_PI
-        carr_phase[c] = ph - math.floor(ph)
-        dtau = k_tau * x[c, ITAU]
-        code_phase[c] += dtau
-        code_rate[c] = f_ca * (1.0 + (f_new - if_hz) / f_l1)
-        dx[c, ITAU] = dtau
-        dx[c, IPHI] = dphi
-        dx[c, IF] = u_f
-        x[c, ITAU] -= dtau
-        x[c, IPHI] -= dphi
-        x[c, IF] -= u_f
+            hist[c] = 1
+        aid_prev[c] = aid_now[c]
+    else:
+        hist[c] = 0
+    f_old = carr_freq[c]
+    u_f = k_f * (x[c, IF] + k_da * x[c, IDA] * 0.5 * T)      # rad/s
+    f_new = f_old + u_f / TWO_PI
+    carr_freq[c] = f_new
+    dphi = k_phi * x[c, IPHI]
+    ph = carr_phase[c] + dphi / TWO_PI
+    carr_phase[c] = ph - math.floor(ph)
+    dtau = k_tau * x[c, ITAU]
+    code_phase[c] += dtau
+    code_rate[c] = f_ca * (1.0 + (f_new - if_hz) / f_l1)
+    dx[c, ITAU] = dtau
+    dx[c, IPHI] = dphi
+    dx[c, IF] = u_f
+    x[c, ITAU] -= dtau
+    x[c, IPHI] -= dphi
+    x[c, IF] -= u_f
+
+
+@njit(cache=True)
+def feedback_kernel(x, active, code_phase, code_rate, carr_phase, carr_freq, aid_now, aid_prev,
+                    rate_prev, hist, use_aid, prm, dx):
+    """prm = [T, if_hz, k_tau, k_phi, k_f, k_da, f_ca, f_l1].
+
+    hist[c]: 0 = no aiding history, 1 = previous aiding value known, 2 = previous rate known.
+    """
+    for c in range(x.shape[0]):
+        feedback_one(c, x, active, code_phase, code_rate, carr_phase, carr_freq, aid_now, aid_prev,
+                     rate_prev, hist, use_aid, prm, dx)
 
 
 def apply_feedback(x, active, code_phase, code_rate, carr_phase, carr_freq, T=T_CA, if_hz=0.0,
@@ -126,7 +134,7 @@ def apply_feedback(x, active, code_phase, code_rate, carr_phase, carr_freq, T=T_
     prm = np.array([float(T), float(if_hz), k_tau, k_phi, k_f, k_da, F_CA, F_L1])
     dx = np.zeros((n, NX))
     nan = np.full(n, np.nan)
-    _feedback_kernel(x, np.asarray(active), code_phase, code_rate, carr_phase, carr_freq, nan, nan.copy(),
+    feedback_kernel(x, np.asarray(active), code_phase, code_rate, carr_phase, carr_freq, nan, nan.copy(),
                      np.zeros(n), np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.bool_), prm, dx)
     return dx
 
@@ -141,8 +149,8 @@ class InnerLoop:
     ``apply(bank, nco, aid_doppler_hz=None, use_aid=None)``: ``bank`` is a tracking bank
     (``PrefilterBank``, ``PbKfBank`` or a view of one) with ``x`` (n_ch, 5) (modified in place),
     ``active`` (n_ch,) bool and ``note_correction(dx)`` (told the correction just applied);
-    ``nco`` has float arrays ``code_phase``, ``code_rate``, ``carr_phase``, ``carr_freq``
-    (a CorrelatorBank or corrsim.SimNco), moved in place.  ``aid_doppler_hz``
+    ``nco`` is an :class:`ultratight.signals.nco.NcoBank` (a correlator bank's ``nco``, or the
+    correlator-level simulator's), moved in place.  ``aid_doppler_hz``
     (n_ch,) is the outer loop's Doppler prediction for the next interval (None: no aiding);
     ``use_aid`` (n_ch,) bool is the arbitration mask (None: aid every channel when aiding is
     given).  Returns dx (n_ch, 5), the state change booked into the bank.
@@ -180,6 +188,9 @@ class InnerLoop:
             self.hist[np.asarray(channels)] = 0
 
     def apply(self, bank, nco, aid_doppler_hz=None, use_aid=None):
+        if not isinstance(nco, NcoBank):
+            raise FilterError(f"InnerLoop.apply: nco must be an ultratight.signals.nco.NcoBank, got "
+                              f"{type(nco).__name__}")
         x = bank.x
         if aid_doppler_hz is None:
             aid_now = self._nan
@@ -192,7 +203,7 @@ class InnerLoop:
                 mask = use_aid
             if aid_now.shape != (self.n_ch,) or mask.shape != (self.n_ch,):
                 raise FilterError(f"InnerLoop.apply: aid_doppler_hz and use_aid must have shape ({self.n_ch},)")
-        _feedback_kernel(x, bank.active, nco.code_phase, nco.code_rate, nco.carr_phase, nco.carr_freq,
+        feedback_kernel(x, bank.active, nco.code_phase, nco.code_rate, nco.carr_phase, nco.carr_freq,
                          aid_now, self.aid_prev, self.rate_prev, self.hist, mask, self.prm, self.dx)
         bank.note_correction(self.dx)
         return self.dx

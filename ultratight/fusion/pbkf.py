@@ -128,9 +128,9 @@ def discriminator_calibration(spacing_chips, T, known_bits, n_mc=20000, seed=123
 
 
 @njit(cache=True)
-def _pbkf_step(x, P, Phi, Qd, z, bits, active, prm, prev, have_prev, rot, innov, flags, x0, P0, mom,
-               tab_k, tab_u):
-    """prm = [T, beta, spacing, amp_alpha, amp_min, plim(4)...]; prev (n,2) prompt of the last epoch."""
+def _pbkf_channel(c, x, P, Phi, Qd, z, bits, active, prm, prev, have_prev, rot, innov, flags, x0, P0, mom,
+                  tab_k, tab_u):
+    """One epoch of channel ``c`` (the loop body of :func:`_pbkf_step`; touches only row ``c``)."""
     T = prm[0]
     beta = prm[1]
     sp = prm[2]
@@ -153,144 +153,247 @@ def _pbkf_step(x, P, Phi, Qd, z, bits, active, prm, prev, have_prev, rot, innov,
     K = np.zeros((NK, NM))
     tmp = np.zeros((NK, NK))
     xs = np.zeros(NK)
+    flags[c] = 0
+    if not active[c]:
+        return
+    D = bits[c]
+    known = D != 0.0
+    w = D if known else 1.0
+    ip = z[c, 0] * w
+    qp = z[c, 3] * w
+    # C/N0 by the moment method (scale-free): with m2 = E|P|^2 = A^2 + 2 s^2 and
+    # m4 = E|P|^4 = A^4 + 8 A^2 s^2 + 8 s^4:  A^2 = sqrt(2 m2^2 - m4), s^2 = (m2 - A^2)/2
+    p2 = ip * ip + qp * qp
+    mom[c, 0] = (1.0 - alpha) * mom[c, 0] + alpha * p2
+    mom[c, 1] = (1.0 - alpha) * mom[c, 1] + alpha * p2 * p2
+    dd = 2.0 * mom[c, 0] * mom[c, 0] - mom[c, 1]
+    a2 = math.sqrt(dd) if dd > 0.0 else 0.0
+    s2 = 0.5 * (mom[c, 0] - a2)
+    if s2 < 1e-3 * mom[c, 0]:
+        s2 = 1e-3 * mom[c, 0]
+    if s2 <= 0.0:
+        s2 = 1.0
+    cn = 0.5 * a2 / s2                          # C/N0 * T
+    if cn < 0.5 * amin * amin:
+        cn = 0.5 * amin * amin
+    x[c, 0] = math.sqrt(2.0 * cn)               # amplitude in unit-noise terms
+    # discriminators
+    e = math.sqrt(z[c, 1] * z[c, 1] + z[c, 4] * z[c, 4])
+    l = math.sqrt(z[c, 2] * z[c, 2] + z[c, 5] * z[c, 5])
+    y[0] = 0.5 * (2.0 - sp) * (e - l) / (e + l) if e + l > 0 else 0.0
+    if known:
+        y[1] = math.atan2(qp, ip)
+    else:
+        y[1] = math.atan(qp / ip) if ip != 0.0 else 0.0
+    # previous prompt rotated by the NCO corrections applied in between
+    use_f = have_prev[c] != 0
+    if use_f:
+        cr = math.cos(rot[c])
+        sr = math.sin(rot[c])
+        i1 = prev[c, 0] * cr + prev[c, 1] * sr
+        q1 = -prev[c, 0] * sr + prev[c, 1] * cr
+        cross = i1 * qp - ip * q1
+        dot = i1 * ip + q1 * qp
+        if known:
+            y[2] = math.atan2(cross, dot) / T
+        else:
+            y[2] = math.atan(cross / dot) / T if dot != 0.0 else 0.0
+    prev[c, 0] = ip
+    prev[c, 1] = qp
+    have_prev[c] = 1
+    rot[c] = 0.0
+    # calibrated discriminator gains and variances at this C/N0 (table on log10(cn))
+    tab = tab_k if known else tab_u
+    u = (math.log10(cn) - lg0) / dlg
+    if u < 0.0:
+        u = 0.0
+    if u > tab.shape[0] - 1.001:
+        u = tab.shape[0] - 1.001
+    i0 = int(u)
+    fr = u - i0
+    for m in range(NM):
+        gk[m] = tab[i0, m] * (1.0 - fr) + tab[i0 + 1, m] * fr
+        Rv[m] = tab[i0, NM + m] * (1.0 - fr) + tab[i0 + 1, NM + m] * fr
+    for m in range(NM):
+        for i in range(NK):
+            H[m, i] = gk[m] * H0[m, i]
+    nm = NM if use_f else NM - 1
+    # innovation (PLL residual wrapped)
+    for i in range(NK):
+        xs[i] = x[c, 1 + i]
+    for m in range(NM):
+        acc = 0.0
+        for i in range(NK):
+            acc += H[m, i] * xs[i]
+        r = y[m] - acc
+        if m == 1:
+            per = 2.0 * math.pi if known else math.pi
+            r = r - per * math.floor(r / per + 0.5)
+        innov[c, m] = r if m < nm else np.nan
+        y[m] = r
+    # sequential scalar updates (R diagonal)
+    Pc = P[c]
+    for m in range(nm):
+        s = Rv[m]
+        for i in range(NK):
+            acc = 0.0
+            for j in range(NK):
+                acc += Pc[i, j] * H[m, j]
+            PHt[i, 0] = acc
+            s += H[m, i] * acc
+        for i in range(NK):
+            K[i, 0] = PHt[i, 0] / s
+        r = y[m]     # residual already corrected for the earlier rows' state change
+        for i in range(NK):
+            xs[i] += K[i, 0] * r
+        for i in range(NK):
+            for j in range(NK):
+                Pc[i, j] -= K[i, 0] * PHt[j, 0]
+        # update the remaining residuals for the state change (sequential processing)
+        for m2 in range(m + 1, nm):
+            acc = 0.0
+            for i in range(NK):
+                acc += H[m2, i] * K[i, 0] * r
+            y[m2] -= acc
+    # predict
+    for i in range(NK):
+        acc = 0.0
+        for j in range(NK):
+            acc += Phi[i, j] * xs[j]
+        x[c, 1 + i] = acc
+    for i in range(NK):
+        for j in range(NK):
+            acc = 0.0
+            for k in range(NK):
+                acc += Phi[i, k] * Pc[k, j]
+            tmp[i, j] = acc
+    bad = False
+    for i in range(NK):
+        for j in range(i, NK):
+            acc = Qd[i, j]
+            for k in range(NK):
+                acc += tmp[i, k] * Phi[j, k]
+            Pc[i, j] = acc
+            Pc[j, i] = acc
+        if not (np.isfinite(x[c, 1 + i]) and Pc[i, i] >= 0.0 and Pc[i, i] <= prm[5 + i]):
+            bad = True
+    if bad:
+        flags[c] |= FLAG_DIVERGED
+        for i in range(NX):
+            x[c, i] = x0[c, i]
+        for i in range(NK):
+            for j in range(NK):
+                Pc[i, j] = P0[c, i, j]
+        have_prev[c] = 0
+
+
+@njit(cache=True)
+def _pbkf_step(x, P, Phi, Qd, z, bits, active, prm, prev, have_prev, rot, innov, flags, x0, P0, mom,
+               tab_k, tab_u):
+    """prm = [T, beta, spacing, amp_alpha, amp_min, plim(4)...]; prev (n,2) prompt of the last epoch."""
+    n = x.shape[0]
     for c in range(n):
         for m in range(NZ):
             if active[c] and not np.isfinite(z[c, m]):
                 return -1 - c
     for c in range(n):
-        flags[c] = 0
-        if not active[c]:
-            continue
-        D = bits[c]
-        known = D != 0.0
-        w = D if known else 1.0
-        ip = z[c, 0] * w
-        qp = z[c, 3] * w
-        # C/N0 by the moment method (scale-free): with m2 = E|P|^2 = A^2 + 2 s^2 and
-        # m4 = E|P|^4 = A^4 + 8 A^2 s^2 + 8 s^4:  A^2 = sqrt(2 m2^2 - m4), s^2 = (m2 - A^2)/2
-        p2 = ip * ip + qp * qp
-        mom[c, 0] = (1.0 - alpha) * mom[c, 0] + alpha * p2
-        mom[c, 1] = (1.0 - alpha) * mom[c, 1] + alpha * p2 * p2
-        dd = 2.0 * mom[c, 0] * mom[c, 0] - mom[c, 1]
-        a2 = math.sqrt(dd) if dd > 0.0 else 0.0
-        s2 = 0.5 * (mom[c, 0] - a2)
-        if s2 < 1e-3 * mom[c, 0]:
-            s2 = 1e-3 * mom[c, 0]
-        if s2 <= 0.0:
-            s2 = 1.0
-        cn = 0.5 * a2 / s2                          # C/N0 * T
-        if cn < 0.5 * amin * amin:
-            cn = 0.5 * amin * amin
-        x[c, 0] = math.sqrt(2.0 * cn)               # amplitude in unit-noise terms
-        # discriminators
-        e = math.sqrt(z[c, 1] * z[c, 1] + z[c, 4] * z[c, 4])
-        l = math.sqrt(z[c, 2] * z[c, 2] + z[c, 5] * z[c, 5])
-        y[0] = 0.5 * (2.0 - sp) * (e - l) / (e + l) if e + l > 0 else 0.0
-        if known:
-            y[1] = math.atan2(qp, ip)
-        else:
-            y[1] = math.atan(qp / ip) if ip != 0.0 else 0.0
-        # previous prompt rotated by the NCO corrections applied in between
-        use_f = have_prev[c] != 0
-        if use_f:
-            cr = math.cos(rot[c])
-            sr = math.sin(rot[c])
-            i1 = prev[c, 0] * cr + prev[c, 1] * sr
-            q1 = -prev[c, 0] * sr + prev[c, 1] * cr
-            cross = i1 * qp - ip * q1
-            dot = i1 * ip + q1 * qp
-            if known:
-                y[2] = math.atan2(cross, dot) / T
-            else:
-                y[2] = math.atan(cross / dot) / T if dot != 0.0 else 0.0
-        prev[c, 0] = ip
-        prev[c, 1] = qp
-        have_prev[c] = 1
-        rot[c] = 0.0
-        # calibrated discriminator gains and variances at this C/N0 (table on log10(cn))
-        tab = tab_k if known else tab_u
-        u = (math.log10(cn) - lg0) / dlg
-        if u < 0.0:
-            u = 0.0
-        if u > tab.shape[0] - 1.001:
-            u = tab.shape[0] - 1.001
-        i0 = int(u)
-        fr = u - i0
-        for m in range(NM):
-            gk[m] = tab[i0, m] * (1.0 - fr) + tab[i0 + 1, m] * fr
-            Rv[m] = tab[i0, NM + m] * (1.0 - fr) + tab[i0 + 1, NM + m] * fr
-        for m in range(NM):
-            for i in range(NK):
-                H[m, i] = gk[m] * H0[m, i]
-        nm = NM if use_f else NM - 1
-        # innovation (PLL residual wrapped)
-        for i in range(NK):
-            xs[i] = x[c, 1 + i]
-        for m in range(NM):
-            acc = 0.0
-            for i in range(NK):
-                acc += H[m, i] * xs[i]
-            r = y[m] - acc
-            if m == 1:
-                per = 2.0 * math.pi if known else math.pi
-                r = r - per * math.floor(r / per + 0.5)
-            innov[c, m] = r if m < nm else np.nan
-            y[m] = r
-        # sequential scalar updates (R diagonal)
-        Pc = P[c]
-        for m in range(nm):
-            s = Rv[m]
-            for i in range(NK):
-                acc = 0.0
-                for j in range(NK):
-                    acc += Pc[i, j] * H[m, j]
-                PHt[i, 0] = acc
-                s += H[m, i] * acc
-            for i in range(NK):
-                K[i, 0] = PHt[i, 0] / s
-            r = y[m]     # residual already corrected for the earlier rows' state change
-            for i in range(NK):
-                xs[i] += K[i, 0] * r
-            for i in range(NK):
-                for j in range(NK):
-                    Pc[i, j] -= K[i, 0] * PHt[j, 0]
-            # update the remaining residuals for the state change (sequential processing)
-            for m2 in range(m + 1, nm):
-                acc = 0.0
-                for i in range(NK):
-                    acc += H[m2, i] * K[i, 0] * r
-                y[m2] -= acc
-        # predict
-        for i in range(NK):
-            acc = 0.0
-            for j in range(NK):
-                acc += Phi[i, j] * xs[j]
-            x[c, 1 + i] = acc
-        for i in range(NK):
-            for j in range(NK):
-                acc = 0.0
-                for k in range(NK):
-                    acc += Phi[i, k] * Pc[k, j]
-                tmp[i, j] = acc
-        bad = False
-        for i in range(NK):
-            for j in range(i, NK):
-                acc = Qd[i, j]
-                for k in range(NK):
-                    acc += tmp[i, k] * Phi[j, k]
-                Pc[i, j] = acc
-                Pc[j, i] = acc
-            if not (np.isfinite(x[c, 1 + i]) and Pc[i, i] >= 0.0 and Pc[i, i] <= prm[5 + i]):
-                bad = True
-        if bad:
-            flags[c] |= FLAG_DIVERGED
-            for i in range(NX):
-                x[c, i] = x0[c, i]
-            for i in range(NK):
-                for j in range(NK):
-                    Pc[i, j] = P0[c, i, j]
-            have_prev[c] = 0
+        _pbkf_channel(c, x, P, Phi, Qd, z, bits, active, prm, prev, have_prev, rot, innov, flags, x0, P0, mom,
+                      tab_k, tab_u)
     return 0
+
+
+@njit(cache=True)
+def _pbkf_views(fbuf, ibuf, n, n_prm, n_tab):
+    """Views of the packed buffers (layout of :class:`PbKfBank`)."""
+    o = 0
+    x = fbuf[o:o + n * NX].reshape((n, NX)); o += n * NX
+    x_post = fbuf[o:o + n * NX].reshape((n, NX)); o += n * NX
+    P = fbuf[o:o + n * NK * NK].reshape((n, NK, NK)); o += n * NK * NK
+    x0 = fbuf[o:o + n * NX].reshape((n, NX)); o += n * NX
+    P0 = fbuf[o:o + n * NK * NK].reshape((n, NK, NK)); o += n * NK * NK
+    Phi = fbuf[o:o + NK * NK].reshape((NK, NK)); o += NK * NK
+    Phi_inv = fbuf[o:o + NK * NK].reshape((NK, NK)); o += NK * NK
+    Qd = fbuf[o:o + NK * NK].reshape((NK, NK)); o += NK * NK
+    prm = fbuf[o:o + n_prm]; o += n_prm
+    prev = fbuf[o:o + 2 * n].reshape((n, 2)); o += 2 * n
+    rot = fbuf[o:o + n]; o += n
+    innov = fbuf[o:o + n * NM].reshape((n, NM)); o += n * NM
+    mom = fbuf[o:o + 2 * n].reshape((n, 2)); o += 2 * n
+    tab_k = fbuf[o:o + n_tab].reshape((CAL_N, -1)); o += n_tab
+    tab_u = fbuf[o:o + n_tab].reshape((CAL_N, -1)); o += n_tab
+    flags = ibuf[0:n]
+    active = ibuf[n:2 * n]
+    have_prev = ibuf[2 * n:3 * n]
+    n_resets = ibuf[3 * n:4 * n]
+    return x, x_post, P, x0, P0, Phi, Phi_inv, Qd, prm, prev, rot, innov, mom, tab_k, tab_u, flags, active, \
+        have_prev, n_resets
+
+
+@njit(cache=True)
+def pbkf_channel_epoch(fbuf, ibuf, c, z, bits, n_prm, n_tab):
+    """Channel ``c``'s part of :func:`pbkf_epoch` (touches only row ``c``); -1 - c for a non-finite input."""
+    n = z.shape[0]
+    (x, x_post, P, x0, P0, Phi, Phi_inv, Qd, prm, prev, rot, innov, mom, tab_k, tab_u, flags, active,
+     have_prev, n_resets) = _pbkf_views(fbuf, ibuf, n, n_prm, n_tab)
+    for m in range(NZ):
+        if active[c] and not np.isfinite(z[c, m]):
+            return -1 - c
+    _pbkf_channel(c, x, P, Phi, Qd, z, bits, active, prm, prev, have_prev, rot, innov, flags, x0, P0, mom,
+                  tab_k, tab_u)
+    if (flags[c] & FLAG_DIVERGED) != 0:
+        n_resets[c] += 1
+    x_post[c, 0] = x[c, 0]
+    for i in range(NK):
+        acc = 0.0
+        for k in range(NK):
+            acc += Phi_inv[i, k] * x[c, 1 + k]
+        x_post[c, 1 + i] = acc
+    return 0
+
+
+@njit(cache=True)
+def pbkf_epoch(fbuf, ibuf, z, bits, n_prm, n_tab):
+    """One epoch of a packed PB-KF bank: discriminators + KF (:func:`_pbkf_step`), divergence count,
+    and the posterior at the interval start (the time update undone: x_post = Phi^-1 x)."""
+    n = z.shape[0]
+    (x, x_post, P, x0, P0, Phi, Phi_inv, Qd, prm, prev, rot, innov, mom, tab_k, tab_u, flags, active,
+     have_prev, n_resets) = _pbkf_views(fbuf, ibuf, n, n_prm, n_tab)
+    st = _pbkf_step(x, P, Phi, Qd, z, bits, active, prm, prev, have_prev, rot, innov, flags, x0, P0, mom,
+                    tab_k, tab_u)
+    if st < 0:
+        return st
+    for c in range(n):
+        if (flags[c] & FLAG_DIVERGED) != 0:
+            n_resets[c] += 1
+        x_post[c, 0] = x[c, 0]
+        for i in range(NK):
+            acc = 0.0
+            for k in range(NK):
+                acc += Phi_inv[i, k] * x[c, 1 + k]
+            x_post[c, 1 + i] = acc
+    return st
+
+
+@njit(cache=True)
+def pbkf_note_correction_one(fbuf, ibuf, c, dx, n_prm, n_tab):
+    """:func:`pbkf_note_correction` for channel ``c`` alone."""
+    views = _pbkf_views(fbuf, ibuf, dx.shape[0], n_prm, n_tab)
+    prm = views[8]
+    rot = views[10]
+    rot[c] += dx[c, 2] - 0.5 * prm[0] * dx[c, 3]
+
+
+@njit(cache=True)
+def pbkf_note_correction(fbuf, ibuf, dx, n_prm, n_tab):
+    """The NCO corrections (state changes) applied before the next interval, for the FLL:
+    angle(P_k conj(P_{k-1})) + u_phi - u_f T/2 measures the corrected df (module docstring)."""
+    n = dx.shape[0]
+    views = _pbkf_views(fbuf, ibuf, n, n_prm, n_tab)
+    prm = views[8]
+    rot = views[10]
+    T = prm[0]
+    for c in range(n):
+        rot[c] += dx[c, 2] - 0.5 * T * dx[c, 3]
 
 
 class PbKfBank:
@@ -320,34 +423,38 @@ class PbKfBank:
         self.spacing_chips = float(spacing_chips)
         self.q = qq
         Phi5, Q5 = prefilter_model(self.T, dict(q_amp=0.0, **qq))
-        self.Phi = np.ascontiguousarray(Phi5[1:, 1:])
-        self.Qd = np.ascontiguousarray(Q5[1:, 1:])
+        Phi4 = Phi5[1:, 1:]
+        Qd4 = Q5[1:, 1:]
         lim = DEFAULT_P_LIMITS[1:] if p_limits is None else np.asarray(p_limits, dtype=float)
         amin = float(corr_model.amplitude_from_cn0(cn0_min_dbhz, self.T))
-        self._prm = np.array([self.T, BETA_CODE_CARRIER, self.spacing_chips, self.T / amp_tau_s, amin, *lim,
-                              CAL_LG0, CAL_DLG])
-        self._tab_k = discriminator_calibration(self.spacing_chips, self.T, True)
-        self._tab_u = discriminator_calibration(self.spacing_chips, self.T, False)
-        self.x = np.zeros((n_ch, NX))
-        self.x_post = np.zeros((n_ch, NX))
-        self.P = np.zeros((n_ch, NK, NK))
-        self.x0 = np.zeros((n_ch, NX))
-        self.P0 = np.zeros((n_ch, NK, NK))
+        prm = np.array([self.T, BETA_CODE_CARRIER, self.spacing_chips, self.T / amp_tau_s, amin, *lim,
+                        CAL_LG0, CAL_DLG])
+        tab_k = discriminator_calibration(self.spacing_chips, self.T, True)
+        tab_u = discriminator_calibration(self.spacing_chips, self.T, False)
+        # one packed float buffer and one int buffer (compiled callers take the whole bank as two
+        # arrays, :attr:`packed`); the attributes below are views of them
+        self._n_prm = prm.size
+        self._n_tab = tab_k.size
+        n_f = n_ch * (4 * NX + 2 * NK * NK + 2 + 1 + NM + 2) + 3 * NK * NK + prm.size + 2 * tab_k.size
+        self._fbuf = np.zeros(n_f)
+        self._ibuf = np.zeros(4 * n_ch, dtype=np.int64)
+        (self.x, self.x_post, self.P, self.x0, self.P0, self.Phi, self._Phi_inv, self.Qd, self._prm, self._prev,
+         self._rot, self.innov, self._mom, self._tab_k, self._tab_u, self.flags, self._active_i, self._have_prev,
+         self.n_resets) = _pbkf_views(self._fbuf, self._ibuf, n_ch, self._n_prm, self._n_tab)
+        self.Phi[:] = Phi4
+        self._Phi_inv[:] = np.linalg.inv(Phi4)
+        self.Qd[:] = Qd4
+        self._prm[:] = prm
+        self._tab_k[:] = tab_k
+        self._tab_u[:] = tab_u
         a0 = float(corr_model.amplitude_from_cn0(cn0_dbhz_init, self.T))
         self.x0[:, 0] = a0
         self.P0[:] = np.diag([0.1 ** 2, 0.3 ** 2, (2 * math.pi * 5.0) ** 2, (2 * math.pi * 10.0) ** 2])
         self.x[:] = self.x0
         self.P[:] = self.P0
-        self.active = np.zeros(n_ch, dtype=np.bool_)
-        self.innov = np.full((n_ch, NM), np.nan)
+        self.innov[:] = np.nan
         self.nis = np.full(n_ch, np.nan)
         self.theta = np.ones(n_ch)
-        self.flags = np.zeros(n_ch, dtype=np.int64)
-        self.n_resets = np.zeros(n_ch, dtype=np.int64)
-        self._prev = np.zeros((n_ch, 2))
-        self._have_prev = np.zeros(n_ch, dtype=np.int64)
-        self._rot = np.zeros(n_ch)
-        self._mom = np.zeros((n_ch, 2))
         self._mom[:, 0] = a0 * a0 + 2.0
         self._mom[:, 1] = a0 ** 4 + 8 * a0 * a0 + 8.0
         self._bits_unknown = np.zeros(n_ch)
@@ -368,7 +475,26 @@ class PbKfBank:
         self._mom[ch, 0] = a0 * a0 + 2.0
         self._mom[ch, 1] = a0 ** 4 + 8 * a0 * a0 + 8.0
         if activate:
-            self.active[ch] = True
+            self._active_i[ch] = 1
+
+    @property
+    def active(self):
+        """Per-channel active mask (read-only copy; change it with set_active / reset)."""
+        a = self._active_i != 0
+        a.flags.writeable = False
+        return a
+
+    def set_active(self, mask):
+        m = np.asarray(mask, dtype=np.bool_)
+        if m.shape != (self.n_ch,):
+            raise FilterError(f"PbKfBank active mask: expected shape ({self.n_ch},), got {m.shape}")
+        self._active_i[:] = m
+
+    @property
+    def packed(self):
+        """``(float buffer, int buffer, n_prm, n_tab)``: the bank's whole state for compiled callers
+        (:func:`pbkf_epoch`, :func:`pbkf_note_correction`)."""
+        return self._fbuf, self._ibuf, self._n_prm, self._n_tab
 
     def step(self, z, bits=None):
         z = np.asarray(z, dtype=np.float64)
@@ -377,15 +503,9 @@ class PbKfBank:
         b = self._bits_unknown if bits is None else np.asarray(bits, dtype=np.float64)
         if b.shape != (self.n_ch,):
             raise FilterError(f"PbKfBank.step: bits must have shape ({self.n_ch},), got {b.shape}")
-        st = _pbkf_step(self.x, self.P, self.Phi, self.Qd, z, b, self.active, self._prm, self._prev,
-                        self._have_prev, self._rot, self.innov, self.flags, self.x0, self.P0, self._mom,
-                        self._tab_k, self._tab_u)
+        st = pbkf_epoch(self._fbuf, self._ibuf, z, b, self._n_prm, self._n_tab)
         if st < 0:
             raise FilterError(f"PbKfBank.step: non-finite measurement on active channel {-1 - st}")
-        self.n_resets += (self.flags & FLAG_DIVERGED) != 0
-        # posterior at the interval start: undo the time update (Phi is invertible)
-        self.x_post[:, 0] = self.x[:, 0]
-        self.x_post[:, 1:] = np.linalg.solve(self.Phi, self.x[:, 1:].T).T
         return self.x
 
     @property
@@ -394,9 +514,8 @@ class PbKfBank:
 
     def note_correction(self, dx):
         """Record the NCO corrections (state changes) applied before the next interval (FLL)."""
-        T = self.T
-        # angle(P_k conj(P_{k-1})) + u_phi - u_f T/2 measures the corrected df (module docstring)
-        self._rot += dx[:, 2] - 0.5 * T * dx[:, 3]
+        pbkf_note_correction(self._fbuf, self._ibuf, np.ascontiguousarray(dx, dtype=float), self._n_prm,
+                             self._n_tab)
 
     def correct(self, dx):
         self.x -= dx

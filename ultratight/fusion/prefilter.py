@@ -433,12 +433,42 @@ def _layout(n):
 
 
 @njit(cache=True)
-def _bank_step_packed(kind, fbuf, ibuf, z, bits):
-    """Packed-argument entry point (few arguments = low dispatch cost).
+def _ilayout(n):
+    """Offsets of the packed int buffer: flags (n), active (n), iprm (3), n_resets (n), counters
+    (epoch, correction_period)."""
+    offs = np.empty(6, dtype=np.int64)
+    offs[0] = 0
+    offs[1] = n
+    offs[2] = 2 * n
+    offs[3] = 2 * n + 3
+    offs[4] = 3 * n + 3
+    offs[5] = 3 * n + 5
+    return offs
 
-    ibuf = [flags (n), active (n), do_correction, robust_every, windowed_adaptive].
-    """
+
+@njit(cache=True)
+def bank_epoch(kind, fbuf, ibuf, z, bits):
+    """One epoch of a packed bank, bookkeeping included: sets the correction flag from the epoch
+    counter (every ``correction_period`` epochs), steps, counts divergences in ``n_resets`` and
+    advances the counter. Returns the status of :func:`_bank_step`."""
     n = z.shape[0]
+    io = _ilayout(n)
+    epoch = ibuf[io[4]]
+    period = ibuf[io[4] + 1]
+    ibuf[2 * n] = 1 if epoch % period == 0 else 0
+    st = _bank_step_packed(kind, fbuf, ibuf, z, bits)
+    if st < 0:
+        return st
+    ibuf[io[4]] = epoch + 1
+    for c in range(n):
+        if (ibuf[c] & FLAG_DIVERGED) != 0:
+            ibuf[io[3] + c] += 1
+    return st
+
+
+@njit(cache=True)
+def _views(fbuf, ibuf, n):
+    """The bank's arrays as views of its packed buffers (layouts :func:`_layout`, :func:`_ilayout`)."""
     o = _layout(n)
     x = fbuf[o[0]:o[1]].reshape((n, NX))
     P = fbuf[o[1]:o[2]].reshape((n, NX, NX))
@@ -458,30 +488,52 @@ def _bank_step_packed(kind, fbuf, ibuf, z, bits):
     flags = ibuf[0:n]
     active = ibuf[n:2 * n]
     iprm = ibuf[2 * n:2 * n + 3]
+    return x, P, xpost, x0, P0, innov, nis, theta, acc, Phi, Qd, R, prm, W1, W2, flags, active, iprm
+
+
+@njit(cache=True)
+def _bank_step_packed(kind, fbuf, ibuf, z, bits):
+    """Packed-argument entry point (few arguments = low dispatch cost).
+
+    ibuf = [flags (n), active (n), do_correction, robust_every, windowed_adaptive, ...]
+    (layout :func:`_ilayout`).
+    """
+    x, P, xpost, x0, P0, innov, nis, theta, acc, Phi, Qd, R, prm, W1, W2, flags, active, iprm = \
+        _views(fbuf, ibuf, z.shape[0])
     return _bank_step(kind, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, prm, iprm,
                       innov, nis, theta, flags, W1, W2, acc)
 
 
 @njit(cache=True)
-def _bank_step(kind, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, prm, iprm,
-               innov, nis, theta, flags, W1, W2, acc):
-    """One epoch for all channels. Returns -1 - ch if z of an active channel is non-finite.
-
-    prm  = [T, beta, dhalf, huber_c, theta_min, wm0, wc0, wi, ut_scale]
-    iprm = [do_correction, robust_every, windowed_adaptive]
-    acc (n_ch, 6): per-channel sums over the correction period (windowed statistics):
-    [tr(P_zz_bar), |r_winsorised|^2, |r|^2, explainable energy, tr(R)] and the held
-    measurement-noise scale lam in column 5.
-    W1 (n_w1, 6) and W2 (n_w2, 6, 6) are work arrays (no allocation per epoch).
-    """
-    n_ch = x.shape[0]
-    for c in range(n_ch):
-        if active[c]:
-            for m in range(NZ):
-                if not np.isfinite(z[c, m]):
-                    return -1 - c
-            if not np.isfinite(bits[c]):
+def bank_channel_epoch(kind, fbuf, ibuf, c, z, bits, epoch, W1, W2):
+    """Channel ``c``'s part of :func:`bank_epoch` at epoch count ``epoch`` (the counter itself is not
+    advanced), with work arrays ``W1`` (N_W1, 6) / ``W2`` (N_W2, 6, 6) of the caller's: channels
+    stepped by different threads need their own. Returns -1 - c for a non-finite input, else 0."""
+    n = z.shape[0]
+    x, P, xpost, x0, P0, innov, nis, theta, acc, Phi, Qd, R, prm, _, _, flags, active, iprm = _views(fbuf, ibuf, n)
+    if active[c]:
+        for m in range(NZ):
+            if not np.isfinite(z[c, m]):
                 return -1 - c
+        if not np.isfinite(bits[c]):
+            return -1 - c
+    io = _ilayout(n)
+    ip = np.empty(3, dtype=np.int64)
+    ip[0] = 1 if epoch % ibuf[io[4] + 1] == 0 else 0
+    ip[1] = iprm[1]
+    ip[2] = iprm[2]
+    _channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, prm, ip,
+                    innov, nis, theta, flags, W1, W2, acc)
+    if (flags[c] & FLAG_DIVERGED) != 0:
+        ibuf[io[3] + c] += 1
+    return 0
+
+
+@njit(cache=True)
+def _channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, prm, iprm,
+                    innov, nis, theta, flags, W1, W2, acc):
+    """One epoch of channel ``c`` (the loop body of :func:`_bank_step`; touches only row ``c`` and the
+    work arrays ``W1``/``W2``, so channels with work arrays of their own may run concurrently)."""
     T = prm[0]
     beta = prm[1]
     dhalf = prm[2]
@@ -514,186 +566,210 @@ def _bank_step(kind, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, prm, iprm
     K = W2[5, 0:NX, :]
     Rb = W2[6]
     tmpm = W2[7, 0:NX, 0:NX]
-    for c in range(n_ch):
-        flags[c] = 0
-        theta[c] = 1.0
-        if not active[c]:
-            nis[c] = np.nan
+    flags[c] = 0
+    theta[c] = 1.0
+    if not active[c]:
+        nis[c] = np.nan
+        for m in range(NZ):
+            innov[c, m] = np.nan
+        return
+    xc = x[c]
+    Pc = P[c]
+    # data bit
+    D = bits[c]
+    if D == 0.0:
+        _h(xc, 1.0, T, beta, dhalf, hx)
+        proj = 0.0
+        for m in range(NZ):
+            proj += z[c, m] * hx[m]
+        D = -1.0 if proj < 0.0 else 1.0
+    # eq. 9: factor the predicted covariance
+    for i in range(NX):
+        for j in range(i + 1, NX):
+            v = 0.5 * (Pc[i, j] + Pc[j, i])
+            Pc[i, j] = v
+            Pc[j, i] = v
+    st = _chol(Pc, S, NX)
+    if st == 1:
+        flags[c] |= FLAG_CHOL_GUARD
+    bad = st == 2
+    if not bad:
+        scale = ut_scale if kind == 1 else math.sqrt(NX)
+        # eqs. 10-14 (eq. 40 with theta = 1)
+        _moments(xc, S, scale, kind, ut_w, D, T, beta, dhalf, pts, zp, zhat, Pzz0, Pxz)
+        for m in range(NZ):
+            r[m] = z[c, m] - zhat[m]
+        pscale = 1.0
+        robust = kind == 2 and (do_corr or robust_every)
+        if kind == 2:
+            lam = acc[c, 5]          # measurement-noise scale held over this period
+            if lam < 1.0:
+                lam = 1.0
+            # eqs. 20-23: standardised residuals against P_zz of eq. 13 (with lam R)
+            any_out = False
             for m in range(NZ):
-                innov[c, m] = np.nan
-            continue
-        xc = x[c]
-        Pc = P[c]
-        # data bit
-        D = bits[c]
-        if D == 0.0:
-            _h(xc, 1.0, T, beta, dhalf, hx)
-            proj = 0.0
-            for m in range(NZ):
-                proj += z[c, m] * hx[m]
-            D = -1.0 if proj < 0.0 else 1.0
-        # eq. 9: factor the predicted covariance
-        for i in range(NX):
-            for j in range(i + 1, NX):
-                v = 0.5 * (Pc[i, j] + Pc[j, i])
-                Pc[i, j] = v
-                Pc[j, i] = v
-        st = _chol(Pc, S, NX)
-        if st == 1:
-            flags[c] |= FLAG_CHOL_GUARD
-        bad = st == 2
-        if not bad:
-            scale = ut_scale if kind == 1 else math.sqrt(NX)
-            # eqs. 10-14 (eq. 40 with theta = 1)
-            _moments(xc, S, scale, kind, ut_w, D, T, beta, dhalf, pts, zp, zhat, Pzz0, Pxz)
-            for m in range(NZ):
-                r[m] = z[c, m] - zhat[m]
-            pscale = 1.0
-            robust = kind == 2 and (do_corr or robust_every)
-            if kind == 2:
-                lam = acc[c, 5]          # measurement-noise scale held over this period
-                if lam < 1.0:
-                    lam = 1.0
-                # eqs. 20-23: standardised residuals against P_zz of eq. 13 (with lam R)
-                any_out = False
-                for m in range(NZ):
-                    sr = math.sqrt(Pzz0[m, m] + lam * R[m, m])
-                    g = abs(r[m]) / (hc * sr)
-                    if g > 1.0:
-                        any_out = True
-                    else:
-                        g = 1.0
-                    gam[m] = g
-                if not robust:
-                    any_out = False
-                if any_out:
-                    flags[c] |= FLAG_ROBUST
-                    for a in range(NZ):
-                        for b in range(NZ):
-                            ga = gam[a] if gam[a] > gam[b] else gam[b]
-                            Rb[a, b] = lam * R[a, b] * ga
-                    if not _chol_strict(Rb, Lz, NZ, RB_REL_PIVOT_MIN):
-                        for a in range(NZ):
-                            for b in range(NZ):
-                                Rb[a, b] = lam * R[a, b] * math.sqrt(gam[a] * gam[b])
+                sr = math.sqrt(Pzz0[m, m] + lam * R[m, m])
+                g = abs(r[m]) / (hc * sr)
+                if g > 1.0:
+                    any_out = True
                 else:
-                    for a in range(NZ):
-                        for b in range(NZ):
-                            Rb[a, b] = lam * R[a, b]
-                # eq. 18
-                trp = 0.0
-                rr = 0.0
-                for a in range(NZ):
-                    trp += Pzz0[a, a] + Rb[a, a]
-                    if windowed:
-                        rw = r[a] / gam[a]       # Huber-winsorised residual
-                        rr += rw * rw
-                    else:
-                        rr += r[a] * r[a]
-                if windowed:
-                    e_full = 0.0
-                    e_expl = 0.0
-                    trr = 0.0
-                    for a in range(NZ):
-                        e_full += r[a] * r[a]
-                        e_expl += Pzz0[a, a] + 2.0 * zhat[a] * zhat[a]
-                        trr += R[a, a]
-                        acc[c, NACC_FIX + a] += D * r[a] / gam[a]   # bit-wiped, winsorised innovation sum
-                    acc[c, 0] += trp
-                    acc[c, 1] += rr
-                    acc[c, 2] += e_full
-                    acc[c, 3] += e_expl
-                    acc[c, 4] += trr
-                    acc[c, 6] += 1.0
-                    if do_corr:
-                        cnt = acc[c, 6]
-                        trp = acc[c, 0]
-                        if win_mode == 2:
-                            # energy of the window-mean innovation, scaled to a sum of epochs
-                            rr = 0.0
-                            for a in range(NZ):
-                                rr += acc[c, NACC_FIX + a] * acc[c, NACC_FIX + a]
-                        else:
-                            rr = acc[c, 1]
-                        # significance margin of a chi-square sum with 6 N degrees of freedom
-                        # (the window-mean statistic |sum r|^2 has only 6 degrees of freedom)
-                        marg = 1.0 + ksig * math.sqrt(2.0 / (NZ * cnt))
-                        marg_th = 1.0 + ksig * math.sqrt(2.0 / NZ) if win_mode == 2 else marg
-                        if cnt < min_win:
-                            rr = 0.0                 # too few epochs: no adaptation
-                        elif rr <= marg_th * trp:
-                            rr = 0.0
-                        # residual energy no state error can explain -> measurement noise scale
-                        lam_new = (acc[c, 2] - acc[c, 3]) / acc[c, 4]
-                        if cnt >= min_win and lam_new > marg:
-                            acc[c, 5] = lam_new
-                        else:
-                            acc[c, 5] = 1.0
-                        for a in range(NACC):
-                            if a != 5:
-                                acc[c, a] = 0.0
-                # eqs. 37-38: adaptive factor (correction epochs only)
-                if do_corr and rr > trp:
-                    th = trp / rr
-                    if th < theta_min:
-                        th = theta_min
-                    theta[c] = th
-                    flags[c] |= FLAG_THETA
-                    pscale = 1.0 / th
-                    # eq. 40: redraw with sqrt(1/theta) S, redo 11, 12, 18
-                    _moments(xc, S, scale * math.sqrt(pscale), kind, ut_w, D, T, beta, dhalf,
-                             pts, zp, zhat, Pzz0, Pxz)
-                    for m in range(NZ):
-                        r[m] = z[c, m] - zhat[m]
+                    g = 1.0
+                gam[m] = g
+            if not robust:
+                any_out = False
+            if any_out:
+                flags[c] |= FLAG_ROBUST
                 for a in range(NZ):
                     for b in range(NZ):
-                        Pzz[a, b] = Pzz0[a, b] + Rb[a, b]
+                        ga = gam[a] if gam[a] > gam[b] else gam[b]
+                        Rb[a, b] = lam * R[a, b] * ga
+                if not _chol_strict(Rb, Lz, NZ, RB_REL_PIVOT_MIN):
+                    for a in range(NZ):
+                        for b in range(NZ):
+                            Rb[a, b] = lam * R[a, b] * math.sqrt(gam[a] * gam[b])
             else:
                 for a in range(NZ):
                     for b in range(NZ):
-                        Pzz[a, b] = Pzz0[a, b] + R[a, b]
-            for m in range(NZ):
-                innov[c, m] = r[m]
-            # eqs. 15-17
-            nv, st2 = _gain_update(xc, Pc, pscale, Pzz, Pxz, r, Lz, K, y)
-            nis[c] = nv
-            if st2 == 1:
-                flags[c] |= FLAG_CHOL_GUARD
-            bad = st2 == 2
-        if not bad:
-            for i in range(NX):
-                xpost[c, i] = xc[i]
-            # eqs. 4-8 (linear dynamics: closed form of the cubature time update)
-            _predict(xc, Pc, Phi, Qd, tmpv, tmpm)
-            # phase-uncertainty cap: beyond ~1 rad the Gaussian/cubature picture of a 2pi-periodic
-            # measurement breaks down (the filter would fall into a non-coherent false lock);
-            # the phase sigma stays <= phi_sigma_max and, being known only modulo 2 pi, the phase
-            # is decorrelated from the other states (a re-lock corrects phase, not frequency)
-            vphi = Pc[IPHI, IPHI]
-            if vphi > phi_var_max:
-                for j in range(NX):
-                    Pc[IPHI, j] = 0.0
-                    Pc[j, IPHI] = 0.0
-                Pc[IPHI, IPHI] = phi_var_max
-            for i in range(NX):
-                if not np.isfinite(xc[i]):
+                        Rb[a, b] = lam * R[a, b]
+            # eq. 18
+            trp = 0.0
+            rr = 0.0
+            for a in range(NZ):
+                trp += Pzz0[a, a] + Rb[a, a]
+                if windowed:
+                    rw = r[a] / gam[a]       # Huber-winsorised residual
+                    rr += rw * rw
+                else:
+                    rr += r[a] * r[a]
+            if windowed:
+                e_full = 0.0
+                e_expl = 0.0
+                trr = 0.0
+                for a in range(NZ):
+                    e_full += r[a] * r[a]
+                    e_expl += Pzz0[a, a] + 2.0 * zhat[a] * zhat[a]
+                    trr += R[a, a]
+                    acc[c, NACC_FIX + a] += D * r[a] / gam[a]   # bit-wiped, winsorised innovation sum
+                acc[c, 0] += trp
+                acc[c, 1] += rr
+                acc[c, 2] += e_full
+                acc[c, 3] += e_expl
+                acc[c, 4] += trr
+                acc[c, 6] += 1.0
+                if do_corr:
+                    cnt = acc[c, 6]
+                    trp = acc[c, 0]
+                    if win_mode == 2:
+                        # energy of the window-mean innovation, scaled to a sum of epochs
+                        rr = 0.0
+                        for a in range(NZ):
+                            rr += acc[c, NACC_FIX + a] * acc[c, NACC_FIX + a]
+                    else:
+                        rr = acc[c, 1]
+                    # significance margin of a chi-square sum with 6 N degrees of freedom
+                    # (the window-mean statistic |sum r|^2 has only 6 degrees of freedom)
+                    marg = 1.0 + ksig * math.sqrt(2.0 / (NZ * cnt))
+                    marg_th = 1.0 + ksig * math.sqrt(2.0 / NZ) if win_mode == 2 else marg
+                    if cnt < min_win:
+                        rr = 0.0                 # too few epochs: no adaptation
+                    elif rr <= marg_th * trp:
+                        rr = 0.0
+                    # residual energy no state error can explain -> measurement noise scale
+                    lam_new = (acc[c, 2] - acc[c, 3]) / acc[c, 4]
+                    if cnt >= min_win and lam_new > marg:
+                        acc[c, 5] = lam_new
+                    else:
+                        acc[c, 5] = 1.0
+                    for a in range(NACC):
+                        if a != 5:
+                            acc[c, a] = 0.0
+            # eqs. 37-38: adaptive factor (correction epochs only)
+            if do_corr and rr > trp:
+                th = trp / rr
+                if th < theta_min:
+                    th = theta_min
+                theta[c] = th
+                flags[c] |= FLAG_THETA
+                pscale = 1.0 / th
+                # eq. 40: redraw with sqrt(1/theta) S, redo 11, 12, 18
+                _moments(xc, S, scale * math.sqrt(pscale), kind, ut_w, D, T, beta, dhalf,
+                         pts, zp, zhat, Pzz0, Pxz)
+                for m in range(NZ):
+                    r[m] = z[c, m] - zhat[m]
+            for a in range(NZ):
+                for b in range(NZ):
+                    Pzz[a, b] = Pzz0[a, b] + Rb[a, b]
+        else:
+            for a in range(NZ):
+                for b in range(NZ):
+                    Pzz[a, b] = Pzz0[a, b] + R[a, b]
+        for m in range(NZ):
+            innov[c, m] = r[m]
+        # eqs. 15-17
+        nv, st2 = _gain_update(xc, Pc, pscale, Pzz, Pxz, r, Lz, K, y)
+        nis[c] = nv
+        if st2 == 1:
+            flags[c] |= FLAG_CHOL_GUARD
+        bad = st2 == 2
+    if not bad:
+        for i in range(NX):
+            xpost[c, i] = xc[i]
+        # eqs. 4-8 (linear dynamics: closed form of the cubature time update)
+        _predict(xc, Pc, Phi, Qd, tmpv, tmpm)
+        # phase-uncertainty cap: beyond ~1 rad the Gaussian/cubature picture of a 2pi-periodic
+        # measurement breaks down (the filter would fall into a non-coherent false lock);
+        # the phase sigma stays <= phi_sigma_max and, being known only modulo 2 pi, the phase
+        # is decorrelated from the other states (a re-lock corrects phase, not frequency)
+        vphi = Pc[IPHI, IPHI]
+        if vphi > phi_var_max:
+            for j in range(NX):
+                Pc[IPHI, j] = 0.0
+                Pc[j, IPHI] = 0.0
+            Pc[IPHI, IPHI] = phi_var_max
+        for i in range(NX):
+            if not np.isfinite(xc[i]):
+                bad = True
+            d = Pc[i, i]
+            if not (d >= 0.0 and d <= plim[i]):
+                bad = True
+            for j in range(NX):
+                if not np.isfinite(Pc[i, j]):
                     bad = True
-                d = Pc[i, i]
-                if not (d >= 0.0 and d <= plim[i]):
-                    bad = True
-                for j in range(NX):
-                    if not np.isfinite(Pc[i, j]):
-                        bad = True
-        if bad:
-            flags[c] |= FLAG_DIVERGED
-            for i in range(NX):
-                xc[i] = x0[c, i]
-                xpost[c, i] = x0[c, i]
-                for j in range(NX):
-                    Pc[i, j] = P0[c, i, j]
-            nis[c] = np.nan
+    if bad:
+        flags[c] |= FLAG_DIVERGED
+        for i in range(NX):
+            xc[i] = x0[c, i]
+            xpost[c, i] = x0[c, i]
+            for j in range(NX):
+                Pc[i, j] = P0[c, i, j]
+        nis[c] = np.nan
+        for m in range(NZ):
+            innov[c, m] = np.nan
+
+
+@njit(cache=True)
+def _bank_step(kind, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, prm, iprm,
+               innov, nis, theta, flags, W1, W2, acc):
+    """One epoch for all channels. Returns -1 - ch if z of an active channel is non-finite.
+
+    prm  = [T, beta, dhalf, huber_c, theta_min, wm0, wc0, wi, ut_scale]
+    iprm = [do_correction, robust_every, windowed_adaptive]
+    acc (n_ch, 6): per-channel sums over the correction period (windowed statistics):
+    [tr(P_zz_bar), |r_winsorised|^2, |r|^2, explainable energy, tr(R)] and the held
+    measurement-noise scale lam in column 5.
+    W1 (n_w1, 6) and W2 (n_w2, 6, 6) are work arrays (no allocation per epoch).
+    """
+    n_ch = x.shape[0]
+    for c in range(n_ch):
+        if active[c]:
             for m in range(NZ):
-                innov[c, m] = np.nan
+                if not np.isfinite(z[c, m]):
+                    return -1 - c
+            if not np.isfinite(bits[c]):
+                return -1 - c
+    for c in range(n_ch):
+        _channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, prm, iprm,
+                        innov, nis, theta, flags, W1, W2, acc)
     return 0
 
 
@@ -790,7 +866,8 @@ class PrefilterBank:
         # one packed float buffer and one int buffer (few kernel arguments); attributes are views
         o = _layout(n_ch)
         self._fbuf = np.zeros(int(o[-1]))
-        self._ibuf = np.zeros(2 * n_ch + 3, dtype=np.int64)
+        io = _ilayout(n_ch)
+        self._ibuf = np.zeros(int(io[5]), dtype=np.int64)
         fb = self._fbuf
         self.x = fb[o[0]:o[1]].reshape(n_ch, NX)
         self.P = fb[o[1]:o[2]].reshape(n_ch, NX, NX)
@@ -807,7 +884,9 @@ class PrefilterBank:
         self._prm = fb[o[12]:o[13]]
         self.flags = self._ibuf[0:n_ch]
         self._active_i = self._ibuf[n_ch:2 * n_ch]
-        self._iprm = self._ibuf[2 * n_ch:]
+        self._iprm = self._ibuf[io[2]:io[3]]
+        self.n_resets = self._ibuf[io[3]:io[4]]
+        self._counters = self._ibuf[io[4]:io[5]]       # epoch, correction period
         self.Phi[:] = Phi
         self.Qd[:] = Qd
         self.R[:] = R
@@ -822,8 +901,7 @@ class PrefilterBank:
         self.innov[:] = np.nan
         self.nis[:] = np.nan
         self.theta[:] = 1.0
-        self.n_resets = np.zeros(n_ch, dtype=np.int64)
-        self.epoch = 0
+        self._counters[1] = self.correction_period
         self._bits_unknown = np.zeros(n_ch)
         a0 = float(corr_model.amplitude_from_cn0(cn0_dbhz_init, self.T))
         P_init = default_initial_covariance(cn0_dbhz_init, self.T)
@@ -898,16 +976,27 @@ class PrefilterBank:
             b = np.asarray(bits, dtype=np.float64)
             if b.shape != (self.n_ch,):
                 raise FilterError(f"prefilter step: bits must have shape ({self.n_ch},), got {b.shape}")
-        self._iprm[0] = 1 if (self.epoch % self.correction_period == 0) else 0
-        st = _bank_step_packed(self._kind, self._fbuf, self._ibuf, z, b)
+        st = bank_epoch(self._kind, self._fbuf, self._ibuf, z, b)
         if st < 0:
             c = -1 - st
             raise FilterError(f"prefilter step: non-finite measurement or bit on active channel {c}: "
                               f"z={z[c]}, bit={b[c]}")
-        self.epoch += 1
-        if self.flags.any():
-            self.n_resets += (self.flags & FLAG_DIVERGED) != 0
         return self.x
+
+    @property
+    def epoch(self):
+        """Epochs stepped since construction (the RACKF correction phase counts from it)."""
+        return int(self._counters[0])
+
+    @epoch.setter
+    def epoch(self, value):
+        self._counters[0] = int(value)
+
+    @property
+    def packed(self):
+        """``(kind code, float buffer, int buffer)``: the bank's whole state for compiled callers
+        (:func:`bank_epoch`); the attributes are views of these buffers."""
+        return self._kind, self._fbuf, self._ibuf
 
     @property
     def diverged(self):

@@ -135,6 +135,46 @@ class AveragingDecimator:
         return tc_all, mean
 
 
+class ResidualDecimator:
+    """The averaging decimator between the tracking channels (1 kHz) and the tight filter
+    (``tight_rate_hz``): per channel, the window sums of the code and Doppler residuals against the
+    outer loop's predictions, of the tracking bank's code / frequency variances and of the amplitude
+    estimate, then their means as pseudorange / pseudorange-rate residuals with variances.
+
+    The window is *time-based*: an epoch counts when its interval starts before the update time
+    (channels are up to one code period apart, so the count per window can differ by one between
+    channels). The sums ``acc`` (rows: n, code chips, Doppler Hz, P_tautau, P_ff, amplitude) are
+    accumulated by the compiled epoch stage (:func:`ultratight.receiver.epochs.epoch_post`).
+    """
+
+    ROWS = ("n", "code_chips", "doppler_hz", "P_tautau", "P_ff", "amplitude")
+
+    def __init__(self, n_ch, rate_hz):
+        self.acc = np.zeros((len(self.ROWS), int(n_ch)))
+        self.step_s = 1.0 / float(rate_hz)
+        self.t_next = self.step_s            # end of the current window (s of receiver time)
+
+    def means(self, chip_m, wavelength_m, corr_factor, pr_floor_m, prr_floor_mps):
+        """The window's measurement means and variances: a dict of (n_ch,) arrays ``ok`` (at least one
+        epoch), ``amp``, ``doppler_hz``, ``dz_pr`` (m), ``dz_prr`` (m/s), ``var_pr``, ``var_prr``.
+        The tracking variances are inflated by ``corr_factor`` (consecutive outputs are correlated)
+        and floored by ``pr_floor_m`` / ``prr_floor_mps``."""
+        acc_n, acc_cp, acc_f, acc_pt, acc_pf, acc_a = self.acc
+        nn = np.maximum(acc_n, 1)
+        m_cp = acc_cp / nn
+        m_f = acc_f / nn
+        return {"ok": acc_n > 0, "amp": acc_a / nn, "doppler_hz": m_f,
+                "dz_pr": chip_m * m_cp, "dz_prr": wavelength_m * m_f,
+                "var_pr": chip_m ** 2 * (acc_pt / nn) * corr_factor + pr_floor_m ** 2,
+                "var_prr": (wavelength_m / (2.0 * math.pi)) ** 2 * (acc_pf / nn) * corr_factor
+                + prr_floor_mps ** 2}
+
+    def next_window(self):
+        """Clear the sums and move the window end by one output period."""
+        self.acc[:] = 0.0
+        self.t_next += self.step_s
+
+
 def cic_impulse_response(R, N, M=1, normalised=True):
     """High-rate impulse response of the CIC interpolator (convolution of N boxcars of length RM)."""
     R = _check_rate_factor(R, "cic_impulse_response")

@@ -66,10 +66,11 @@ wrap-around on each side; the fixed-point code phase passed to the kernel is
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from ultratight.constants import CA_LEN, F_CA, F_L1
 from ultratight.errors import ConfigError
+from ultratight.signals.nco import NcoBank
 from ultratight.receiver.blockstream import block_sigma_arm
 from ultratight.signals.ca_code import ca_code
 
@@ -251,53 +252,72 @@ def nco_fixed_point(code_phase, pad, dp, carr_phase, carr_freq, fs):
 
 
 @njit(cache=True)
+def _correlate_one(ch, buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_ptr,
+                   code_phase, code_rate, carr_phase, carr_freq, fs, tap_fix, sigma_arm, out, t_start, n_samples):
+    """One code period of channel ``ch`` (see :func:`_step_bank`); touches only row ``ch``."""
+    n_taps = tap_fix.shape[0]
+    t_start[ch] = sample_ptr[ch]
+    for c in range(out.shape[1]):
+        out[ch, c] = 0.0
+    n_samples[ch] = 0
+    if not active[ch]:
+        return
+    dp = code_rate[ch] / fs
+    if not (dp > 0.0 and dp < 1e6 and np.isfinite(code_phase[ch]) and np.isfinite(carr_freq[ch])
+            and np.isfinite(carr_phase[ch])):
+        n_samples[ch] = -2
+        return
+    n = period_samples(code_phase[ch], dp)
+    off = sample_ptr[ch] - buf_start
+    if off < 0:
+        n_samples[ch] = -1
+        return
+    if off + n > n_buf:
+        return
+    acc = np.zeros(2 * n_taps)
+    cp_fix0, cstep, ph0, phstep = nco_fixed_point(code_phase[ch], pad, dp, carr_phase[ch], carr_freq[ch], fs)
+    integrate_channel(buf, is_complex, off, n, code_ext[ch], cp_fix0, cstep, ph0, phstep,
+                      tap_fix, COS_LUT, SIN_LUT, acc)
+    scale = 1.0 / (sigma_arm[ch] * np.sqrt(n))
+    # column of I and Q of tap t: taps 0..2 -> [I_P,I_E,I_L,Q_P,Q_E,Q_L]; 3,4 -> 6..9
+    for t in range(n_taps):
+        if t < 3:
+            ci = t
+            cq = 3 + t
+        else:
+            ci = 6 + (t - 3)
+            cq = 8 + (t - 3)
+        out[ch, ci] = acc[t] * scale
+        out[ch, cq] = acc[n_taps + t] * scale
+    # advance the NCOs exactly (float64); -1e-9-sample round-off is clamped to 0
+    code_phase[ch] = max(code_phase[ch] + n * dp - CA_LEN, 0.0)
+    ph = carr_phase[ch] + n * (carr_freq[ch] / fs)
+    carr_phase[ch] = ph - np.floor(ph)
+    sample_ptr[ch] = sample_ptr[ch] + n
+    n_samples[ch] = n
+
+
+@njit(cache=True)
 def _step_bank(buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_ptr,
                code_phase, code_rate, carr_phase, carr_freq, fs, tap_off, sigma_arm,
                out, t_start, n_samples):
     """One code period for every active channel (see module docstring)."""
-    n_ch = code_phase.shape[0]
-    n_taps = tap_off.shape[0]
     tap_fix = tap_fixed_point(tap_off)
-    acc = np.zeros(2 * n_taps)
-    # column of I and Q of tap t: taps 0..2 -> [I_P,I_E,I_L,Q_P,Q_E,Q_L]; 3,4 -> 6..9
-    for ch in range(n_ch):
-        t_start[ch] = sample_ptr[ch]
-        for c in range(out.shape[1]):
-            out[ch, c] = 0.0
-        n_samples[ch] = 0
-        if not active[ch]:
-            continue
-        dp = code_rate[ch] / fs
-        if not (dp > 0.0 and dp < 1e6 and np.isfinite(code_phase[ch]) and np.isfinite(carr_freq[ch])
-                and np.isfinite(carr_phase[ch])):
-            n_samples[ch] = -2
-            continue
-        n = period_samples(code_phase[ch], dp)
-        off = sample_ptr[ch] - buf_start
-        if off < 0:
-            n_samples[ch] = -1
-            continue
-        if off + n > n_buf:
-            continue
-        cp_fix0, cstep, ph0, phstep = nco_fixed_point(code_phase[ch], pad, dp, carr_phase[ch], carr_freq[ch], fs)
-        integrate_channel(buf, is_complex, off, n, code_ext[ch], cp_fix0, cstep, ph0, phstep,
-                           tap_fix, COS_LUT, SIN_LUT, acc)
-        scale = 1.0 / (sigma_arm[ch] * np.sqrt(n))
-        for t in range(n_taps):
-            if t < 3:
-                ci = t
-                cq = 3 + t
-            else:
-                ci = 6 + (t - 3)
-                cq = 8 + (t - 3)
-            out[ch, ci] = acc[t] * scale
-            out[ch, cq] = acc[n_taps + t] * scale
-        # advance the NCOs exactly (float64); -1e-9-sample round-off is clamped to 0
-        code_phase[ch] = max(code_phase[ch] + n * dp - CA_LEN, 0.0)
-        ph = carr_phase[ch] + n * (carr_freq[ch] / fs)
-        carr_phase[ch] = ph - np.floor(ph)
-        sample_ptr[ch] = sample_ptr[ch] + n
-        n_samples[ch] = n
+    for ch in range(code_phase.shape[0]):
+        _correlate_one(ch, buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_ptr,
+                       code_phase, code_rate, carr_phase, carr_freq, fs, tap_fix, sigma_arm, out, t_start, n_samples)
+
+
+@njit(cache=True, parallel=True)
+def _step_bank_parallel(buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_ptr,
+                        code_phase, code_rate, carr_phase, carr_freq, fs, tap_off, sigma_arm,
+                        out, t_start, n_samples):
+    """:func:`_step_bank` with the channels spread over numba's threads (identical results: every
+    channel's arithmetic is the same, only rows of its own are written)."""
+    tap_fix = tap_fixed_point(tap_off)
+    for ch in prange(code_phase.shape[0]):
+        _correlate_one(ch, buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_ptr,
+                       code_phase, code_rate, carr_phase, carr_freq, fs, tap_fix, sigma_arm, out, t_start, n_samples)
 
 
 @njit(cache=True)
@@ -396,15 +416,45 @@ class CorrelatorBank:
         self.pad = int(math.ceil(max(abs(t) for t in taps))) + 2
         n_ch = len(prns)
         self.prns = np.array(prns, dtype=np.int64)
-        self.code_phase = np.zeros(n_ch)
-        self.code_rate = np.full(n_ch, F_CA)
-        self.carr_phase = np.zeros(n_ch)
-        self.carr_freq = np.full(n_ch, if_hz)
+        self.nco = NcoBank(n_ch, if_hz, F_CA)
         self.sample_ptr = np.zeros(n_ch, dtype=np.int64)
         self.active = np.zeros(n_ch, dtype=np.bool_)
         self.code_ext = np.zeros((n_ch, CA_LEN + 2 * self.pad), dtype=np.float32)
         for ch, p in enumerate(prns):
             self._set_code(ch, p)
+
+    # the NCO state (:class:`ultratight.signals.nco.NcoBank`), commanded by the tracking loops
+    @property
+    def code_phase(self):
+        return self.nco.code_phase
+
+    @code_phase.setter
+    def code_phase(self, value):
+        self.nco.code_phase[:] = value
+
+    @property
+    def code_rate(self):
+        return self.nco.code_rate
+
+    @code_rate.setter
+    def code_rate(self, value):
+        self.nco.code_rate[:] = value
+
+    @property
+    def carr_phase(self):
+        return self.nco.carr_phase
+
+    @carr_phase.setter
+    def carr_phase(self, value):
+        self.nco.carr_phase[:] = value
+
+    @property
+    def carr_freq(self):
+        return self.nco.carr_freq
+
+    @carr_freq.setter
+    def carr_freq(self, value):
+        self.nco.carr_freq[:] = value
 
     @property
     def n_ch(self):
@@ -464,10 +514,7 @@ class CorrelatorBank:
     def _grow(self, k):
         n_old = self.n_ch
         self.prns = np.concatenate([self.prns, np.full(k, 1, dtype=np.int64)])
-        self.code_phase = np.concatenate([self.code_phase, np.zeros(k)])
-        self.code_rate = np.concatenate([self.code_rate, np.full(k, F_CA)])
-        self.carr_phase = np.concatenate([self.carr_phase, np.zeros(k)])
-        self.carr_freq = np.concatenate([self.carr_freq, np.full(k, self.if_hz)])
+        self.nco.grow(k, F_CA)
         self.sample_ptr = np.concatenate([self.sample_ptr, np.zeros(k, dtype=np.int64)])
         self.active = np.concatenate([self.active, np.zeros(k, dtype=np.bool_)])
         self.code_ext = np.concatenate(

@@ -1,22 +1,31 @@
 """The double-loop ultra-tight receiver engine (seed 000 Fig. 1, SPEC §1).
 
-Data flow per 1 ms epoch (Python orchestrates; every stage is one batched call for all
-channels)::
+Stages, in the order of the paper's Fig. 1 (each a module of its own, arrays in and out)::
 
-    IF block ─► CorrelatorBank.step ─► data wipe-off (assisted LNAV bits)
-             ─► PrefilterBank.step (inner loop, 1 kHz)  ─► InnerLoop.apply (NCO feedback,
-                 outer-loop Doppler increments when the arbitration allows)
-             ─► residuals vs the SINS prediction ─► averaging decimator (10 Hz)
-             ─► tight 17-state filter ⇄ SINS (100 Hz, feedback) ─► OuterLoop (100 Hz
-                 predictions, CIC to 1 kHz) ─► aiding of the next epochs
+    IF block stream (receiver.blockstream, noise sigma per block)
+      ─► correlator bank (receiver.correlator; its NCOs: signals.nco.NcoBank)
+      ─► data wipe-off (receiver.wipeoff)
+      ─► tracking bank (fusion.prefilter / fusion.pbkf, chosen by the method's spec in
+         receiver.methods; the inner loop, 1 kHz)
+      ─► inner-loop NCO command (fusion.innerloop; aiding increments from the outer loop
+         when the arbitration allows)
+      ─► residuals vs the SINS predictions ─► averaging decimator (fusion.rateconv.ResidualDecimator, 10 Hz)
+      ─► tight 17-state filter (fusion.tight) ⇄ SINS + clock (receiver.sins_clock, 100 Hz, feedback)
+      ─► outer loop (receiver.outer_loop: 100 Hz predictions, CIC to 1 kHz) ─► aiding of the next epochs
+      ─► recorder (receiver.recorder); lock monitor (receiver.lockmon, optional)
+
+The 1 kHz part runs compiled, many epochs per call (:func:`ultratight.receiver.epochs.run_epochs`),
+and hands back to :meth:`UltratightEngine.run` whenever the 100 Hz / 10 Hz part is due; the
+start-up phase initialisation and the lock monitor's epochs take the same stages one epoch at a
+time (:meth:`UltratightEngine._special_epoch`). The results do not depend on which path an epoch took.
 
 Methods (all on the same IF/IMU data; each is a spec of the registry
 :mod:`ultratight.receiver.methods`, naming its tracking bank and loop structure):
 
-* ``dlb-rackf`` (default), ``dlb-ckf``, ``dlb-ukf``: double loop — each channel's prefilter
-  (the numba bank of fusion.prefilter) closes its own inner loop every epoch; the outer loop feeds the
-  SINS-predicted Doppler *increments* forward into the carrier NCO (the code NCO rate is
-  slaved to the carrier, so it is aided too).
+* ``dlb-rackf`` (default), ``dlb-ckf``, ``dlb-ukf``, ``dlb-rackf-paper``: double loop — each
+  channel's prefilter closes its own inner loop every epoch; the outer loop feeds the
+  SINS-predicted Doppler *increments* forward into the carrier NCO (the code NCO rate is slaved
+  to the carrier, so it is aided too).
 * ``pb-kf-utc``: single loop baseline — discriminator outputs into a linear KF per channel
   (``ultratight.fusion.pbkf``); the NCOs are driven by the outer loop only (absolute
   SINS-predicted Doppler and code phase, no inner loop).
@@ -26,30 +35,55 @@ Methods (all on the same IF/IMU data; each is a spec of the registry
 Arbitration (double loop, logged per channel per epoch in ``mode``): after every tight
 update the 1-sigma of each channel's predicted Doppler is computed from the tight filter
 covariance, ``sigma_i = sqrt(u_i' P_vv u_i + P_dd - 2 u_i' P_vd) / lambda`` (velocity /
-clock-drift block projected on the line of sight, :func:`ultratight.fusion.tight.doppler_sigma_hz`),
-and propagated between updates with the filter's time update.  A channel uses the combined
-command (outer prediction + inner correction, ``MODE_COMBINED``) while ``sigma_i <
-arbitration_sigma_hz`` and the outer loop is healthy (no divergence flag), otherwise the inner
-loop alone (``MODE_INNER``).  PB-KF-UTC is always ``MODE_OUTER``.
+clock-drift block projected on the line of sight, :func:`ultratight.fusion.tight.doppler_sigma_hz`).
+A channel uses the combined command (outer prediction + inner correction, ``MODE_COMBINED``) while
+``sigma_i < arbitration_sigma_hz``, otherwise the inner loop alone (``MODE_INNER``). PB-KF-UTC
+is always ``MODE_OUTER``.
 
 Tracking estimates recorded per channel per epoch (for the paper's metrics): the Doppler
 ``carr_freq - IF + df/2pi`` and the code phase ``code_phase + dtau`` at the *start* of the
 integration interval (the prefilter state refers to the interval start; see
 ultratight.fusion.prefilter), with their time ``t_start`` (s since the first sample).
+References: docs/references.md.
 """
 
+import json
 import math
 import time
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 
 import numpy as np
-from numba import njit
 
-from ultratight.errors import ConfigError, InputFileError
-from ultratight.receiver.blockstream import BlockStream, NoiseFloor  # noqa: F401 (NoiseFloor: public here too)
+from ultratight import __version__
+from ultratight.errors import ConfigError, FilterError, InputFileError
+from ultratight.fusion import tight as tightmod
+from ultratight.fusion.innerloop import InnerLoop
+from ultratight.fusion.prefilter import IF as PREFILTER_IF
+from ultratight.fusion.rateconv import ResidualDecimator
+from ultratight.ins.earth import radii
+from ultratight.ins.imu import read_imu_csv, read_imu_h5
+from ultratight.io_guard import write_h5_atomic
+from ultratight.receiver import epochs
+from ultratight.receiver.blockstream import BlockStream, NoiseFloor
+from ultratight.receiver.correlator import CorrelatorBank
+from ultratight.receiver.epochs import (CONTINUE, END, ERR_BANK, ERR_CORR, NEED_IF, NEED_SINS, TIGHT,
+                                        correlate, epoch_gate, epoch_post, run_epochs)
+from ultratight.receiver.lockmon import LockMonitor, amplitude_threshold
 from ultratight.receiver.methods import DEFAULT_METHOD, METHODS, check_method, method_spec  # noqa: F401
+from ultratight.receiver.outer_loop import OuterLoop, SinsFollower
+from ultratight.receiver.recorder import EngineResult, EpochRecorder  # noqa: F401 (EngineResult: public here)
+from ultratight.receiver.sins_clock import InsClock  # noqa: F401 (public here too)
+from ultratight.receiver.startup import (BitWipeoff, StartupErrors, first_period_ms, perturb_state,
+                                         predict_channels)
+from ultratight.receiver.tracking_banks import bank_view, make_tracking_bank, restart_covariance
+from ultratight.receiver.wipeoff import DataWipeoff
+from ultratight.signals.iffile import open_if
 from ultratight.signals.signal import GPS_L1CA
 
+__all__ = ["EngineOptions", "EngineResult", "UltratightEngine", "NoiseFloor", "BlockStream", "MODE_INNER",
+           "MODE_COMBINED", "MODE_OUTER", "MODE_COAST", "monitor_options", "monitor_mode",
+           "check_imu_if_alignment", "run_ultratight_on_files", "write_result_h5"]
 
 MODE_INNER = 0
 MODE_COMBINED = 1
@@ -64,135 +98,6 @@ DLB_PREFILTER_Q = {
     "q_f": 0.1,          # rad^2/s^3: aiding error drift (INS velocity / clock-drift error rate)
     "q_a": 0.1,          # rad^2/s^5: residual LOS jerk after aiding (CIC/extrapolation residuals)
 }
-
-
-@njit(cache=True)
-def _wipe_bits(bits, t0_ms, ms, out, per_bit):
-    """Assisted data bit of the code period starting at transmit code-period count ms (per channel;
-    ``per_bit`` code periods per bit, :attr:`ultratight.signals.signal.SignalDescription.codes_per_bit`);
-    advances ms by one period."""
-    nb = bits.shape[1]
-    for c in range(bits.shape[0]):
-        k = (ms[c] - t0_ms[c]) // per_bit
-        if k < 0:
-            k = 0
-        if k > nb - 1:
-            k = nb - 1
-        out[c] = bits[c, k]
-        ms[c] += 1
-
-
-@njit(cache=True)
-def _epoch_post(k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, i_ptau, i_pf, ring_t, ring_cp, ring_r, ring_f, ring_k,
-                imu_dt, t_next_upd, acc, rec_t, rec_f, rec_cp, rec_a, rec_mode, mode_now,
-                aid_grid, n_filled, sample_ptr, half_period_s, code_len, aid_out, aid_dt=0.0):
-    """Per-epoch bookkeeping for all channels in one compiled call.
-
-    Records the estimates (NCO + prefilter at the interval start), forms the residuals against
-    the exact SINS predictions (ring of 100 Hz predictions, linear in between), accumulates
-    them in the decimator window (acc rows: n, code, doppler, P_tautau, P_ff, amplitude) and
-    interpolates the 1 kHz outer-loop Doppler aiding at the middle of each channel's next
-    interval. ``code_len``: chips per code period (the signal description's ``code_length``).
-    """
-    two_pi = 2.0 * math.pi
-    n_ch = t_start.shape[0]
-    ring_n = ring_t.shape[0]
-    i1 = (ring_k - 1) % ring_n
-    t_last = ring_t[i1]
-    half = 0.5 * code_len
-    for c in range(n_ch):
-        tk = float(t_start[c]) / fs
-        # Doppler estimate for the middle of the interval: NCO + df + da T/2 (state at the start)
-        f_meas = f0[c] - if_hz + (x_post[c, 3] + x_post[c, 4] * half_period_s) / two_pi
-        cp_meas = cp0[c] + x_post[c, 1]
-        rec_t[k_ep, c] = tk
-        rec_f[k_ep, c] = f_meas
-        rec_cp[k_ep, c] = cp_meas % code_len
-        rec_a[k_ep, c] = x_post[c, 0]
-        rec_mode[k_ep, c] = mode_now[c]
-        back = int(math.floor((t_last - tk) / imu_dt)) + 1
-        if back < 1:
-            back = 1
-        if back > ring_n - 2:
-            back = ring_n - 2
-        ia = (ring_k - 1 - back) % ring_n
-        ib = (ia + 1) % ring_n
-        ta = ring_t[ia]
-        w = (tk - ta) / imu_dt
-        cp_pred = ring_cp[ia, c] + ring_r[ia, c] * (tk - ta)
-        # the Doppler estimate is the interval mean: compare with the prediction at mid-interval
-        w += half_period_s / imu_dt
-        f_pred = ring_f[ia, c] + w * (ring_f[ib, c] - ring_f[ia, c])
-        r_cp = (cp_meas - cp_pred + half) % code_len - half
-        r_f = f_meas - f_pred
-        if tk < t_next_upd:
-            acc[0, c] += 1.0
-            acc[1, c] += r_cp
-            acc[2, c] += r_f
-            acc[3, c] += P[c, i_ptau, i_ptau]
-            acc[4, c] += P[c, i_pf, i_pf]
-            acc[5, c] += x_post[c, 0]
-        u = (sample_ptr[c] / fs + half_period_s + aid_dt) * 1000.0
-        j = int(math.floor(u))
-        if j < 0:
-            j = 0
-        if j > n_filled - 2:
-            j = n_filled - 2
-        fr = u - j
-        aid_out[c] = aid_grid[j, c] * (1.0 - fr) + aid_grid[j + 1, c] * fr
-
-
-@njit(cache=True)
-def _lock_monitor(out, D, win_i, win_c, sums_i, sums_c, ptr, count, present, thr_off, thr_on, events, phase):
-    """Per-channel signal/lock monitor on the wiped prompt (unit noise per arm).
-
-    Sliding window of W epochs: while ``present``, the mean in-phase prompt ``mean(I_P D)``
-    (coherent: the carrier loop keeps the phase) below ``thr_off`` declares the signal lost;
-    while absent, the coherent magnitude ``|mean((I_P + j Q_P) D)|`` above ``thr_on`` declares
-    it back (``phase`` = its angle, for the restart).  ``events[c]``: 0 none, -1 lost, +1 regained.
-    """
-    W = win_i.shape[1]
-    k = ptr[0]
-    for c in range(out.shape[0]):
-        vi = out[c, 0] * D[c]
-        vq = out[c, 3] * D[c]
-        sums_i[c] += vi - win_i[c, k]
-        sums_c[c] += complex(vi, vq) - win_c[c, k]
-        win_i[c, k] = vi
-        win_c[c, k] = complex(vi, vq)
-        events[c] = 0
-        if count[c] < W:
-            count[c] += 1
-            continue
-        if present[c]:
-            if abs(sums_i[c].real) / W < thr_off:
-                present[c] = False
-                events[c] = -1
-        else:
-            m = sums_c[c] / W
-            if abs(m) > thr_on:
-                present[c] = True
-                events[c] = 1
-                phase[c] = math.atan2(m.imag, m.real)
-                # restart the window so the next decision uses post-restart data only
-                count[c] = 0
-    ptr[0] = (k + 1) % W
-
-
-
-
-class _BankProxy:
-    """The prefilter bank seen by the inner-loop law with some channels masked inactive
-    (channels whose NCO follows the outer-loop aiding alone this epoch)."""
-
-    def __init__(self, bank):
-        self._bank = bank
-        self.x = bank.x
-        self.active = bank.active.copy()
-
-    def note_correction(self, dx):
-        self._bank.note_correction(dx)
-
 
 MONITOR_MODES = {
     "off": {"lock_monitor": False, "monitor_gates_tight": False},    # paper structure (default)
@@ -220,14 +125,13 @@ def _outer_freq_update(x, P, sel, resid_hz, r_var):
     """Scalar Kalman update of the prefilters' frequency states (rad/s) of channels ``sel`` with
     the outer loop's Doppler: innovation -2 pi (estimate - prediction) = -2 pi ``resid_hz``,
     measurement variance ``r_var`` ((rad/s)^2)."""
-    from ultratight.fusion.prefilter import IF as I_F
     for c in np.flatnonzero(sel):
-        s_ = P[c, I_F, I_F] + r_var[c]
+        s_ = P[c, PREFILTER_IF, PREFILTER_IF] + r_var[c]
         if not (s_ > 0.0):
             continue
-        k = P[c, :, I_F] / s_
+        k = P[c, :, PREFILTER_IF] / s_
         x[c] += k * (-2.0 * math.pi * resid_hz[c])
-        P[c] -= np.outer(k, P[c, I_F, :])
+        P[c] -= np.outer(k, P[c, PREFILTER_IF, :])
         P[c] = 0.5 * (P[c] + P[c].T)
 
 
@@ -274,87 +178,41 @@ class EngineOptions:
     reinit_sigma_a_hzps: float = 0.3     # Doppler-rate 1-sigma after a (re)initialisation (aided)
     prefilter_kwargs: dict = field(default_factory=dict)   # extra PrefilterBank parameters
     startup: dict = field(default_factory=dict)   # StartupErrors overrides
+    threads: int = 0                     # correlator threads: 0 = numba's default (all cores), 1 = serial
 
     def as_dict(self):
         return asdict(self)
 
 
-@dataclass
-class EngineResult:
-    method: str
-    prns: list
-    t_start: np.ndarray          # (n_ep, n_ch) s since the first sample
-    doppler_hz: np.ndarray       # (n_ep, n_ch) estimate (NCO + prefilter)
-    code_phase_chips: np.ndarray  # (n_ep, n_ch) estimate (NCO + prefilter), mod 1023
-    amp: np.ndarray              # (n_ep, n_ch) prefilter amplitude estimate
-    mode: np.ndarray             # (n_ep, n_ch) int8 MODE_*
-    nav_t: np.ndarray            # (n_nav,) tight-update times
-    nav_pos_e: np.ndarray        # (n_nav, 3)
-    nav_vel_e: np.ndarray
-    nav_clk: np.ndarray          # (n_nav, 2) bias m, drift m/s
-    nav_sigma_doppler_hz: np.ndarray  # (n_nav, n_ch)
-    runtime_s: float
-    duration_s: float
-    info: dict
+class EpochState:
+    """What the engine's Python side carries from epoch to epoch (per channel unless noted)."""
+
+    def __init__(self, n_ch, mode_aided, opt):
+        self.k_ep = 0                                      # epochs run
+        self.mode_aided = mode_aided
+        self.mode_now = np.full(n_ch, mode_aided, dtype=np.int8)
+        self.use_aid = np.ones(n_ch, dtype=np.bool_)       # arbitration: combined command allowed
+        self.aid = np.zeros(n_ch)                          # outer-loop Doppler of the next interval
+        self.aid_prev_ff = np.zeros(n_ch)                  # ... of the last interval
+        self.sig_dopp = np.zeros(n_ch)                     # predicted Doppler 1-sigma (tight filter)
+        self.present = np.ones(n_ch, dtype=np.bool_)       # lock monitor: signal present
+        self.present_prev = np.ones(n_ch, dtype=np.bool_)
+        self.gate_ok = np.ones(n_ch, dtype=np.bool_)       # monitor gate of the tight-filter rows
+        self.restart_mask = np.zeros(n_ch, dtype=np.bool_)
+        self.coast_any = False
+        self.init_left = int(opt.phase_init_ms)            # start-up phase-initialisation epochs left
+        self.init_acc = np.zeros(n_ch, dtype=np.complex128)
+        self.rollback = np.zeros(n_ch)
+        self.off_ring = np.zeros((int(opt.lock_window_ms), n_ch))   # carrier NCO minus aiding history
+        self.xp_view = np.zeros((n_ch, 5))
+        self.counts = {"n_feedback": 0, "n_phase_inits": 0, "n_lock_lost_events": 0, "n_prefilter_restarts": 0}
+        self.timing = {"epochs": 0.0, "special_epochs": 0.0, "sins_outer": 0.0, "tight": 0.0}
+
+    def special(self, opt):
+        """The next epoch needs the one-epoch path (start-up initialisation or the lock monitor)."""
+        return self.init_left > 0 or opt.lock_monitor or opt.monitor_gates_tight
 
 
-# ---------------------------------------------------------------------------------------
-# SINS + clock wrapper (ins.sins mechanisation; feedback of the tight filter's error state)
-# ---------------------------------------------------------------------------------------
-class InsClock:
-    """Corrected SINS (``ins.sins.sins_step``) plus receiver-clock estimates."""
-
-    def __init__(self, q_lb, vel_l, llh, clk_bias_m, clk_drift_mps):
-        from ultratight.ins import sins
-        self._sins = sins
-        self.x = sins.make_state(q_lb, vel_l, llh)
-        self.clk_b = float(clk_bias_m)
-        self.clk_d = float(clk_drift_mps)
-        self.bg = np.zeros(3)        # estimated gyro bias (rad/s), removed from the increments
-        self.ba = np.zeros(3)        # estimated accelerometer bias (m/s^2)
-        self.f_b = np.zeros(3)       # last specific force (body), for the error model
-        self.w_b = np.zeros(3)
-
-    def step(self, dtheta, dv, dt):
-        dth = dtheta - self.bg * dt
-        dvc = dv - self.ba * dt
-        self.f_b = dvc / dt
-        self.w_b = dth / dt
-        self._sins.sins_step(self.x, dth, dvc, dt)
-        self.clk_b += self.clk_d * dt
-
-    @property
-    def llh(self):
-        return self.x[7:10]
-
-    @property
-    def vel_l(self):
-        return self.x[4:7]
-
-    @property
-    def q_lb(self):
-        return self.x[0:4]
-
-    def pos_vel_e(self):
-        from ultratight.ins.earth import dcm_ecef_from_enu, llh_to_ecef
-        lat, lon, h = self.x[7], self.x[8], self.x[9]
-        C_el = dcm_ecef_from_enu(lat, lon)
-        return np.asarray(llh_to_ecef(lat, lon, h)), C_el @ self.x[4:7], C_el
-
-    def feedback(self, dx):
-        """Apply the tight filter's error state (estimate minus truth) and clear it."""
-        from ultratight.fusion import tight
-        from ultratight.ins import error_model
-        error_model.apply_feedback(self.x, dx)      # attitude, velocity, position
-        self.bg += dx[tight.BG]
-        self.ba += dx[tight.BA]
-        self.clk_b -= dx[tight.CLK_B]
-        self.clk_d -= dx[tight.CLK_D]
-
-
-# ---------------------------------------------------------------------------------------
-# the engine
-# ---------------------------------------------------------------------------------------
 class UltratightEngine:
     """Runs one method over an IF source + IMU data (see module docstring)."""
 
@@ -380,412 +238,319 @@ class UltratightEngine:
             raise ConfigError("engine: an initial INS state (init_state) is required for the hot start")
         self.init_state = init_state
 
+    # ------------------------------------------------------------------ the run
     def run(self, progress=False):
         if self.spec.scalar:
-            from ultratight.receiver.scenario_runner import run_scalar
+            # the scalar pipeline has no INS: it is the scenario's reference receiver
+            from ultratight.receiver.scenario_runner import run_scalar  # noqa: PLC0415 (scenario_runner imports this module)
             return run_scalar(self.src, self.prns, self.ephs, self.week, self.tow0, self.init_state,
                               self.duration_s)
-        from ultratight.fusion import tight as tightmod
-        from ultratight.fusion.innerloop import InnerLoop
-        from ultratight.receiver.correlator import CorrelatorBank
-        from ultratight.receiver.outer_loop import OuterLoop
-        from ultratight.receiver.startup import BitWipeoff, first_period_ms, predict_channels
-
-        opt = self.opt
-        sgl = self.signal
         t_wall0 = time.perf_counter()
+        st = self._build()
+        while True:
+            tw = time.perf_counter()
+            if st.special(self.opt):
+                status = self._special_epoch(st)
+                st.timing["special_epochs"] += time.perf_counter() - tw
+            else:
+                status, st.k_ep, info = run_epochs(st.k_ep, *self._stage_views(st))
+                st.timing["epochs"] += time.perf_counter() - tw
+                self._check_status(status, info)
+            if status == END or (status == NEED_IF and not self._read_if()):
+                break
+            if status == NEED_SINS:
+                self._advance_sins(st)
+            elif status == TIGHT:
+                self._tight_update(st)
+            if progress and status == TIGHT and st.k_ep // 5000 != (st.k_ep - 100) // 5000:
+                print(f"  {self.method}: {st.k_ep / 1000.0:6.1f} s", flush=True)
+        runtime = time.perf_counter() - t_wall0
+        return self.rec.result(self.method, self.prns, st.k_ep, runtime, self.signal.code_period_s, self._info(st))
+
+    def _check_status(self, status, info):
+        if status == ERR_CORR:
+            n_s = self.corr_view.n_s
+            raise InputFileError(f"{self.src.path}: correlator could not integrate channels "
+                                 f"{np.flatnonzero(n_s <= 0).tolist()} (buffer management)")
+        if status == ERR_BANK:
+            raise FilterError(f"tracking bank step: non-finite measurement or bit on active channel {info}: "
+                              f"z={self.corr_view.out[info, :6]}, bit={self.wipe.D[info]}")
+
+    # ------------------------------------------------------------------ building the stages
+    def _build(self):
+        opt, sgl = self.opt, self.signal
         n_ch = len(self.prns)
-        fs = self.fs
         st = self.init_state
-        rows = np.arange(n_ch)
-
-        # ---- SINS + clock from the (perturbed) initial state
-        ins = InsClock(st["q_lb"], st["vel_l"], st["llh"], st["clk_bias_m"], st["clk_drift_mps"])
+        self.ins = InsClock(st["q_lb"], st["vel_l"], st["llh"], st["clk_bias_m"], st["clk_drift_mps"])
         self.imu_noise = tightmod.imu_errors_from_meta(self.imu)
-        imu_dt = 1.0 / float(self.imu.rate_hz)
-        imu_t = np.asarray(self.imu.t, dtype=float)
-        imu_dth = np.asarray(self.imu.dtheta_b, dtype=float)
-        imu_dv = np.asarray(self.imu.dv_b, dtype=float)
-        k_imu = 0                                  # next IMU sample to apply
+        self.imu_dt = 1.0 / float(self.imu.rate_hz)
+        self.imu_t = np.asarray(self.imu.t, dtype=float)
+        self.imu_dth = np.asarray(self.imu.dtheta_b, dtype=float)
+        self.imu_dv = np.asarray(self.imu.dv_b, dtype=float)
+        self.k_imu = 0                                  # next IMU sample to apply
         t_sins = float(getattr(self.imu, "t0", 0.0))
-
-        # ---- hot start predictions (from the perturbed state, not truth)
-        pos_e, vel_e, C_el = ins.pos_vel_e()
+        # hot start predictions (from the perturbed state, not truth)
+        pos_e, vel_e, C_el = self.ins.pos_vel_e()
         pred0 = predict_channels(self.ephs, self.prns, self.week, self.tow0, pos_e, vel_e,
-                                 ins.clk_b, ins.clk_d, signal=sgl)
-        bank = CorrelatorBank(self.prns, fs, self.if_hz, self.src.is_complex)
+                                 self.ins.clk_b, self.ins.clk_d, signal=sgl)
+        self.corr = CorrelatorBank(self.prns, self.fs, self.if_hz, self.src.is_complex)
         for ch, prn in enumerate(self.prns):
-            bank.init_channel(ch, prn, pred0["code_phase_chips"][ch], pred0["doppler_hz"][ch], 0,
-                              carr_phase_cycles=0.0, align=True)
-        ms = first_period_ms(pred0["t_tx_tow"], pred0["code_phase_chips"], signal=sgl)
-        wipe = BitWipeoff(self.ephs, self.prns, self.week, self.tow0, self.duration_s + 1.0, signal=sgl)
+            self.corr.init_channel(ch, prn, pred0["code_phase_chips"][ch], pred0["doppler_hz"][ch], 0,
+                                   carr_phase_cycles=0.0, align=True)
+        self.wipe = DataWipeoff(BitWipeoff(self.ephs, self.prns, self.week, self.tow0, self.duration_s + 1.0,
+                                           signal=sgl),
+                                first_period_ms(pred0["t_tx_tow"], pred0["code_phase_chips"], signal=sgl),
+                                sgl.codes_per_bit)
+        P0 = tightmod.initial_covariance(self.ins.llh, st.get("sigmas", {}), self.imu_noise)
+        self.tf = tightmod.TightFilter(P0, core=opt.tight_core, gate_sigma=opt.gate_sigma)
+        self.outer = OuterLoop(self.ephs, self.prns, self.week, self.tow0, self.duration_s + 0.5,
+                               rate_hz=1.0 / self.imu_dt, cic_order=opt.cic_order)
+        self.follow = SinsFollower(self.outer, self.ins, t_sins, self.imu_dth[0], self.imu_dv[0],
+                                   float(self.imu_t[0] - t_sins), sgl.code_period_s)
+        los_l = self.follow.first["los_e"] @ C_el
+        es = EpochState(n_ch, MODE_COMBINED if self.spec.double_loop else MODE_OUTER, opt)
+        es.sig_dopp = tightmod.doppler_sigma_hz(self.tf.P, los_l, sgl.wavelength_m)
+        self._build_tracking(es, los_l)
+        self._build_records(es)
+        return es
 
-        # ---- tight filter
-        P0 = tightmod.initial_covariance(ins.llh, st.get("sigmas", {}), self.imu_noise)
-        tf = tightmod.TightFilter(P0, core=opt.tight_core, gate_sigma=opt.gate_sigma)
-        lat, lon, h = ins.llh
-        from ultratight.ins.earth import radii
+    def _build_tracking(self, es, los_l):
+        """Tracking bank + inner loop, and the NCOs at the aiding of each channel's first interval."""
+        opt, sgl = self.opt, self.signal
+        n_ch = len(self.prns)
+        lat, _, h = self.ins.llh
         rm, rn = radii(lat)
         M_pos = tightmod.pos_error_to_enu(lat, h, rm, rn)
-
-        # ---- outer loop (100 Hz predictions -> CIC -> 1 kHz)
-        outer = OuterLoop(self.ephs, self.prns, self.week, self.tow0, self.duration_s + 0.5,
-                          rate_hz=1.0 / imu_dt, cic_order=opt.cic_order)
-        pr_now = outer.predict(t_sins, pos_e, vel_e, ins.clk_b, ins.clk_d)
-        los_l = pr_now["los_e"] @ C_el
-        sig_dopp = tightmod.doppler_sigma_hz(tf.P, los_l, sgl.wavelength_m)
-        # initial acceleration from the first IMU interval (a trial SINS step on a copy)
-        x_try = ins.x.copy()
-        ins._sins.sins_step(x_try, imu_dth[0], imu_dv[0], float(imu_t[0] - t_sins))
-        from ultratight.ins.earth import dcm_ecef_from_enu as _dcm
-        acc0_e = (_dcm(x_try[7], x_try[8]) @ x_try[4:7] - vel_e) / float(imu_t[0] - t_sins)
-        outer.prime(t_sins, pos_e, vel_e, acc0_e, ins.clk_b, ins.clk_d)
-        # aiding for the first SINS interval: direct predictions
-        for j in range(outer.ratio + 1):
-            tj = j * 1e-3
-            pj = outer.predict(t_sins + tj, pos_e + vel_e * tj + 0.5 * acc0_e * tj * tj, vel_e + acc0_e * tj,
-                               ins.clk_b + ins.clk_d * tj, ins.clk_d)
-            outer.aid_doppler[j] = pj["doppler_hz"]
-            outer.aid_code_rate[j] = pj["code_rate_cps"]
-        outer.push(t_sins, pos_e, vel_e, acc0_e, ins.clk_b, ins.clk_d)   # covers [10, 20) ms
-        # exact predictions at SINS epochs for the residuals: ring of (t, cp, rate, f)
-        ring_n = 64
-        ring_t = np.full(ring_n, np.nan)
-        ring_cp = np.zeros((ring_n, n_ch))
-        ring_r = np.zeros((ring_n, n_ch))
-        ring_f = np.zeros((ring_n, n_ch))
-        ring_k = 0
-
-        def ring_put(t, pr):
-            nonlocal ring_k
-            i = ring_k % ring_n
-            ring_t[i] = t
-            ring_cp[i] = pr["code_phase_chips"]
-            ring_r[i] = pr["code_rate_cps"]
-            ring_f[i] = pr["doppler_hz"]
-            ring_k += 1
-
-        ring_put(t_sins, pr_now)
-        vel_e_prev = vel_e.copy()
-        acc_e_prev = acc0_e.copy()
-        have_acc = True
-
-        # ---- prefilters + inner loop
-        if self.spec.bank == "pbkf":
-            from ultratight.fusion import pbkf
-            pref = pbkf.PbKfBank(n_ch, cn0_dbhz_init=opt.cn0_init_dbhz)
-            pref.reset(rows)
-            inner = InnerLoop(n_ch, T=sgl.code_period_s, if_hz=self.if_hz)
-        else:
-            from ultratight.fusion.prefilter import PrefilterBank, default_initial_covariance
-            kind = self.spec.bank
-            pref = PrefilterBank(n_ch, kind=kind, q=opt.prefilter_q, huber_c=opt.huber_c,
-                                 correction_period=opt.rackf_period, robust_mode=opt.robust_mode,
-                                 cn0_dbhz_init=opt.cn0_init_dbhz,
-                                 **(dict(opt.rackf_kwargs) if kind == "rackf" else {}), **opt.prefilter_kwargs)
-            sig_code_chips = tightmod.code_sigma_m(tf.P, los_l, M_pos) / sgl.chip_m
-            P_init = np.zeros((n_ch, 5, 5))
-            base = default_initial_covariance(opt.cn0_init_dbhz, sgl.code_period_s)
-            for ch in range(n_ch):
-                P_init[ch] = base
-                P_init[ch, 1, 1] = (sig_code_chips[ch] + opt.code_sigma_margin_chips) ** 2
-                P_init[ch, 3, 3] = (2 * math.pi * (3.0 * sig_dopp[ch] + 0.5)) ** 2
-                P_init[ch, 4, 4] = (2 * math.pi * 2.0) ** 2
-            pref.reset(rows, P0=P_init)
-            inner = InnerLoop(n_ch, T=sgl.code_period_s, if_hz=self.if_hz)
-
-        # ---- NCO Doppler at the middle of each channel's first interval, aiding history consistent
-        t1 = bank.sample_ptr / fs + 0.5 * sgl.code_period_s
-        a1 = outer.aiding_at(t1)
-        bank.carr_freq[:] = self.if_hz + a1
-        bank.code_rate[:] = sgl.code_rate_cps(a1)
-        aid_prev_ff = a1.copy()
+        sig_code_chips = tightmod.code_sigma_m(self.tf.P, los_l, M_pos) / sgl.chip_m
+        self.pref = make_tracking_bank(self.spec, n_ch, opt, (sig_code_chips, es.sig_dopp), sgl)
+        self.inner = InnerLoop(n_ch, T=sgl.code_period_s, if_hz=self.if_hz)
+        # NCO Doppler at the middle of each channel's first interval, aiding history consistent
+        t1 = self.corr.sample_ptr / self.fs + 0.5 * sgl.code_period_s
+        a1 = self.outer.aiding_at(t1)
+        self.corr.carr_freq[:] = self.if_hz + a1
+        self.corr.code_rate[:] = sgl.code_rate_cps(a1)
+        es.aid_prev_ff[:] = a1
         if opt.phase_init_ms <= 0:
-            rate1 = (outer.aiding_at(t1 + sgl.code_period_s) - a1) / sgl.code_period_s
-            inner.prime_aiding(pref, a1 - rate1 * sgl.code_period_s, rate1)
+            rate1 = (self.outer.aiding_at(t1 + sgl.code_period_s) - a1) / sgl.code_period_s
+            self.inner.prime_aiding(self.pref, a1 - rate1 * sgl.code_period_s, rate1)
 
-        # ---- records
-        n_ep_max = int(self.duration_s * 1000.0 * 1.001) + 8
-        rec_t = np.full((n_ep_max, n_ch), np.nan)
-        rec_f = np.full((n_ep_max, n_ch), np.nan)
-        rec_cp = np.full((n_ep_max, n_ch), np.nan)
-        rec_a = np.full((n_ep_max, n_ch), np.nan)
-        rec_mode = np.zeros((n_ep_max, n_ch), dtype=np.int8)
-        nav = {"t": [], "pos_e": [], "vel_e": [], "clk": [], "sig": []}
+    def _build_records(self, es):
+        """Recorder, decimator, lock monitor, IF block stream and the stage views."""
+        opt, sgl = self.opt, self.signal
+        n_ch = len(self.prns)
+        self.rec = EpochRecorder(int(self.duration_s * 1000.0 * 1.001) + 8, n_ch)
+        self.dec = ResidualDecimator(n_ch, opt.tight_rate_hz)
+        self.mon = LockMonitor(n_ch, opt.lock_window_ms, opt.lock_off_dbhz, opt.lock_on_dbhz, sgl.code_period_s)
+        self.mon.present = es.present           # one presence mask: the monitor's verdicts are the engine's
+        blk = int(round(opt.block_ms * 1e-3 * self.fs))
+        self.n_total = int(min(self.src.n_samples, round(self.duration_s * self.fs)))
+        self.stream = BlockStream(self.src, blk, floor=NoiseFloor(opt.noise_tau_s, blk / self.fs))
+        per_max = int(math.ceil(self.fs * sgl.code_period_s * 1.001)) + 4
+        c = self.corr
+        z = np.zeros((n_ch, c.n_cols))
+        self.corr_view = epochs.Corr(
+            c.code_ext, c.pad, c.active, c.sample_ptr, c.code_phase, c.code_rate, c.carr_phase, c.carr_freq, self.fs,
+            c.tap_offsets_chips, per_max, opt.threads != 1, z, np.zeros(n_ch, np.int64), np.zeros(n_ch, np.int64),
+            np.zeros(n_ch), np.zeros(n_ch), np.zeros(n_ch))
+        w = self.wipe
+        self.wipe_view = epochs.Wipe(w.bits, w.t0_ms, w.ms, w.per_bit, w.D)
+        self.bank_view = bank_view(self.pref)
+        r = self.rec
+        self.rec_view = epochs.Rec(r.t, r.f, r.cp, r.a, r.mode, es.mode_now, r.n_ep_max)
+        law = self.inner
+        self.law_view = epochs.Law(es.aid, law.aid_prev, law.rate_prev, law.hist, es.use_aid, law.prm, law.dx,
+                                   es.aid_prev_ff)
+        self.sig_view = epochs.Sig(self.if_hz, 0.5 * sgl.code_period_s, float(sgl.code_length))
 
-        # ---- decimator accumulators (window of the tight filter)
-        t_upd_step = 1.0 / opt.tight_rate_hz
-        t_next_upd = t_upd_step
-        acc = np.zeros((6, n_ch))          # decimator window sums: n, code, doppler, Ptt, Pff, amp
-        D = np.ones(n_ch)
-        aid = np.zeros(n_ch)
-        ms = np.asarray(ms, dtype=np.int64).copy()
-        init_left = int(opt.phase_init_ms)
-        proxy = _BankProxy(pref)
-        i_ptau, i_pf = pref.P_ITAU, pref.P_IF          # code / frequency error in the bank's covariance
-        mode_aided = MODE_COMBINED if self.spec.double_loop else MODE_OUTER
-        init_acc = np.zeros(n_ch, dtype=np.complex128)
-        W = int(opt.lock_window_ms)
-        lm_i = np.zeros((n_ch, W))
-        lm_c = np.zeros((n_ch, W), dtype=np.complex128)
-        lm_si = np.zeros(n_ch)
-        lm_sc = np.zeros(n_ch, dtype=np.complex128)
-        lm_ptr = np.zeros(1, dtype=np.int64)
-        lm_count = np.zeros(n_ch, dtype=np.int64)
-        present = np.ones(n_ch, dtype=np.bool_)
-        lm_events = np.zeros(n_ch, dtype=np.int64)
-        lm_phase = np.zeros(n_ch)
-        thr_off = float(np.sqrt(2.0 * 10 ** (opt.lock_off_dbhz / 10.0) * sgl.code_period_s))
-        thr_on = float(np.sqrt(2.0 * 10 ** (opt.lock_on_dbhz / 10.0) * sgl.code_period_s))
-        n_lost_events = 0
-        n_regained = 0
-        xp_view = np.zeros((n_ch, 5))
-        present_prev = np.ones(n_ch, dtype=np.bool_)
-        gate_ok = np.ones(n_ch, dtype=np.bool_)
-        restart_mask = np.zeros(n_ch, dtype=np.bool_)
-        off_ring = np.zeros((W, n_ch))      # carrier NCO minus aiding (inner-loop offset) history
-        rollback = np.zeros(n_ch)
-        coast_any = False
-        n_phase_inits = 0
-        cp0 = np.zeros(n_ch)
-        f0 = np.zeros(n_ch)
+    def _stage_views(self, st):
+        """The arguments of the compiled epoch stages after :attr:`corr_view` etc.: the views whose
+        scalars change between calls (IF buffer, SINS progress, decimator window)."""
+        s = self.stream
+        n_sig = s._n_sigma
+        src = epochs.If(s.buf.view(np.float32), s.is_complex, int(s.buf_start), int(s.buf.shape[0]), self.n_total,
+                        s.block_len, s._sigma[:max(n_sig, 1)])
+        ring = self.follow.ring
+        outer = epochs.Outer(ring.t, ring.cp, ring.r, ring.f, ring.k, self.imu_dt, self.outer.aid_doppler,
+                             self.outer.n_filled, self.opt.aid_time_offset_s, self.k_imu < self.imu_t.shape[0])
+        window = epochs.Window(self.dec.t_next, self.dec.acc)
+        return (src, self.corr_view, self.wipe_view, self.bank_view, outer, window, self.rec_view, self.law_view,
+                self.sig_view)
 
-        # ---- IF buffer
-        blk = int(round(opt.block_ms * 1e-3 * fs))
-        n_total = int(min(self.src.n_samples, round(self.duration_s * fs)))
-        stream = BlockStream(self.src, blk, floor=NoiseFloor(opt.noise_tau_s, blk / fs))
-        per_max = int(math.ceil(fs * sgl.code_period_s * 1.001)) + 4
-        use_aid = np.ones(n_ch, dtype=bool)
-        mode_now = np.full(n_ch, mode_aided, dtype=np.int8)
-        two_pi = 2.0 * math.pi
-        k_ep = 0
-        n_feedback = 0
-        timing = {"correlate": 0.0, "prefilter": 0.0, "sins_outer": 0.0, "tight": 0.0}
+    # ------------------------------------------------------------------ 100 Hz: IF blocks, SINS + outer loop
+    def _read_if(self):
+        """Read IF blocks for the next epoch; False at the end of the file."""
+        sp = self.corr.sample_ptr
+        hi = int(sp.max()) + self.corr_view.per_max
+        return self.stream.ensure(hi, keep_from=int(sp.min()))
 
-        while True:
-            sp = bank.sample_ptr
-            sp_max = int(sp.max())
-            hi = sp_max + per_max
-            if hi > n_total or k_ep >= n_ep_max:
-                break
-            if not stream.ensure(hi, keep_from=int(sp.min())):
-                break
-            buf, buf_start = stream.buf, stream.buf_start
-            # ---- SINS + outer loop run ahead so the aiding of the next interval exists
-            tw = time.perf_counter()
-            j_need = int((sp_max + per_max) / fs * 1000.0) + 2
-            while outer.n_filled <= j_need and k_imu < imu_t.shape[0]:
-                dt = imu_t[k_imu] - t_sins
-                ins.step(imu_dth[k_imu], imu_dv[k_imu], dt)
-                t_sins = imu_t[k_imu]
-                k_imu += 1
-                pos_e, vel_e, C_el = ins.pos_vel_e()
-                acc_e = (vel_e - vel_e_prev) / dt
-                jerk_e = (acc_e - acc_e_prev) / dt if have_acc else np.zeros(3)
-                acc_e_prev = acc_e
-                have_acc = True
-                vel_e_prev = vel_e
-                ring_put(t_sins, outer.predict(t_sins, pos_e, vel_e, ins.clk_b, ins.clk_d))
-                # kinematics at the middle of the last interval -> extrapolate from there
-                outer.push(t_sins, pos_e, vel_e, acc_e + 0.5 * dt * jerk_e, ins.clk_b, ins.clk_d, jerk_e)
-            timing["sins_outer"] += time.perf_counter() - tw
+    def _advance_sins(self, st):
+        """SINS + outer loop run ahead until the aiding of the next interval exists."""
+        tw = time.perf_counter()
+        sp_max = int(self.corr.sample_ptr.max())
+        j_need = int((sp_max + self.corr_view.per_max) / self.fs * 1000.0) + 2
+        while self.outer.n_filled <= j_need and self.k_imu < self.imu_t.shape[0]:
+            k = self.k_imu
+            dt = self.imu_t[k] - self.follow.t
+            self.ins.step(self.imu_dth[k], self.imu_dv[k], dt)
+            self.k_imu += 1
+            self.follow.step(self.imu_t[k], dt)
+        st.timing["sins_outer"] += time.perf_counter() - tw
 
-            # ---- correlate one period per channel
-            tw = time.perf_counter()
-            cp0[:] = bank.code_phase
-            f0[:] = bank.carr_freq
-            sig = stream.sigma_at(sp)
-            out, t_start, n_s = bank.step(buf, buf_start, sig)
-            if n_s.min() <= 0:
-                raise InputFileError(f"{self.src.path}: correlator could not integrate channels "
-                                     f"{np.flatnonzero(n_s <= 0).tolist()} (buffer management)")
-            timing["correlate"] += time.perf_counter() - tw
-            tw = time.perf_counter()
-            _wipe_bits(wipe.bits, wipe.t0_ms, ms, D, self.signal.codes_per_bit)
-            restart = None
-            init_now = init_left > 0
+    # ------------------------------------------------------------------ 10 Hz: tight filter
+    def _tight_update(self, st):
+        """Decimated residuals -> tight filter -> SINS/clock feedback -> outer loop correction ->
+        arbitration; logs the navigation state."""
+        tw = time.perf_counter()
+        opt, sgl, ins = self.opt, self.signal, self.ins
+        m = self.dec.means(sgl.chip_m, sgl.wavelength_m, opt.meas_corr_factor, opt.pr_sigma_floor_m,
+                           opt.prr_sigma_floor_mps)
+        valid = m["ok"] & (np.abs(m["amp"]) > opt.amp_min) & st.present & st.gate_ok   # (A < 0: half a cycle off)
+        _, _, C_el = ins.pos_vel_e()
+        lat, _, h = ins.llh
+        rm, rn = radii(lat)
+        M_pos = tightmod.pos_error_to_enu(lat, h, rm, rn)
+        los_l = self.follow.los_e() @ C_el
+        Phi, Qd = tightmod.phi_q(ins, self.dec.step_s, self.imu_noise, opt.clock_q_drift)
+        self.tf.predict(Phi, Qd)
+        dx = self.tf.update(m["dz_pr"], m["dz_prr"], los_l, M_pos, m["var_pr"], m["var_prr"], valid)
+        dfp_all = np.zeros(len(self.prns))
+        if np.any(dx != 0.0):
+            ins.feedback(dx)
+            self.tf.reset()
+            st.counts["n_feedback"] += 1
+            dfp_all = self.follow.apply_correction(sgl.code_length, self.spec.double_loop)
+        st.sig_dopp = tightmod.doppler_sigma_hz(self.tf.P, los_l, sgl.wavelength_m)
+        if self.spec.double_loop:
+            st.use_aid[:] = st.sig_dopp < opt.arbitration_sigma_hz
+        if opt.outer_freq_update and self.spec.double_loop:
+            # frequency pseudo-measurement from the outer loop for channels the tight filter
+            # did not use (independent information: no double counting)
+            sel = m["ok"] & st.present & ~valid & self.pref.active & np.isfinite(m["doppler_hz"])
+            if sel.any():
+                _outer_freq_update(self.pref.x, self.pref.P, sel, m["doppler_hz"] - dfp_all,
+                                   (2.0 * math.pi * st.sig_dopp) ** 2)
+        self._set_modes(st)
+        pos_e, vel_e, _ = ins.pos_vel_e()
+        self.rec.log_nav(self.follow.t, pos_e, vel_e, ins.clk_b, ins.clk_d, st.sig_dopp)  # SINS time >= update
+        self.dec.next_window()      # the next window starts with the epochs already past its start
+        st.timing["tight"] += time.perf_counter() - tw
+
+    def _set_modes(self, st):
+        st.mode_now[:] = np.where(st.present, np.where(st.use_aid, st.mode_aided, MODE_INNER), MODE_COAST)
+
+    # ------------------------------------------------------------------ one epoch at a time
+    def _special_epoch(self, st):
+        """One epoch through the same stages as :func:`ultratight.receiver.epochs.run_epochs`, with the
+        start-up phase initialisation (NCOs on the aiding alone, coherent sum of the wiped prompts,
+        then a restart of every channel) and the lock monitor (coast, restart)."""
+        src, corr, _, bank, outer, window, rec, _, sig = self._stage_views(st)
+        status = epoch_gate(st.k_ep, src, corr, outer, rec)
+        if status != CONTINUE:
+            return status
+        if not correlate(src, corr):
+            self._check_status(ERR_CORR, 0)
+        init_now = st.init_left > 0
+        D = self.wipe.step()
+        restart = self._measure(st, corr.out, D, init_now)
+        ff = None               # channels whose NCO follows the outer-loop aiding alone this epoch
+        xp_rec = self.pref.x_post
+        if init_now or st.coast_any or restart is not None:
+            ff = np.ones(len(self.prns), dtype=bool) if init_now else ~st.present
+            st.xp_view[:] = self.pref.x_post
+            st.xp_view[ff | ~st.present_prev, 1:] = 0.0     # (a channel restarting now: estimate = NCO)
+            xp_rec = st.xp_view
+        epoch_post(st.k_ep, corr.t_start, corr.fs, sig.if_hz, corr.f0, corr.cp0, xp_rec, bank.P, bank.i_ptau,
+                   bank.i_pf, outer.ring_t, outer.ring_cp, outer.ring_r, outer.ring_f, outer.ring_k, outer.imu_dt,
+                   window.t_next_upd, window.acc, rec.rec_t, rec.rec_f, rec.rec_cp, rec.rec_a, rec.rec_mode,
+                   st.mode_now, outer.aid_grid, outer.n_filled, corr.sample_ptr, sig.half_period_s, sig.code_len,
+                   st.aid, outer.aid_dt)
+        if restart is not None:
+            self._restart_channels(st, *restart)
             if init_now:
-                # carrier-phase initialisation: NCOs on the aiding only, coherent sum of wiped prompts
-                init_acc += (out[:, 0] + 1j * out[:, 3]) * D
-                init_left -= 1
-                if init_left == 0:
-                    restart = rows
-                    restart_phase = np.angle(init_acc)
-                    restart_amp = np.abs(init_acc) / opt.phase_init_ms
-                    n_phase_inits += 1
-            else:
-                pref.step(out, bits=D)
-                if opt.lock_monitor or opt.monitor_gates_tight:
-                    present_prev[:] = present
-                    _lock_monitor(out, D, lm_i, lm_c, lm_si, lm_sc, lm_ptr, lm_count, present, thr_off, thr_on,
-                                  lm_events, lm_phase)
-                    if not opt.lock_monitor:
-                        # monitor used only to keep fading channels out of the tight filter
-                        gate_ok[:] = present
-                        present[:] = True
-                        np.logical_or(lm_events > 0, False, out=restart_mask)
-                        lm_events[:] = 0
-                if opt.lock_monitor and lm_events.any():
-                    lost = lm_events < 0
-                    back = lm_events > 0
-                    if lost.any():
-                        n_lost_events += int(lost.sum())
-                        # roll the carrier NCO's inner-loop offset back to its value before the
-                        # monitor window (the prefilter fitted noise while the loss built up)
-                        old = off_ring[lm_ptr[0] % W]
-                        cur = bank.carr_freq - self.if_hz - aid
-                        rollback[lost] = (old - cur)[lost]
-                    if back.any():
-                        n_regained += int(back.sum())
-                        restart = np.flatnonzero(back)
-                        restart_phase = lm_phase
-                        restart_amp = np.abs(lm_sc) / W
-                    coast_any = not present.all()
-                    mode_now = np.where(present, np.where(use_aid, mode_aided, MODE_INNER),
-                                        MODE_COAST).astype(np.int8)
-            ff_any = init_now or coast_any or restart is not None   # NCO on the aiding only
-            if ff_any:
-                ff = np.ones(n_ch, dtype=bool) if init_now else ~present
-                xp_view[:] = pref.x_post
-                xp_view[ff | ~present_prev, 1:] = 0.0     # (a channel restarting now: estimate = NCO)
-                xp_rec = xp_view
-            else:
-                xp_rec = pref.x_post
-            _epoch_post(k_ep, t_start, fs, self.if_hz, f0, cp0, xp_rec, pref.P, i_ptau, i_pf,
-                        ring_t, ring_cp, ring_r, ring_f, ring_k, imu_dt, t_next_upd, acc, rec_t, rec_f,
-                        rec_cp, rec_a, rec_mode, mode_now, outer.aid_doppler, outer.n_filled,
-                        bank.sample_ptr, 0.5 * sgl.code_period_s, float(sgl.code_length), aid,
-                        opt.aid_time_offset_s)
-            # ---- NCO commands for the next interval
-            if restart is not None:
-                t_code = sgl.code_period_s
-                rate = (outer.aiding_at(bank.sample_ptr / fs + 1.5 * t_code) - aid) / t_code
-                self._restart_channels(pref, inner, bank, restart, restart_phase, restart_amp, aid, rate)
-                if init_now:
-                    ff_any = False
-                    init_now = False
-            if ff_any:
-                d_aid = np.where(ff, aid - aid_prev_ff, 0.0)
-                bank.carr_freq += d_aid
-                bank.code_rate[ff] = sgl.code_rate_cps(bank.carr_freq[ff] - self.if_hz)
-                proxy.active = pref.active & ~ff
-                inner.apply(proxy, bank, aid_doppler_hz=aid, use_aid=use_aid)
-            else:
-                inner.apply(pref, bank, aid_doppler_hz=aid, use_aid=use_aid)
-            aid_prev_ff[:] = aid
-            if opt.lock_monitor:
-                if rollback.any():
-                    bank.carr_freq += rollback
-                    bank.code_rate[:] = sgl.code_rate_cps(bank.carr_freq - self.if_hz)
-                    rollback[:] = 0.0
-                off_ring[k_ep % W] = bank.carr_freq - self.if_hz - aid
-            timing["prefilter"] += time.perf_counter() - tw
+                ff = None
+        self._command(st, ff)
+        st.k_ep += 1
+        return TIGHT if corr.t_start.min() >= window.t_next_upd * corr.fs else CONTINUE
 
-            # ---- tight filter update at the decimated rate, once every channel passed t_next_upd
-            if t_start.min() >= t_next_upd * fs:
-                tw = time.perf_counter()
-                acc_n, acc_cp, acc_f, acc_pt, acc_pf, acc_a = acc
-                ok = acc_n > 0
-                nn = np.maximum(acc_n, 1)
-                m_cp = acc_cp / nn
-                m_f = acc_f / nn
-                m_a = acc_a / nn
-                dz_pr = sgl.chip_m * m_cp
-                dz_prr = sgl.wavelength_m * m_f
-                var_pr = sgl.chip_m ** 2 * (acc_pt / nn) * opt.meas_corr_factor + opt.pr_sigma_floor_m ** 2
-                var_prr = (sgl.wavelength_m / two_pi) ** 2 * (acc_pf / nn) * opt.meas_corr_factor \
-                    + opt.prr_sigma_floor_mps ** 2
-                valid = ok & (np.abs(m_a) > opt.amp_min) & present & gate_ok   # (A < 0: half a cycle off)
-                pos_e, vel_e, C_el = ins.pos_vel_e()
-                lat, lon, h = ins.llh
-                rm, rn = radii(lat)
-                M_pos = tightmod.pos_error_to_enu(lat, h, rm, rn)
-                los_l = ring_los(outer, pos_e, vel_e, ins, t_sins) @ C_el
-                Phi, Qd = tightmod.phi_q(ins, t_upd_step, self.imu_noise, opt.clock_q_drift)
-                tf.predict(Phi, Qd)
-                dx = tf.update(dz_pr, dz_prr, los_l, M_pos, var_pr, var_prr, valid)
-                dfp_all = np.zeros(n_ch)
-                if np.any(dx != 0.0):
-                    ins.feedback(dx)
-                    tf.reset()
-                    n_feedback += 1
-                    # keep the residual predictions consistent with the corrected SINS
-                    pos_e, vel_e, C_el = ins.pos_vel_e()
-                    pr_fix = outer.predict(t_sins, pos_e, vel_e, ins.clk_b, ins.clk_d)
-                    i1 = (ring_k - 1) % ring_n
-                    half_code = 0.5 * sgl.code_length
-                    dcp = np.mod(pr_fix["code_phase_chips"] - ring_cp[i1] + half_code, sgl.code_length) - half_code
-                    dfp = pr_fix["doppler_hz"] - ring_f[i1]
-                    ring_cp += dcp
-                    ring_f += dfp
-                    dfp_all = dfp
-                    if self.spec.double_loop:
-                        outer.offset_hz += dfp   # double loop: corrections do not jump the NCOs
-                    ring_r[i1] = pr_fix["code_rate_cps"]
-                    vel_e_prev = vel_e.copy()
-                sig_dopp = tightmod.doppler_sigma_hz(tf.P, los_l, sgl.wavelength_m)
-                if self.spec.double_loop:
-                    use_aid = (sig_dopp < opt.arbitration_sigma_hz)
-                if opt.outer_freq_update and self.spec.double_loop:
-                    # frequency pseudo-measurement from the outer loop for channels the tight filter
-                    # did not use (independent information: no double counting)
-                    sel = ok & present & ~valid & pref.active & np.isfinite(m_f)
-                    if sel.any():
-                        _outer_freq_update(pref.x, pref.P, sel, m_f - dfp_all,
-                                           (two_pi * sig_dopp) ** 2)
-                mode_now = np.where(present, np.where(use_aid, mode_aided, MODE_INNER),
-                                    MODE_COAST).astype(np.int8)
-                nav["t"].append(t_sins)      # the SINS state logged is at t_sins (>= t_u)
-                nav["pos_e"].append(pos_e.copy())
-                nav["vel_e"].append(vel_e.copy())
-                nav["clk"].append([ins.clk_b, ins.clk_d])
-                nav["sig"].append(sig_dopp.copy())
-                # start the next window with the epochs already past t_next_upd
-                acc[:] = 0.0
-                t_next_upd += t_upd_step
-                timing["tight"] += time.perf_counter() - tw
-            k_ep += 1
-            if progress and k_ep % 5000 == 0:
-                print(f"  {self.method}: {k_ep / 1000.0:6.1f} s", flush=True)
+    def _measure(self, st, out, D, init_now):
+        """The tracking bank's epoch (or the start-up phase initialisation's coherent sum) and the
+        lock monitor. Returns ``(channels, phase, amplitude)`` of channels to restart now, or None."""
+        opt = self.opt
+        if init_now:
+            # carrier-phase initialisation: NCOs on the aiding only, coherent sum of wiped prompts
+            st.init_acc += (out[:, 0] + 1j * out[:, 3]) * D
+            st.init_left -= 1
+            if st.init_left == 0:
+                st.counts["n_phase_inits"] += 1
+                return np.arange(len(self.prns)), np.angle(st.init_acc), np.abs(st.init_acc) / opt.phase_init_ms
+            return None
+        self.pref.step(out, bits=D)
+        if not (opt.lock_monitor or opt.monitor_gates_tight):
+            return None
+        st.present_prev[:] = st.present
+        events = self.mon.update(out, D)
+        if not opt.lock_monitor:
+            # monitor used only to keep fading channels out of the tight filter
+            st.gate_ok[:] = st.present
+            st.present[:] = True
+            np.logical_or(events > 0, False, out=st.restart_mask)
+            events[:] = 0
+            return None
+        return self._monitor_events(st, events)
 
-        runtime = time.perf_counter() - t_wall0
-        n = k_ep
-        info = {
-            "options": self.opt.as_dict(),
-            "wipeoff_mode": wipe.mode,
-            "n_epochs": n,
-            "n_tight_updates": tf.n_updates,
-            "n_tight_rejected": tf.n_rejected,
-            "n_feedback": n_feedback,
-            "n_phase_inits": n_phase_inits,
-            "n_lock_lost_events": n_lost_events,
-            "n_prefilter_restarts": n_regained,
-            "timing_s": timing,
-            "prefilter": pref.describe(),
-            "prefilter_resets": np.asarray(getattr(pref, "n_resets", np.zeros(n_ch))).tolist(),
-            "arbitration_rule": "combined when sigma_doppler_i = sqrt(u'Pvv u + Pdd - 2u'Pvd)/lambda < "
-                                f"{opt.arbitration_sigma_hz} Hz (tight filter P), else inner loop alone",
-            "startup": {k: (v.tolist() if isinstance(v, np.ndarray) else v)
-                        for k, v in st.items() if k.startswith("err_") or k == "sigmas"},
-        }
-        return EngineResult(
-            method=self.method, prns=list(self.prns), t_start=rec_t[:n], doppler_hz=rec_f[:n],
-            code_phase_chips=rec_cp[:n], amp=rec_a[:n], mode=rec_mode[:n],
-            nav_t=np.asarray(nav["t"]), nav_pos_e=np.asarray(nav["pos_e"]).reshape(-1, 3),
-            nav_vel_e=np.asarray(nav["vel_e"]).reshape(-1, 3), nav_clk=np.asarray(nav["clk"]).reshape(-1, 2),
-            nav_sigma_doppler_hz=np.asarray(nav["sig"]).reshape(-1, n_ch), runtime_s=runtime,
-            duration_s=n * sgl.code_period_s, info=info)
+    def _monitor_events(self, st, events):
+        """Lost channels coast on the aiding (the carrier NCO's inner-loop offset rolled back to its
+        value before the monitor window); regained ones restart on the coherent phase."""
+        if not events.any():
+            return None
+        mon = self.mon
+        restart = None
+        lost = events < 0
+        back = events > 0
+        if lost.any():
+            st.counts["n_lock_lost_events"] += int(lost.sum())
+            old = st.off_ring[mon.ptr[0] % mon.W]
+            cur = self.corr.carr_freq - self.if_hz - st.aid
+            st.rollback[lost] = (old - cur)[lost]
+        if back.any():
+            st.counts["n_prefilter_restarts"] += int(back.sum())
+            restart = np.flatnonzero(back), mon.phase, np.abs(mon.coherent_sum) / mon.W
+        st.coast_any = not st.present.all()
+        self._set_modes(st)
+        return restart
 
-    def _restart_channels(self, pref, inner, bank, chans, phase, amp, aid, rate):
-        """(Re)start channels' prefilters on a coherent carrier-phase estimate: rotate the carrier
-        NCO by the phase of the coherent sum of the wiped prompts, restart the prefilter
-        (amplitude from the coherent magnitude, startup-like covariance) and hand the aiding
-        history to the inner loop (outer-loop Doppler rate injected into the acceleration state)."""
+    def _command(self, st, ff):
+        """NCO commands for the next interval: the inner loop's (with the outer-loop aiding where the
+        arbitration allows); channels in ``ff`` follow the aiding increments alone."""
+        sgl, corr = self.signal, self.corr
+        if ff is not None:
+            d_aid = np.where(ff, st.aid - st.aid_prev_ff, 0.0)
+            corr.carr_freq += d_aid
+            corr.code_rate[ff] = sgl.code_rate_cps(corr.carr_freq[ff] - self.if_hz)
+            self.inner.apply(_BankProxy(self.pref, self.pref.active & ~ff), corr.nco, aid_doppler_hz=st.aid,
+                             use_aid=st.use_aid)
+        else:
+            self.inner.apply(self.pref, corr.nco, aid_doppler_hz=st.aid, use_aid=st.use_aid)
+        st.aid_prev_ff[:] = st.aid
+        if self.opt.lock_monitor:
+            if st.rollback.any():
+                corr.carr_freq += st.rollback
+                corr.code_rate[:] = sgl.code_rate_cps(corr.carr_freq - self.if_hz)
+                st.rollback[:] = 0.0
+            st.off_ring[st.k_ep % self.mon.W] = corr.carr_freq - self.if_hz - st.aid
+
+    def _restart_channels(self, st, chans, phase, amp):
+        """(Re)start channels' tracking filters on a coherent carrier-phase estimate: rotate the carrier
+        NCO by the phase of the coherent sum of the wiped prompts, restart the filter (amplitude from
+        the coherent magnitude, start-up-like covariance) and hand the aiding history to the inner
+        loop (outer-loop Doppler rate injected into the acceleration state)."""
         chans = np.atleast_1d(np.asarray(chans))
-        sgl = self.signal
-        a_min = float(np.sqrt(2.0 * 10 ** (self.opt.cn0_min_dbhz / 10.0) * sgl.code_period_s))
+        sgl, corr, aid = self.signal, self.corr, st.aid
+        t_code = sgl.code_period_s
+        rate = (self.outer.aiding_at(corr.sample_ptr / self.fs + 1.5 * t_code) - aid) / t_code
+        a_min = amplitude_threshold(self.opt.cn0_min_dbhz, t_code)
         for c in chans:
-            bank.carr_phase[c] = (bank.carr_phase[c] + phase[c] / (2.0 * math.pi)) % 1.0
+            corr.carr_phase[c] = (corr.carr_phase[c] + phase[c] / (2.0 * math.pi)) % 1.0
         x0 = np.zeros((len(chans), 5))
         x0[:, 0] = np.maximum(amp[chans], a_min)
         # frequency error at the start of the next interval: the NCO still holds the last
@@ -793,28 +558,44 @@ class UltratightEngine:
         # adds the injected rate (da T/2) itself -> df0 = aid - NCO keeps the channel's Doppler
         # continuous across the (re)start.  (df0 = 0 started the filter one aiding increment
         # off -- up to 0.5 Hz at 20 g -- which it then pulled in over ~0.5 s.)
-        x0[:, 3] = 2.0 * math.pi * (aid[chans] - (bank.carr_freq[chans] - self.if_hz))
-        if self.spec.bank == "pbkf":
-            pref.reset(chans, x0=x0)
+        x0[:, 3] = 2.0 * math.pi * (aid[chans] - (corr.carr_freq[chans] - self.if_hz))
+        P0 = restart_covariance(self.pref, chans, x0, self.opt, sgl)
+        if P0 is None:
+            self.pref.reset(chans, x0=x0)
         else:
-            from ultratight.fusion.prefilter import default_initial_covariance
-            base = default_initial_covariance(self.opt.cn0_init_dbhz, sgl.code_period_s)
-            P0 = np.zeros((len(chans), 5, 5))
-            for i, c in enumerate(chans):
-                P0[i] = base
-                P0[i, 0, 0] = (0.3 * x0[i, 0]) ** 2
-                P0[i, 1, 1] = pref.P[c, 1, 1] + self.opt.code_sigma_margin_chips ** 2
-                P0[i, 2, 2] = 0.5 ** 2
-                P0[i, 3, 3] = (2 * math.pi * self.opt.reinit_sigma_f_hz) ** 2
-                P0[i, 4, 4] = (2 * math.pi * self.opt.reinit_sigma_a_hzps) ** 2
-            pref.reset(chans, x0=x0, P0=P0)
-        inner.prime_aiding(pref, aid - rate * sgl.code_period_s, rate, channels=chans)
+            self.pref.reset(chans, x0=x0, P0=P0)
+        self.inner.prime_aiding(self.pref, aid - rate * t_code, rate, channels=chans)
+
+    def _info(self, st):
+        opt = self.opt
+        return {
+            "options": opt.as_dict(),
+            "wipeoff_mode": self.wipe.mode,
+            "n_epochs": st.k_ep,
+            "n_tight_updates": self.tf.n_updates,
+            "n_tight_rejected": self.tf.n_rejected,
+            **st.counts,
+            "timing_s": st.timing,
+            "prefilter": self.pref.describe(),
+            "prefilter_resets": np.asarray(self.pref.n_resets).tolist(),
+            "arbitration_rule": "combined when sigma_doppler_i = sqrt(u'Pvv u + Pdd - 2u'Pvd)/lambda < "
+                                f"{opt.arbitration_sigma_hz} Hz (tight filter P), else inner loop alone",
+            "startup": {k: (v.tolist() if isinstance(v, np.ndarray) else v)
+                        for k, v in self.init_state.items() if k.startswith("err_") or k == "sigmas"},
+        }
 
 
-def ring_los(outer, pos_e, vel_e, ins, t):
-    """Unit lines of sight (ECEF) at the current SINS state."""
-    return outer.predict(t, pos_e, vel_e, ins.clk_b, ins.clk_d)["los_e"]
+class _BankProxy:
+    """A tracking bank seen by the inner-loop law with some channels masked inactive (channels
+    whose NCO follows the outer-loop aiding alone this epoch)."""
 
+    def __init__(self, bank, active):
+        self._bank = bank
+        self.x = bank.x
+        self.active = active
+
+    def note_correction(self, dx):
+        self._bank.note_correction(dx)
 
 # ---------------------------------------------------------------------------------------
 # recorded data: IF file + IMU file

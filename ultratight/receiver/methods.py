@@ -20,7 +20,7 @@ inner loop runs (``double``) or the NCOs follow the outer loop alone (``outer``)
 method runs through the scalar pipeline instead (``scalar``).
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from ultratight.errors import ConfigError
 
@@ -33,6 +33,7 @@ class MethodSpec:
     bank: str                 # "pbkf", a PrefilterBank kind ("ukf", "ckf", "rackf") or "scalar"
     loop: str                 # "outer" (NCOs on the outer loop only), "double" (inner + outer) or "scalar"
     description: str = ""
+    bank_options: dict = field(default_factory=dict)   # bank parameters of this method (override the options)
 
     def __post_init__(self):
         if self.loop not in LOOPS:

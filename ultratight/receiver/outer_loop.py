@@ -340,6 +340,99 @@ class OuterLoop:
             self.interp.push(np.stack([pr["doppler_hz"] - self.offset_hz, pr["code_rate_cps"] - F_CA], axis=0))
 
 
+class PredictionRing:
+    """The outer loop's exact predictions at the last ``size`` SINS epochs (receiver time ``t``,
+    code phase, code rate, Doppler per channel): the reference the tracking estimates are
+    differenced against (residuals for the tight filter, linear in time between SINS epochs)."""
+
+    def __init__(self, n_ch, size=64):
+        self.t = np.full(size, np.nan)
+        self.cp = np.zeros((size, n_ch))
+        self.r = np.zeros((size, n_ch))
+        self.f = np.zeros((size, n_ch))
+        self.k = 0                   # predictions put so far; the latest is at (k - 1) % size
+
+    @property
+    def latest(self):
+        return (self.k - 1) % self.t.shape[0]
+
+    def put(self, t, pr):
+        i = self.k % self.t.shape[0]
+        self.t[i] = t
+        self.cp[i] = pr["code_phase_chips"]
+        self.r[i] = pr["code_rate_cps"]
+        self.f[i] = pr["doppler_hz"]
+        self.k += 1
+
+
+class SinsFollower:
+    """Feeds an :class:`OuterLoop` from the corrected SINS (:class:`ultratight.receiver.sins_clock.InsClock`):
+    exact predictions at every SINS epoch into its :class:`PredictionRing`, and the kinematics
+    (velocity, finite-difference acceleration and jerk) for the CIC-interpolated aiding."""
+
+    def __init__(self, outer, ins, t_sins, dtheta0, dv0, dt0, code_period_s):
+        """Start the outer loop at the SINS epoch ``t_sins``: the acceleration from a trial step over
+        the first IMU interval, the interpolator's history, the aiding of the first interval by
+        direct predictions, and the first ring entry."""
+        self.outer = outer
+        self.ins = ins
+        self.t = float(t_sins)
+        self.ring = PredictionRing(len(outer.prns))
+        pos_e, vel_e, _ = ins.pos_vel_e()
+        self.first = outer.predict(self.t, pos_e, vel_e, ins.clk_b, ins.clk_d)
+        acc0_e = (ins.trial_velocity_e(dtheta0, dv0, dt0) - vel_e) / dt0
+        outer.prime(self.t, pos_e, vel_e, acc0_e, ins.clk_b, ins.clk_d)
+        for j in range(outer.ratio + 1):
+            tj = j * 1e-3
+            pj = outer.predict(self.t + tj, pos_e + vel_e * tj + 0.5 * acc0_e * tj * tj, vel_e + acc0_e * tj,
+                               ins.clk_b + ins.clk_d * tj, ins.clk_d)
+            outer.aid_doppler[j] = pj["doppler_hz"]
+            outer.aid_code_rate[j] = pj["code_rate_cps"]
+        outer.push(self.t, pos_e, vel_e, acc0_e, ins.clk_b, ins.clk_d)
+        self.ring.put(self.t, self.first)
+        self.vel_prev = vel_e.copy()
+        self.acc_prev = acc0_e.copy()
+
+    def step(self, t_sins, dt):
+        """After the SINS stepped to ``t_sins`` (interval ``dt``): ring entry and aiding samples."""
+        ins = self.ins
+        self.t = t_sins
+        pos_e, vel_e, _ = ins.pos_vel_e()
+        acc_e = (vel_e - self.vel_prev) / dt
+        jerk_e = (acc_e - self.acc_prev) / dt
+        self.acc_prev = acc_e
+        self.vel_prev = vel_e
+        self.ring.put(t_sins, self.outer.predict(t_sins, pos_e, vel_e, ins.clk_b, ins.clk_d))
+        # kinematics at the middle of the last interval -> extrapolate from there
+        self.outer.push(t_sins, pos_e, vel_e, acc_e + 0.5 * dt * jerk_e, ins.clk_b, ins.clk_d, jerk_e)
+
+    def los_e(self):
+        """Unit lines of sight (ECEF) at the current SINS state."""
+        pos_e, vel_e, _ = self.ins.pos_vel_e()
+        return self.outer.predict(self.t, pos_e, vel_e, self.ins.clk_b, self.ins.clk_d)["los_e"]
+
+    def apply_correction(self, code_length, book_offset):
+        """After a tight-filter feedback: shift the ring's predictions to the corrected SINS (the
+        residuals stay consistent) and, with ``book_offset`` (double loop), book the Doppler change
+        in the outer loop's offset so the correction does not jump the NCOs. Returns the Doppler
+        change per channel (Hz)."""
+        ins = self.ins
+        ring = self.ring
+        pos_e, vel_e, _ = ins.pos_vel_e()
+        pr_fix = self.outer.predict(self.t, pos_e, vel_e, ins.clk_b, ins.clk_d)
+        i1 = ring.latest
+        half = 0.5 * code_length
+        dcp = np.mod(pr_fix["code_phase_chips"] - ring.cp[i1] + half, code_length) - half
+        dfp = pr_fix["doppler_hz"] - ring.f[i1]
+        ring.cp += dcp
+        ring.f += dfp
+        if book_offset:
+            self.outer.offset_hz += dfp
+        ring.r[i1] = pr_fix["code_rate_cps"]
+        self.vel_prev = vel_e.copy()
+        return dfp
+
+
 def make_cic(n_ch, ratio, order, in_rate_hz):
     """The CIC interpolator of fusion.rateconv for two quantities x n_ch channels (adapter)."""
     return _CicAdapter(n_ch, ratio, order, in_rate_hz)
