@@ -11,7 +11,7 @@ from ultratight.receiver.methods import DEFAULT_METHOD, METHODS, REGISTRY, check
 
 
 def test_registry_names_banks_and_loops():
-    assert METHODS == ("pb-kf-utc", "dlb-ukf", "dlb-ckf", "dlb-rackf", "scalar")
+    assert METHODS == ("pb-kf-utc", "dlb-ukf", "dlb-ckf", "dlb-rackf", "dlb-rackf-paper", "scalar")
     assert DEFAULT_METHOD in METHODS
     for name, spec in REGISTRY.items():
         assert spec.name == name
@@ -53,3 +53,15 @@ def test_engine_runs_the_scalar_method_through_the_scalar_pipeline(tmp_path):
     assert res.doppler_hz.shape == ref.doppler_hz.shape and res.doppler_hz.shape[0] > 100
     np.testing.assert_array_equal(res.doppler_hz, ref.doppler_hz)
     np.testing.assert_array_equal(res.code_phase_chips, ref.code_phase_chips)
+
+
+def test_paper_literal_rackf_gets_algorithm_1_settings():
+    from ultratight.receiver.engine import EngineOptions
+    from ultratight.receiver.tracking_banks import make_tracking_bank
+    sig = (np.full(2, 0.05), np.full(2, 0.5))
+    from ultratight.signals.signal import GPS_L1CA
+    paper = make_tracking_bank(method_spec("dlb-rackf-paper"), 2, EngineOptions(), sig, GPS_L1CA)
+    ours = make_tracking_bank(method_spec("dlb-rackf"), 2, EngineOptions(), sig, GPS_L1CA)
+    assert (paper.robust_mode, paper.adaptive_stat) == ("period", "epoch")
+    assert (ours.robust_mode, ours.adaptive_stat) == ("every", "window")
+    assert paper.kind == ours.kind == "rackf"

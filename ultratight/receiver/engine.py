@@ -49,10 +49,12 @@ References: docs/references.md.
 
 import json
 import math
+import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from ultratight import __version__
@@ -178,10 +180,25 @@ class EngineOptions:
     reinit_sigma_a_hzps: float = 0.3     # Doppler-rate 1-sigma after a (re)initialisation (aided)
     prefilter_kwargs: dict = field(default_factory=dict)   # extra PrefilterBank parameters
     startup: dict = field(default_factory=dict)   # StartupErrors overrides
-    threads: int = 0                     # correlator threads: 0 = numba's default (all cores), 1 = serial
+    threads: int = 0                     # epoch-stage threads: 0 = auto (epoch_threads), 1 = one, k = k
 
     def as_dict(self):
         return asdict(self)
+
+
+def epoch_threads(requested):
+    """Threads for the compiled epoch stages (channels spread over them): ``requested`` when > 0
+    (capped by numba's pool), else every core of the pool when at least 1.5 cores are idle by the
+    1-minute load average, and one otherwise — on a busy machine the threads wait for each other
+    at every stop of the epoch runner and lose more than they gain."""
+    pool = numba.config.NUMBA_NUM_THREADS
+    if requested and requested > 0:
+        return max(1, min(int(requested), pool))
+    try:
+        idle = (os.cpu_count() or 1) - os.getloadavg()[0]
+    except OSError:
+        idle = 0.0
+    return pool if pool > 1 and idle >= 1.5 else 1
 
 
 class EpochState:
@@ -346,11 +363,14 @@ class UltratightEngine:
         self.n_total = int(min(self.src.n_samples, round(self.duration_s * self.fs)))
         self.stream = BlockStream(self.src, blk, floor=NoiseFloor(opt.noise_tau_s, blk / self.fs))
         per_max = int(math.ceil(self.fs * sgl.code_period_s * 1.001)) + 4
+        self.threads = epoch_threads(opt.threads)
+        if self.threads > 1:
+            numba.set_num_threads(self.threads)
         c = self.corr
         z = np.zeros((n_ch, c.n_cols))
         self.corr_view = epochs.Corr(
             c.code_ext, c.pad, c.active, c.sample_ptr, c.code_phase, c.code_rate, c.carr_phase, c.carr_freq, self.fs,
-            c.tap_offsets_chips, per_max, opt.threads != 1, z, np.zeros(n_ch, np.int64), np.zeros(n_ch, np.int64),
+            c.tap_offsets_chips, per_max, self.threads > 1, z, np.zeros(n_ch, np.int64), np.zeros(n_ch, np.int64),
             np.zeros(n_ch), np.zeros(n_ch), np.zeros(n_ch))
         w = self.wipe
         self.wipe_view = epochs.Wipe(w.bits, w.t0_ms, w.ms, w.per_bit, w.D)
@@ -576,6 +596,7 @@ class UltratightEngine:
             "n_tight_rejected": self.tf.n_rejected,
             **st.counts,
             "timing_s": st.timing,
+            "threads": self.threads,
             "prefilter": self.pref.describe(),
             "prefilter_resets": np.asarray(self.pref.n_resets).tolist(),
             "arbitration_rule": "combined when sigma_doppler_i = sqrt(u'Pvv u + Pdd - 2u'Pvd)/lambda < "

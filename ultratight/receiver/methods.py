@@ -10,11 +10,15 @@ method         bank        loop           what it is
 ``dlb-ckf``    ``ckf``     ``double``     (:class:`ultratight.fusion.prefilter.PrefilterBank` of that
 ``dlb-rackf``  ``rackf``   ``double``     kind) closes its own inner loop every epoch; the outer loop
                                           feeds the SINS-predicted Doppler increments forward
+``dlb-rackf-`` ``rackf``   ``double``     the same with the RACKF of the paper's Algorithm 1 as printed
+``paper``                                 (Huber + adaptive factor only every correction period, the
+                                          single-epoch statistic of eq. 38); ``dlb-rackf`` is the
+                                          project's variant (Huber every epoch, windowed statistic)
 ``scalar``     ``scalar``  ``scalar``     the scalar DLL/PLL/FLL channels of :mod:`ultratight.receiver.tracking`
                                           (no INS), from the same hot-start predictions
 =============  ==========  =============  =============================================================
 
-A new method is one entry here (plus its bank, if new). The engine
+A new method is one entry here (plus its bank, if new: :mod:`ultratight.receiver.tracking_banks`). The engine
 (:mod:`ultratight.receiver.engine`) reads only the spec: which bank to build, whether the
 inner loop runs (``double``) or the NCOs follow the outer loop alone (``outer``), and whether the
 method runs through the scalar pipeline instead (``scalar``).
@@ -59,6 +63,10 @@ REGISTRY = {s.name: s for s in (
     MethodSpec("dlb-ukf", "ukf", "double", "double loop, UKF prefilters"),
     MethodSpec("dlb-ckf", "ckf", "double", "double loop, CKF prefilters"),
     MethodSpec("dlb-rackf", "rackf", "double", "double loop, robust adaptive CKF prefilters"),
+    MethodSpec("dlb-rackf-paper", "rackf", "double",
+               "double loop, RACKF as the paper's Algorithm 1 (SPEC §3): robust and adaptive corrections "
+               "only every correction period, adaptive statistic of the epoch alone (eq. 38)",
+               bank_options={"robust_mode": "period", "adaptive_stat": "epoch"}),
     MethodSpec("scalar", "scalar", "scalar", "scalar DLL/PLL/FLL tracking, no INS"),
 )}
 
