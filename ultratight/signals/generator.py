@@ -58,7 +58,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from ultratight import __version__
 from ultratight.constants import C, CA_LEN, F_CA, T_CA
@@ -85,14 +85,14 @@ C0, C1, C2, P0, P1, P2 = range(6)
 # ------------------------------------------------------------------------------------------
 # numba kernels
 # ------------------------------------------------------------------------------------------
-@njit(cache=True, fastmath=True)
+@njit(cache=True, fastmath=True, parallel=True)
 def _synth_complex(out, L, n_int, codes, coefs, amps, bits, cos_lut, sin_lut):
     """Add the satellites' signals to ``out`` (float32 (n_int*L, 2): I, Q)."""
     nsat = codes.shape[0]
     lutn = cos_lut.shape[0]
     mask = lutn - 1
     flut = float(lutn)
-    for k in range(n_int):
+    for k in prange(n_int):          # intervals are independent: spread over numba's threads
         base = k * L
         for s in range(nsat):
             a = amps[k, s]
@@ -124,14 +124,14 @@ def _synth_complex(out, L, n_int, codes, coefs, amps, bits, cos_lut, sin_lut):
                 out[base + i, 1] += v * sin_lut[li]
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True, fastmath=True, parallel=True)
 def _synth_real(out, L, n_int, codes, coefs, amps, bits, cos_lut):
     """Add the satellites' signals to ``out`` (float32 (n_int*L,))."""
     nsat = codes.shape[0]
     lutn = cos_lut.shape[0]
     mask = lutn - 1
     flut = float(lutn)
-    for k in range(n_int):
+    for k in prange(n_int):          # intervals are independent: spread over numba's threads
         base = k * L
         for s in range(nsat):
             a = amps[k, s]
