@@ -6,8 +6,6 @@ constellation module); the receiver trajectory comes from ultratight.ins.traject
 
 import json
 import math
-import sys
-import types
 from pathlib import Path
 
 import h5py
@@ -18,6 +16,7 @@ from ultratight.constants import CA_LEN, F_CA, F_L1, LAMBDA_L1, OMEGA_E
 from ultratight.errors import ConfigError
 from ultratight.signals.ca_code import ca_code
 from ultratight.signals.ephemeris import Ephemeris
+from ultratight.signals import generator
 from ultratight.signals.generator import SignalPlan, eval_poly, generate
 from ultratight.signals.iffile import open_if
 
@@ -222,9 +221,7 @@ def test_nav_bits_follow_transmit_time(tmp_path, monkeypatch):
         k0 = int(round(tow_start_s / 0.02)) - int(TOW0 / 0.02) + 5000
         return pattern[k0:k0 + n_bits]
 
-    fake = types.ModuleType("ultratight.signals.lnav")
-    fake.nav_bits = nav_bits
-    monkeypatch.setitem(sys.modules, "ultratight.signals.lnav", fake)
+    monkeypatch.setattr(generator, "nav_bits", nav_bits)     # the generator's lnav.nav_bits
     cfg = base_cfg(duration_s=0.3, satellites={"cn0_dbhz": 45.0}, nav={"data_bits": True})
     res = generate(cfg, tmp_path, "nb", ephemerides=EPHS[1:2], progress=False)
     with open_if(res["if"]) as src, h5py.File(res["truth"], "r") as truth:

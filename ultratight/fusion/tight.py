@@ -38,6 +38,11 @@ or a noise burst the prefilter's covariance does not reflect.
 import numpy as np
 
 from ultratight.errors import FilterError
+from ultratight.fusion import filters
+from ultratight.fusion.adaptive import IAKF, gdop as gdop_fn
+from ultratight.ins import error_model as em
+from ultratight.ins import imu as imu_mod
+from ultratight.ins.earth import radii
 
 # the 17-state layout is the INS error model's (one definition)
 from ultratight.ins.error_model import ATT, BA, BG, POS, VEL  # noqa: F401  (re-exported)
@@ -176,7 +181,6 @@ class TightFilter:
         if self.core == "ekf":
             x, P, nis = _kf_update(self.x, self.P, z, H, R)
         else:
-            from ultratight.fusion import filters
             hfun = (lambda X: X @ H.T)
             if self.core == "ukf":
                 res = filters.ukf_update(self.x, self.P, z, hfun, R, vectorized=True, **self.ukf)
@@ -189,7 +193,6 @@ class TightFilter:
         return self.x.copy()
 
     def _update_iakf(self, z, H, Rd, use, los_l, gdop):
-        from ultratight.fusion.adaptive import IAKF, gdop as gdop_fn
         m2 = z.shape[0]
         m = m2 // 2
         if self._iakf is None:
@@ -241,7 +244,6 @@ def _kf_update(x, P, z, H, R):
 def imu_errors_from_meta(imu):
     """:class:`ultratight.ins.imu.ImuErrors` from an IMU file's metadata (generator-written files
     carry the error model); files without it use the SPEC §4 "paper" preset."""
-    from ultratight.ins import imu as imu_mod
     d = (getattr(imu, "meta", None) or {}).get("errors")
     if isinstance(d, dict):
         e = imu_mod.ImuErrors()
@@ -266,7 +268,6 @@ def phi_q(ins, dt, imu_errors, clock_q_drift=1e-4, clock_q_bias=1e-4, bias_floor
     trapezoidal rule ``(Phi G Qc G^T Phi^T + G Qc G^T) dt / 2``, positive semi-definite by
     construction (the Van Loan ``error_model.discretize`` is exact but costs a 34x34 matrix exponential,
     ~15 ms, per tight update).  ``ins`` has ``q_lb``, ``vel_l``, ``llh``, ``f_b``."""
-    from ultratight.ins import error_model as em
     F = em.F_matrix(ins.q_lb, ins.vel_l, ins.llh, ins.f_b, n_states=em.N17)
     G = em.G_matrix(ins.q_lb, n_states=em.N17)
     q = em.noise_psd(imu_errors, n_states=em.N17, clock_psd=(clock_q_bias, clock_q_drift))
@@ -283,7 +284,6 @@ def initial_covariance(llh, sigmas, imu_errors):
     """P0 (17x17) of the hot start: ``sigmas`` dict (StartupErrors fields: pos_m, vel_mps,
     att_deg, clk_bias_m, clk_drift_mps); bias sigmas from the IMU error model (at least
     a small floor)."""
-    from ultratight.ins.earth import radii
     lat, h = float(llh[0]), float(llh[2])
     rm, rn = radii(lat)
     s_pos = float(sigmas.get("pos_m", 1.0))

@@ -34,7 +34,7 @@ import numpy as np
 from scipy.linalg import expm
 
 from ultratight.constants import OMEGA_E
-from ultratight.ins.attitude import quat_mult, quat_normalize, quat_to_dcm, rotvec_to_quat
+from ultratight.ins.attitude import dcm_to_rotvec, quat_mult, quat_normalize, quat_to_dcm, rotvec_to_quat
 from ultratight.ins.earth import gravity_l, radii
 
 ATT = slice(0, 3)
@@ -220,7 +220,6 @@ def true_error_state(q_est, vel_est, llh_est, q_true, vel_true, llh_true):
     """Error state (ATT, VEL, POS parts; 9,) of an estimate against truth, same convention as F."""
     C_e = quat_to_dcm(np.asarray(q_est, float))
     C_t = quat_to_dcm(np.asarray(q_true, float))
-    from ultratight.ins.attitude import dcm_to_rotvec
     dx = np.zeros(9)
     dx[0:3] = dcm_to_rotvec(C_t @ C_e.T)
     dx[3:6] = np.asarray(vel_est) - np.asarray(vel_true)

@@ -53,6 +53,7 @@ import math
 import os
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from ultratight.constants import OMEGA_E
@@ -311,7 +312,6 @@ class Trajectory:
 
     def save_h5(self, path_or_group, rate_hz):
         """Write the truth sampled at ``rate_hz`` over [0, duration_s] (HDF5, see docs/ins.md)."""
-        import h5py
         rate_hz = float(rate_hz)
         if not (rate_hz > 0.0):
             raise ConfigError(f"trajectory rate_hz must be > 0, got {rate_hz}")

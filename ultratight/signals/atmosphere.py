@@ -39,6 +39,7 @@ import math
 
 import numpy as np
 
+from ultratight.constants import C
 from ultratight.errors import ConfigError
 
 IONO_MODELS = ("klobuchar", "off")
@@ -156,7 +157,6 @@ class AtmosphereModel:
 
     def delays_m(self, lat_rad, lon_rad, h_m, elev_rad, azim_rad, tow_s):
         """(iono_m, tropo_m) arrays (broadcast shapes) of the L1 code delays."""
-        from ultratight.constants import C
         el = np.asarray(elev_rad, dtype=float)
         shape = np.broadcast(el, np.asarray(azim_rad), np.asarray(tow_s), np.asarray(lat_rad)).shape
         iono = np.zeros(shape)
