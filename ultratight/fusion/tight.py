@@ -1,5 +1,5 @@
-"""Tight SINS/GPS integration filter, 17 error states (SPEC §5, seed 001), cascaded behind the
-per-channel prefilters of the ultra-tight receiver (seed 000 Fig. 1).
+"""Tight SINS/GPS integration filter, 17 error states (Fang 2017, §1), cascaded behind the
+per-channel prefilters of the ultra-tight receiver (Zhao et al. 2014 Fig. 1).
 
 State (error state, **estimate minus truth**, the convention of ``ultratight.ins.error_model``)::
 
@@ -15,7 +15,7 @@ The layout and the time-update matrices (F, G, discretisation) come from the SIN
 of :mod:`ultratight.ins.error_model`; this module adds the GPS measurement model and the choice
 of estimator.
 
-Measurements (seed 001 eqs. 4–5), one pair per tracked channel, formed by the engine from the
+Measurements (Fang 2017 eqs. 4–5), one pair per tracked channel, formed by the engine from the
 *decimated* prefilter outputs (code NCO + code error estimate, carrier NCO + frequency error
 estimate) minus the SINS/ephemeris/clock predictions::
 
@@ -27,7 +27,7 @@ velocity errors (position error mapped from (lat, lon, h) to ENU metres by the r
 curvature).  The model is linear in the error state, so "EKF" is the Kalman update with this
 H; the UKF/CKF cores evaluate the same h through their point sets (same result on a linear h,
 at a higher cost — provided for completeness and cross-checking); "iakf" is the improved
-adaptive KF of seed 001 (:class:`ultratight.fusion.adaptive.IAKF`, GDOP-based R and windowed Q).
+adaptive KF of Fang 2017 (:class:`ultratight.fusion.adaptive.IAKF`, GDOP-based R and windowed Q).
 
 Robustness: before the update each measurement's standardised innovation
 ``|r_i| / sqrt(S_ii)`` is tested against ``gate_sigma``; rejected rows are dropped for this
@@ -243,7 +243,7 @@ def _kf_update(x, P, z, H, R):
 # ---------------------------------------------------------------------------------------------
 def imu_errors_from_meta(imu):
     """:class:`ultratight.ins.imu.ImuErrors` from an IMU file's metadata (generator-written files
-    carry the error model); files without it use the SPEC §4 "paper" preset."""
+    carry the error model); files without it use the "paper" preset of Zhao et al. 2014, §3."""
     d = (getattr(imu, "meta", None) or {}).get("errors")
     if isinstance(d, dict):
         e = imu_mod.ImuErrors()

@@ -84,7 +84,7 @@ class ImuErrors:
 # presets in datasheet units (keys as in the scenario [imu] table)
 PRESETS = {
     "ideal": {},
-    # SPEC §4: gyro bias 0.01 deg/h, gyro white noise 0.005 deg/h taken as the 1-sigma of the
+    # Zhao et al. 2014, §3: gyro bias 0.01 deg/h, gyro white noise 0.005 deg/h taken as the 1-sigma of the
     # angular-rate samples at the IMU rate; accelerometer bias 30 ug, white noise 3 ug (1 sigma/sample).
     "paper": {"gyro_bias_dph": 0.01, "gyro_noise_dph": 0.005, "accel_bias_ug": 30.0, "accel_noise_ug": 3.0},
     # navigation grade (ring-laser class)
