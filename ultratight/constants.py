@@ -1,6 +1,6 @@
 """Physical and GPS L1 C/A constants (SI units).
 
-Sources: IS-GPS-200 (speed of light, GPS value of GM, Earth rotation rate,
+Sources (see docs/references.md): IS-GPS-200D (speed of light, GPS value of GM, Earth rotation rate,
 relativistic constant F) and WGS-84 (ellipsoid).
 """
 

@@ -1,5 +1,5 @@
 """Tight SINS/GPS integration filter, 17 error states (Fang 2017, §1), cascaded behind the
-per-channel prefilters of the ultra-tight receiver (Zhao et al. 2014 Fig. 1).
+per-channel prefilters of the ultra-tight receiver (Zhao et al. 2014 Fig. 1; see docs/references.md).
 
 State (error state, **estimate minus truth**, the convention of ``ultratight.ins.error_model``)::
 

@@ -18,7 +18,8 @@ accelerometer white noise (VRW, (m/s)/sqrt(s)), gyro-bias and accel-bias driving
 (first-order Gauss-Markov with correlation time tau, or random walk when tau = inf), and
 clock-bias / clock-drift white noise (17-state only).
 
-Equations (psi-angle form of the phi-angle model, Groves / Savage):
+Equations (psi-angle form of the phi-angle model, Groves 2013 and Savage 1998; see
+docs/references.md):
     phi'  = -w_in x phi + dw_in - C_lb bg
     dv'   = f_l x phi + v x (2 dw_ie + dw_en) - (2 w_ie + w_en) x dv + dg + C_lb ba
     dlat' = dvN/(M+h) - vN dh/(M+h)^2

@@ -5,7 +5,7 @@ quaternion ``q_lb`` (body FLU -> ENU, scalar first), Earth-relative velocity
 ``vel_l`` (ENU, m/s), geodetic position ``[lat, lon, h]`` (rad, rad, m).
 
 One step over an IMU interval dt with increments (dtheta, dv) -- two-sample
-(previous + current interval) coning and sculling:
+(previous + current interval) coning and sculling (Savage 1998; Groves 2013; see docs/references.md):
 
 * rotation vector   phi   = dth_k + dth_{k-1} x dth_k / 12
 * velocity increment dv_sf = dv_k + dth_k x dv_k / 2 + (dth_{k-1} x dv_k + dv_{k-1} x dth_k) / 12

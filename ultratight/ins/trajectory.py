@@ -11,7 +11,7 @@ Because l0 is a plane tangent to the ellipsoid at the start, a vehicle moving
 horizontally in l0 gains ellipsoidal height ~ d^2 / (2 R): for the
 paper-highdyn flight (~180 km east, ~7 km north in 60 s) this is ~2.6 km over
 60 s (computed exactly by :meth:`Trajectory.kinematics`).  The "ENU
-accelerations" of Zhao et al. 2014, Table 2, are interpreted in l0.
+accelerations" of Zhao et al. 2014, Table 2, are interpreted in l0 (see docs/references.md).
 
 Trajectory kinds (``[trajectory]`` table of a scenario, see docs/ins.md):
 

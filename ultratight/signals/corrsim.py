@@ -1,4 +1,5 @@
-"""Correlator-level simulator: true signal dynamics vs a closed-loop NCO -> eq. 3 outputs.
+"""Correlator-level simulator: true signal dynamics vs a closed-loop NCO -> the outputs of eq. 3
+of Zhao et al. 2014 (see docs/references.md).
 
 Instead of sampling an IF signal, each 1 ms epoch produces the six normalised
 correlator outputs ``[I_P, I_E, I_L, Q_P, Q_E, Q_L]`` (units of

@@ -2,7 +2,7 @@
 
 GPS time is kept as (full week number, seconds of week).  Times inside the
 navigation algorithms are seconds of week (TOW); differences between two TOWs
-are wrapped into [-302400, 302400) s as IS-GPS-200 §20.3.3.4.3 prescribes for
+are wrapped into [-302400, 302400) s as IS-GPS-200D §20.3.3.4.3 prescribes for
 ``tk`` ("if tk > 302400, subtract 604800; if tk < -302400, add 604800").
 """
 

@@ -42,7 +42,7 @@ multiplies sample ``n`` by ``(-1)**n`` (a shift by fs/2, which mirrors the spect
 and reports ``if_hz' = fs/2 - if_hz``, so consumers always see a non-inverted
 signal and never need to know.
 
-ION GNSS SDR Metadata Standard XML (``meta=path.xml``): a single stream in a
+ION GNSS SDR Metadata Standard XML (``meta=path.xml``; see docs/references.md): a single stream in a
 single lump/chunk/block is supported. Sample rate = system ``freqbase`` x stream
 ``ratefactor`` (units from the ``format`` attribute: Hz/kHz/MHz/GHz), IF from the band's
 ``translatedfreq``, sample type from ``quantization``/``packedbits``/``format``

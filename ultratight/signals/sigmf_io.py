@@ -1,4 +1,4 @@
-"""SigMF recordings (Signal Metadata Format, https://sigmf.org, specification v1.x) as IF input,
+"""SigMF recordings (Signal Metadata Format, https://sigmf.org, specification v1.x; see docs/references.md) as IF input,
 and SigMF metadata for the files the generator writes.
 
 Reading (:func:`read_sigmf`, through the ``sigmf`` package): one channel, the first capture
