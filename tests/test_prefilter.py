@@ -22,7 +22,7 @@ A20 = float(corr_model.amplitude_from_cn0(20.0, T))
 
 # ---------------------------------------------------------------- measurement model
 def eq3(x, D=1.0, spacing=1.0):
-    """Independent transcription of SPEC eq. 3 (state at the interval start)."""
+    """Independent transcription of eq. 3 of Zhao et al. 2014 (state at the interval start)."""
     A, tau, phi, f, _ = x
     s = f * T / 2
     snc = math.sin(s) / s if s != 0 else 1.0
@@ -146,7 +146,7 @@ def test_ukf_update_matches_reference():
 
 
 def _ref_rackf(x0, P0, z, D, c, R):
-    """Algorithm 1 of seed 000 (paper-literal: per-epoch r^T r), written from the equations."""
+    """Algorithm 1 of Zhao et al. 2014 (paper-literal: per-epoch r^T r), written from the equations."""
     pts, wm, wc = _ref_points_ckf(x0, P0)
     zh, Pzz0, Pxz = _ref_moments(pts, wm, wc, D)
     r = z - zh
