@@ -20,8 +20,9 @@ import time
 import numpy as np
 
 from ultratight.fusion import prefilter as pf
-from ultratight.fusion.corrsim import SimScenario, make_truth, rms, run_closed_loop
+from ultratight.fusion.loopsim import run_closed_loop
 from ultratight.fusion.pbkf import PbKfBank
+from ultratight.signals.corrsim import SimScenario, make_truth, rms
 
 
 def scenario(duration, noise=False, jerk=False, n_ch=4):

@@ -24,6 +24,12 @@ import numpy as np
 
 from _common import add_common_args, finish
 
+from ultratight.fusion import prefilter as pf
+from ultratight.fusion.innerloop import InnerLoop
+from ultratight.fusion.pbkf import PbKfBank
+from ultratight.fusion.prefilter import PrefilterBank
+from ultratight.signals.corrsim import CorrSim, SimNco, SimScenario
+
 # CPU time of this thread: robust to other processes competing for the 2 cores (wall time
 # is reported separately as *_wall).
 _clock = time.thread_time
@@ -32,8 +38,6 @@ _wall = time.perf_counter
 
 def _measurements(n_ch, n_ep, seed=1):
     """z at 20 dB-Hz from the correlator-level simulator, NCO on the (static) truth."""
-    from ultratight.fusion.corrsim import CorrSim, SimScenario
-
     sc = SimScenario(duration_s=n_ep * 1e-3, n_ch=n_ch, cn0_dbhz=20.0, segments=[(0.0, 0.0, 0.0)])
     sim = CorrSim(sc, np.random.default_rng(seed))
     sim.init_nco()
@@ -46,8 +50,6 @@ def _measurements(n_ch, n_ep, seed=1):
 
 
 def bench_kind(kind, Z, bits, reps):
-    from ultratight.fusion import prefilter as pf
-
     n_ep, n_ch, _ = Z.shape
     bank = pf.PrefilterBank(n_ch, kind=kind, cn0_dbhz_init=20.0)
     bank.reset(np.arange(n_ch))
@@ -89,8 +91,6 @@ def bench_kind(kind, Z, bits, reps):
 
 
 def bench_pbkf(Z, bits, reps):
-    from ultratight.fusion.pbkf import PbKfBank
-
     n_ep, n_ch, _ = Z.shape
     bank = PbKfBank(n_ch, cn0_dbhz_init=20.0)
     bank.reset(np.arange(n_ch))
@@ -108,10 +108,6 @@ def bench_pbkf(Z, bits, reps):
 
 
 def bench_innerloop(n_ch, reps, n_ep=2000):
-    from ultratight.fusion.corrsim import SimNco
-    from ultratight.fusion.innerloop import InnerLoop
-    from ultratight.fusion.prefilter import PrefilterBank
-
     bank = PrefilterBank(n_ch)
     bank.reset(np.arange(n_ch))
     nco = SimNco(n_ch)

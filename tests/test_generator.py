@@ -6,8 +6,6 @@ constellation module); the receiver trajectory comes from ultratight.ins.traject
 
 import json
 import math
-import sys
-import types
 from pathlib import Path
 
 import h5py
@@ -16,8 +14,10 @@ import pytest
 
 from ultratight.constants import CA_LEN, F_CA, F_L1, LAMBDA_L1, OMEGA_E
 from ultratight.errors import ConfigError
+from ultratight.ins.trajectory import build_trajectory
 from ultratight.signals.ca_code import ca_code
 from ultratight.signals.ephemeris import Ephemeris
+from ultratight.signals import generator
 from ultratight.signals.generator import SignalPlan, eval_poly, generate
 from ultratight.signals.iffile import open_if
 
@@ -222,9 +222,7 @@ def test_nav_bits_follow_transmit_time(tmp_path, monkeypatch):
         k0 = int(round(tow_start_s / 0.02)) - int(TOW0 / 0.02) + 5000
         return pattern[k0:k0 + n_bits]
 
-    fake = types.ModuleType("ultratight.signals.lnav")
-    fake.nav_bits = nav_bits
-    monkeypatch.setitem(sys.modules, "ultratight.signals.lnav", fake)
+    monkeypatch.setattr(generator, "nav_bits", nav_bits)     # the generator's lnav.nav_bits
     cfg = base_cfg(duration_s=0.3, satellites={"cn0_dbhz": 45.0}, nav={"data_bits": True})
     res = generate(cfg, tmp_path, "nb", ephemerides=EPHS[1:2], progress=False)
     with open_if(res["if"]) as src, h5py.File(res["truth"], "r") as truth:
@@ -244,8 +242,6 @@ def test_nav_bits_follow_transmit_time(tmp_path, monkeypatch):
 def test_interpolation_exact_for_high_dynamics():
     """Quadratic interpolation over 1 ms vs direct light-time at random sample times, paper flight
     (20 g, 40 g/s jerk at 40-41 s): carrier < 1 mm, code < 3e-4 chips (TOW float resolution)."""
-    from ultratight.ins.trajectory import build_trajectory
-
     traj_cfg = {"kind": "segments", "vel0_enu_mps": [0.0, 0.0, 0.0], "attitude": "velocity",
                 "segments": [{"t0": 0.0, "acc_enu": [100.0, 4.0, 0.0], "jerk_enu": [0.0, 0.0, 0.0]},
                              {"t0": 20.0, "acc_enu": [100.0, 4.0, 0.0], "jerk_enu": [100.0, 0.0, 0.0]},
@@ -286,10 +282,8 @@ def test_bad_config(tmp_path):
 
 
 def test_failure_leaves_no_files(tmp_path, monkeypatch):
-    import ultratight.signals.generator as g
-
     calls = {"n": 0}
-    orig = g._synth_complex
+    orig = generator._synth_complex
 
     def boom(*a):
         calls["n"] += 1
@@ -297,7 +291,7 @@ def test_failure_leaves_no_files(tmp_path, monkeypatch):
             raise KeyboardInterrupt
         return orig(*a)
 
-    monkeypatch.setattr(g, "_synth_complex", boom)
+    monkeypatch.setattr(generator, "_synth_complex", boom)
     with pytest.raises(KeyboardInterrupt):
         generate(base_cfg(duration_s=0.3), tmp_path, "x", ephemerides=EPHS, progress=False)
     assert list(tmp_path.iterdir()) == []
@@ -306,9 +300,6 @@ def test_failure_leaves_no_files(tmp_path, monkeypatch):
 def test_kernel_matches_direct_per_sample_synthesis():
     """The numba kernel's samples (no noise) against a direct evaluation of the signal model
     with a light-time solution at every sample, for a receiver under 20 g with jerk."""
-    from ultratight.ins.trajectory import build_trajectory
-    from ultratight.signals import generator as g
-
     traj = build_trajectory({"kind": "segments", "vel0_enu_mps": [300.0, 0.0, 0.0], "attitude": "velocity",
                              "segments": [{"t0": 0.0, "acc_enu": [200.0, 4.0, 0.0],
                                            "jerk_enu": [-400.0, 0.0, 0.0]}]},
@@ -325,8 +316,8 @@ def test_kernel_matches_direct_per_sample_synthesis():
     coefs, ep, _, _ = plan.coefficients(j0, n_int)
     bits = plan.bit_values(ep)
     out = np.zeros((n_int * plan.L, 2), np.float32)
-    g._synth_complex(out, plan.L, n_int, plan.codes, coefs, np.broadcast_to(plan.amp, (n_int, 3)).astype(np.float32),
-                     bits, g.COS_LUT, g.SIN_LUT)
+    generator._synth_complex(out, plan.L, n_int, plan.codes, coefs, np.broadcast_to(plan.amp, (n_int, 3)).astype(np.float32),
+                     bits, generator.COS_LUT, generator.SIN_LUT)
     got = out[:, 0] + 1j * out[:, 1]
     n = j0 * plan.L + np.arange(n_int * plan.L)
     geo, _ = plan.geometry(n.astype(float))

@@ -5,12 +5,14 @@ import math
 
 import numpy as np
 import pytest
+from scipy.special import hyp1f1
 
 from ultratight.constants import BETA_CODE_CARRIER, T_CA
 from ultratight.errors import FilterError
-from ultratight.fusion.corrsim import SimScenario, make_truth, rms, run_closed_loop
+from ultratight.fusion.loopsim import run_closed_loop
 from ultratight.fusion.pbkf import CAL_DLG, CAL_LG0, PbKfBank, discriminator_calibration
 from ultratight.signals import corr_model
+from ultratight.signals.corrsim import SimScenario, make_truth, rms
 
 T = T_CA
 
@@ -21,7 +23,6 @@ def test_calibration_high_and_low_cn0():
     k_tau, k_phi, k_f, v_tau, v_phi, v_f = tab[i40]
     assert k_phi == pytest.approx(1.0, abs=0.02) and k_f == pytest.approx(1.0, abs=0.05)
     # envelope DLL slope from the Rice-envelope mean (ratio of means; independent closed form)
-    from scipy.special import hyp1f1
     s0 = math.sqrt(2 * 10.0) * 0.5
     m = math.sqrt(math.pi / 2) * hyp1f1(-0.5, 1, -s0 * s0 / 2)
     g1 = math.sqrt(math.pi / 2) * (s0 / 2) * hyp1f1(0.5, 2, -s0 * s0 / 2)

@@ -1,7 +1,9 @@
 """I/Q prefilters (CKF, UKF, RACKF) against independent numpy implementations, closed forms and
 the correlator-level simulator; inner-loop feedback law; bad input and divergence handling."""
 
+import importlib.util
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,9 +11,10 @@ import pytest
 from ultratight.constants import BETA_CODE_CARRIER, T_CA
 from ultratight.errors import FilterError
 from ultratight.fusion import prefilter as pf
-from ultratight.fusion.corrsim import SimNco, SimScenario, make_truth, rms, run_closed_loop
-from ultratight.fusion.innerloop import InnerLoop
+from ultratight.fusion.innerloop import InnerLoop, apply_feedback
+from ultratight.fusion.loopsim import run_closed_loop
 from ultratight.signals import corr_model
+from ultratight.signals.corrsim import SimNco, SimScenario, make_truth, rms
 
 T = T_CA
 A20 = float(corr_model.amplitude_from_cn0(20.0, T))
@@ -19,7 +22,7 @@ A20 = float(corr_model.amplitude_from_cn0(20.0, T))
 
 # ---------------------------------------------------------------- measurement model
 def eq3(x, D=1.0, spacing=1.0):
-    """Independent transcription of SPEC eq. 3 (state at the interval start)."""
+    """Independent transcription of eq. 3 of Zhao et al. 2014 (state at the interval start)."""
     A, tau, phi, f, _ = x
     s = f * T / 2
     snc = math.sin(s) / s if s != 0 else 1.0
@@ -143,7 +146,7 @@ def test_ukf_update_matches_reference():
 
 
 def _ref_rackf(x0, P0, z, D, c, R):
-    """Algorithm 1 of seed 000 (paper-literal: per-epoch r^T r), written from the equations."""
+    """Algorithm 1 of Zhao et al. 2014 (paper-literal: per-epoch r^T r), written from the equations."""
     pts, wm, wc = _ref_points_ckf(x0, P0)
     zh, Pzz0, Pxz = _ref_moments(pts, wm, wc, D)
     r = z - zh
@@ -362,9 +365,6 @@ def test_unknown_bits_decision_directed_at_30dbhz():
 @pytest.mark.slow
 def test_acceptance_monte_carlo():
     """The benchmarks/acceptance_prefilter.py criteria over 5 seeds (about 25 s)."""
-    import importlib.util
-    from pathlib import Path
-
     path = Path(__file__).resolve().parents[1] / "benchmarks" / "acceptance_prefilter.py"
     spec = importlib.util.spec_from_file_location("acceptance_prefilter", path)
     acc = importlib.util.module_from_spec(spec)
@@ -385,8 +385,6 @@ def test_acceptance_monte_carlo():
 
 
 def test_stateless_feedback_equals_innerloop_without_aiding():
-    from ultratight.fusion.innerloop import apply_feedback
-
     rng = np.random.default_rng(3)
     x = rng.standard_normal((3, 5)) * [0.1, 0.05, 0.3, 10.0, 30.0]
     ncos = [SimNco(3), SimNco(3)]

@@ -1,6 +1,6 @@
 """Physical and GPS L1 C/A constants (SI units).
 
-Sources: IS-GPS-200 (speed of light, GPS value of GM, Earth rotation rate,
+Sources (see docs/references.md): IS-GPS-200D (speed of light, GPS value of GM, Earth rotation rate,
 relativistic constant F) and WGS-84 (ellipsoid).
 """
 
@@ -15,7 +15,7 @@ T_CA = CA_LEN / F_CA                  # C/A code period, s (1 ms)
 CHIP_M = C / F_CA                     # one chip in metres
 CODE_PER_BIT = 20                     # C/A periods per LNAV bit
 BIT_RATE = 50.0                       # LNAV bit rate, bit/s
-BETA_CODE_CARRIER = F_CA / (2.0 * math.pi * F_L1)   # chips/s per rad/s of carrier (SPEC §2)
+BETA_CODE_CARRIER = F_CA / (2.0 * math.pi * F_L1)   # chips/s per rad/s of carrier (Zhao et al. 2014, eq. 2)
 
 GM = 3.986005e14                      # WGS-84 value of GM used by GPS, m^3/s^2
 OMEGA_E = 7.2921151467e-5             # Earth rotation rate, rad/s

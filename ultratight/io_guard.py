@@ -27,11 +27,16 @@ import re
 import secrets
 import shutil
 import signal
+import stat
 import sys
 from contextlib import contextmanager
 from pathlib import Path
 
 from ultratight.errors import ConfigError, InputFileError, OutputError
+
+# The CLI imports this module first and installs its signal handlers before any command loads
+# numpy, numba or h5py; so this module imports only the standard library at load time, and h5py
+# and numpy inside the few functions that need them (h5_image, h5_atomic, json_clean).
 
 # exit status of a run stopped by a signal: 128 + signal number (the shell's convention)
 HANDLED_SIGNALS = tuple(s for s in (getattr(signal, "SIGINT", None), getattr(signal, "SIGTERM", None),
@@ -141,7 +146,7 @@ def h5_image(build):
     HDF5 writing straight to a file that hits a full disk can leave the library in a state that
     crashes the interpreter; building the image in memory and writing it with plain file I/O turns
     every disk error into an ordinary OSError (use for outputs of bounded size)."""
-    import h5py
+    import h5py             # lazy: see the note at the imports
 
     with h5py.File(f"mem-{secrets.token_hex(6)}.h5", "w", driver="core", backing_store=False) as f:
         build(f)
@@ -158,7 +163,7 @@ def write_h5_atomic(path, build):
 def h5_atomic(path):
     """``with h5_atomic(path) as f:`` fill an HDF5 file built in memory (:func:`h5_image`); it is
     written atomically to ``path`` when the block ends without an exception."""
-    import h5py
+    import h5py             # lazy: see the note at the imports
 
     with h5py.File(f"mem-{secrets.token_hex(6)}.h5", "w", driver="core", backing_store=False) as f:
         yield f
@@ -210,10 +215,9 @@ def check_input_file(path, what="input file"):
         raise InputFileError(f"{what} not found: {p}") from None
     except OSError as exc:
         raise InputFileError(f"{what} {p}: {describe_os_error(exc)}") from None
-    import stat as _stat
-    if _stat.S_ISDIR(st.st_mode):
+    if stat.S_ISDIR(st.st_mode):
         raise InputFileError(f"{what} {p} is a directory, not a file")
-    if not _stat.S_ISREG(st.st_mode):
+    if not stat.S_ISREG(st.st_mode):
         raise InputFileError(f"{what} {p} is not a regular file (a FIFO, socket or device)")
     if not os.access(p, os.R_OK):
         raise InputFileError(f"{what} {p}: permission denied (not readable)")
@@ -499,10 +503,7 @@ def reset_partial():
 # ------------------------------------------------------------------------------------------
 def json_clean(o):
     """Replace non-finite floats by None, numpy scalars/arrays by Python values (recursively)."""
-    try:
-        import numpy as np
-    except ImportError:     # pragma: no cover
-        np = None
+    import numpy as np      # lazy: see the note at the imports
     if isinstance(o, bool) or o is None or isinstance(o, str):
         return o
     if isinstance(o, float):
@@ -513,15 +514,14 @@ def json_clean(o):
         return {str(k): json_clean(v) for k, v in o.items()}
     if isinstance(o, (list, tuple)):
         return [json_clean(v) for v in o]
-    if np is not None:
-        if isinstance(o, np.bool_):
-            return bool(o)
-        if isinstance(o, np.integer):
-            return int(o)
-        if isinstance(o, np.floating):
-            return json_clean(float(o))
-        if isinstance(o, np.ndarray):
-            return json_clean(o.tolist())
+    if isinstance(o, np.bool_):
+        return bool(o)
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, np.floating):
+        return json_clean(float(o))
+    if isinstance(o, np.ndarray):
+        return json_clean(o.tolist())
     if isinstance(o, Path):
         return str(o)
     return str(o)

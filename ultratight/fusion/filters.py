@@ -10,18 +10,18 @@ with ``kind`` in ``kf`` (linear, Joseph-form update), ``ekf``, ``ukf`` (scaled s
 ``srckf`` (square-root CKF, carries S with P = S Sᵀ instead of P).  A small stateful wrapper
 :class:`Filter` adds divergence flagging on top of the pure functions.
 
-Equation map (SPEC §3 = seed 000 §2.2, Arasaratnam & Haykin 2009)
---------------------------------------------------------------------
+Equation map (Zhao et al. 2014 §2.2, after Arasaratnam & Haykin 2009; see docs/references.md)
+------------------------------------------------------------------------------------------
 * CKF time update: P = S Sᵀ (4); points X = S ξ_j + x̂ (5), ξ_j = ±√n e_j; X* = f(X) (6);
   x̂⁻ = mean X* (7); P⁻ = mean X* X*ᵀ − x̂⁻x̂⁻ᵀ + Q (8).
 * CKF measurement update: P⁻ = S Sᵀ (9); points **redrawn** from (x̂⁻, P⁻) (10) – the propagated
   points of (6) are never reused; Z = h(X) (11); ẑ (12); P_zz (13); P_xz (14); W = P_xz P_zz⁻¹ (15);
   x̂ = x̂⁻ + W (z − ẑ) (16); P = P⁻ − W P_zz Wᵀ (17).
-* UKF / AUKF (seed 002 §3): 2L+1 scaled sigma points, λ = α²(L+κ) − L, W0m = λ/(L+λ),
+* UKF / AUKF (Sun et al. 2012 §3): 2L+1 scaled sigma points, λ = α²(L+κ) − L, W0m = λ/(L+λ),
   W0c = W0m + 1 − α² + β, Wi = 1/(2(L+λ)); the AUKF augments the state with the process noise for
-  the time update (L = n+q) and with the measurement noise for the update (L' = n+m, seed 002 step 5).
+  the time update (L = n+q) and with the measurement noise for the update (L' = n+m, Sun et al. 2012 step 5).
 * KF: x⁻ = Φx, P⁻ = ΦPΦᵀ + Q; K = P⁻Hᵀ S⁻¹, S = HP⁻Hᵀ + R;
-  P = (I − KH)P⁻(I − KH)ᵀ + KRKᵀ (Joseph form, seed 003 eq. 5).
+  P = (I − KH)P⁻(I − KH)ᵀ + KRKᵀ (Joseph form, Cai et al. 2020 eq. 5).
 
 All covariances are symmetrised after every step; inputs are validated by
 :mod:`ultratight.fusion.guards` (FilterError) and a non-finite result raises DivergenceError.
@@ -126,7 +126,7 @@ def cubature_scheme(n: int) -> SigmaScheme:
 
 @lru_cache(maxsize=64)
 def unscented_scheme(n: int, alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0) -> SigmaScheme:
-    """Scaled unscented transform (Julier/van der Merwe; seed 002 §3 step 2), 2n+1 points.
+    """Scaled unscented transform (Julier & Uhlmann 2004, van der Merwe & Wan 2004; Sun et al. 2012 §3 step 2), 2n+1 points.
 
     λ = α²(n+κ) − n; points 0, ±√(n+λ) e_j; W0m = λ/(n+λ), W0c = W0m + 1 − α² + β,
     Wi = 1/(2(n+λ)).  Requires n + λ > 0.
@@ -221,7 +221,7 @@ def _joseph(x, P, z, zhat, H, R):
 
 
 def kf_update(x, P, z, H, R):
-    """Linear measurement update with the Joseph-form covariance (seed 003 eqs. 2–5)."""
+    """Linear measurement update with the Joseph-form covariance (Cai et al. 2020 eqs. 2–5)."""
     x, P, z, H, R = check_linear_update(x, P, z, H, R)
     return _joseph(x, P, z, H @ x, H, R)
 
@@ -266,7 +266,7 @@ def sigma_predict(x, P, f, Q, scheme: SigmaScheme, vectorized: bool = False, ret
     """Sigma-point time update with additive process noise (CKF eqs. 4–8 / UKF).
 
     Returns (x⁻, P⁻) or, with ``return_noiseless``, (x⁻, P⁻, P′) where P′ = P⁻ − Q is the propagated
-    covariance without process noise (seed 002 eq. 12, A = P′).
+    covariance without process noise (Sun et al. 2012 eq. 12, A = P′).
     """
     x = as_vector("x", x)
     n = x.shape[0]
@@ -289,7 +289,7 @@ def sigma_predict(x, P, f, Q, scheme: SigmaScheme, vectorized: bool = False, ret
 def sigma_measure(x, P, h, scheme: SigmaScheme, scale: float = 1.0, vectorized: bool = False, m: int | None = None):
     """Predicted measurement statistics from points **redrawn** from (x, scale·P) (eqs. 9–14).
 
-    ``scale`` = 1/ϑ implements the RACKF point redraw x + sqrt(1/ϑ)·S ξ_j (seed 000 eq. 40).
+    ``scale`` = 1/ϑ implements the RACKF point redraw x + sqrt(1/ϑ)·S ξ_j (Zhao et al. 2014 eq. 40).
     Returns (ẑ, P_zz without R, P_xz).
     """
     L = cholesky_lower(P, "P")  # eq. 9
@@ -347,13 +347,13 @@ def ukf_update(x, P, z, h, R, alpha=1.0, beta=2.0, kappa=0.0, vectorized=False) 
 
 
 def ckf_predict(x, P, f, Q, vectorized=False, return_noiseless=False):
-    """CKF time update (SPEC §3, seed 000 eqs. 4–8)."""
+    """CKF time update (Zhao et al. 2014, eqs. 4–8)."""
     n = np.asarray(x).reshape(-1).shape[0]
     return sigma_predict(x, P, f, Q, cubature_scheme(n), vectorized, return_noiseless)
 
 
 def ckf_update(x, P, z, h, R, vectorized=False) -> UpdateResult:
-    """CKF measurement update (seed 000 eqs. 9–17), cubature points redrawn from P⁻."""
+    """CKF measurement update (Zhao et al. 2014 eqs. 9–17), cubature points redrawn from P⁻."""
     n = np.asarray(x).reshape(-1).shape[0]
     return sigma_update(x, P, z, h, R, cubature_scheme(n), vectorized)
 
@@ -364,9 +364,9 @@ def ckf_update(x, P, z, h, R, vectorized=False) -> UpdateResult:
 def aukf_predict(x, P, f, Q, alpha=1.0, beta=2.0, kappa=0.0, return_noiseless=False):
     """Augmented-UKF time update for non-additive process noise ``x⁺ = f(x, w)``, w ~ N(0, Q).
 
-    Augmented state [x; w] with P^a = diag(P, Q), L = n + q, 2L+1 points (seed 002 §3 steps 1–3).
+    Augmented state [x; w] with P^a = diag(P, Q), L = n + q, 2L+1 points (Sun et al. 2012 §3 steps 1–3).
     With ``return_noiseless`` also returns P′: the n-dimensional unscented propagation of P through
-    f(·, 0) (process noise not applied; seed 002 eq. 12, used by the fading matrix).
+    f(·, 0) (process noise not applied; Sun et al. 2012 eq. 12, used by the fading matrix).
     """
     x = as_vector("x", x)
     n = x.shape[0]
@@ -402,7 +402,7 @@ def aukf_predict(x, P, f, Q, alpha=1.0, beta=2.0, kappa=0.0, return_noiseless=Fa
 def aukf_measure(x, P, h, R, alpha=1.0, beta=2.0, kappa=0.0, m=None):
     """Measurement statistics for non-additive noise ``z = h(x, v)``, v ~ N(0, R).
 
-    Points redrawn from diag(P, R) (L' = n + m, seed 002 step 5). Returns (ẑ, P_zz incl. noise, P_xz).
+    Points redrawn from diag(P, R) (L' = n + m, Sun et al. 2012 step 5). Returns (ẑ, P_zz incl. noise, P_xz).
     """
     n = x.shape[0]
     mm = R.shape[0]
@@ -420,7 +420,7 @@ def aukf_measure(x, P, h, R, alpha=1.0, beta=2.0, kappa=0.0, m=None):
 
 
 def aukf_update(x, P, z, h, R, alpha=1.0, beta=2.0, kappa=0.0) -> UpdateResult:
-    """Augmented-UKF measurement update for ``z = h(x, v)`` (seed 002 §3 steps 5–8)."""
+    """Augmented-UKF measurement update for ``z = h(x, v)`` (Sun et al. 2012 §3 steps 5–8)."""
     x = as_vector("x", x)
     n = x.shape[0]
     P = check_covariance("P", P, n)

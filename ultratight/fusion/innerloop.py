@@ -42,8 +42,8 @@ current code period from whatever (slightly negative or > 0) code phase it
 holds (see ultratight.receiver.correlator).
 
 The same law serves the PB-KF-UTC baseline (its bank uses the same state
-layout), and the correlator-level simulator (``ultratight.fusion.corrsim``)
-exposes NCO arrays with the correlator's names, so the engine, the simulator
+layout), and the correlator-level simulator (``ultratight.signals.corrsim``)
+drives an :class:`ultratight.signals.nco.NcoBank` like the correlator bank, so the engine, the simulator
 and the tests call exactly the same code.
 """
 

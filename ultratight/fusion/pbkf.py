@@ -38,7 +38,7 @@ estimated C/N0 instead of raising the apparent amplitude); column 0 holds A/s.
 NCO steering: the bank exposes ``x`` (n_ch, 5) in the prefilter layout, so the same
 ``ultratight.fusion.innerloop.InnerLoop`` applies the estimates. In the paper's single-loop
 structure the estimates go to the integration filter and the NCOs are driven by the outer
-loop only; at correlator level (corrsim) that is modelled as the outer-loop Doppler
+loop only; at correlator level (ultratight.signals.corrsim) that is modelled as the outer-loop Doppler
 feed-forward plus the KF estimates applied to the NCO (an outer loop that absorbs the
 estimates immediately).
 """

@@ -1,6 +1,7 @@
-"""Seed 002's SINS/GPS model and its augmented UKF family (UKF / AFF-AUKF / AFM-AUKF) plus an EKF.
+"""The SINS/GPS model of Sun et al. 2012 and its augmented UKF family (UKF / AFF-AUKF / AFM-AUKF) plus an EKF.
 
-Model (SPEC §6, "see ref. [11]"; NED navigation frame, FRD body frame, local NED metres at one site)
+Model (Sun et al. 2012 §4, "see ref. [11]" = van der Merwe & Wan 2004; NED navigation frame, FRD body
+frame, local NED metres at one site; see docs/references.md)
 -------------------------------------------------------------------------------------------------
 Nominal state (13 parameters): attitude quaternion ``q_nb`` (scalar first), velocity ``v_n``,
 position ``p_n`` and gyro bias ``b_g``.  Process noise ``w = [n_g, n_a, n_b]`` (q = 9) enters
@@ -14,7 +15,8 @@ non-additively, measurement ``z = [p_n; v_n] + v`` (m = 6).  Per IMU interval Δ
     p_n⁺   = p_n + ½ (v_n + v_n⁺) Δt
     b_g⁺   = b_g + n_b Δt
 
-This is SPEC §6's choice (q ⊗ q(θ), v += (C f + g)Δt, p += vΔt, b += n_b Δt) with three additions
+The paper prints no model equations; this is the flat-Earth model of van der Merwe & Wan 2004
+(q ⊗ q(θ), v += (C f + g)Δt, p += vΔt, b += n_b Δt), a choice of this project, with three additions
 that cost nothing and remove model errors the simulated sensors would otherwise show: the site's
 Earth rate (the gyros sense 15 °/h, the size of the 10 °/h bias, and a flat-Earth model turns it
 into a yaw drift), the rotation compensation of Δṽ (the swinging base turns 0.08° per 10 ms
@@ -34,19 +36,20 @@ exists only with jitter, and a normalised mean of quaternion points is biased.  
 L = n + q + m = 12 + 9 + 6 = 27 instead of the paper's 28 (L′ = n + m = 18 instead of 19); the
 sigma-point structure, the weights and the fading equations are unchanged.
 
-Filters (seed 002 §3, SPEC §6)
-------------------------------
+Filters (Sun et al. 2012 §3)
+----------------------------
 * :class:`QuatAUKF` ``mode=None`` — the "UKF" of Table 1: augmented UKF, ``x^a = [δx; w; v]``,
   ``P^a = diag(P, Q, R)``, L = n + q + m, 2L+1 points, every IMU interval (steps 1–3); at a GPS epoch
   the measurement points ζ_i = h(χ_i^x, χ_i^v) are the propagated points of the last interval
   (step 4) and the update is ``K = P_xz P_zz⁻¹`` (step 8 without fading).
 * ``mode="aff"`` / ``"afm"`` — at a GPS epoch the fading factor λ (eq. 1) or fading matrix S
   (eqs. 5–10) from the sigma-point equivalents (eqs. 11–12, ``A = H P′ Hᵀ``), the faded
-  prediction ``P^l = ½(S P′ + P′ Sᵀ) + (P − P′)`` (eq. 13 as read in SPEC §6), then the redraw
+  prediction ``P^l = ½(S P′ + P′ Sᵀ) + (P − P′)`` (eq. 13 with S P′ symmetrised, a choice of this
+  project: S P′ itself is not symmetric), then the redraw
   ``x^b = [δx; v]``, ``P^b = diag(P^l, R)``, L′ = n + m (steps 5–8).  The functions are those of
   :mod:`ultratight.fusion.adaptive` (``fading_terms``, ``fading_factor``, ``fading_matrix``,
   ``apply_fading``); the zero-column set of H is the model's (H has non-zero columns only on
-  position and velocity; SPEC §6 choice).
+  position and velocity; a choice of this project, the paper does not say).
 * Multi-rate reading of P′ (the paper filters at one rate): P′ is the covariance of the posterior
   sigma points (n-dimensional set, 2n+1 points) propagated through the noise-free model over all the
   IMU intervals up to the next GPS epoch, without redraws, so ``P − P′`` is the process noise
@@ -257,7 +260,7 @@ def chart_of_points(Qs, Vs, Ps, Bs, q_ref):
 
 @njit(cache=True)
 def _aukf_predict_kernel(q, v, p, b, Lp, Lq, Lr, xi, wm, wc, dtheta, dv, dt, g_n, w_ie, Qn, Vn, Pn, Bn):
-    """One augmented time update (seed 002 steps 1–3) fused for speed; also moves the P′ points.
+    """One augmented time update (Sun et al. 2012 steps 1–3) fused for speed; also moves the P′ points.
 
     Points: chart offsets ``xi @ blkdiag(Lp, Lq, Lr)ᵀ`` (step 1, rows of ``xi`` the unit set with the
     √(L+λ) factor); full states through :func:`propagate_points` (step 3); back to the chart
@@ -311,7 +314,7 @@ def _sigma_stats(chart, wm, wc, q_ref):
 
 
 class QuatAUKF:
-    """Augmented UKF on seed 002's SINS/GPS model; ``mode`` None ("UKF"), "aff" or "afm".
+    """Augmented UKF on the SINS/GPS model of Sun et al. 2012; ``mode`` None ("UKF"), "aff" or "afm".
 
     ``QuatAUKF(model, nominal0, P0 (12×12), Q (9×9 per sample), R (6×6), mode, chi2_alpha=0.01,
     alpha=1, beta=2, kappa=0)``.  ``predict(dtheta_b, dv_b)`` once per IMU interval (FRD body
@@ -334,7 +337,7 @@ class QuatAUKF:
         self.Q = check_covariance("Q", Q, Q_DIM)
         self.R = check_covariance("R", R, M_DIM)
         self.mode = mode
-        self.threshold = float(chi2.isf(chi2_alpha, 1))       # ε_i of eqs. 1 and 6 (SPEC §6)
+        self.threshold = float(chi2.isf(chi2_alpha, 1))       # ε_i of eqs. 1 and 6 (Sun et al. 2012)
         self.ut = (float(alpha), float(beta), float(kappa))
         L = N_ERR + Q_DIM + M_DIM                              # step 1: L = n + q + m
         self.scheme = unscented_scheme(L, *self.ut)           # step 2 weights

@@ -1,5 +1,5 @@
-"""Tight SINS/GPS integration filter, 17 error states (SPEC §5, seed 001), cascaded behind the
-per-channel prefilters of the ultra-tight receiver (seed 000 Fig. 1).
+"""Tight SINS/GPS integration filter, 17 error states (Fang 2017, §1), cascaded behind the
+per-channel prefilters of the ultra-tight receiver (Zhao et al. 2014 Fig. 1; see docs/references.md).
 
 State (error state, **estimate minus truth**, the convention of ``ultratight.ins.error_model``)::
 
@@ -15,7 +15,7 @@ The layout and the time-update matrices (F, G, discretisation) come from the SIN
 of :mod:`ultratight.ins.error_model`; this module adds the GPS measurement model and the choice
 of estimator.
 
-Measurements (seed 001 eqs. 4–5), one pair per tracked channel, formed by the engine from the
+Measurements (Fang 2017 eqs. 4–5), one pair per tracked channel, formed by the engine from the
 *decimated* prefilter outputs (code NCO + code error estimate, carrier NCO + frequency error
 estimate) minus the SINS/ephemeris/clock predictions::
 
@@ -27,7 +27,7 @@ velocity errors (position error mapped from (lat, lon, h) to ENU metres by the r
 curvature).  The model is linear in the error state, so "EKF" is the Kalman update with this
 H; the UKF/CKF cores evaluate the same h through their point sets (same result on a linear h,
 at a higher cost — provided for completeness and cross-checking); "iakf" is the improved
-adaptive KF of seed 001 (:class:`ultratight.fusion.adaptive.IAKF`, GDOP-based R and windowed Q).
+adaptive KF of Fang 2017 (:class:`ultratight.fusion.adaptive.IAKF`, GDOP-based R and windowed Q).
 
 Robustness: before the update each measurement's standardised innovation
 ``|r_i| / sqrt(S_ii)`` is tested against ``gate_sigma``; rejected rows are dropped for this
@@ -38,6 +38,11 @@ or a noise burst the prefilter's covariance does not reflect.
 import numpy as np
 
 from ultratight.errors import FilterError
+from ultratight.fusion import filters
+from ultratight.fusion.adaptive import IAKF, gdop as gdop_fn
+from ultratight.ins import error_model as em
+from ultratight.ins import imu as imu_mod
+from ultratight.ins.earth import radii
 
 # the 17-state layout is the INS error model's (one definition)
 from ultratight.ins.error_model import ATT, BA, BG, POS, VEL  # noqa: F401  (re-exported)
@@ -176,7 +181,6 @@ class TightFilter:
         if self.core == "ekf":
             x, P, nis = _kf_update(self.x, self.P, z, H, R)
         else:
-            from ultratight.fusion import filters
             hfun = (lambda X: X @ H.T)
             if self.core == "ukf":
                 res = filters.ukf_update(self.x, self.P, z, hfun, R, vectorized=True, **self.ukf)
@@ -189,7 +193,6 @@ class TightFilter:
         return self.x.copy()
 
     def _update_iakf(self, z, H, Rd, use, los_l, gdop):
-        from ultratight.fusion.adaptive import IAKF, gdop as gdop_fn
         m2 = z.shape[0]
         m = m2 // 2
         if self._iakf is None:
@@ -240,8 +243,7 @@ def _kf_update(x, P, z, H, R):
 # ---------------------------------------------------------------------------------------------
 def imu_errors_from_meta(imu):
     """:class:`ultratight.ins.imu.ImuErrors` from an IMU file's metadata (generator-written files
-    carry the error model); files without it use the SPEC §4 "paper" preset."""
-    from ultratight.ins import imu as imu_mod
+    carry the error model); files without it use the "paper" preset of Zhao et al. 2014, §3."""
     d = (getattr(imu, "meta", None) or {}).get("errors")
     if isinstance(d, dict):
         e = imu_mod.ImuErrors()
@@ -266,7 +268,6 @@ def phi_q(ins, dt, imu_errors, clock_q_drift=1e-4, clock_q_bias=1e-4, bias_floor
     trapezoidal rule ``(Phi G Qc G^T Phi^T + G Qc G^T) dt / 2``, positive semi-definite by
     construction (the Van Loan ``error_model.discretize`` is exact but costs a 34x34 matrix exponential,
     ~15 ms, per tight update).  ``ins`` has ``q_lb``, ``vel_l``, ``llh``, ``f_b``."""
-    from ultratight.ins import error_model as em
     F = em.F_matrix(ins.q_lb, ins.vel_l, ins.llh, ins.f_b, n_states=em.N17)
     G = em.G_matrix(ins.q_lb, n_states=em.N17)
     q = em.noise_psd(imu_errors, n_states=em.N17, clock_psd=(clock_q_bias, clock_q_drift))
@@ -283,7 +284,6 @@ def initial_covariance(llh, sigmas, imu_errors):
     """P0 (17x17) of the hot start: ``sigmas`` dict (StartupErrors fields: pos_m, vel_mps,
     att_deg, clk_bias_m, clk_drift_mps); bias sigmas from the IMU error model (at least
     a small floor)."""
-    from ultratight.ins.earth import radii
     lat, h = float(llh[0]), float(llh[2])
     rm, rn = radii(lat)
     s_pos = float(sigmas.get("pos_m", 1.0))

@@ -1,4 +1,5 @@
-"""WGS-84 Earth model: geodetic <-> ECEF conversions and local-frame rotations.
+"""WGS-84 Earth model: geodetic <-> ECEF conversions and local-frame rotations (NIMA TR8350.2;
+see docs/references.md).
 
 All functions are numba-compatible (plain math on floats / small arrays) and
 use SI units and radians.  ``llh`` is ``[lat_rad, lon_rad, h_m]``.

@@ -18,7 +18,8 @@ accelerometer white noise (VRW, (m/s)/sqrt(s)), gyro-bias and accel-bias driving
 (first-order Gauss-Markov with correlation time tau, or random walk when tau = inf), and
 clock-bias / clock-drift white noise (17-state only).
 
-Equations (psi-angle form of the phi-angle model, Groves / Savage):
+Equations (psi-angle form of the phi-angle model, Groves 2013 and Savage 1998; see
+docs/references.md):
     phi'  = -w_in x phi + dw_in - C_lb bg
     dv'   = f_l x phi + v x (2 dw_ie + dw_en) - (2 w_ie + w_en) x dv + dg + C_lb ba
     dlat' = dvN/(M+h) - vN dh/(M+h)^2
@@ -34,7 +35,7 @@ import numpy as np
 from scipy.linalg import expm
 
 from ultratight.constants import OMEGA_E
-from ultratight.ins.attitude import quat_mult, quat_normalize, quat_to_dcm, rotvec_to_quat
+from ultratight.ins.attitude import dcm_to_rotvec, quat_mult, quat_normalize, quat_to_dcm, rotvec_to_quat
 from ultratight.ins.earth import gravity_l, radii
 
 ATT = slice(0, 3)
@@ -220,7 +221,6 @@ def true_error_state(q_est, vel_est, llh_est, q_true, vel_true, llh_true):
     """Error state (ATT, VEL, POS parts; 9,) of an estimate against truth, same convention as F."""
     C_e = quat_to_dcm(np.asarray(q_est, float))
     C_t = quat_to_dcm(np.asarray(q_true, float))
-    from ultratight.ins.attitude import dcm_to_rotvec
     dx = np.zeros(9)
     dx[0:3] = dcm_to_rotvec(C_t @ C_e.T)
     dx[3:6] = np.asarray(vel_est) - np.asarray(vel_true)

@@ -26,14 +26,18 @@ ug/sqrt(Hz), ppm (see the ``*_TO_SI`` constants and docs/ins.md).
 import csv
 import json
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import h5py
 import numpy as np
+from scipy.signal import lfilter
 
 from ultratight.constants import OMEGA_E
 from ultratight.errors import ConfigError, InputFileError
 from ultratight.ins.earth import gravity_l
+from ultratight.io_guard import atomic_path, write_h5_atomic
 
 # ------------------------------------------------------------------ unit conversions
 G0 = 9.80665                                  # standard gravity, m/s^2 (for ug / g units only)
@@ -80,7 +84,7 @@ class ImuErrors:
 # presets in datasheet units (keys as in the scenario [imu] table)
 PRESETS = {
     "ideal": {},
-    # SPEC §4: gyro bias 0.01 deg/h, gyro white noise 0.005 deg/h taken as the 1-sigma of the
+    # Zhao et al. 2014, §3: gyro bias 0.01 deg/h, gyro white noise 0.005 deg/h taken as the 1-sigma of the
     # angular-rate samples at the IMU rate; accelerometer bias 30 ug, white noise 3 ug (1 sigma/sample).
     "paper": {"gyro_bias_dph": 0.01, "gyro_noise_dph": 0.005, "accel_bias_ug": 30.0, "accel_noise_ug": 3.0},
     # navigation grade (ring-laser class)
@@ -258,7 +262,6 @@ def _gauss_markov(rng, n, sigma, tau, dt):
     out = np.zeros((n, 3))
     if not np.any(sigma) or n == 0:
         return out
-    from scipy.signal import lfilter
     phi = math.exp(-dt / tau)
     drive = rng.standard_normal((n, 3)) * (sigma * math.sqrt(1.0 - phi * phi))
     x0 = rng.standard_normal(3) * sigma
@@ -328,7 +331,6 @@ IMU_H5_VERSION = 1
 def write_imu_h5(path, imu, meta=None):
     """Write :class:`ImuData` to HDF5 (layout in docs/ins.md); built in memory, written under a
     unique temporary name, then renamed (disk errors raise OutputError)."""
-    from ultratight.io_guard import write_h5_atomic
     allmeta = dict(imu.meta or {})
     allmeta.update(meta or {})
 
@@ -380,7 +382,6 @@ def _attr_number(f, key, path, default=None):
 def read_imu_h5(path):
     """Read an IMU HDF5 file written by :func:`write_imu_h5` (InputFileError on problems: missing
     or malformed datasets/attributes, non-finite increments or stamps)."""
-    import h5py
     path = Path(path)
     if not path.is_file():
         raise InputFileError(f"{path}: IMU file not found")
@@ -565,7 +566,6 @@ def read_imu_csv(path):
     except InputFileError as exc:
         # translate the row index into the file line number
         msg = str(exc)
-        import re
         m = re.search(r"row (\d+):", msg)
         if m:
             msg = msg.replace(f"row {m.group(1)}:", f"line {line_no[int(m.group(1))]}:")
@@ -580,7 +580,6 @@ def read_imu_csv(path):
 
 def write_imu_csv(path, imu):
     """Write increments as CSV (t_s, dthx_rad, ..., dvz_mps) -- the format read_imu_csv reads."""
-    from ultratight.io_guard import atomic_path
     with atomic_path(path) as tmp:
         with open(tmp, "w") as fh:
             fh.write("# ultratight IMU increments, body frame FLU; t_s = end of interval\n")

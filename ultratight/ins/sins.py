@@ -5,7 +5,7 @@ quaternion ``q_lb`` (body FLU -> ENU, scalar first), Earth-relative velocity
 ``vel_l`` (ENU, m/s), geodetic position ``[lat, lon, h]`` (rad, rad, m).
 
 One step over an IMU interval dt with increments (dtheta, dv) -- two-sample
-(previous + current interval) coning and sculling:
+(previous + current interval) coning and sculling (Savage 1998; Groves 2013; see docs/references.md):
 
 * rotation vector   phi   = dth_k + dth_{k-1} x dth_k / 12
 * velocity increment dv_sf = dv_k + dth_k x dv_k / 2 + (dth_{k-1} x dv_k + dv_{k-1} x dth_k) / 12
@@ -28,7 +28,9 @@ import numpy as np
 from numba import njit
 
 from ultratight.constants import OMEGA_E
-from ultratight.ins.earth import dcm_ecef_from_enu, gravity_nu, llh_to_ecef, radii
+from ultratight.ins.attitude import dcm_to_quat_vec, quat_to_dcm_vec
+from ultratight.ins.earth import (dcm_ecef_from_enu, dcm_ecef_from_enu_vec, gravity_nu, llh_to_ecef, llh_to_ecef_batch,
+                                  radii)
 
 # state layout
 Q = slice(0, 4)          # q_lb (scalar first)
@@ -215,8 +217,6 @@ def state_from_trajectory(traj, t=0.0):
 def nav_errors(q_lb, vel_l, llh, truth_q, truth_vel, truth_llh):
     """Position error (m, ENU), velocity error (m/s) and attitude error (rad, rotation vector
     of C_true C_est^T) of a SINS solution against truth; arrays (n, 3)."""
-    from ultratight.ins.attitude import dcm_to_quat_vec, quat_to_dcm_vec
-    from ultratight.ins.earth import dcm_ecef_from_enu_vec, llh_to_ecef_batch
     pe = llh_to_ecef_batch(np.ascontiguousarray(llh))
     pt = llh_to_ecef_batch(np.ascontiguousarray(truth_llh))
     C_el = dcm_ecef_from_enu_vec(truth_llh[:, 0], truth_llh[:, 1])

@@ -10,23 +10,24 @@ vectorised).
 Because l0 is a plane tangent to the ellipsoid at the start, a vehicle moving
 horizontally in l0 gains ellipsoidal height ~ d^2 / (2 R): for the
 paper-highdyn flight (~180 km east, ~7 km north in 60 s) this is ~2.6 km over
-60 s (computed exactly by :meth:`Trajectory.kinematics`).  The SPEC table's
-"ENU accelerations" are interpreted in l0.
+60 s (computed exactly by :meth:`Trajectory.kinematics`).  The "ENU
+accelerations" of Zhao et al. 2014, Table 2, are interpreted in l0 (see docs/references.md).
 
 Trajectory kinds (``[trajectory]`` table of a scenario, see docs/ins.md):
 
 * ``"static"``: stays at the start point.
-* ``"segments"``: piecewise constant jerk (SPEC §4 Table 2).  ``vel0_enu_mps``;
+* ``"segments"``: piecewise constant jerk (Zhao et al. 2014, Table 2).  ``vel0_enu_mps``;
   ``segments = [{t0, acc_enu, jerk_enu}, ...]``: from ``t0`` to the next
   segment's ``t0`` the l0 acceleration is ``acc_enu + jerk_enu * (t - t0)``.
   The first segment must start at t0 = 0.  Acceleration may jump between
   segments (velocity and position are continuous).
 * ``"swing"``: a swinging base (swing table, ship at anchor): static position,
   sinusoidal Euler angles ``att = att0_deg + swing_amp_deg * sin(2 pi t /
-  swing_period_s + swing_phase_deg)`` per axis [roll, pitch, yaw] (defaults
-  SPEC §6: ±10° / 8 s, ±8° / 6 s, ±5° / 10 s, phases 0).  The body rate is the
-  exact Euler-rate map, so the IMU increments (Gauss–Legendre integrals of the
-  rate and specific force) are exact, coning and sculling included.
+  swing_period_s + swing_phase_deg)`` per axis [roll, pitch, yaw] (defaults, a
+  choice of this project for Sun et al. 2012 §4.2–4.3, which give none: ±10° / 8 s,
+  ±8° / 6 s, ±5° / 10 s, phases 0).  The body rate is the exact Euler-rate map,
+  so the IMU increments (Gauss–Legendre integrals of the rate and specific force)
+  are exact, coning and sculling included.
 * ``"turns"``: horizontal ground/air vehicle.  ``speed0_mps``, ``heading0_deg``
   (clockwise from north); ``segments = [{t0, turn_rate_dps, acc_mps2 | speed_mps}]``:
   constant turn rate (positive = turning right, heading increasing) and
@@ -53,6 +54,7 @@ import math
 import os
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from ultratight.constants import OMEGA_E
@@ -64,7 +66,7 @@ from ultratight.ins.earth import (dcm_ecef_from_enu, dcm_ecef_from_enu_vec, ecef
 
 KINDS = ("static", "segments", "turns", "swing")
 ATTITUDE_MODES = ("velocity", "fixed", "rates", "swing")
-# swinging-base defaults (SPEC §6, not from seed 002): [roll, pitch, yaw]
+# swinging-base defaults (a choice of this project; Sun et al. 2012 give none): [roll, pitch, yaw]
 SWING_AMP_DEG = (10.0, 8.0, 5.0)
 SWING_PERIOD_S = (8.0, 6.0, 10.0)
 _SPEED_EPS = 1e-9     # m/s: below this the velocity direction is taken from acc / jerk
@@ -311,7 +313,6 @@ class Trajectory:
 
     def save_h5(self, path_or_group, rate_hz):
         """Write the truth sampled at ``rate_hz`` over [0, duration_s] (HDF5, see docs/ins.md)."""
-        import h5py
         rate_hz = float(rate_hz)
         if not (rate_hz > 0.0):
             raise ConfigError(f"trajectory rate_hz must be > 0, got {rate_hz}")

@@ -1,11 +1,12 @@
-"""Signal delays in the atmosphere: Klobuchar ionosphere and Saastamoinen troposphere (L1).
+"""Signal delays in the atmosphere: Klobuchar ionosphere and Saastamoinen troposphere (L1);
+see docs/references.md.
 
 Both the IF generator (:mod:`ultratight.signals.generator`, scenario table ``[atmosphere]``) and
 the receiver's PVT (:mod:`ultratight.receiver.process`, ``--iono`` / ``--tropo``) use these
 functions; the generator can also apply a model the receiver does not share (a scaled ionosphere,
 another tropospheric mapping function) so that tests are not circular.
 
-Ionosphere — the broadcast single-frequency model of IS-GPS-200 §20.3.3.5.2.5 (Klobuchar, 1987,
+Ionosphere — the broadcast single-frequency model of IS-GPS-200D §20.3.3.5.2.5 (Klobuchar, 1987,
 "Ionospheric time-delay algorithm for single-frequency GPS users", IEEE Trans. AES 23(3)), with
 the eight coefficients alpha_0..3 (s, s/semicircle^n), beta_0..3 (s, s/semicircle^n) of subframe 4
 page 18 or of a RINEX navigation header.  It returns the L1 group delay in seconds; the code is
@@ -39,6 +40,7 @@ import math
 
 import numpy as np
 
+from ultratight.constants import C
 from ultratight.errors import ConfigError
 
 IONO_MODELS = ("klobuchar", "off")
@@ -156,7 +158,6 @@ class AtmosphereModel:
 
     def delays_m(self, lat_rad, lon_rad, h_m, elev_rad, azim_rad, tow_s):
         """(iono_m, tropo_m) arrays (broadcast shapes) of the L1 code delays."""
-        from ultratight.constants import C
         el = np.asarray(elev_rad, dtype=float)
         shape = np.broadcast(el, np.asarray(azim_rad), np.asarray(tow_s), np.asarray(lat_rad)).shape
         iono = np.zeros(shape)

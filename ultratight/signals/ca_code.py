@@ -1,4 +1,4 @@
-"""GPS L1 C/A Gold codes (IS-GPS-200, section 3.3.2.3 and Table 3-Ia).
+"""GPS L1 C/A Gold codes (IS-GPS-200D §3.3.2.3 and Table 3-I; see docs/references.md).
 
 G1 = 1 + x^3 + x^10, G2 = 1 + x^2 + x^3 + x^6 + x^8 + x^9 + x^10, both
 started from all ones.  The code of PRN i is G1 XOR (G2 delayed by the PRN's
@@ -13,7 +13,7 @@ import numpy as np
 from ultratight.constants import CA_LEN
 from ultratight.errors import ConfigError
 
-# IS-GPS-200 Table 3-Ia, "Code Delay Chips" for G2, PRN 1..32.
+# IS-GPS-200D Table 3-I, "Code Delay Chips" for G2, PRN 1..32.
 G2_DELAY = (
     5, 6, 7, 8, 17, 18, 139, 140, 141, 251, 252, 254, 255, 256, 257, 258,
     469, 470, 471, 472, 473, 474, 509, 512, 513, 514, 515, 516, 859, 860, 861, 862,
@@ -73,7 +73,7 @@ def ca_code_table(prns=PRNS):
 
 
 def first_chips_octal(prn, n=10):
-    """First ``n`` chips of PRN as an octal string, as tabulated in IS-GPS-200 Table 3-Ia."""
+    """First ``n`` chips of PRN as an octal string, as tabulated in IS-GPS-200D Table 3-I."""
     value = 0
     for b in ca_code_bits(prn)[:n]:
         value = (value << 1) | int(b)

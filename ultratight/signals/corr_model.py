@@ -21,7 +21,7 @@ of a perfectly tracked signal is
     A = sqrt(2 * C/N0 * T)          (C/N0 in Hz, T in s)
 
 so that ``(I_P^2 + Q_P^2) / 2 = C/N0 * T`` on average (signal part).  This
-``A`` is the paper's ``A*T`` of SPEC §2 eq. 3: the prefilter state ``A`` is in
+``A`` is the ``A*T`` of Zhao et al. 2014, eq. 3 (see docs/references.md): the prefilter state ``A`` is in
 these units.  Taps spaced ``d`` chips apart have noise correlation ``R(d)``
 (the code autocorrelation), which gives the non-diagonal measurement
 covariance of the six outputs ``[I_P, I_E, I_L, Q_P, Q_E, Q_L]``.

@@ -1,4 +1,4 @@
-"""GPS broadcast ephemeris (IS-GPS-200 §20.3.3.4, Table 20-IV) and satellite clock model.
+"""GPS broadcast ephemeris (IS-GPS-200D §20.3.3.4, Table 20-IV) and satellite clock model.
 
 :class:`Ephemeris` holds the LNAV clock and ephemeris parameters with IS-GPS-200 names in
 snake_case, in SI units and **radians** (the message itself carries semicircles; the

@@ -46,6 +46,7 @@ carrier phase enters as ``cos(2 pi f_IF t - phi)``. The IF readers undo both
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import signal as sps
 
 from ultratight.errors import ConfigError
 
@@ -167,7 +168,6 @@ class FrontEnd:
 
     # -- filter -------------------------------------------------------------------------
     def _design(self):
-        from scipy import signal as sps
 
         nyq = self.fs_hz / 2.0
         bw = self.filter_bw_hz
@@ -202,7 +202,6 @@ class FrontEnd:
         """Filter one block (float32 / complex64), carrying state; output noise std unchanged."""
         if self._sos is None:
             return x
-        from scipy import signal as sps
 
         if self._zi is None:
             self._zi = np.zeros((self._sos.shape[0], 2), dtype=np.complex128 if self.is_complex else np.float64)

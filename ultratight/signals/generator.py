@@ -57,16 +57,26 @@ import sys
 import time
 from pathlib import Path
 
+import h5py
 import numpy as np
 from numba import njit, prange
+from tqdm import tqdm
 
 from ultratight import __version__
-from ultratight.constants import C, CA_LEN, F_CA, T_CA
+from ultratight.constants import C, CA_LEN, F_CA, LAMBDA_L1, T_CA
 from ultratight.errors import ConfigError
+from ultratight.ins import imu as imu_mod
+from ultratight.ins.trajectory import build_trajectory
+from ultratight.io_guard import tmp_name
+from ultratight.signals.atmosphere import AtmosphereModel
 from ultratight.signals.ca_code import ca_code
 from ultratight.signals.corr_model import signal_amplitude
+from ultratight.signals.constellation import nominal_ephemerides
 from ultratight.signals.frontend import FrontEnd
+from ultratight.signals.geometry import geodetic_llh, light_time, visible_prns
 from ultratight.signals.iffile import FORMATS, IfWriter, check_bits_for_format, get_format
+from ultratight.signals.lnav import IonoUtc, nav_bits, quantise_iono
+from ultratight.signals.rinex import read_rinex_nav
 
 LUT_BITS = 11
 LUT_N = 1 << LUT_BITS
@@ -199,7 +209,6 @@ class SignalPlan:
 
     def geometry(self, sample_pos):
         """light_time per satellite at (fractional) sample positions; list of dicts + rx dict."""
-        from ultratight.signals.geometry import light_time
 
         e = np.asarray(sample_pos, dtype=float) / self.fs
         b = self.clock_bias_m(e)
@@ -213,8 +222,6 @@ class SignalPlan:
 
     def _apply_atmosphere(self, geo, pos, t_true, e):
         """Add the ionospheric and tropospheric delays to the light-time solutions (module doc)."""
-        from ultratight.constants import LAMBDA_L1
-        from ultratight.signals.geometry import geodetic_llh
 
         lat, lon, h = geodetic_llh(pos)
         for g in geo:
@@ -280,7 +287,6 @@ class SignalPlan:
         self.bits = {}
         if not enabled:
             return
-        from ultratight.signals.lnav import nav_bits
 
         first = int(math.floor((self.tow0 - 0.2) / 0.02))
         n_bits = int(math.ceil((duration_s + 0.5) / 0.02)) + 2
@@ -321,11 +327,9 @@ def _ephemerides(cfg, rx_pos0_e):
     week, tow = int(cfg["time"]["week"]), float(cfg["time"]["tow_s"])
     source = sat.get("source", "nominal")
     if source == "nominal":
-        from ultratight.signals.constellation import nominal_ephemerides
 
         ephs = nominal_ephemerides(week, tow)
     elif source == "rinex":
-        from ultratight.signals.rinex import read_rinex_nav
 
         nav = read_rinex_nav(sat["rinex_path"] if "rinex_path" in sat else sat["rinex"])
         ephs = {}
@@ -344,7 +348,6 @@ def _ephemerides(cfg, rx_pos0_e):
         if missing:
             raise ConfigError(f"satellites.prns: no ephemeris for PRN {missing} from source {source!r}")
     else:
-        from ultratight.signals.geometry import visible_prns
 
         prns = visible_prns(ephs, rx_pos0_e, week, tow, float(sat.get("mask_deg", 5.0)),
                             max_count=sat.get("max_count"))
@@ -369,10 +372,6 @@ def atmosphere_from_config(atm):
     """(AtmosphereModel or None, lnav.IonoUtc or None) of a validated ``[atmosphere]`` table."""
     if not atm:
         return None, None
-    from ultratight.signals.atmosphere import AtmosphereModel
-    from ultratight.signals.lnav import IonoUtc
-
-    from ultratight.signals.lnav import quantise_iono
 
     alpha, beta = atm["alpha"], atm["beta"]
     if atm["broadcast"]:
@@ -394,7 +393,6 @@ def noise_factor(events, e):
 
 
 def _tmp(path):
-    from ultratight.io_guard import tmp_name
     return tmp_name(path)
 
 
@@ -402,7 +400,6 @@ class _TruthWriter:
     """Appends per-interval truth rows to an HDF5 file (resizable, chunked datasets)."""
 
     def __init__(self, path, nsat, attrs):
-        import h5py
 
         self.path = Path(path)
         self.tmp = _tmp(self.path)
@@ -461,10 +458,6 @@ def output_paths(out_dir, stem, fmt):
 def _progress(total, enabled, desc):
     if not enabled or not sys.stderr.isatty():
         return None
-    try:
-        from tqdm import tqdm
-    except ImportError:       # pragma: no cover
-        return None
     return tqdm(total=total, unit="s", desc=desc, leave=False,
                 bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} s [{elapsed}<{remaining}]")
 
@@ -499,7 +492,6 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
     week, tow0 = int(cfg["time"]["week"]), float(cfg["time"]["tow_s"])
     rcv = cfg.get("receiver", {})
     if trajectory is None:
-        from ultratight.ins.trajectory import build_trajectory
 
         trajectory = build_trajectory(cfg.get("trajectory", {"kind": "static"}), rcv, duration)
     if ephemerides is None:
@@ -635,7 +627,6 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
 
 def _write_imu_traj(imu_cfg, trajectory, paths, ss_imu, resolved):
     """Write IMU and trajectory truth to temp files; returns [(tmp, final), ...]."""
-    from ultratight.ins import imu as imu_mod
 
     rate = float(imu_cfg.get("rate_hz", 100.0))
     errors = imu_mod.imu_errors_from_config(imu_cfg)

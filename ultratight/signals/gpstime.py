@@ -1,10 +1,12 @@
-"""GPS time helpers: week / time-of-week arithmetic and week-rollover handling.
+"""GPS time: week / time-of-week arithmetic and week-rollover handling.
 
 GPS time is kept as (full week number, seconds of week).  Times inside the
 navigation algorithms are seconds of week (TOW); differences between two TOWs
-are wrapped into [-302400, 302400) s as IS-GPS-200 §20.3.3.4.3 prescribes for
+are wrapped into [-302400, 302400) s as IS-GPS-200D §20.3.3.4.3 prescribes for
 ``tk`` ("if tk > 302400, subtract 604800; if tk < -302400, add 604800").
 """
+
+import datetime
 
 import numpy as np
 
@@ -62,9 +64,8 @@ def week_of_nearby(ref_week, ref_tow_s, tow_s):
 
 def datetime_to_gps(year, month, day, hour=0, minute=0, second=0.0):
     """Calendar date/time *in GPS time* (no leap seconds applied) -> (week, tow)."""
-    import datetime as _dt
 
-    epoch = _dt.datetime(1980, 1, 6)
-    d = _dt.datetime(int(year), int(month), int(day), int(hour), int(minute)) - epoch
+    epoch = datetime.datetime(1980, 1, 6)
+    d = datetime.datetime(int(year), int(month), int(day), int(hour), int(minute)) - epoch
     t = d.days * 86400.0 + d.seconds + float(second)
     return from_seconds(t)

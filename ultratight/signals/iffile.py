@@ -1,4 +1,5 @@
-"""IF sample files: formats, JSON sidecar, ION GNSS SDR metadata XML, streaming reader, writer.
+"""IF sample files: formats (objects in :mod:`ultratight.signals.sampleformat`), JSON sidecar,
+ION GNSS SDR metadata XML, streaming reader, writer.
 
 Formats (``FORMATS``; all little-endian unless an ION XML says otherwise)
 --------------------------------------------------------------------------
@@ -41,7 +42,7 @@ multiplies sample ``n`` by ``(-1)**n`` (a shift by fs/2, which mirrors the spect
 and reports ``if_hz' = fs/2 - if_hz``, so consumers always see a non-inverted
 signal and never need to know.
 
-ION GNSS SDR Metadata Standard XML (``meta=path.xml``): a single stream in a
+ION GNSS SDR Metadata Standard XML (``meta=path.xml``; see docs/references.md): a single stream in a
 single lump/chunk/block is supported. Sample rate = system ``freqbase`` x stream
 ``ratefactor`` (units from the ``format`` attribute: Hz/kHz/MHz/GHz), IF from the band's
 ``translatedfreq``, sample type from ``quantization``/``packedbits``/``format``
@@ -53,248 +54,22 @@ to the XML when ``path`` is None.
 """
 
 import json
+import mmap
 import os
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
 
+from ultratight import __version__
 from ultratight.errors import FormatError, InputFileError
-from ultratight.io_guard import check_interrupted
-from ultratight.signals.packing import ION_ENCODINGS, PackedLayout
-
-
-class SampleFormat:
-    """One IF sample format: how its samples are stored, decoded and encoded.
-
-    ``name``; ``dtype``, the numpy dtype of one stored component (packed formats: of one byte);
-    ``is_complex``; ``comps`` (1 or 2 stored components per sample). The reader and the writer
-    only call the methods below, so a new format is a new subclass (or instance) plus an entry
-    in :data:`FORMATS` (or :data:`READ_ONLY_FORMATS`):
-
-    * ``layout(packing, path)``: the per-file packing layout (None for byte-aligned formats);
-    * ``count(size_bytes, layout, path)``: samples held by a file of ``size_bytes``;
-    * ``nbytes(n, layout)``: bytes holding the first ``n`` samples (whole words);
-    * ``decode(store, start, count, layout)``: float32 components of samples
-      ``[start, start + count)`` from the memory-mapped store;
-    * ``encoder()``: a streaming encoder (``encode(comps, exact) -> bytes``, ``flush() -> bytes``);
-    * ``quantiser_bits``: the front-end quantiser width the format stores (0: float);
-      ``check_bits(bits, field)``: ConfigError unless a quantiser width can be stored.
-    """
-
-    packed_bits = 0
-    writable = True
-
-    def __init__(self, name, dtype, is_complex):
-        self.name = name
-        self.dtype = dtype
-        self.is_complex = bool(is_complex)
-
-    def __repr__(self):
-        return f"{type(self).__name__}({self.name!r}, {self.dtype!r}, is_complex={self.is_complex})"
-
-    def __eq__(self, other):
-        return type(self) is type(other) and (self.name, self.dtype, self.is_complex, self.packed_bits) == (
-            other.name, other.dtype, other.is_complex, other.packed_bits)
-
-    def __hash__(self):
-        return hash((type(self).__name__, self.name, self.dtype, self.is_complex))
-
-    @property
-    def packed(self):
-        return self.packed_bits > 0
-
-    @property
-    def packed2(self):
-        return self.packed_bits == 2
-
-    @property
-    def packed4(self):
-        return self.packed_bits == 4
-
-    @property
-    def comps(self):
-        return 2 if self.is_complex else 1
-
-    @property
-    def samples_per_byte(self):
-        return None
-
-    @property
-    def bytes_per_sample(self):
-        return np.dtype(self.dtype).itemsize * self.comps
-
-    @property
-    def quantiser_bits(self):
-        dt = np.dtype(self.dtype)
-        return 0 if dt.kind == "f" else 8 * dt.itemsize
-
-    def check_bits(self, bits, field="frontend"):
-        from ultratight.errors import ConfigError
-        q = self.quantiser_bits
-        if q == 8 and bits not in (1, 2, 4, 8):
-            raise ConfigError(f"{field}.format {self.name!r} stores 8-bit samples; {field}.bits must be 1, 2, 4 "
-                              f"or 8 (got {bits})")
-        if q == 16 and bits == 0:
-            raise ConfigError(f"{field}.format {self.name!r} stores integers; {field}.bits must not be 0 (float)")
-
-    def layout(self, packing=None, path=""):
-        return None
-
-    def count(self, size_bytes, layout=None, path=""):
-        bps = self.bytes_per_sample
-        if size_bytes % bps:
-            raise FormatError(f"{path}: size {size_bytes} bytes is not a whole number of {self.name} samples "
-                              f"({bps} bytes each)")
-        return size_bytes // bps
-
-    def nbytes(self, n, layout=None):
-        return n * self.bytes_per_sample
-
-    def decode(self, store, start, count, layout=None):
-        c = self.comps
-        return np.asarray(store[start * c:(start + count) * c]).astype(np.float32)
-
-    def encoder(self):
-        return _PlainEncoder(np.dtype(self.dtype))
-
-
-class PackedFormat(SampleFormat):
-    """2- or 4-bit samples packed into words in a :class:`ultratight.signals.packing.PackedLayout`."""
-
-    def __init__(self, name, is_complex, bits, writable=True):
-        super().__init__(name, "u1", is_complex)
-        self.packed_bits = int(bits)
-        self.writable = bool(writable)
-
-    @property
-    def samples_per_byte(self):
-        return 8 // self.packed_bits // self.comps
-
-    @property
-    def bytes_per_sample(self):
-        return None
-
-    @property
-    def quantiser_bits(self):
-        return self.packed_bits
-
-    def check_bits(self, bits, field="frontend"):
-        from ultratight.errors import ConfigError
-        if not self.writable:
-            raise ConfigError(f"{field}.format {self.name!r} is read only (no writer for "
-                              f"{self.packed_bits}-bit packed samples)")
-        if bits not in (1, self.packed_bits):
-            raise ConfigError(f"{field}.format {self.name!r} stores {self.packed_bits}-bit samples; {field}.bits "
-                              f"must be 1 or {self.packed_bits} (got {bits})")
-
-    def layout(self, packing=None, path=""):
-        lay = packing if isinstance(packing, PackedLayout) else PackedLayout(**{"bits": self.packed_bits,
-                                                                                **(packing or {})})
-        if lay.bits != self.packed_bits:
-            raise FormatError(f"{path}: packing of {lay.bits}-bit samples given for format {self.name}")
-        return lay
-
-    def count(self, size_bytes, layout=None, path=""):
-        return size_bytes // layout.word_bytes * layout.per_word // self.comps
-
-    def nbytes(self, n, layout=None):
-        return n * self.comps // layout.per_word * layout.word_bytes
-
-    def decode(self, store, start, count, layout=None):
-        comp_start = start * self.comps
-        comp_stop = (start + count) * self.comps
-        w0, w1 = comp_start // layout.per_word, -(-comp_stop // layout.per_word)
-        vals = layout.unpack(np.asarray(store[w0 * layout.word_bytes:w1 * layout.word_bytes]))
-        off = comp_start - layout.per_word * w0
-        return np.ascontiguousarray(vals[off: off + count * self.comps], dtype=np.float32)
-
-    def encoder(self):
-        if not self.writable:
-            raise FormatError(f"format {self.name!r} is read only (no writer for {self.packed_bits}-bit "
-                              f"packed samples)")
-        return _Packed2Encoder()
-
-
-class _PlainEncoder:
-    """float components -> bytes of ``dtype`` (integers rounded and clipped unless ``exact``)."""
-
-    def __init__(self, dt):
-        self.dt = dt
-
-    def encode(self, comps, exact=False):
-        dt = self.dt
-        if dt.kind == "i" and exact:
-            out = comps.astype(dt)
-        elif dt.kind == "i":
-            info = np.iinfo(dt)
-            out = np.clip(np.rint(comps), info.min, info.max).astype(dt)
-        else:
-            out = comps.astype(dt)
-        return out.tobytes()
-
-    def flush(self):
-        return b""
-
-
-class _Packed2Encoder:
-    """float components -> 2-bit sign-magnitude codes, four to a byte, the first in the high bits
-    (the ``i2packed``/``ci2packed`` layout); components that do not fill a byte are carried to the
-    next call, and ``flush`` pads the last byte with level +1 (code 0)."""
-
-    def __init__(self):
-        self._carry = np.zeros(0, dtype=np.float32)
-
-    def encode(self, comps, exact=False):
-        comps = np.concatenate([self._carry, comps]) if self._carry.size else comps
-        n4 = comps.size // 4 * 4
-        self._carry = comps[n4:].copy()
-        c = _encode2(comps[:n4]).reshape(-1, 4)
-        b = (c[:, 0] << 6) | (c[:, 1] << 4) | (c[:, 2] << 2) | c[:, 3]
-        return b.astype(np.uint8).tobytes()
-
-    def flush(self):
-        if not self._carry.size:
-            return b""
-        pad = np.zeros(4 - self._carry.size, dtype=np.float32) + 1.0
-        c = _encode2(np.concatenate([self._carry, pad]))
-        self._carry = np.zeros(0, dtype=np.float32)
-        return bytes([int((c[0] << 6) | (c[1] << 4) | (c[2] << 2) | c[3])])
-
-
-FormatSpec = SampleFormat        # earlier name of the format description
-
-FORMATS = {
-    "i8": SampleFormat("i8", "<i1", False),
-    "i16": SampleFormat("i16", "<i2", False),
-    "f32": SampleFormat("f32", "<f4", False),
-    "ci8": SampleFormat("ci8", "<i1", True),
-    "ci16": SampleFormat("ci16", "<i2", True),
-    "cf32": SampleFormat("cf32", "<f4", True),
-    "i2packed": PackedFormat("i2packed", False, 2),
-    "ci2packed": PackedFormat("ci2packed", True, 2),
-}
-# formats the reader accepts but nothing here writes
-READ_ONLY_FORMATS = {
-    "i4packed": PackedFormat("i4packed", False, 4, writable=False),
-    "ci4packed": PackedFormat("ci4packed", True, 4, writable=False),
-}
-
-# 2-bit code -> level (sign-magnitude): 0:+1, 1:+3, 2:-1, 3:-3
-CODE2_LEVEL = np.array([1.0, 3.0, -1.0, -3.0], dtype=np.float32)
-
-
-def get_format(name):
-    try:
-        return FORMATS[name] if name in FORMATS else READ_ONLY_FORMATS[name]
-    except (KeyError, TypeError):
-        raise FormatError(f"unknown IF sample format {name!r}; expected one of "
-                          f"{', '.join(list(FORMATS) + list(READ_ONLY_FORMATS))}") from None
-
-
-def check_bits_for_format(fmt, bits, field="frontend"):
-    """ConfigError unless quantiser width ``bits`` (0 = float) can be stored in format ``fmt``."""
-    get_format(fmt).check_bits(bits, field)
+from ultratight.io_guard import check_input_file, check_interrupted, tmp_name
+from ultratight.signals.metadata_check import check_sidecar, load_json_metadata
+from ultratight.signals.packing import ION_ENCODINGS
+# the format registry lives in sampleformat (metadata_check and sigmf_io need it without this module);
+# FORMATS and check_bits_for_format are part of this module's interface too
+from ultratight.signals.sampleformat import FORMATS, check_bits_for_format, get_format  # noqa: F401
+from ultratight.signals.sigmf_io import read_sigmf
 
 
 def sidecar_path(path):
@@ -338,7 +113,6 @@ def parse_ion_metadata(xml_path):
         if isinstance(exc, FormatError):
             raise
         raise FormatError(f"{xml_path}: malformed ION metadata ({' '.join(str(exc).split())[:200]})") from None
-    from ultratight.signals.metadata_check import check_sidecar
     fs = info["fs_hz"]
     if not (np.isfinite(fs) and fs > 0):
         raise FormatError(f"{xml_path}: sample rate (freqbase x ratefactor) must be > 0 Hz, got {fs}")
@@ -456,7 +230,6 @@ class IfSource:
         self.file_if_hz = if_hz
         self.if_hz = self.fs_hz / 2.0 - if_hz if self._alt_sign else if_hz
         if not self.path.is_file():
-            from ultratight.io_guard import check_input_file
             check_input_file(self.path, "IF file")
         size = self.path.stat().st_size
         spec = self.spec
@@ -497,10 +270,8 @@ class IfSource:
         back from the file). Returns the number of bytes released; 0 (and nothing done) when the
         file is empty or closed, the platform has no ``madvise``, or ``upto_sample <= 0``.
         """
-        import mmap as _mmap
-
         raw = getattr(self._mm, "_mmap", None)
-        if raw is None or not hasattr(raw, "madvise") or not hasattr(_mmap, "MADV_DONTNEED"):
+        if raw is None or not hasattr(raw, "madvise") or not hasattr(mmap, "MADV_DONTNEED"):
             return 0
         upto = min(int(upto_sample), self.n_samples)
         if upto <= 0:
@@ -508,11 +279,11 @@ class IfSource:
         nbytes = self.spec.nbytes(upto, self.packing)
         # np.memmap maps from the page boundary at or below its offset; here the offset is 0
         start = int(getattr(self._mm, "offset", 0) or 0)
-        end = min((start + nbytes) // _mmap.PAGESIZE * _mmap.PAGESIZE, len(raw))
+        end = min((start + nbytes) // mmap.PAGESIZE * mmap.PAGESIZE, len(raw))
         if end <= 0:
             return 0
         try:
-            raw.madvise(_mmap.MADV_DONTNEED, 0, end)
+            raw.madvise(mmap.MADV_DONTNEED, 0, end)
         except (OSError, ValueError):
             return 0
         return end
@@ -558,7 +329,6 @@ def read_sidecar(path):
     sp = sidecar_path(path)
     if not sp.is_file():
         return None
-    from ultratight.signals.metadata_check import load_json_metadata
     return load_json_metadata(sp)
 
 
@@ -578,10 +348,8 @@ def open_if(path=None, meta=None, fs_hz=None, if_hz=None, fmt=None, iq_conj=Fals
     if meta is not None:
         mp = Path(meta)
         if not mp.is_file() and not str(mp).lower().endswith(".sigmf-data"):
-            from ultratight.io_guard import check_input_file
             check_input_file(mp, "metadata file")
         if str(mp).lower().endswith((".sigmf-meta", ".sigmf-data")):
-            from ultratight.signals.sigmf_io import read_sigmf
             info = read_sigmf(mp)
             if path is None:
                 path = info["data_file"]
@@ -592,13 +360,11 @@ def open_if(path=None, meta=None, fs_hz=None, if_hz=None, fmt=None, iq_conj=Fals
                     raise FormatError(f"{mp}: no <file><url> and no data path given")
                 path = info["data_file"]
         else:
-            from ultratight.signals.metadata_check import load_json_metadata
             info = load_json_metadata(mp)
     if path is None:
         raise InputFileError("no IF file given")
     path = Path(path)
     if not path.is_file():
-        from ultratight.io_guard import check_input_file
         check_input_file(path, "IF file")
     if meta is None:
         info = read_sidecar(path) or {}
@@ -622,17 +388,6 @@ def open_if(path=None, meta=None, fs_hz=None, if_hz=None, fmt=None, iq_conj=Fals
 # ------------------------------------------------------------------------------------------
 # writer
 # ------------------------------------------------------------------------------------------
-def _encode2(levels):
-    """Levels (any real) -> 2-bit codes: sign bit 1 if < 0, magnitude bit 1 if |x| > 2."""
-    lv = np.asarray(levels, dtype=np.float32)
-    return ((lv < 0).astype(np.uint8) << 1) | (np.abs(lv) > 2.0).astype(np.uint8)
-
-
-def _tmp_name(path):
-    from ultratight.io_guard import tmp_name
-    return tmp_name(path)
-
-
 class IfWriter:
     """Streaming writer: ``write(samples)`` blocks, then ``close()`` renames the temp file and
     writes the sidecar; ``abort()`` (or an exception inside ``with``) removes everything.
@@ -654,15 +409,14 @@ class IfWriter:
                         "is_complex": self.spec.is_complex, "iq_conj": bool(iq_conj),
                         "inversion": bool(inversion), "start_week": start_week,
                         "start_tow_s": start_tow_s, "bits": bits}
-        from ultratight import __version__
 
         self.sidecar["version"] = __version__
         if extra:
             self.sidecar.update(extra)
         self.n_samples = 0
         self._enc = self.spec.encoder()
-        self._tmp = _tmp_name(self.path)
-        self._side_tmp = _tmp_name(sidecar_path(self.path))
+        self._tmp = tmp_name(self.path)
+        self._side_tmp = tmp_name(sidecar_path(self.path))
         self._f = open(self._tmp, "wb")
         self._closed = False
 

@@ -1,4 +1,5 @@
-"""GPS LNAV (L1 C/A legacy navigation message) encoder and decoder, IS-GPS-200 §20.3.
+"""GPS LNAV (L1 C/A legacy navigation message) encoder and decoder, IS-GPS-200D §20.3
+(see docs/references.md).
 
 Bit conventions
 ---------------

@@ -9,7 +9,10 @@ the type and range of every field :func:`ultratight.signals.iffile.open_if` read
 import json
 import math
 
+import numpy as np
+
 from ultratight.errors import FormatError
+from ultratight.signals.sampleformat import get_format
 
 MAX_METADATA_BYTES = 64 * 1024 * 1024      # a sidecar is a small JSON object; refuse anything huge
 
@@ -64,7 +67,6 @@ def check_sidecar(info, path):
     if fmt is not None and not isinstance(fmt, str):
         raise FormatError(f"{path}: sidecar field 'format' must be a format name, got {fmt!r}")
     if fmt is not None:
-        from ultratight.signals.iffile import get_format
         get_format(fmt)
     _number(info, "fs_hz", path, positive=True)
     _number(info, "if_hz", path)
@@ -83,7 +85,6 @@ def check_sidecar(info, path):
             raise FormatError(f"{path}: sidecar field {key!r} must be true or false, got {v!r}")
     dt = info.get("dtype")
     if dt is not None:
-        import numpy as np
         try:
             ok = isinstance(dt, str) and np.dtype(dt).kind in "iuf"
         except TypeError:

@@ -1,4 +1,4 @@
-"""SigMF recordings (Signal Metadata Format, https://sigmf.org, specification v1.x) as IF input,
+"""SigMF recordings (Signal Metadata Format, https://sigmf.org, specification v1.x; see docs/references.md) as IF input,
 and SigMF metadata for the files the generator writes.
 
 Reading (:func:`read_sigmf`, through the ``sigmf`` package): one channel, the first capture
@@ -19,10 +19,14 @@ Writing (:func:`write_sigmf_meta`): ``<stem>.sigmf-meta`` beside an IF file, nam
 import json
 from pathlib import Path
 
+from sigmf import sigmffile
+from sigmf.error import SigMFError
+
+from ultratight import __version__
 from ultratight.constants import F_L1
 from ultratight.errors import FormatError, InputFileError
 from ultratight.io_guard import write_text_atomic
-from ultratight.signals.iffile import get_format
+from ultratight.signals.sampleformat import get_format
 
 META_EXT = ".sigmf-meta"
 DATA_EXT = ".sigmf-data"
@@ -56,11 +60,6 @@ def read_sigmf(path):
     meta = meta_path_of(path)
     if not meta.is_file():
         raise InputFileError(f"SigMF metadata file not found: {meta}")
-    try:
-        from sigmf import sigmffile
-        from sigmf.error import SigMFError
-    except ImportError as exc:             # pragma: no cover - a declared dependency
-        raise FormatError(f"{meta}: reading SigMF needs the 'sigmf' package ({exc})") from None
     try:
         rec = sigmffile.fromfile(str(meta), skip_checksum=True)
     except (SigMFError, json.JSONDecodeError, OSError, ValueError) as exc:
@@ -99,7 +98,6 @@ def write_sigmf_meta(data_path, fmt, fs_hz, if_hz=0.0, iq_conj=False, inversion=
     A mirrored spectrum (``inversion``) is written as ``ultratight:iq_conj`` for complex samples
     and as a high-side LO (``core:frequency = F_L1 + if_hz``) for real ones.  Formats without a
     SigMF datatype (the packed 2-bit ones) raise FormatError."""
-    from ultratight import __version__
     data_path = Path(data_path)
     if fmt not in FORMAT_TO_DATATYPE:
         raise FormatError(f"SigMF has no datatype for the {fmt!r} sample format "
