@@ -5,6 +5,16 @@ Sub-packages, in import order (a package imports only those to its left):
     ins  <-  signals  <-  fusion  <-  receiver
 
 ``ultratight.constants`` and ``ultratight.errors`` sit below all of them.
+
+The compiled stages that spread work over numba's threads wait for each other many times a
+second; with OpenMP's default busy waiting a second process on the same cores makes them spin
+against it (measured: five times slower than one thread at a load average of 7), so unless the
+user chose otherwise, waiting threads sleep (``OMP_WAIT_POLICY=PASSIVE``, read when the OpenMP
+runtime starts, i.e. before the first parallel region).
 """
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 __version__ = "0.1.0"

@@ -80,7 +80,9 @@ from ultratight.receiver.startup import (BitWipeoff, StartupErrors, first_period
                                          predict_channels)
 from ultratight.receiver.tracking_banks import bank_view, make_tracking_bank, restart_covariance
 from ultratight.receiver.wipeoff import DataWipeoff
+from ultratight.signals.constellation import nominal_ephemerides
 from ultratight.signals.iffile import open_if
+from ultratight.signals.rinex import read_rinex_nav
 from ultratight.signals.signal import GPS_L1CA
 
 __all__ = ["EngineOptions", "EngineResult", "UltratightEngine", "NoiseFloor", "BlockStream", "MODE_INNER",
@@ -631,7 +633,6 @@ def _imu_start_tow(imu):
         return meta.get("start_week"), float(meta["start_tow_s"])
     cfg = meta.get("config_json")
     if isinstance(cfg, str):
-        import json
         try:
             cfg = json.loads(cfg)
         except ValueError:
@@ -703,10 +704,6 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
       IMU/IF offset -> InputFileError).
     Returns an :class:`EngineResult`.
     """
-    from pathlib import Path
-    from ultratight.ins.imu import read_imu_csv, read_imu_h5
-    from ultratight.receiver.startup import StartupErrors, perturb_state
-    from ultratight.signals.iffile import open_if
     if not method_spec(method).needs_imu:
         raise ConfigError(f"method {method!r} is the scalar receiver: use `ultratight process` without "
                           f"--mode ultratight")
@@ -722,7 +719,6 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
     gen_cfg = side.get("generator") if isinstance(side.get("generator"), dict) else None
     week, tow0 = int(src.start_week), float(src.start_tow_s)
     if nav_path is not None:
-        from ultratight.signals.rinex import read_rinex_nav
         nav = read_rinex_nav(nav_path)
         ephs = {}
         for prn in sorted(nav.ephemerides):
@@ -733,7 +729,6 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
             if e is not None:
                 ephs[prn] = e
     elif gen_cfg is not None and gen_cfg.get("satellites", {}).get("source", "nominal") == "nominal":
-        from ultratight.signals.constellation import nominal_ephemerides
         ephs = nominal_ephemerides(week, tow0)
     else:
         raise ConfigError(f"{if_path}: no ephemerides: give a RINEX navigation file (--ephemeris)")
@@ -762,9 +757,6 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
 def write_result_h5(path, res, extra_attrs=None):
     """Write an :class:`EngineResult` to HDF5 (built in memory, written under a unique temporary
     name, then renamed; schema in docs/ultratight.md). Disk errors raise OutputError."""
-    import json
-    from ultratight import __version__
-    from ultratight.io_guard import write_h5_atomic
 
     def build(f):
         f.attrs["schema"] = "ultratight engine result v1 (docs/ultratight.md)"
