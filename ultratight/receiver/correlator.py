@@ -1,4 +1,4 @@
-"""Batched GPS L1 C/A correlator bank (numba), one C/A code period per step.
+"""Batched correlator bank (numba), one primary-code period per step (GPS L1 C/A: 1023 chips, 1 ms).
 
 Every active channel integrates the input from its own ``sample_ptr`` to the
 end of its current C/A code period (the samples whose replica code phase is
@@ -58,7 +58,7 @@ Kernel-level API (public and stable: the tracking module's fused loops call it):
 :func:`tap_fixed_point` (the kernel's fixed-point start values and tap offsets), the carrier tables :data:`COS_LUT` /
 :data:`SIN_LUT` (``LUT_SIZE = 2**LUT_BITS`` float32 entries at bin centres, indexed by the top
 ``LUT_BITS`` bits of the 32-bit carrier phase), and the bank's padded code table
-:attr:`CorrelatorBank.code_ext` (n_ch, 1023 + 2*pad) with :attr:`CorrelatorBank.pad` chips of
+:attr:`CorrelatorBank.code_ext` (n_ch, code length + 2*pad) with :attr:`CorrelatorBank.pad` chips of
 wrap-around on each side; the fixed-point code phase passed to the kernel is
 ``floor((code_phase + pad) * 2**32)``.
 """
@@ -66,13 +66,12 @@ wrap-around on each side; the fixed-point code phase passed to the kernel is
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
-from ultratight.constants import CA_LEN, F_CA, F_L1
 from ultratight.errors import ConfigError
 from ultratight.signals.nco import NcoBank
+from ultratight.signals.signal import GPS_L1CA
 from ultratight.receiver.blockstream import block_sigma_arm
-from ultratight.signals.ca_code import ca_code
 
 LUT_BITS = 14                   # carrier table: 2**LUT_BITS entries, indexed by the top phase bits
 LUT_SIZE = 1 << LUT_BITS
@@ -102,9 +101,9 @@ def _carrier_lut():
 COS_LUT, SIN_LUT = _carrier_lut()   # cos/sin of 2*pi*(i + 0.5)/LUT_SIZE, float32 (public kernel API)
 
 
-def code_rate_from_doppler(doppler_hz):
-    """Code rate (chips/s) matching a carrier Doppler (Hz) on L1: F_CA * (1 + fd/F_L1)."""
-    return F_CA * (1.0 + np.asarray(doppler_hz, dtype=float) / F_L1)
+def code_rate_from_doppler(doppler_hz, signal=GPS_L1CA):
+    """Code rate (chips/s) matching a carrier Doppler (Hz): chip rate * (1 + fd / carrier)."""
+    return signal.code_rate_cps(np.asarray(doppler_hz, dtype=float))
 
 
 def estimate_sigma_arm(block, is_complex):
@@ -216,14 +215,14 @@ def integrate_channel(buf, is_complex, off, n, code_ext, cp_fix0, cstep, ph0, ph
 
 
 @njit(cache=True)
-def period_samples(code_phase, dp):
-    """Samples k >= 0 with code_phase + k*dp < 1023 (at least 1).
+def period_samples(code_phase, dp, code_len):
+    """Samples k >= 0 with code_phase + k*dp < code_len (at least 1; ``code_len`` chips per period).
 
     A sample within 1e-9 sample of the period end counts as the next period's
     first, so that exact rates (e.g. fs = 4 MHz, code phase 0) give exactly
-    fs/1000 samples despite float round-off in (1023 - cp)/dp.
+    fs/1000 samples despite float round-off in (code_len - cp)/dp.
     """
-    n = np.int64(np.ceil((CA_LEN - code_phase) / dp - 1e-9))
+    n = np.int64(np.ceil((code_len - code_phase) / dp - 1e-9))
     if n < 1:
         n = 1
     return n
@@ -253,7 +252,8 @@ def nco_fixed_point(code_phase, pad, dp, carr_phase, carr_freq, fs):
 
 @njit(cache=True)
 def _correlate_one(ch, buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_ptr,
-                   code_phase, code_rate, carr_phase, carr_freq, fs, tap_fix, sigma_arm, out, t_start, n_samples):
+                   code_phase, code_rate, carr_phase, carr_freq, fs, tap_fix, sigma_arm, out, t_start, n_samples,
+                   code_len):
     """One code period of channel ``ch`` (see :func:`_step_bank`); touches only row ``ch``."""
     n_taps = tap_fix.shape[0]
     t_start[ch] = sample_ptr[ch]
@@ -267,7 +267,7 @@ def _correlate_one(ch, buf, is_complex, buf_start, n_buf, code_ext, pad, active,
             and np.isfinite(carr_phase[ch])):
         n_samples[ch] = -2
         return
-    n = period_samples(code_phase[ch], dp)
+    n = period_samples(code_phase[ch], dp, code_len)
     off = sample_ptr[ch] - buf_start
     if off < 0:
         n_samples[ch] = -1
@@ -290,7 +290,7 @@ def _correlate_one(ch, buf, is_complex, buf_start, n_buf, code_ext, pad, active,
         out[ch, ci] = acc[t] * scale
         out[ch, cq] = acc[n_taps + t] * scale
     # advance the NCOs exactly (float64); -1e-9-sample round-off is clamped to 0
-    code_phase[ch] = max(code_phase[ch] + n * dp - CA_LEN, 0.0)
+    code_phase[ch] = max(code_phase[ch] + n * dp - code_len, 0.0)
     ph = carr_phase[ch] + n * (carr_freq[ch] / fs)
     carr_phase[ch] = ph - np.floor(ph)
     sample_ptr[ch] = sample_ptr[ch] + n
@@ -300,30 +300,19 @@ def _correlate_one(ch, buf, is_complex, buf_start, n_buf, code_ext, pad, active,
 @njit(cache=True)
 def _step_bank(buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_ptr,
                code_phase, code_rate, carr_phase, carr_freq, fs, tap_off, sigma_arm,
-               out, t_start, n_samples):
+               out, t_start, n_samples, code_len):
     """One code period for every active channel (see module docstring)."""
     tap_fix = tap_fixed_point(tap_off)
     for ch in range(code_phase.shape[0]):
         _correlate_one(ch, buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_ptr,
-                       code_phase, code_rate, carr_phase, carr_freq, fs, tap_fix, sigma_arm, out, t_start, n_samples)
-
-
-@njit(cache=True, parallel=True)
-def _step_bank_parallel(buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_ptr,
-                        code_phase, code_rate, carr_phase, carr_freq, fs, tap_off, sigma_arm,
-                        out, t_start, n_samples):
-    """:func:`_step_bank` with the channels spread over numba's threads (identical results: every
-    channel's arithmetic is the same, only rows of its own are written)."""
-    tap_fix = tap_fixed_point(tap_off)
-    for ch in prange(code_phase.shape[0]):
-        _correlate_one(ch, buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_ptr,
-                       code_phase, code_rate, carr_phase, carr_freq, fs, tap_fix, sigma_arm, out, t_start, n_samples)
+                       code_phase, code_rate, carr_phase, carr_freq, fs, tap_fix, sigma_arm, out, t_start, n_samples,
+                       code_len)
 
 
 @njit(cache=True)
 def _run_epochs(buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_ptr,
                 code_phase, code_rate, carr_phase, carr_freq, fs, tap_off, sigma_arm,
-                max_epochs, out, t_start, n_samples):
+                max_epochs, out, t_start, n_samples, code_len):
     """Open-loop: repeat _step_bank until no channel can complete another period."""
     n_ch = code_phase.shape[0]
     row = np.empty((n_ch, out.shape[2]))
@@ -333,7 +322,7 @@ def _run_epochs(buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample
     for e in range(max_epochs):
         _step_bank(buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_ptr,
                    code_phase, code_rate, carr_phase, carr_freq, fs, tap_off, sigma_arm,
-                   row, ts, ns)
+                   row, ts, ns, code_len)
         any_done = False
         for ch in range(n_ch):
             if ns[ch] > 0:
@@ -373,18 +362,19 @@ class CorrelatorBank:
     ``carr_phase`` (cycles), ``carr_freq`` (Hz, IF + Doppler), ``sample_ptr``
     (absolute sample index), ``active`` (bool).
 
-    Kernel tables (read-only for callers): ``code_ext`` (n_ch, 1023 + 2*pad) float32 +-1 code of
+    Kernel tables (read-only for callers): ``code_ext`` (n_ch, code length + 2*pad) float32 +-1 code of
     each channel with ``pad`` chips of wrap-around on both sides, ``tap_offsets_chips`` (code
     offsets of [P, E, L, (VE, VL)]).
     """
 
-    def __init__(self, prns, fs_hz, if_hz, is_complex, spacing_chips=1.0, vel_spacing_chips=None):
+    def __init__(self, prns, fs_hz, if_hz, is_complex, spacing_chips=1.0, vel_spacing_chips=None, signal=GPS_L1CA):
         fs_hz = float(fs_hz)
         if not (math.isfinite(fs_hz) and fs_hz > 0.0):
             raise ConfigError(f"CorrelatorBank: fs_hz must be a positive sampling rate, got {fs_hz!r}")
-        if fs_hz < F_CA:
-            raise ConfigError(f"CorrelatorBank: fs_hz = {fs_hz} Hz is below the C/A chip rate; "
-                              f"need fs_hz >= {F_CA} Hz")
+        chip_rate = float(signal.chip_rate_hz)
+        if fs_hz < chip_rate:
+            raise ConfigError(f"CorrelatorBank: fs_hz = {fs_hz} Hz is below the {signal.name} chip rate; "
+                              f"need fs_hz >= {chip_rate} Hz")
         if_hz = float(if_hz)
         if not math.isfinite(if_hz) or abs(if_hz) >= fs_hz:
             raise ConfigError(f"CorrelatorBank: if_hz must satisfy |if_hz| < fs_hz = {fs_hz}, got {if_hz!r}")
@@ -400,9 +390,10 @@ class CorrelatorBank:
         prns = [int(p) for p in np.atleast_1d(np.asarray(prns))]
         if len(prns) == 0:
             raise ConfigError("CorrelatorBank: need at least one PRN")
+        self.signal = signal
+        self.code_len = float(signal.code_length)       # chips per code period (kernel argument)
         for p in prns:
-            if not 1 <= p <= 32:
-                raise ConfigError(f"CorrelatorBank: PRN must be in 1..32, got {p}")
+            self._check_prn(p, "CorrelatorBank")
         self.fs_hz = fs_hz
         self.if_hz = if_hz
         self.is_complex = bool(is_complex)
@@ -416,10 +407,10 @@ class CorrelatorBank:
         self.pad = int(math.ceil(max(abs(t) for t in taps))) + 2
         n_ch = len(prns)
         self.prns = np.array(prns, dtype=np.int64)
-        self.nco = NcoBank(n_ch, if_hz, F_CA)
+        self.nco = NcoBank(n_ch, if_hz, chip_rate)
         self.sample_ptr = np.zeros(n_ch, dtype=np.int64)
         self.active = np.zeros(n_ch, dtype=np.bool_)
-        self.code_ext = np.zeros((n_ch, CA_LEN + 2 * self.pad), dtype=np.float32)
+        self.code_ext = np.zeros((n_ch, signal.code_length + 2 * self.pad), dtype=np.float32)
         for ch, p in enumerate(prns):
             self._set_code(ch, p)
 
@@ -460,9 +451,14 @@ class CorrelatorBank:
     def n_ch(self):
         return self.prns.shape[0]
 
+    def _check_prn(self, prn, where):
+        if int(prn) not in self.signal.prns:
+            raise ConfigError(f"{where}: PRN must be in {min(self.signal.prns)}..{max(self.signal.prns)}, got {prn}")
+
     def _set_code(self, ch, prn):
-        code = ca_code(prn).astype(np.float32)
-        idx = (np.arange(CA_LEN + 2 * self.pad) - self.pad) % CA_LEN
+        L = self.signal.code_length
+        code = np.asarray(self.signal.code(prn)).astype(np.float32)
+        idx = (np.arange(L + 2 * self.pad) - self.pad) % L
         self.code_ext[ch] = code[idx]
         self.prns[ch] = prn
 
@@ -476,24 +472,24 @@ class CorrelatorBank:
         code-period start (code phase 0) so that every integration spans a full
         period; otherwise the first integration is the remainder of the period.
         """
-        if not 1 <= int(prn) <= 32:
-            raise ConfigError(f"init_channel: PRN must be in 1..32, got {prn}")
+        self._check_prn(prn, "init_channel")
         if not 0 <= ch < self.n_ch:
             raise ConfigError(f"init_channel: channel index {ch} out of range 0..{self.n_ch - 1}")
         if int(prn) != self.prns[ch]:
             self._set_code(ch, int(prn))
-        self.code_phase[ch] = float(code_phase_chips) % CA_LEN
-        self.code_rate[ch] = float(code_rate_from_doppler(doppler_hz))
-        if CA_LEN - self.code_phase[ch] < 1e-9 * self.code_rate[ch] / self.fs_hz:
+        L = self.signal.code_length
+        self.code_phase[ch] = float(code_phase_chips) % L
+        self.code_rate[ch] = float(self.signal.code_rate_cps(float(doppler_hz)))
+        if L - self.code_phase[ch] < 1e-9 * self.code_rate[ch] / self.fs_hz:
             self.code_phase[ch] = 0.0          # within round-off of a period start: it is the start
         self.carr_freq[ch] = self.if_hz + float(doppler_hz)
         self.carr_phase[ch] = float(carr_phase_cycles) % 1.0
         self.sample_ptr[ch] = int(sample_index)
         self.active[ch] = True
         if align and self.code_phase[ch] > 0.0:
-            n = int(period_samples(self.code_phase[ch], self.code_rate[ch] / self.fs_hz))
+            n = int(period_samples(self.code_phase[ch], self.code_rate[ch] / self.fs_hz, self.code_len))
             self.advance_to(ch, int(sample_index) + n)
-            if CA_LEN - self.code_phase[ch] < 1e-9:     # round-off just below the period start
+            if L - self.code_phase[ch] < 1e-9:     # round-off just below the period start
                 self.code_phase[ch] = 0.0
 
     def add_channel(self, prn, code_phase_chips, doppler_hz, sample_index, carr_phase_cycles=0.0, align=True):
@@ -514,7 +510,7 @@ class CorrelatorBank:
     def _grow(self, k):
         n_old = self.n_ch
         self.prns = np.concatenate([self.prns, np.full(k, 1, dtype=np.int64)])
-        self.nco.grow(k, F_CA)
+        self.nco.grow(k, self.signal.chip_rate_hz)
         self.sample_ptr = np.concatenate([self.sample_ptr, np.zeros(k, dtype=np.int64)])
         self.active = np.concatenate([self.active, np.zeros(k, dtype=np.bool_)])
         self.code_ext = np.concatenate(
@@ -526,7 +522,7 @@ class CorrelatorBank:
         """Propagate channel ``ch``'s NCOs (open loop, current rates) to ``sample_index``."""
         dn = int(sample_index) - int(self.sample_ptr[ch])
         dt_chips = dn * self.code_rate[ch] / self.fs_hz
-        self.code_phase[ch] = (self.code_phase[ch] + dt_chips) % CA_LEN
+        self.code_phase[ch] = (self.code_phase[ch] + dt_chips) % self.signal.code_length
         ph = self.carr_phase[ch] + dn * self.carr_freq[ch] / self.fs_hz
         self.carr_phase[ch] = ph - math.floor(ph)
         self.sample_ptr[ch] = int(sample_index)
@@ -577,7 +573,7 @@ class CorrelatorBank:
         n_samples = np.zeros(self.n_ch, dtype=np.int64)
         _step_bank(b, self.is_complex, int(buf_start), n_buf, self.code_ext, self.pad, self.active,
                    self.sample_ptr, self.code_phase, self.code_rate, self.carr_phase, self.carr_freq,
-                   self.fs_hz, self.tap_offsets_chips, sig, out, t_start, n_samples)
+                   self.fs_hz, self.tap_offsets_chips, sig, out, t_start, n_samples, self.code_len)
         return out, t_start, n_samples
 
     def run_epochs(self, buf, buf_start, noise_sigma_arm, max_epochs=None):
@@ -589,12 +585,12 @@ class CorrelatorBank:
         """
         b, n_buf, sig = self._prep(buf, noise_sigma_arm)
         if max_epochs is None:
-            max_epochs = int(n_buf * F_CA * 1.01 / (self.fs_hz * CA_LEN)) + 2
+            max_epochs = int(n_buf * self.signal.chip_rate_hz * 1.01 / (self.fs_hz * self.signal.code_length)) + 2
         out = np.zeros((self.n_ch, max_epochs, self.n_cols))
         t_start = np.zeros((self.n_ch, max_epochs), dtype=np.int64)
         n_samples = np.zeros((self.n_ch, max_epochs), dtype=np.int64)
         n_done = _run_epochs(b, self.is_complex, int(buf_start), n_buf, self.code_ext, self.pad,
                              self.active, self.sample_ptr, self.code_phase, self.code_rate, self.carr_phase,
                              self.carr_freq, self.fs_hz, self.tap_offsets_chips, sig, int(max_epochs),
-                             out, t_start, n_samples)
+                             out, t_start, n_samples, self.code_len)
         return out, t_start, n_samples, n_done

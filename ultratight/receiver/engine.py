@@ -312,7 +312,7 @@ class UltratightEngine:
         pos_e, vel_e, C_el = self.ins.pos_vel_e()
         pred0 = predict_channels(self.ephs, self.prns, self.week, self.tow0, pos_e, vel_e,
                                  self.ins.clk_b, self.ins.clk_d, signal=sgl)
-        self.corr = CorrelatorBank(self.prns, self.fs, self.if_hz, self.src.is_complex)
+        self.corr = CorrelatorBank(self.prns, self.fs, self.if_hz, self.src.is_complex, signal=sgl)
         for ch, prn in enumerate(self.prns):
             self.corr.init_channel(ch, prn, pred0["code_phase_chips"][ch], pred0["doppler_hz"][ch], 0,
                                    carr_phase_cycles=0.0, align=True)
@@ -469,7 +469,7 @@ class UltratightEngine:
         status = epoch_gate(st.k_ep, src, corr, outer, rec)
         if status != CONTINUE:
             return status
-        if not correlate(src, corr):
+        if not correlate(src, corr, sig):
             self._check_status(ERR_CORR, 0)
         init_now = st.init_left > 0
         D = self.wipe.step()

@@ -157,7 +157,7 @@ def epoch_gate(k_ep, src, corr, outer, rec):
 
 
 @njit(cache=True)
-def correlate(src, corr):
+def correlate(src, corr, sig):
     """Correlators of one epoch: the noise sigma of each channel's aligned block, one code period."""
     n_ch = corr.sample_ptr.shape[0]
     for c in range(n_ch):
@@ -166,7 +166,7 @@ def correlate(src, corr):
         corr.sig[c] = src.sigma[corr.sample_ptr[c] // src.block_len]
     _step_bank(src.buf, src.is_complex, src.buf_start, src.n_buf, corr.code_ext, corr.pad, corr.active,
                corr.sample_ptr, corr.code_phase, corr.code_rate, corr.carr_phase, corr.carr_freq, corr.fs,
-               corr.tap_off, corr.sig, corr.out, corr.t_start, corr.n_s)
+               corr.tap_off, corr.sig, corr.out, corr.t_start, corr.n_s, sig.code_len)
     return corr.n_s.min() > 0
 
 
@@ -179,7 +179,7 @@ def epoch_channel(c, k_ep, epoch, src, corr, wipe, bank, outer, window, rec, law
     corr.sig[c] = src.sigma[corr.sample_ptr[c] // src.block_len]
     _correlate_one(c, src.buf, src.is_complex, src.buf_start, src.n_buf, corr.code_ext, corr.pad, corr.active,
                    corr.sample_ptr, corr.code_phase, corr.code_rate, corr.carr_phase, corr.carr_freq, corr.fs,
-                   tap_fix, corr.sig, corr.out, corr.t_start, corr.n_s)
+                   tap_fix, corr.sig, corr.out, corr.t_start, corr.n_s, sig.code_len)
     if corr.n_s[c] <= 0:
         return ERR_CORR
     wipe_one(c, wipe.bits, wipe.t0_ms, wipe.ms, wipe.D, wipe.per_bit)
