@@ -57,6 +57,7 @@ from numba import njit
 from ultratight.constants import F_CA, F_L1, T_CA
 from ultratight.errors import FilterError
 from ultratight.signals.nco import NcoBank
+from ultratight.signals.signal import GPS_L1CA
 
 NX = 5
 ITAU, IPHI, IF, IDA = 1, 2, 3, 4
@@ -144,7 +145,9 @@ class InnerLoop:
 
     Parameters: ``T`` epoch (s), ``if_hz`` the correlator's IF, gains ``k_tau``, ``k_phi``,
     ``k_f`` in [0, 1] (1 = full error-state feedback every epoch), ``k_da`` (1: centre the
-    frequency on the next interval using the acceleration estimate).
+    frequency on the next interval using the acceleration estimate); ``signal`` (a
+    :class:`ultratight.signals.signal.SignalDescription`) gives the code-carrier ratio of the
+    code-rate aiding.
 
     ``apply(bank, nco, aid_doppler_hz=None, use_aid=None)``: ``bank`` is a tracking bank
     (``PrefilterBank``, ``PbKfBank`` or a view of one) with ``x`` (n_ch, 5) (modified in place),
@@ -156,13 +159,13 @@ class InnerLoop:
     given).  Returns dx (n_ch, 5), the state change booked into the bank.
     """
 
-    def __init__(self, n_ch, T=T_CA, if_hz=0.0, k_tau=1.0, k_phi=1.0, k_f=1.0, k_da=1.0):
+    def __init__(self, n_ch, T=T_CA, if_hz=0.0, k_tau=1.0, k_phi=1.0, k_f=1.0, k_da=1.0, signal=GPS_L1CA):
         for name, g in (("k_tau", k_tau), ("k_phi", k_phi), ("k_f", k_f), ("k_da", k_da)):
             if not (0.0 <= g <= 1.0):
                 raise FilterError(f"InnerLoop {name}={g!r}: expected a gain in [0, 1]")
         self.n_ch = int(n_ch)
         self.T = float(T)
-        self.prm = np.array([float(T), float(if_hz), k_tau, k_phi, k_f, k_da, F_CA, F_L1])
+        self.prm = np.array([float(T), float(if_hz), k_tau, k_phi, k_f, k_da, signal.chip_rate_hz, signal.carrier_hz])
         self.aid_prev = np.zeros(self.n_ch)
         self.rate_prev = np.zeros(self.n_ch)
         self.hist = np.zeros(self.n_ch, dtype=np.int64)

@@ -322,7 +322,7 @@ class UltratightEngine:
                                 sgl.codes_per_bit)
         P0 = tightmod.initial_covariance(self.ins.llh, st.get("sigmas", {}), self.imu_noise)
         self.tf = tightmod.TightFilter(P0, core=opt.tight_core, gate_sigma=opt.gate_sigma)
-        self.outer = OuterLoop(self.ephs, self.prns, self.week, self.tow0, self.duration_s + 0.5,
+        self.outer = OuterLoop(self.ephs, self.prns, self.week, self.tow0, self.duration_s + 0.5, signal=sgl,
                                rate_hz=1.0 / self.imu_dt, cic_order=opt.cic_order)
         self.follow = SinsFollower(self.outer, self.ins, t_sins, self.imu_dth[0], self.imu_dv[0],
                                    float(self.imu_t[0] - t_sins), sgl.code_period_s)
@@ -342,7 +342,7 @@ class UltratightEngine:
         M_pos = tightmod.pos_error_to_enu(lat, h, rm, rn)
         sig_code_chips = tightmod.code_sigma_m(self.tf.P, los_l, M_pos) / sgl.chip_m
         self.pref = make_tracking_bank(self.spec, n_ch, opt, (sig_code_chips, es.sig_dopp), sgl)
-        self.inner = InnerLoop(n_ch, T=sgl.code_period_s, if_hz=self.if_hz)
+        self.inner = InnerLoop(n_ch, T=sgl.code_period_s, if_hz=self.if_hz, signal=sgl)
         # NCO Doppler at the middle of each channel's first interval, aiding history consistent
         t1 = self.corr.sample_ptr / self.fs + 0.5 * sgl.code_period_s
         a1 = self.outer.aiding_at(t1)

@@ -28,8 +28,11 @@ import math
 import numpy as np
 from numba import njit
 
-from ultratight.constants import C, CA_LEN, F_CA, F_L1, LAMBDA_L1, OMEGA_E
+from ultratight.constants import C, OMEGA_E
 from ultratight.errors import ConfigError
+from ultratight.fusion import rateconv
+from ultratight.signals.ephemeris import sat_state
+from ultratight.signals.signal import GPS_L1CA
 
 SAT_GRID_S = 0.5          # ephemeris tabulation step, s
 LT_ITER = 2               # light-time iterations per call (warm-started)
@@ -40,7 +43,6 @@ class SatTable:
     """Tabulated satellite states of several PRNs for fast multi-channel evaluation."""
 
     def __init__(self, ephs, prns, tow_start_s, tow_end_s, step_s=SAT_GRID_S):
-        from ultratight.signals.ephemeris import sat_state
         self.prns = list(prns)
         self.t0 = float(tow_start_s) - 2.0 * step_s - 0.2
         n = int(np.ceil((float(tow_end_s) + 0.2 + 2.0 * step_s - self.t0) / step_s)) + 2
@@ -118,8 +120,9 @@ def _herm(tab_p, tab_v, i, k, s, h, out_p, out_v):
 
 @njit(cache=True)
 def _solve_all(t0, h, n, pos, vel, clk, clkd, rx, rv, t_rx, bias, drift, iters, tau,
-               out_pr, out_prdot, out_cp, out_ttx, out_los):
-    """Light-time solution for every row of the table (same equations as geometry.light_time)."""
+               out_pr, out_prdot, out_cp, out_ttx, out_los, chip_rate, code_len):
+    """Light-time solution for every row of the table (same equations as geometry.light_time);
+    code phases for a code of ``code_len`` chips at ``chip_rate`` chips/s."""
     nch = pos.shape[0]
     p = np.empty(3)
     v = np.empty(3)
@@ -180,7 +183,7 @@ def _solve_all(t0, h, n, pos, vel, clk, clkd, rx, rv, t_rx, bias, drift, iters, 
         out_prdot[i] = rng_dot + drift - C * ckd * (1.0 - tau_dot)
         t_sv = t_tx + ck
         out_ttx[i] = t_sv
-        cpv = (t_sv * F_CA) % CA_LEN
+        cpv = (t_sv * chip_rate) % code_len
         out_cp[i] = cpv
         out_los[i, 0] = l0
         out_los[i, 1] = l1
@@ -190,8 +193,9 @@ def _solve_all(t0, h, n, pos, vel, clk, clkd, rx, rv, t_rx, bias, drift, iters, 
 class MultiLightTime:
     """All-channel light-time solution (same equations as ``geometry.light_time``, numba)."""
 
-    def __init__(self, table):
+    def __init__(self, table, signal=GPS_L1CA):
         self.table = table
+        self.signal = signal
         self.tau = np.full(len(table.prns), NOMINAL_TAU_S)
         n = len(table.prns)
         self._pr = np.empty(n)
@@ -206,11 +210,12 @@ class MultiLightTime:
                    np.ascontiguousarray(rx_pos_e, dtype=np.float64),
                    np.ascontiguousarray(rx_vel_e, dtype=np.float64), float(t_rx_true_tow),
                    float(clk_bias_m), float(clk_drift_mps), int(iters), self.tau,
-                   self._pr, self._prd, self._cp, self._ttx, self._los)
-        doppler = -self._prd / LAMBDA_L1
+                   self._pr, self._prd, self._cp, self._ttx, self._los, float(self.signal.chip_rate_hz),
+                   float(self.signal.code_length))
+        doppler = -self._prd / self.signal.wavelength_m
         return {
             "pseudorange_m": self._pr.copy(), "range_rate_mps": self._prd.copy(), "doppler_hz": doppler,
-            "code_phase_chips": self._cp.copy(), "code_rate_cps": F_CA * (1.0 + doppler / F_L1),
+            "code_phase_chips": self._cp.copy(), "code_rate_cps": self.signal.code_rate_cps(doppler),
             "t_tx_tow": self._ttx.copy(), "los_e": self._los.copy(),
         }
 
@@ -241,11 +246,12 @@ class MultiLightTime:
         pr = rng + clk_bias_m - C * clk
         pr_dot = rng_dot + clk_drift_mps - C * clk_dot * (1.0 - tau_dot)
         t_sv = t_tx + clk
-        doppler = -pr_dot / LAMBDA_L1
+        sgl = self.signal
+        doppler = -pr_dot / sgl.wavelength_m
         return {
             "pseudorange_m": pr, "range_rate_mps": pr_dot, "doppler_hz": doppler,
-            "code_phase_chips": np.mod(t_sv * F_CA, float(CA_LEN)),
-            "code_rate_cps": F_CA * (1.0 + doppler / F_L1),
+            "code_phase_chips": np.mod(t_sv * sgl.chip_rate_hz, float(sgl.code_length)),
+            "code_rate_cps": sgl.code_rate_cps(doppler),
             "t_tx_tow": t_sv, "los_e": los, "sat_pos_e": pos_r, "sat_vel_e": vel_r, "range_m": rng,
         }
 
@@ -259,7 +265,9 @@ class OuterLoop:
     """
 
     def __init__(self, ephs, prns, week, tow0_s, duration_s, rate_hz=100.0, out_rate_hz=1000.0,
-                 interp_factory=None, cic_order=3):
+                 interp_factory=None, cic_order=3, signal=GPS_L1CA):
+        self.signal = signal
+        self._chip_rate = float(signal.chip_rate_hz)
         self.prns = list(prns)
         self.week = week
         self.tow0 = float(tow0_s)
@@ -271,7 +279,7 @@ class OuterLoop:
                               f"the SINS rate {rate_hz} Hz")
         self.ratio = int(round(ratio))
         self.table = SatTable(ephs, self.prns, self.tow0 - 1.0, self.tow0 + duration_s + 1.0)
-        self.lt = MultiLightTime(self.table)
+        self.lt = MultiLightTime(self.table, signal)
         n_ch = len(self.prns)
         if interp_factory is None:
             interp_factory = make_cic
@@ -311,7 +319,7 @@ class OuterLoop:
             + j * lead ** 3 / 6.0
         v = np.asarray(vel_e) + np.asarray(acc_e) * lead + 0.5 * j * lead * lead
         pr = self.predict(t_s + lead, p, v, clk_bias_m + clk_drift_mps * lead, clk_drift_mps)
-        x = np.stack([pr["doppler_hz"] - self.offset_hz, pr["code_rate_cps"] - F_CA], axis=0)   # (2, n_ch)
+        x = np.stack([pr["doppler_hz"] - self.offset_hz, pr["code_rate_cps"] - self._chip_rate], axis=0)   # (2, n_ch)
         y = self.interp.push(x)                                              # (2, n_ch, ratio)
         j_start = int(round((t_s + 1.0 / self.rate_hz) * self.out_rate_hz))
         if self.j0 is None:
@@ -320,7 +328,7 @@ class OuterLoop:
         k = j_end - j_start
         if k > 0 and j_start >= 0:
             self.aid_doppler[j_start:j_end] = y[0, :, :k].T
-            self.aid_code_rate[j_start:j_end] = y[1, :, :k].T + F_CA
+            self.aid_code_rate[j_start:j_end] = y[1, :, :k].T + self._chip_rate
             self.n_filled = j_end
         return pr
 
@@ -330,14 +338,14 @@ class OuterLoop:
         if hasattr(self.interp, "prime"):
             lead = self.delay_s + 1.0 / self.rate_hz
             p0 = self.predict(t_s + lead - n_hist / self.rate_hz, pos_e, vel_e, clk_bias_m, clk_drift_mps)
-            self.interp.prime(np.stack([p0["doppler_hz"] - self.offset_hz, p0["code_rate_cps"] - F_CA], axis=0))
+            self.interp.prime(np.stack([p0["doppler_hz"] - self.offset_hz, p0["code_rate_cps"] - self._chip_rate], axis=0))
         pos_e, vel_e, acc_e = (np.asarray(v, dtype=float) for v in (pos_e, vel_e, acc_e))
         for k in range(n_hist, 0, -1):
             tau = self.delay_s + 1.0 / self.rate_hz - k / self.rate_hz
             p = pos_e + vel_e * tau + 0.5 * acc_e * tau * tau
             v = vel_e + acc_e * tau
             pr = self.predict(t_s + tau, p, v, clk_bias_m + clk_drift_mps * tau, clk_drift_mps)
-            self.interp.push(np.stack([pr["doppler_hz"] - self.offset_hz, pr["code_rate_cps"] - F_CA], axis=0))
+            self.interp.push(np.stack([pr["doppler_hz"] - self.offset_hz, pr["code_rate_cps"] - self._chip_rate], axis=0))
 
 
 class PredictionRing:
@@ -452,7 +460,6 @@ class _CicAdapter:
         return super().__new__(cls)
 
     def __init__(self, n_ch, ratio, order, in_rate_hz):
-        from ultratight.fusion import rateconv
         self.ratio = ratio
         self.n_ch = n_ch
         self._cic = rateconv.CicInterpolator(ratio, N=order, M=1, f_lo_hz=in_rate_hz, shape=(2 * n_ch,))

@@ -21,6 +21,10 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from ultratight.constants import C
+from ultratight.ins.attitude import quat_mult, quat_normalize, rotvec_to_quat
+from ultratight.ins.earth import radii
+from ultratight.signals.geometry import light_time
+from ultratight.signals.lnav import nav_bits
 from ultratight.signals.signal import GPS_L1CA
 
 WIPEOFF_ASSISTED = "assisted-bits"
@@ -51,8 +55,6 @@ def perturb_state(truth0, errors, rng):
     Returns a dict with the same keys plus ``err_pos_l``, ``err_vel_l``, ``err_att``,
     ``err_clk`` (the drawn errors, estimate minus truth) and ``sigmas``.
     """
-    from ultratight.ins.attitude import quat_mult, quat_normalize, rotvec_to_quat
-    from ultratight.ins.earth import radii
     d_pos_l = rng.normal(0.0, errors.pos_m, 3)
     d_vel_l = rng.normal(0.0, errors.vel_mps, 3)
     d_att = rng.normal(0.0, np.deg2rad(errors.att_deg), 3)
@@ -82,7 +84,6 @@ def predict_channels(ephs, prns, week, tow_rx_s, pos_e, vel_e, clk_bias_m, clk_d
     true reception time used in the light-time solution is ``tow_rx_s - clk_bias_m / c``.
     Returns dict of (n_ch,) arrays: code_phase_chips, doppler_hz, t_tx_tow, code_rate_cps.
     """
-    from ultratight.signals.geometry import light_time
     t_true = float(tow_rx_s) - float(clk_bias_m) / C
     n = len(prns)
     cp = np.empty(n)
@@ -114,7 +115,6 @@ class BitWipeoff:
         self.t0_ms = np.full(len(prns), int(round(t0 * 1000.0)), dtype=np.int64)
         self.bits = np.ones((len(prns), n_bits), dtype=np.int8)
         try:
-            from ultratight.signals.lnav import nav_bits
             for i, prn in enumerate(prns):
                 self.bits[i] = np.asarray(nav_bits(ephs[prn], week, t0, n_bits), dtype=np.int8)
         except Exception as exc:  # noqa: BLE001 - recorded, tracking then runs without wipe-off
