@@ -1,0 +1,32 @@
+"""Jobs in worker processes (receiver.workers): same results, in order, as in this process; a
+failing job's error reaches the caller; the worker count follows the free cores."""
+
+import math
+
+import pytest
+
+from ultratight.errors import ConfigError
+from ultratight.receiver import workers
+
+
+def test_jobs_in_processes_equal_jobs_here():
+    jobs = [(n,) for n in (5, 10, 3, 20)]
+    seen = []
+    here = workers.run_jobs(math.factorial, jobs, workers=1)
+    there = workers.run_jobs(math.factorial, jobs, workers=2, on_done=lambda i, r: seen.append(i))
+    assert there == here == [120, 3628800, 6, 2432902008176640000]
+    assert sorted(seen) == [0, 1, 2, 3]
+
+
+def test_a_failing_job_raises_in_the_caller():
+    with pytest.raises(ValueError):
+        workers.run_jobs(math.sqrt, [(4.0,), (-1.0,), (9.0,)], workers=2)
+
+
+def test_worker_count():
+    assert workers.default_workers(1) == 1
+    assert 1 <= workers.default_workers(8) <= max(1, round(workers.free_cores()))
+    assert workers.check_workers(None) is None and workers.check_workers(3) == 3
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ConfigError, match="--workers"):
+            workers.check_workers(bad)

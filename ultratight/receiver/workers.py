@@ -1,0 +1,79 @@
+"""Independent jobs of one command (the methods of a scenario run, the runs of ``--runs N``) in
+separate processes when more than one core is free.
+
+Each job runs in a worker process started with ``spawn`` (no state shared with the parent: numba's
+thread pool, open files and signal handlers start fresh), one numba thread per worker, so two
+workers use two cores without competing for them. The results come back in the order of the jobs;
+the first failure cancels the jobs not yet started and is raised in the parent.
+"""
+
+import math
+import multiprocessing
+import os
+from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+
+from ultratight.errors import ConfigError
+
+
+def free_cores():
+    """Cores not busy by the 1-minute load average (at least 0), of ``os.cpu_count()``."""
+    n = os.cpu_count() or 1
+    try:
+        load = os.getloadavg()[0]
+    except OSError:
+        load = 0.0
+    return max(0.0, n - load)
+
+
+def default_workers(n_jobs):
+    """Worker processes for ``n_jobs`` jobs: one per free core (rounded), at most one per job, and
+    1 (run in this process) when fewer than two cores are free."""
+    k = int(math.floor(free_cores() + 0.5))
+    return max(1, min(int(n_jobs), k))
+
+
+def check_workers(workers):
+    """``workers`` from the command line: None (automatic) or an integer >= 1."""
+    if workers is None:
+        return None
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ConfigError(f"--workers must be an integer >= 1, got {workers!r}")
+    return workers
+
+
+def _init_worker():
+    os.environ["NUMBA_NUM_THREADS"] = "1"
+
+
+def run_jobs(fn, jobs, workers=None, on_done=None):
+    """``[fn(*job) for job in jobs]``, in worker processes when ``workers`` (default
+    :func:`default_workers`) is above 1. ``fn`` must be a module-level function and its arguments
+    and result picklable. ``on_done(i, result)`` is called in the parent as each job finishes."""
+    jobs = list(jobs)
+    workers = default_workers(len(jobs)) if workers is None else min(int(workers), max(1, len(jobs)))
+    if workers <= 1 or len(jobs) <= 1:
+        out = []
+        for i, job in enumerate(jobs):
+            out.append(fn(*job))
+            if on_done is not None:
+                on_done(i, out[-1])
+        return out
+    results = [None] * len(jobs)
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker) as pool:
+        futs = {pool.submit(fn, *job): i for i, job in enumerate(jobs)}
+        pending = set(futs)
+        try:
+            while pending:
+                done, pending = wait(pending, return_when=FIRST_EXCEPTION)
+                for f in done:
+                    i = futs[f]
+                    results[i] = f.result()          # raises the job's exception
+                    if on_done is not None:
+                        on_done(i, results[i])
+        except BaseException:
+            for f in pending:
+                f.cancel()
+            pool.shutdown(wait=True, cancel_futures=True)
+            raise
+    return results
