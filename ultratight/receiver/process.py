@@ -741,10 +741,10 @@ class ScalarReceiver:
     def _track_block(self, s):
         """Track every active channel through the block starting at sample ``s``; False at the end."""
         n_read = min(self.block_len + self.margin, self.stop - s)
-        buf, sigma_arm = self.stream.read_at(s, n_read, SIGMA_SAMPLES)
-        if buf.shape[0] < self.margin:
+        recs = self.tracker.track_at(self.stream, s, n_read, SIGMA_SAMPLES, self.margin, self.stop)
+        if recs is None:
             return False
-        rf, ri, nr = self.tracker.run(buf, s, sigma_arm, stop_sample=self.stop)
+        rf, ri, nr = recs
         self.n_blocks_done += 1
         if self.n_blocks_done % RELEASE_EVERY == 0:
             self.stream.release(s - self.margin)          # keeps the resident set flat on long files

@@ -907,3 +907,32 @@ class ScalarTracker:
         return st.rec_f[:, :m].copy(), st.rec_i[:, :m].copy(), st.n_rec.copy()
 
     step = run
+
+    def track_at(self, stream, start, count, head, min_samples, stop_sample):
+        """Track through ``count`` samples of ``stream`` (:class:`ultratight.receiver.blockstream.BlockStream`)
+        read at ``start``, normalised by the noise estimate of their first ``head`` samples (the
+        scalar receiver: channels stop, re-acquire and restart anywhere). Returns the records as
+        :meth:`run`, or None when fewer than ``min_samples`` samples are left."""
+        buf, sigma_arm = stream.read_at(start, count, head)
+        if buf.shape[0] < min_samples:
+            return None
+        return self.run(buf, start, sigma_arm, stop_sample=stop_sample)
+
+    def track_aligned(self, stream, n_total):
+        """Track through the aligned blocks ``[k L, (k + 1) L)`` of ``stream`` up to sample ``n_total``,
+        each normalised by its own noise estimate; yields the records of every block (as :meth:`run`).
+        The samples a channel still needs before a block stay in the stream's buffer."""
+        blk = stream.block_len
+        start = 0
+        while start < n_total:
+            lo = self.next_needed_sample()
+            if lo is None:
+                return
+            lo = min(lo, start)
+            stream.ensure(start + blk, keep_from=lo)
+            buf, lo = stream.view(lo)
+            if buf.shape[0] == 0:
+                return
+            sig = float(stream.sigma_at(start))
+            yield self.run(buf, lo, sig, stop_sample=min(start + blk, n_total))
+            start += blk
