@@ -32,7 +32,10 @@ import numpy as np
 from ultratight.errors import ConfigError
 from ultratight.fusion import integration as I
 from ultratight.ins import error_model as em
+from ultratight.ins.earth import radii
+from ultratight.ins.trajectory import build_trajectory
 from ultratight.receiver.experiments import _sins_gnss as C
+from ultratight.receiver.experiments.paper_static_iakf import ephemerides
 from ultratight.signals.obssim import GrossErrors, fix_noise_scale, gnss_fixes, simulate_observables
 
 DEFAULT_METHODS = ("kf", "chi2-newton", "chi2-newton-lit", "ins-only")
@@ -130,7 +133,6 @@ def _gross(cfg, factor=None):
 
 def simulate(cfg, seed):
     """Truth, IMU, clean fix noise (σ units) and initial errors of one seed."""
-    from ultratight.ins.trajectory import build_trajectory
     rng = np.random.default_rng(seed)
     dur = float(cfg["duration_s"])
     tr = cfg["trajectory"]
@@ -150,7 +152,6 @@ def simulate(cfg, seed):
     if g["mode"] == "truth":
         data["unit_noise"] = rng.standard_normal((t_gnss.size, 6))      # in σ units; gross errors applied per run
     else:
-        from ultratight.receiver.experiments.paper_static_iakf import ephemerides
         data["obs_rng_state"] = rng.bit_generator.state
         data["ephs"] = ephemerides({"satellites": {"source": "nominal"}, "time": cfg["time"]})
         data["pos_e"], data["vel_e"] = k["pos_e"], k["vel_e"]
@@ -187,7 +188,6 @@ def fixes(cfg, data, factor):
 def noise_model(cfg, llh0):
     """(q_psd, R (6x6, metres N/E/U and m/s), P0) of the filters: R from the GNSS σ, Q from the IMU
     specs, P0 from the initial-error σ (SPEC §7 choices)."""
-    from ultratight.ins.earth import radii
     im, g, ie = cfg["imu"], cfg["gnss"], cfg["initial_errors"]
     q = I.imu_psd(math.radians(im["gyro_arw_dprh"]) / 60.0, im["accel_vrw_g_rhz"] * C.G0, n_states=em.N15)
     rm, rn = radii(float(llh0[0]))
