@@ -1,4 +1,8 @@
-"""GPS L1 C/A acquisition: FFT parallel code-phase search over Doppler bins.
+"""Acquisition: FFT parallel code-phase search over Doppler bins.
+
+The signal is a :class:`ultratight.signals.signal.SignalDescription` (default GPS L1 C/A): its PRNs,
+code generator, chip rate ``f_chip``, code length ``L`` and carrier ``f_carrier`` (below for C/A:
+``f_chip`` = 1.023 MHz, ``L`` = 1023, ``f_carrier`` = L1).
 
 Search
 ------
@@ -6,7 +10,7 @@ The input (complex baseband, or real IF mixed down to complex baseband with
 ``exp(-j*2*pi*if_hz*t)``) is cut into ``K = noncoherent`` consecutive blocks of
 ``N = round(fs * coherent_ms * 1e-3)`` samples.  For a Doppler bin ``f`` the
 block is wiped with ``exp(-j*2*pi*f*n/fs)`` and circularly correlated with the
-sampled local code ``c_rep[n] = code(floor(n * F_CA / fs) mod 1023)`` (repeated
+sampled local code ``c_rep[n] = code(floor(n * f_chip / fs) mod L)`` (repeated
 ``coherent_ms`` times) by ``IFFT(FFT(x) * conj(FFT(c_rep)))``, all code phases
 at once.  The Doppler grid is ``f_j = j * step`` (anchored at 0 Hz) with
 ``step = (p/q) * fs/N`` (default ``p/q = 2/3``, i.e. ~2/(3T)); a shift by a
@@ -17,7 +21,7 @@ Code FFTs are cached per ``(fs, N)``.
 
 The detection statistic is the non-coherent sum ``S(f, m) = sum_k |Y_k(f, m)|^2``
 where block ``k``'s correlation is circularly shifted by ``round(k*drift)``, the
-predicted lag drift per block ``drift = (P - N) - N*f/F_L1`` samples (the
+predicted lag drift per block ``drift = (P - N) - N*f/f_carrier`` samples (the
 non-integer code period ``P = fs*coherent_ms*1e-3`` samples versus the block
 length ``N``, plus the code Doppler), so the peak stays in
 one cell over long searches and for sample rates that are not multiples of
@@ -112,7 +116,7 @@ class AcqResult:
     """One PRN's acquisition result (see module docstring for the definitions)."""
     prn: int
     doppler_hz: float          # refined Doppler (coarse when not detected)
-    code_phase_chips: float    # signal code phase at sample_index, [0, 1023)
+    code_phase_chips: float    # signal code phase at sample_index, [0, code length)
     cn0_dbhz: float            # NaN when not detected
     metric: float              # peak / noise floor
     detected: bool

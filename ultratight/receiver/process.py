@@ -1,17 +1,32 @@
-"""The scalar receiver pipeline: IF blocks -> acquisition -> tracking channels -> LNAV -> observables -> PVT.
+"""The scalar receiver: a pipeline of stages from IF samples to position fixes.
 
-:func:`process` runs on an opened :class:`ultratight.signals.iffile.IfSource` (or a path) and
-returns a :class:`ProcessResult`; it is what ``ultratight process`` runs (``record_epochs=True``
-keeps the per-channel, per-epoch Doppler / code phase estimates with their sample indices in
-memory: ``result.epochs[prn]``). The scenario runner's ``scalar`` method runs the same tracking
-channels from hot-start predictions instead of acquisition
-(:func:`ultratight.receiver.scenario_runner.run_scalar`).
+:class:`ScalarReceiver` is built from stages with array interfaces, each usable alone:
 
-Streaming: the file is read through :class:`ultratight.receiver.blockstream.BlockStream` in
-blocks of ``block_ms`` (default 200 ms) where the channels need samples, tracking runs in one
-numba call per block (:mod:`ultratight.receiver.tracking`), per-epoch series are appended to the
-HDF5 output as they come (nothing per-epoch is kept in memory unless ``record_epochs``), so the
-memory use does not depend on the file length.
+1. acquisition / assistance (:func:`acquire_signals`: :func:`ultratight.receiver.acquisition.acquire`
+   in two stages, or assistance records) and channel allocation (:func:`allocate_channels`);
+2. the IF block stream (:class:`ultratight.receiver.blockstream.BlockStream`, with the per-arm
+   noise estimate);
+3. the scalar tracking bank (:class:`ultratight.receiver.tracking.ScalarTracker`: FLL-assisted PLL,
+   DLL, C/N0, lock and bit-sync in one numba kernel per block);
+4. bit synchronisation + navigation decoding (:class:`NavBitStage`, the decoder the signal
+   description names: :func:`ultratight.receiver.navdecode.channel_nav`);
+5. observables (:class:`ObservableStage`) and 6. PVT (:class:`PvtStage`);
+7. outputs (:class:`Recorder`: HDF5 stream, RINEX observations, in-memory epoch series).
+
+Every stage takes a :class:`ultratight.signals.signal.SignalDescription` (default GPS L1 C/A)
+instead of signal constants. :func:`process` builds and runs a :class:`ScalarReceiver` on an opened
+:class:`ultratight.signals.iffile.IfSource` (or a path) and returns a :class:`ProcessResult`; it is
+what ``ultratight process`` runs (``record_epochs=True`` keeps the per-channel, per-epoch Doppler /
+code phase estimates with their sample indices in memory: ``result.epochs[prn]``). The scenario's
+``scalar`` method does not call :func:`process`: :func:`ultratight.receiver.scenario_runner.run_scalar`
+runs the same tracking bank over the same block stream from hot-start predictions (no acquisition,
+navigation decoding or PVT).
+
+Streaming: the file is read through the block stream in blocks of ``block_ms`` (default 200 ms)
+where the channels need samples (they stop, re-acquire and restart anywhere), tracking runs in one
+numba call per block, per-epoch series are appended to the HDF5 output as they come (nothing
+per-epoch is kept in memory unless ``record_epochs``), so the memory use does not depend on the
+file length.
 
 Receiver time: ``t_rx(s) = t0 + s/fs`` (receiver clock).  ``t0`` is set when the first channel
 knows its transmit time (``t0 = t_tx + 75 ms``) and is steered by the clock-bias estimate at the

@@ -1,7 +1,12 @@
 """Scalar tracking: FLL-assisted Costas PLL, carrier-aided DLL, C/N0, lock indicators, bit sync.
 
+The signal is a :class:`ultratight.signals.signal.SignalDescription` (default GPS L1 C/A): its
+code (length ``L`` chips at ``f_chip``), carrier ``f_carrier`` and code periods per data bit reach
+the kernel as parameters (``prm[P_CODE_LEN]``, ``prm[P_CHIP_RATE]``, ``prm[P_CARRIER]``, the width
+of the bit-sync histogram); an epoch is one code period (1 ms for C/A).
+
 All per-epoch work runs in one numba call per IF block (:func:`_track_block`): for every
-active channel it integrates C/A periods with the correlator kernel of
+active channel it integrates code periods with the correlator kernel of
 :mod:`ultratight.receiver.correlator` (E/P/L, normalised per
 :mod:`ultratight.signals.corr_model`: unit noise per arm, prompt amplitude
 ``A = sqrt(2 C/N0 T)``), runs the discriminators and loop filters, updates the NCOs,
@@ -20,7 +25,7 @@ trapezoidal integrators; ``w0`` natural frequency in rad/s, phase in cycles, fre
   ``f = x + b3 w0p e_p``;  ``w0p = Bn/0.7845``, ``w0f = Bn_f/0.53``, a2 = sqrt 2, a3 = 1.1, b3 = 2.4.
 * DLL: normalised early-minus-late envelope ``dtau = (1 - D/2)(|E| - |L|)/(|E| + |L|)`` (chips,
   input minus replica; exact inside the linear range for a triangle correlation), carrier aided:
-  ``code_rate = F_CA (1 + f/F_L1) + u`` with ``u = 4 Bn dtau`` (order 1) or
+  ``code_rate = f_chip (1 + f/f_carrier) + u`` with ``u = 4 Bn dtau`` (order 1) or
   ``z += T w0^2 dtau``; ``u = z + a2 w0 dtau`` (order 2).
 * Pull-in mode (after (re)acquisition): wide PLL + FLL assist, 1 ms. Track mode (after the
   phase-lock indicator has held for ``lock_s``): track bandwidths, and after bit sync the
@@ -34,11 +39,17 @@ trapezoidal integrators; ``w0`` natural frequency in rad/s, phase in cycles, fre
   constant ``pli_tau_s``.
 * Loss of lock: C/N0 estimate below ``cn0_lost_dbhz`` for ``lost_s`` -> channel mode LOST and
   deactivated (the pipeline re-acquires it).
-* Bit sync: sign changes of 1 ms I_P counted in 20 bins (epoch mod 20); declared when the largest
+* Bit sync: sign changes of the per-period I_P counted in one bin per code period of a bit (20 for
+  C/A: epoch mod 20); declared when the largest
   bin leads the second by ``bs_margin`` and stands 6 sigma above the mean of the others (Poisson
   noise transitions; works before phase lock too: a
   residual beat adds transitions to every bin alike).  Coherent integration then grows to
   ``coh_ms`` in both modes (the FLL then sees the higher SNR of the longer sums).
+
+The per-epoch logic (:func:`_epoch_update`) is split into small numba functions (C/N0, mode,
+bit sync, coherent sums, PLI, bandwidths, loop filters) compiled into the block kernel; the
+per-sample correlation loops (:func:`_integrate_pel`, ``correlator.integrate_channel``) are the
+hot path and stay single functions.
 """
 
 import math
