@@ -105,10 +105,15 @@ def test_tracking_takes_the_description(stub_signal):
     # ratio would leave 1234 Hz x (2.046e6/1561.098e6 - 1.023e6/1575.42e6) = 0.82 chip/s to the DLL
     aided = CHIP_RATE * (1.0 + rf[late, R_DOPP] / CARRIER)
     assert abs(np.mean(rf[late, R_CODE_RATE] - aided)) < 0.2
-    # bank vocabulary: reset restarts the loops in pull-in from the given Doppler
+    # bank vocabulary: correct moves the NCO and loop frequency, reset restarts the loops in pull-in
+    f0, d0 = tr.nco.carr_freq[0], tr.state.sf[0, P_DOPP]
+    tr.correct([[2.5, 0.0]])
+    assert tr.nco.carr_freq[0] == f0 + 2.5 and tr.state.sf[0, P_DOPP] == d0 + 2.5
     tr.reset([0], x0=[1200.0])
     assert tr.state.sf[0, P_DOPP] == 1200.0 and tr.state.mode(0) == MODE_PULL
-    assert STATE_NAMES[P_DOPP] == "doppler_hz"
+    assert tr.STATE_NAMES[tr.P_DOPP] == STATE_NAMES[P_DOPP] == "doppler_hz"
+    with pytest.raises(ConfigError, match="channel index"):
+        tr.reset([1])
 
 
 def test_channel_allocation_alone():

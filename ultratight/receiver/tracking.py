@@ -874,13 +874,33 @@ class ScalarTracker:
         return {**asdict(self.config), "signal": self.signal.name, "channels": self.n_ch,
                 "fs_hz": self.fs_hz, "if_hz": self.if_hz}
 
+    STATE_NAMES = STATE_NAMES
+    P_DOPP, P_PLL_X, P_PLL_Y, P_DLL_Z = P_DOPP, P_PLL_X, P_PLL_Y, P_DLL_Z
+
+    def _channels(self, channels):
+        ch = np.atleast_1d(np.asarray(channels, dtype=np.int64))
+        if ch.size and (ch.min() < 0 or ch.max() >= self.n_ch):
+            raise ConfigError(f"scalar tracking: channel index out of range 0..{self.n_ch - 1}: {ch}")
+        return ch
+
     def reset(self, channels, x0=None, P0=None):
         """Restart ``channels`` in pull-in mode from their current NCO Doppler, or from ``x0``
         (per channel: Doppler in Hz); ``P0`` is accepted for the bank protocol (the scalar loops
         carry no covariance)."""
-        for k, ch in enumerate(np.atleast_1d(channels)):
+        for k, ch in enumerate(self._channels(channels)):
             d = float(self.nco.carr_freq[ch] - self.if_hz) if x0 is None else float(np.atleast_1d(x0)[k])
             self.state.reset_channel(int(ch), d)
+
+    def correct(self, dx):
+        """Apply external corrections ``dx`` (n_ch, 2): [Doppler (Hz), code phase (chips)] per channel
+        to the NCOs and the carrier loop's frequency states (an aided scalar loop)."""
+        dx = np.asarray(dx, dtype=float).reshape(self.n_ch, 2)
+        if not np.all(np.isfinite(dx)):
+            raise ConfigError("scalar tracking: corrections must be finite")
+        self.nco.carr_freq += dx[:, 0]
+        self.state.sf[:, F_DOPP] += dx[:, 0]
+        self.state.sf[:, F_PLL_X] += dx[:, 0]
+        self.nco.code_phase += dx[:, 1]
 
     def start_channel(self, ch, prn, code_phase_chips, doppler_hz, sample_index, cn0_dbhz=None):
         """Start (or restart) channel ``ch`` from an acquisition result valid at ``sample_index``."""
