@@ -119,6 +119,85 @@ def test_regression_fixture_is_not_trivial(current):
     assert sum(k.startswith("st/prn") for k in current) == 15 and current["st/fix_pos_e"].shape[0] >= 10
 
 
+# ------------------------------------------------------------------ process on real recordings
+# ``process`` on the real IF recordings of ../shared/data/real-if (README there), with the flags of
+# tests/test_process_cli.py (12 channels, receiver defaults): acquisitions (PRN, detection, Doppler,
+# code phase, sample index, peak C/N0), per-channel tracking summaries and per-epoch Doppler / code
+# phase / sample index / mode, compared with tests/data/regression_real_v1.npz (computed by the
+# receiver before its stages were separated). The recordings last 0.5 s at most: too short to decode
+# a time of week, so they give no fixes (the fix count, 0, is stored and compared too).
+# Regenerate only for an intended change of behaviour: python tests/test_regression_fixture.py --write-real
+FIXTURE_REAL = Path(__file__).parent / "data" / "regression_real_v1.npz"
+REAL_FILES = {
+    # key: (path under real-if, open_if flags, seconds processed)
+    "pocket_iq": ("pocketsdr/L1_20211202_084700_4MHz_IQ.bin", dict(fmt="ci8", fs_hz=4e6, iq_conj=True), 0.5),
+    "pocket_real": ("pocketsdr/L1_20211201_054600_24MHz_I.bin", dict(fmt="i8", fs_hz=24e6, if_hz=6e6), 0.1),
+    "cttc": ("gnss-sdr/GSoC_CTTC_capture_2012_07_26_4Msps_4ms.dat", dict(fmt="cf32", fs_hz=4e6), None),
+    "synthetic_prn1": ("gnss-sdr/GPS_L1_CA_ID_1_Fs_4Msps_2ms.dat", dict(fmt="cf32", fs_hz=4e6), None),
+}
+STRIDE_REAL = 5
+
+
+def _real_one(path, flags, duration_s):
+    from ultratight.receiver.process import ProcessConfig, process
+    from ultratight.signals.iffile import open_if
+    with open_if(path, **flags) as src:
+        res = process(src, ProcessConfig(n_channels=12, duration_s=duration_s, record_epochs=True))
+    vals = {"acq": np.array([[a.prn, float(a.detected), a.doppler_hz, a.code_phase_chips, a.sample_index,
+                              a.peak_cn0_dbhz] for a in sorted(res.acquisition, key=lambda a: a.prn)], float),
+            "channels": np.array([[c["prn"], c["epochs"], c["locked_epochs"], c["losses"], float(c["tracked"])]
+                                  for c in res.channels], float),
+            "n_fixes": np.array([len(res.fixes)], float)}
+    for prn in sorted(res.epochs):
+        for name in ("sample_index", "doppler_hz", "code_phase_chips", "mode"):
+            vals[f"prn{prn:02d}/{name}"] = np.asarray(res.epochs[prn][name], float)[::STRIDE_REAL]
+    return vals
+
+
+def compute_real(data_dir):
+    vals = {}
+    for key, (name, flags, dur) in REAL_FILES.items():
+        for k, v in _real_one(Path(data_dir) / "real-if" / name, flags, dur).items():
+            vals[f"real/{key}/{k}"] = v
+    return vals
+
+
+@pytest.fixture(scope="module")
+def current_real(shared_data):
+    missing = [n for n, _, _ in REAL_FILES.values() if not (shared_data / "real-if" / n).is_file()]
+    if missing:
+        pytest.skip(f"real recordings missing in {shared_data / 'real-if'}: {', '.join(missing)}")
+    return compute_real(shared_data)
+
+
+def test_regression_fixture_real_unchanged(current_real):
+    ref = np.load(FIXTURE_REAL)
+    assert sorted(ref.files) == sorted(current_real)
+    for k in ref.files:
+        a, b = current_real[k], ref[k]
+        assert a.shape == b.shape, k
+        np.testing.assert_allclose(a, b, rtol=0.0, atol=TOL, err_msg=k)
+
+
+def test_regression_fixture_real_is_not_trivial(current_real):
+    # every PRN listed in the data README is acquired; the 0.5 s file tracks its satellites ~0.5 s
+    listed = {"pocket_iq": {31, 26, 29, 16, 32}, "pocket_real": {32, 25, 12, 10, 31, 29, 23, 24},
+              "cttc": {29, 25, 12, 2}, "synthetic_prn1": {1}}
+    for key, prns in listed.items():
+        acq = current_real[f"real/{key}/acq"]
+        assert set(acq[acq[:, 1] > 0, 0].astype(int)) == prns, key
+    ch = current_real["real/pocket_iq/channels"]
+    assert ch.shape[0] == 5 and ch[:, 1].min() > 400 and ch[:, 4].all()
+
+
+if __name__ == "__main__" and "--write-real" in sys.argv:   # python tests/test_regression_fixture.py --write-real
+    v = compute_real(Path(__file__).resolve().parents[1].parent / "shared" / "data")
+    FIXTURE_REAL.parent.mkdir(exist_ok=True)
+    np.savez_compressed(FIXTURE_REAL, **v)
+    print(FIXTURE_REAL, FIXTURE_REAL.stat().st_size, "bytes,", len(v), "arrays")
+    sys.exit(0)
+
+
 if __name__ == "__main__":          # python tests/test_regression_fixture.py --write
     import tempfile
     if "--write" not in sys.argv:

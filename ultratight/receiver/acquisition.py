@@ -1,4 +1,8 @@
-"""GPS L1 C/A acquisition: FFT parallel code-phase search over Doppler bins.
+"""Acquisition: FFT parallel code-phase search over Doppler bins.
+
+The signal is a :class:`ultratight.signals.signal.SignalDescription` (default GPS L1 C/A): its PRNs,
+code generator, chip rate ``f_chip``, code length ``L`` and carrier ``f_carrier`` (below for C/A:
+``f_chip`` = 1.023 MHz, ``L`` = 1023, ``f_carrier`` = L1).
 
 Search
 ------
@@ -6,7 +10,7 @@ The input (complex baseband, or real IF mixed down to complex baseband with
 ``exp(-j*2*pi*if_hz*t)``) is cut into ``K = noncoherent`` consecutive blocks of
 ``N = round(fs * coherent_ms * 1e-3)`` samples.  For a Doppler bin ``f`` the
 block is wiped with ``exp(-j*2*pi*f*n/fs)`` and circularly correlated with the
-sampled local code ``c_rep[n] = code(floor(n * F_CA / fs) mod 1023)`` (repeated
+sampled local code ``c_rep[n] = code(floor(n * f_chip / fs) mod L)`` (repeated
 ``coherent_ms`` times) by ``IFFT(FFT(x) * conj(FFT(c_rep)))``, all code phases
 at once.  The Doppler grid is ``f_j = j * step`` (anchored at 0 Hz) with
 ``step = (p/q) * fs/N`` (default ``p/q = 2/3``, i.e. ~2/(3T)); a shift by a
@@ -17,7 +21,7 @@ Code FFTs are cached per ``(fs, N)``.
 
 The detection statistic is the non-coherent sum ``S(f, m) = sum_k |Y_k(f, m)|^2``
 where block ``k``'s correlation is circularly shifted by ``round(k*drift)``, the
-predicted lag drift per block ``drift = (P - N) - N*f/F_L1`` samples (the
+predicted lag drift per block ``drift = (P - N) - N*f/f_carrier`` samples (the
 non-integer code period ``P = fs*coherent_ms*1e-3`` samples versus the block
 length ``N``, plus the code Doppler), so the peak stays in
 one cell over long searches and for sample rates that are not multiples of
@@ -93,10 +97,12 @@ import scipy.fft
 from scipy.ndimage import median_filter
 from scipy.special import gammainccinv
 
-from ultratight.constants import CA_LEN, F_CA, F_L1
+from scipy.signal import resample_poly
+
 from ultratight.errors import ConfigError
 from ultratight.receiver.blockstream import block_sigma_arm
-from ultratight.signals.ca_code import PRNS, ca_code
+from ultratight.signals.geometry import light_time
+from ultratight.signals.signal import GPS_L1CA
 
 MAX_COHERENT_MS = 10
 _T_SUB = 1e-3              # sub-block length for fine Doppler / C/N0 (s)
@@ -110,7 +116,7 @@ class AcqResult:
     """One PRN's acquisition result (see module docstring for the definitions)."""
     prn: int
     doppler_hz: float          # refined Doppler (coarse when not detected)
-    code_phase_chips: float    # signal code phase at sample_index, [0, 1023)
+    code_phase_chips: float    # signal code phase at sample_index, [0, code length)
     cn0_dbhz: float            # NaN when not detected
     metric: float              # peak / noise floor
     detected: bool
@@ -131,11 +137,16 @@ def _check_int(name, value, lo, hi):
     return value
 
 
+def _code_spectra(fs_hz, n, coherent_ms, signal=GPS_L1CA):
+    """conj(FFT(c_rep)) for every PRN of ``signal`` (in the order of ``signal.prns``), complex64."""
+    return _code_spectra_of(signal.code, signal.prns, float(signal.chip_rate_hz), int(signal.code_length),
+                            fs_hz, n, coherent_ms)
+
+
 @functools.lru_cache(maxsize=16)
-def _code_spectra(fs_hz, n, coherent_ms):
-    """conj(FFT(c_rep)) for all 32 PRNs, complex64 (32, n)."""
-    idx = np.floor(np.arange(n) * (F_CA / fs_hz)).astype(np.int64) % CA_LEN
-    codes = np.stack([ca_code(p) for p in PRNS]).astype(np.float32)[:, idx]
+def _code_spectra_of(code, prns, chip_rate_hz, code_length, fs_hz, n, coherent_ms):
+    idx = np.floor(np.arange(n) * (chip_rate_hz / fs_hz)).astype(np.int64) % code_length
+    codes = np.stack([code(p) for p in prns]).astype(np.float32)[:, idx]
     spec = np.conj(scipy.fft.fft(codes, axis=1, workers=-1)).astype(np.complex64)
     spec.setflags(write=False)
     return spec
@@ -213,15 +224,17 @@ def cell_threshold(pfa, n_cells, noncoherent):
 
 def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=None, doppler_range_hz=10e3,
             doppler_center_hz=0.0, coherent_ms=1, noncoherent=10, pfa=1e-3, bin_fraction=Fraction(2, 3),
-            start_sample=0, exclude_chips=2.0, refine=True, decimate_to_hz=4.0e6, excise_cw=True, workers=-1):
-    """Search PRNs for GPS L1 C/A signals; returns a list of :class:`AcqResult` (one per PRN, in order).
+            start_sample=0, exclude_chips=2.0, refine=True, decimate_to_hz=4.0e6, excise_cw=True, workers=-1,
+            signal=GPS_L1CA):
+    """Search PRNs of ``signal`` (a :class:`ultratight.signals.signal.SignalDescription`, default GPS
+    L1 C/A); returns a list of :class:`AcqResult` (one per PRN, in order).
 
     Parameters
     ----------
     source_or_samples : IfSource-like (``read(start, count)``, ``fs_hz``, ``if_hz``, ``is_complex``)
         or 1-D ndarray (complex or real samples).
     fs_hz, if_hz, is_complex : front end (taken from the source when None; ``is_complex`` from the dtype).
-    prns : iterable of PRNs (default all 32).
+    prns : iterable of PRNs (default all of the signal's).
     doppler_range_hz : half-width of the Doppler window (scalar or {prn: Hz}).
     doppler_center_hz : window centre (scalar or {prn: Hz}): the assisted mode passes the
         predicted Doppler per PRN (e.g. from :func:`predicted_doppler`) and a small window.
@@ -238,31 +251,11 @@ def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=Non
     excise_cw : zero narrowband-interference bins of the block spectra before correlating
         (see :func:`_excise_cw`); the count is reported in ``AcqResult.n_excised_bins``.
     workers : scipy.fft worker threads (-1: all cores).
+    signal : the signal searched: its PRNs, code generator, chip rate, code length and carrier.
     """
-    coherent_ms = _check_int("coherent_ms", coherent_ms, 1, MAX_COHERENT_MS)
-    noncoherent = _check_int("noncoherent", noncoherent, 1, 100000)
-    if fs_hz is not None and not (math.isfinite(float(fs_hz)) and float(fs_hz) > 0.0):
-        raise ConfigError(f"acquire: fs_hz must be a positive sampling rate, got {fs_hz!r}")
-    if not (0.0 < float(pfa) < 1.0):
-        raise ConfigError(f"acquire: pfa must be in (0, 1), got {pfa!r}")
-    frac = Fraction(bin_fraction).limit_denominator(16)
-    if not (0 < frac <= 1):
-        raise ConfigError(f"acquire: bin_fraction must be in (0, 1], got {bin_fraction!r}")
-    prns = list(PRNS) if prns is None else [int(p) for p in prns]
-    for p in prns:
-        if not 1 <= p <= 32:
-            raise ConfigError(f"acquire: PRN must be in 1..32, got {p}")
-    if hasattr(source_or_samples, "fs_hz") and fs_hz is None:
-        fs_hz = source_or_samples.fs_hz
-    if fs_hz is None:
-        raise ConfigError("acquire: fs_hz is required when passing a sample array")
-    fs_hz = float(fs_hz)
-    if not (math.isfinite(fs_hz) and fs_hz > 0.0):
-        raise ConfigError(f"acquire: fs_hz must be a positive sampling rate, got {fs_hz!r}")
-    if fs_hz < F_CA:
-        raise ConfigError(f"acquire: fs_hz = {fs_hz} Hz is below the C/A chip rate {F_CA} Hz")
-    n_coh = int(round(fs_hz * coherent_ms * 1e-3))
-    n_needed = n_coh * noncoherent
+    coherent_ms, noncoherent, frac, prns, fs_hz = _check_arguments(
+        source_or_samples, fs_hz, coherent_ms, noncoherent, pfa, bin_fraction, prns, signal)
+    n_needed = int(round(fs_hz * coherent_ms * 1e-3)) * noncoherent
     x, fs_hz, if_hz, is_complex = _read_input(source_or_samples, fs_hz, if_hz, is_complex,
                                               int(start_sample), n_needed)
     if not is_complex and if_hz == 0.0:
@@ -274,104 +267,141 @@ def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=Non
             raise ConfigError(f"acquire: doppler_range_hz must be >= 0, got {r!r} for PRN {p}")
         if abs(ctr_hz[p]) + r >= 0.5 * fs_hz:
             raise ConfigError(f"acquire: Doppler window {ctr_hz[p]} +- {r} Hz exceeds fs/2 = {fs_hz / 2} Hz")
+    blk = _SearchBlocks(x, fs_hz, if_hz, is_complex, coherent_ms, noncoherent, frac, decimate_to_hz, excise_cw,
+                        workers, signal)
+    exclude = int(math.ceil(exclude_chips * blk.fs_s / signal.chip_rate_hz))
+    return [_search_prn(blk, prn, ctr_hz[prn], rng_hz[prn], float(pfa), exclude, refine, int(start_sample))
+            for prn in prns]
 
-    sigma_arm = _sigma_arm(x, is_complex)
-    xb = _to_baseband(x, fs_hz, if_hz, is_complex)
-    # high sampling rates: low-pass + decimation by D for the search and the refinement
-    dec = int(fs_hz // decimate_to_hz) if (decimate_to_hz and fs_hz >= 2.0 * decimate_to_hz) else 1
-    fs_s = fs_hz / dec
-    n_s = int(round(fs_s * coherent_ms * 1e-3))
-    if dec > 1:
-        # polyphase FIR low-pass (Kaiser) + decimation; output sample j is input sample j*D (delay
-        # compensated).  A boxcar is not enough: for real IF the mixing image at -2*IF can alias
-        # onto the signal band (e.g. IF = fs/4, D = 4 puts it at 0 Hz) and bias the code phase.
-        from scipy.signal import resample_poly
-        xs = resample_poly(xb, 1, dec).astype(np.complex64)
-        xs = xs[:n_s * noncoherent]
-        if xs.shape[0] < n_s * noncoherent:
-            raise ConfigError("acquire: block too short after decimation")
-    else:
-        xs = xb
-    blocks = xs.reshape(noncoherent, n_s)
-    sigma_dec = sigma_arm if dec == 1 else _sigma_arm(xs, True)
-    t_centre_chips = 0.0
-    n_coh = n_s
-    fft_bin = fs_s / n_coh
-    step = float(frac) * fft_bin
-    p_num, q_den = frac.numerator, frac.denominator
-    # mixed block spectra for the q fractional offsets r/q of an FFT bin
-    n_idx = np.arange(n_coh)
-    base = []
-    for r in range(q_den):
-        if r == 0:
-            base.append(scipy.fft.fft(blocks, axis=1, workers=workers))
+
+def _check_arguments(source, fs_hz, coherent_ms, noncoherent, pfa, bin_fraction, prns, signal):
+    """Checked (coherent_ms, noncoherent, bin fraction, PRN list, fs_hz) of :func:`acquire`."""
+    coherent_ms = _check_int("coherent_ms", coherent_ms, 1, MAX_COHERENT_MS)
+    noncoherent = _check_int("noncoherent", noncoherent, 1, 100000)
+    if fs_hz is not None and not (math.isfinite(float(fs_hz)) and float(fs_hz) > 0.0):
+        raise ConfigError(f"acquire: fs_hz must be a positive sampling rate, got {fs_hz!r}")
+    if not (0.0 < float(pfa) < 1.0):
+        raise ConfigError(f"acquire: pfa must be in (0, 1), got {pfa!r}")
+    frac = Fraction(bin_fraction).limit_denominator(16)
+    if not (0 < frac <= 1):
+        raise ConfigError(f"acquire: bin_fraction must be in (0, 1], got {bin_fraction!r}")
+    prns = list(signal.prns) if prns is None else [int(p) for p in prns]
+    for p in prns:
+        if p not in signal.prns:
+            raise ConfigError(f"acquire: PRN must be in {min(signal.prns)}..{max(signal.prns)}, got {p}")
+    if hasattr(source, "fs_hz") and fs_hz is None:
+        fs_hz = source.fs_hz
+    if fs_hz is None:
+        raise ConfigError("acquire: fs_hz is required when passing a sample array")
+    fs_hz = float(fs_hz)
+    if not (math.isfinite(fs_hz) and fs_hz > 0.0):
+        raise ConfigError(f"acquire: fs_hz must be a positive sampling rate, got {fs_hz!r}")
+    if fs_hz < signal.chip_rate_hz:
+        raise ConfigError(f"acquire: fs_hz = {fs_hz} Hz is below the {signal.name} chip rate {signal.chip_rate_hz} Hz")
+    return coherent_ms, noncoherent, frac, prns, fs_hz
+
+
+class _SearchBlocks:
+    """The search input of :func:`acquire`: baseband blocks (decimated at high rates), their spectra
+    at the q fractional Doppler offsets, the code spectra, and what the refinement needs."""
+
+    def __init__(self, x, fs_hz, if_hz, is_complex, coherent_ms, noncoherent, frac, decimate_to_hz, excise_cw,
+                 workers, signal):
+        self.signal, self.workers, self.noncoherent, self.fs_hz = signal, workers, noncoherent, fs_hz
+        self.sigma_arm = _sigma_arm(x, is_complex)
+        self.xb = _to_baseband(x, fs_hz, if_hz, is_complex)
+        # high sampling rates: low-pass + decimation by D for the search and the refinement
+        self.dec = int(fs_hz // decimate_to_hz) if (decimate_to_hz and fs_hz >= 2.0 * decimate_to_hz) else 1
+        self.fs_s = fs_s = fs_hz / self.dec
+        n_s = int(round(fs_s * coherent_ms * 1e-3))
+        if self.dec > 1:
+            # polyphase FIR low-pass (Kaiser) + decimation; output sample j is input sample j*D (delay
+            # compensated).  A boxcar is not enough: for real IF the mixing image at -2*IF can alias
+            # onto the signal band (e.g. IF = fs/4, D = 4 puts it at 0 Hz) and bias the code phase.
+            xs = resample_poly(self.xb, 1, self.dec).astype(np.complex64)
+            xs = xs[:n_s * noncoherent]
+            if xs.shape[0] < n_s * noncoherent:
+                raise ConfigError("acquire: block too short after decimation")
         else:
-            mix = np.exp(-2j * np.pi * (r / q_den) * n_idx / n_coh).astype(np.complex64)
-            base.append(scipy.fft.fft(blocks * mix, axis=1, workers=workers))
-    n_excised = 0
-    xs_ref, sigma_ref = xs, sigma_dec
-    if excise_cw:
-        for b in base:
-            n_excised = max(n_excised, _excise_cw(b))
-        if n_excised:
-            # refinement and C/N0 on the cleaned signal (the unmixed blocks' excised spectra)
-            xs_ref = scipy.fft.ifft(base[0], axis=1, workers=workers).ravel().astype(np.complex64)
-            sigma_ref = _sigma_arm(xs_ref, True)
-    code_spec = _code_spectra(fs_s, n_coh, coherent_ms)
-    period = fs_s * coherent_ms * 1e-3           # samples per coherent_ms code periods (may be fractional)
-    exclude = int(math.ceil(exclude_chips * fs_s / F_CA))
-    n_fold = min(n_coh, int(math.ceil(fs_s * 1e-3)))   # lags in one code period
-    results = []
-    for prn in prns:
-        j_lo = math.ceil((ctr_hz[prn] - rng_hz[prn]) / step - 1e-9)
-        j_hi = math.floor((ctr_hz[prn] + rng_hz[prn]) / step + 1e-9)
-        js = np.arange(j_lo, j_hi + 1)
-        surf = _search_surface(base, code_spec[prn - 1], js, p_num, q_den, noncoherent, n_coh, period,
-                               step, workers)
-        # one code period of lags suffices (longer blocks repeat the same lags)
-        surf = surf[:, :n_fold]
-        self_r2 = _self_sidelobes(code_spec[prn - 1], n_fold)
-        n_cells = surf.size
-        # candidate: the raw peak; statistics per Doppler row (CFAR along the code dimension)
-        jrow, m = np.unravel_index(int(np.argmax(surf)), surf.shape)
-        floors, k_rows, thr_rows = _row_statistics(surf, jrow, m, exclude, noncoherent, float(pfa), n_cells,
-                                                   self_r2)
-        # the cell farthest above its row's threshold decides: at the raw peak's code phase it is
-        # the same signal (kept at the raw peak); elsewhere the raw peak sat in a row raised by
-        # interference and that cell becomes the candidate
-        j2, m2 = np.unravel_index(int(np.argmax(surf / (floors * thr_rows)[:, None])), surf.shape)
-        if abs((m2 - m + n_fold // 2) % n_fold - n_fold // 2) > exclude:
-            jrow, m = j2, m2
-            floors, k_rows, thr_rows = _row_statistics(surf, jrow, m, exclude, noncoherent, float(pfa),
-                                                       n_cells, self_r2)
-        peak = float(surf[jrow, m])
-        metric = peak / float(floors[jrow])
-        thr = float(thr_rows[jrow])
-        k_eff = float(k_rows[jrow])
-        # parabolic interpolation (Doppler, lag)
-        dj = _parabolic(surf[jrow - 1, m] if jrow > 0 else None, peak,
-                        surf[jrow + 1, m] if jrow + 1 < surf.shape[0] else None)
-        dm = _parabolic(surf[jrow, (m - 1) % n_fold], peak, surf[jrow, (m + 1) % n_fold])
-        fd_coarse = float(js[jrow] * step)
-        fd = fd_coarse + dj * step
-        code_phase = (-(m + dm) * F_CA / fs_s) % CA_LEN
-        detected = metric > thr
-        cn0 = math.nan
-        if detected and refine:
-            if dec > 1:
-                # full rate: the low-passed decimated signal, correlated with a point-sampled replica
-                # at a rate commensurate with the chip rate (e.g. 4.092 MHz), biases the code phase
-                # by up to half a decimated sample; C/N0 then follows the correlator's sample-power
-                # convention at the input rate
-                fd, code_phase, cn0 = _refine(xb, fs_hz, prn, fd, code_phase, sigma_arm)
+            xs = self.xb
+        blocks = xs.reshape(noncoherent, n_s)
+        sigma_dec = self.sigma_arm if self.dec == 1 else _sigma_arm(xs, True)
+        self.n_coh = n_coh = n_s
+        self.step = float(frac) * (fs_s / n_coh)
+        self.p_num, self.q_den = frac.numerator, frac.denominator
+        # mixed block spectra for the q fractional offsets r/q of an FFT bin
+        n_idx = np.arange(n_coh)
+        self.base = []
+        for r in range(self.q_den):
+            if r == 0:
+                self.base.append(scipy.fft.fft(blocks, axis=1, workers=workers))
             else:
-                fd, code_phase, cn0 = _refine(xs_ref, fs_s, prn, fd, code_phase, sigma_ref)
-        code_phase = (code_phase - t_centre_chips) % CA_LEN
-        results.append(AcqResult(prn=prn, doppler_hz=float(fd), code_phase_chips=float(code_phase),
-                                 cn0_dbhz=float(cn0), metric=metric, detected=bool(detected), threshold=thr,
-                                 sample_index=int(start_sample), doppler_coarse_hz=fd_coarse,
-                                 n_doppler_bins=int(js.size), k_eff=k_eff, n_excised_bins=n_excised))
-    return results
+                mix = np.exp(-2j * np.pi * (r / self.q_den) * n_idx / n_coh).astype(np.complex64)
+                self.base.append(scipy.fft.fft(blocks * mix, axis=1, workers=workers))
+        self.n_excised = 0
+        self.xs_ref, self.sigma_ref = xs, sigma_dec
+        if excise_cw:
+            for b in self.base:
+                self.n_excised = max(self.n_excised, _excise_cw(b))
+            if self.n_excised:
+                # refinement and C/N0 on the cleaned signal (the unmixed blocks' excised spectra)
+                self.xs_ref = scipy.fft.ifft(self.base[0], axis=1, workers=workers).ravel().astype(np.complex64)
+                self.sigma_ref = _sigma_arm(self.xs_ref, True)
+        self.code_spec = _code_spectra(fs_s, n_coh, coherent_ms, signal)
+        self.period = fs_s * coherent_ms * 1e-3           # samples per coherent_ms (may be fractional)
+        self.n_fold = min(n_coh, int(math.ceil(fs_s * signal.code_period_s)))   # lags in one code period
+
+
+def _search_prn(blk, prn, ctr_hz, rng_hz, pfa, exclude, refine, start_sample):
+    """Search one PRN over its Doppler window: CFAR decision, interpolated peak, refinement."""
+    sig = blk.signal
+    j_lo = math.ceil((ctr_hz - rng_hz) / blk.step - 1e-9)
+    j_hi = math.floor((ctr_hz + rng_hz) / blk.step + 1e-9)
+    js = np.arange(j_lo, j_hi + 1)
+    cspec = blk.code_spec[sig.prns.index(prn)]
+    n_fold, noncoherent = blk.n_fold, blk.noncoherent
+    surf = _search_surface(blk.base, cspec, js, blk.p_num, blk.q_den, noncoherent, blk.n_coh, blk.period,
+                           blk.step, blk.workers, sig.carrier_hz)
+    # one code period of lags suffices (longer blocks repeat the same lags)
+    surf = surf[:, :n_fold]
+    self_r2 = _self_sidelobes(cspec, n_fold)
+    n_cells = surf.size
+    # candidate: the raw peak; statistics per Doppler row (CFAR along the code dimension)
+    jrow, m = np.unravel_index(int(np.argmax(surf)), surf.shape)
+    floors, k_rows, thr_rows = _row_statistics(surf, jrow, m, exclude, noncoherent, pfa, n_cells, self_r2)
+    # the cell farthest above its row's threshold decides: at the raw peak's code phase it is
+    # the same signal (kept at the raw peak); elsewhere the raw peak sat in a row raised by
+    # interference and that cell becomes the candidate
+    j2, m2 = np.unravel_index(int(np.argmax(surf / (floors * thr_rows)[:, None])), surf.shape)
+    if abs((m2 - m + n_fold // 2) % n_fold - n_fold // 2) > exclude:
+        jrow, m = j2, m2
+        floors, k_rows, thr_rows = _row_statistics(surf, jrow, m, exclude, noncoherent, pfa, n_cells, self_r2)
+    peak = float(surf[jrow, m])
+    metric = peak / float(floors[jrow])
+    thr = float(thr_rows[jrow])
+    # parabolic interpolation (Doppler, lag)
+    dj = _parabolic(surf[jrow - 1, m] if jrow > 0 else None, peak,
+                    surf[jrow + 1, m] if jrow + 1 < surf.shape[0] else None)
+    dm = _parabolic(surf[jrow, (m - 1) % n_fold], peak, surf[jrow, (m + 1) % n_fold])
+    fd_coarse = float(js[jrow] * blk.step)
+    fd = fd_coarse + dj * blk.step
+    code_phase = (-(m + dm) * sig.chip_rate_hz / blk.fs_s) % sig.code_length
+    detected = metric > thr
+    cn0 = math.nan
+    if detected and refine:
+        if blk.dec > 1:
+            # full rate: the low-passed decimated signal, correlated with a point-sampled replica
+            # at a rate commensurate with the chip rate (e.g. 4.092 MHz), biases the code phase
+            # by up to half a decimated sample; C/N0 then follows the correlator's sample-power
+            # convention at the input rate
+            fd, code_phase, cn0 = _refine(blk.xb, blk.fs_hz, prn, fd, code_phase, blk.sigma_arm, sig)
+        else:
+            fd, code_phase, cn0 = _refine(blk.xs_ref, blk.fs_s, prn, fd, code_phase, blk.sigma_ref, sig)
+    code_phase = code_phase % sig.code_length
+    return AcqResult(prn=prn, doppler_hz=float(fd), code_phase_chips=float(code_phase), cn0_dbhz=float(cn0),
+                     metric=metric, detected=bool(detected), threshold=thr, sample_index=int(start_sample),
+                     doppler_coarse_hz=fd_coarse, n_doppler_bins=int(js.size), k_eff=float(k_rows[jrow]),
+                     n_excised_bins=blk.n_excised)
 
 
 def _excise_cw(spec, p_false=1e-4, max_bin_fraction=0.05, halfwidth=1):
@@ -444,7 +474,7 @@ def _parabolic(ym, y0, yp):
     return float(np.clip(0.5 * (ym - yp) / den, -0.5, 0.5))
 
 
-def _search_surface(base, cspec, js, p_num, q_den, k_blocks, n, period, step, workers):
+def _search_surface(base, cspec, js, p_num, q_den, k_blocks, n, period, step, workers, carrier_hz):
     """S(j, m) for Doppler bins j (float32 (len(js), n))."""
     surf = np.zeros((js.size, n), dtype=np.float32)
     tot = js * p_num
@@ -462,7 +492,7 @@ def _search_surface(base, cspec, js, p_num, q_den, k_blocks, n, period, step, wo
             y = scipy.fft.ifft(prod, axis=2, workers=workers, overwrite_x=True)
             pw = (y.real * y.real + y.imag * y.imag).astype(np.float32)
             # lag drift per block (samples): non-integer period and code Doppler
-            drift = (period - n) - n * (js[rr] * step) / F_L1
+            drift = (period - n) - n * (js[rr] * step) / carrier_hz
             for k in range(k_blocks):
                 sh = np.rint(k * drift).astype(np.int64)
                 if not np.any(sh):
@@ -474,20 +504,21 @@ def _search_surface(base, cspec, js, p_num, q_den, k_blocks, n, period, step, wo
     return surf
 
 
-def _refine(xb, fs_hz, prn, fd, code_phase, sigma_arm):
+def _refine(xb, fs_hz, prn, fd, code_phase, sigma_arm, signal=GPS_L1CA):
     """Fine Doppler (phase differences of 1 ms sums) and code phase / C/N0 on a fine code grid."""
     n_sub = int(round(fs_hz * _T_SUB))
     n_blocks = xb.shape[0] // n_sub
     n_tot = n_blocks * n_sub
     t = np.arange(n_tot) / fs_hz
-    code = ca_code(prn).astype(np.float32)
+    code = np.asarray(signal.code(prn)).astype(np.float32)
+    n_code = signal.code_length
 
     def wipe(fd_):
         ph = fd_ * t
         return xb[:n_tot] * np.exp(-2j * np.pi * (ph - np.floor(ph))).astype(np.complex64)
 
     def sums(w, fd_, cp_):
-        rep = code[np.floor(cp_ + t * (F_CA * (1.0 + fd_ / F_L1))).astype(np.int64) % CA_LEN]
+        rep = code[np.floor(cp_ + t * (signal.chip_rate_hz * (1.0 + fd_ / signal.carrier_hz))).astype(np.int64) % n_code]
         return (w * rep).reshape(n_blocks, n_sub).sum(axis=1)
 
     if n_blocks >= 2:
@@ -504,7 +535,7 @@ def _refine(xb, fs_hz, prn, fd, code_phase, sigma_arm):
         pw[i] = np.mean(z.real ** 2 + z.imag ** 2)
     i = int(np.argmax(pw))
     d = _parabolic(pw[i - 1] if i > 0 else None, pw[i], pw[i + 1] if i + 1 < pw.size else None)
-    code_phase = (code_phase + offs[i] + d * _FINE_CODE_STEP) % CA_LEN
+    code_phase = (code_phase + offs[i] + d * _FINE_CODE_STEP) % n_code
     snr = (pw[i] - 2.0) / 2.0                       # A^2/2 = C/N0 * T_sub
     t_sub = n_sub / fs_hz
     cn0 = 10.0 * math.log10(snr / t_sub) if snr > 0 else math.nan
@@ -517,7 +548,6 @@ def predicted_doppler(ephemerides, rx_pos_e, week, tow_s, prns=None, rx_clk_drif
     Uses :func:`ultratight.signals.geometry.light_time`; returns {prn: doppler_hz}.  Pass it as
     ``doppler_center_hz`` with a ``doppler_range_hz`` covering the position/clock-drift uncertainty.
     """
-    from ultratight.signals.geometry import light_time
     prns = sorted(ephemerides) if prns is None else list(prns)
     pos = np.atleast_2d(np.asarray(rx_pos_e, dtype=float))
     out = {}

@@ -29,16 +29,24 @@ resumed campaign and an uninterrupted one sum the same numbers in the same order
 
 import hashlib
 import json
+import logging
 import math
 import os
 import sys
 import time
 from pathlib import Path
 
+import h5py
+import numba
 import numpy as np
+from distributed import Client, LocalCluster, as_completed
+from scipy.stats import t as student_t
+from tqdm import tqdm
 
-from ultratight import __version__
+from ultratight import __version__, io_guard
 from ultratight.errors import ConfigError
+from ultratight.io_guard import json_clean, json_dumps, note_complete, write_h5_atomic, write_text_atomic
+from ultratight.receiver import experiments
 
 SCHEMA = "ultratight campaign run v1 (docs/campaign.md)"
 MAX_METRIC_SIZE = 64          # a numeric leaf with more elements is a series, not a metric
@@ -117,7 +125,6 @@ def _put(parent, name, value):
 
 
 def _get(node):
-    import h5py
     kind = node.attrs["kind"]
     if isinstance(kind, bytes):
         kind = kind.decode()
@@ -145,14 +152,12 @@ def _get(node):
 
 def run_key(cfg, methods, seed):
     """Identity of a run file: the resolved scenario, the methods and the run seed."""
-    from ultratight.io_guard import json_clean
     blob = json.dumps({"cfg": json_clean(cfg), "methods": list(methods), "seed": int(seed)}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:24]
 
 
 def write_run(path, result, *, index, seed, key, elapsed_s):
     """One run's ``run_one`` result, atomically (``io_guard.write_h5_atomic``)."""
-    from ultratight.io_guard import write_h5_atomic
 
     def build(f):
         f.attrs["schema"] = SCHEMA
@@ -170,7 +175,6 @@ def write_run(path, result, *, index, seed, key, elapsed_s):
 def read_run(path, key=None):
     """(result, attrs) of a run file; ``None`` when it is missing, unreadable, incomplete or (with
     ``key``) from another configuration."""
-    import h5py
     try:
         with h5py.File(path, "r") as f:
             attrs = {k: f.attrs[k] for k in f.attrs}
@@ -210,8 +214,7 @@ def _leaves(obj, prefix=""):
 
 def t_quantile_975(dof):
     """Two-sided 95 % quantile of Student's t with ``dof`` degrees of freedom."""
-    from scipy.stats import t
-    return float(t.ppf(0.975, dof))
+    return float(student_t.ppf(0.975, dof))
 
 
 def aggregate(runs):
@@ -275,9 +278,6 @@ WORKER_ENV = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_TH
 def start_client(workers=None, scheduler=None, timeout_s=SCHEDULER_TIMEOUT_S):
     """(client, cluster or None, description): a LocalCluster of ``workers`` single-threaded worker
     processes (default :func:`free_cores`), or a connection to ``scheduler``."""
-    import logging
-
-    from distributed import Client, LocalCluster
     if scheduler is not None:
         try:
             client = Client(scheduler, timeout=timeout_s)
@@ -294,11 +294,9 @@ def start_client(workers=None, scheduler=None, timeout_s=SCHEDULER_TIMEOUT_S):
 def _task(experiment, cfg, methods, seed):
     """Worker side of one run: ``run_one`` with one numba thread; returns (result, seconds)."""
     try:
-        import numba
         numba.set_num_threads(1)
-    except (ImportError, ValueError):    # pragma: no cover
+    except ValueError:    # pragma: no cover
         pass
-    from ultratight.receiver import experiments
     module = experiments.get(experiment)
     t0 = time.perf_counter()
     res = module.run_one(cfg, list(methods), int(seed), progress=False)
@@ -322,8 +320,6 @@ def run_campaign(scenario, *, runs, methods=None, seed=None, workers=None, sched
     """Run a campaign (module doc); returns ``{"json", "text", "campaign_path", "runs_dir", ...}``.
 
     ``client``: an existing ``distributed.Client`` to use (then ``workers``/``scheduler`` are ignored)."""
-    from ultratight import io_guard
-    from ultratight.receiver import experiments
     log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
     if isinstance(runs, bool) or int(runs) != runs or int(runs) < 1:
         raise ConfigError(f"--runs must be an integer >= 1, got {runs}")
@@ -333,20 +329,9 @@ def run_campaign(scenario, *, runs, methods=None, seed=None, workers=None, sched
         raise ConfigError(f"--connect-timeout must be > 0 s, got {connect_timeout_s}")
     if workers is not None and scheduler is not None:
         raise ConfigError("--workers and --scheduler exclude each other (the scheduler's workers run the campaign)")
-    path, raw, module = experiments.resolve(scenario)
-    name = raw.get("experiment", experiments.DEFAULT_EXPERIMENT)
-    if not hasattr(module, "run_one"):
-        raise ConfigError(f"experiment {name!r} has no run_one; a campaign cannot run it")
-    methods = experiments.check_methods(module, methods)
-    cfg = module.load(path, raw, dict(overrides or {}))
-    base_seed = int(cfg.get("seed", 0) if seed is None else seed)
-    if base_seed < 0:
-        raise ConfigError(f"--seed must be >= 0, got {base_seed}")
+    module, name, cfg, methods, base_seed = _resolve(scenario, methods, seed, overrides)
     out = Path(out_dir)
-    io_guard.check_path_length(out, "--out")
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"--out {out} exists and is not a directory")
-    io_guard.check_output_path(out / "runs" / "run-00000.h5", "--out", create_parent=True)
+    _check_out(out)
     seeds = run_seeds(base_seed, runs)
     keys = [run_key(cfg, methods, s) for s in seeds]
     if getattr(module, "USES_DATA_DIR", False):
@@ -373,28 +358,7 @@ def run_campaign(scenario, *, runs, methods=None, seed=None, workers=None, sched
         else:
             where = "given client"
         try:
-            n_workers = len(client.scheduler_info().get("workers", {}))
-            if progress:
-                log(f"campaign: {where}, {n_workers} worker(s); dashboard {client.dashboard_link}")
-            futs = {client.submit(_task, name, cfg, methods, seeds[i], pure=False, key=f"run-{i:05d}-{keys[i]}"): i
-                    for i in todo}
-            from distributed import as_completed
-            from tqdm import tqdm
-            bar = tqdm(total=runs, initial=runs - len(todo), unit="run", desc=str(cfg.get("name", name)),
-                       disable=not progress, file=sys.stderr)
-            try:
-                for fut in as_completed(list(futs)):
-                    i = futs[fut]
-                    res, dt = fut.result()
-                    write_run(run_path(out, i), res, index=i, seed=seeds[i], key=keys[i], elapsed_s=dt)
-                    io_guard.note_complete(run_path(out, i))
-                    elapsed[i] = dt
-                    fut.release()
-                    bar.update(1)
-            finally:
-                bar.close()
-                for fut in futs:
-                    fut.cancel()
+            _compute(client, where, name, cfg, methods, seeds, keys, todo, runs, out, elapsed, progress, log)
         finally:
             if own:
                 client.close()
@@ -413,9 +377,54 @@ def run_campaign(scenario, *, runs, methods=None, seed=None, workers=None, sched
                   wall_s=wall, computed=len(todo), elapsed=[elapsed[i] for i in range(runs)], where=where)
 
 
+def _resolve(scenario, methods, seed, overrides):
+    """``(experiment module, experiment name, resolved configuration, methods, base seed)``."""
+    path, raw, module = experiments.resolve(scenario)
+    name = raw.get("experiment", experiments.DEFAULT_EXPERIMENT)
+    if not hasattr(module, "run_one"):
+        raise ConfigError(f"experiment {name!r} has no run_one; a campaign cannot run it")
+    methods = experiments.check_methods(module, methods)
+    cfg = module.load(path, raw, dict(overrides or {}))
+    base_seed = int(cfg.get("seed", 0) if seed is None else seed)
+    if base_seed < 0:
+        raise ConfigError(f"--seed must be >= 0, got {base_seed}")
+    return module, name, cfg, methods, base_seed
+
+
+def _check_out(out):
+    io_guard.check_path_length(out, "--out")
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out} exists and is not a directory")
+    io_guard.check_output_path(out / "runs" / "run-00000.h5", "--out", create_parent=True)
+
+
+def _compute(client, where, name, cfg, methods, seeds, keys, todo, runs, out, elapsed, progress, log):
+    """Submit the runs ``todo`` to ``client`` and write each run file as it completes (``elapsed``: index
+    -> seconds of the run)."""
+    n_workers = len(client.scheduler_info().get("workers", {}))
+    if progress:
+        log(f"campaign: {where}, {n_workers} worker(s); dashboard {client.dashboard_link}")
+    futs = {client.submit(_task, name, cfg, methods, seeds[i], pure=False, key=f"run-{i:05d}-{keys[i]}"): i
+            for i in todo}
+    bar = tqdm(total=runs, initial=runs - len(todo), unit="run", desc=str(cfg.get("name", name)),
+               disable=not progress, file=sys.stderr)
+    try:
+        for fut in as_completed(list(futs)):
+            i = futs[fut]
+            res, dt = fut.result()
+            write_run(run_path(out, i), res, index=i, seed=seeds[i], key=keys[i], elapsed_s=dt)
+            io_guard.note_complete(run_path(out, i))
+            elapsed[i] = dt
+            fut.release()
+            bar.update(1)
+    finally:
+        bar.close()
+        for fut in futs:
+            fut.cancel()
+
+
 def finish(module, cfg, results, out, *, name, base_seed, seeds, methods, wall_s, computed, elapsed, where):
     """Aggregate, summarize and write ``campaign.json``."""
-    from ultratight.io_guard import json_clean, json_dumps, note_complete, write_text_atomic
     agg = aggregate(results)
     summary = module.summarize(cfg, results)
     runs = len(results)

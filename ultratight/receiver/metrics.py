@@ -21,7 +21,7 @@ the end of that segment.
 
 import numpy as np
 
-from ultratight.constants import CA_LEN, F_CA
+from ultratight.signals.signal import GPS_L1CA
 
 SEGMENTS_S = ((0.0, 20.0), (20.0, 40.0), (40.0, 60.0))
 LOCK_DOPPLER_HZ = 10.0        # 20 ms mean |Doppler error| above this -> lock lost
@@ -38,25 +38,27 @@ PAPER_TABLE3 = {
 PAPER_TABLE4_S = {"pb-kf-utc": 0.083102, "dlb-ukf": 1.835400, "dlb-ckf": 0.723903, "dlb-rackf": 0.954322}
 
 
-def wrap_chips(d):
-    """Wrap a code-phase difference to [-CA_LEN/2, CA_LEN/2)."""
-    return (np.asarray(d) + 0.5 * CA_LEN) % CA_LEN - 0.5 * CA_LEN
+def wrap_chips(d, signal=GPS_L1CA):
+    """Wrap a code-phase difference to [-L/2, L/2) (L: the signal's code length, 1023 for C/A)."""
+    n_code = signal.code_length
+    return (np.asarray(d) + 0.5 * n_code) % n_code - 0.5 * n_code
 
 
-def unwrap_chips(t, cp):
-    """Continuous code phase (chips) from a series modulo 1023 sampled at times ``t`` (n,).
+def unwrap_chips(t, cp, signal=GPS_L1CA):
+    """Continuous code phase (chips) from a series modulo the code length sampled at times ``t`` (n,).
 
-    Between samples the code advances by about ``F_CA * dt`` chips (rows 1 ms apart advance by
-    a whole period), so the unwrapping removes the nominal advance first, wraps the remainder
-    to +-511.5 chips and adds the nominal advance back.  ``cp`` is (n,) or (n, n_ch).
+    Between samples the code advances by about ``f_chip * dt`` chips (rows one code period apart
+    advance by a whole period), so the unwrapping removes the nominal advance first, wraps the
+    remainder to +-L/2 chips and adds the nominal advance back.  ``cp`` is (n,) or (n, n_ch).
     """
+    n_code = signal.code_length
     t = np.asarray(t, dtype=float)
     cp = np.asarray(cp, dtype=float)
-    nominal = F_CA * np.diff(t)
+    nominal = signal.chip_rate_hz * np.diff(t)
     if cp.ndim == 2:
         nominal = nominal[:, None]
     d = np.diff(cp, axis=0) - nominal
-    d = (d + 0.5 * CA_LEN) % CA_LEN - 0.5 * CA_LEN
+    d = (d + 0.5 * n_code) % n_code - 0.5 * n_code
     out = np.empty_like(cp)
     out[0] = cp[0]
     out[1:] = cp[0] + np.cumsum(d + nominal, axis=0)

@@ -1,25 +1,31 @@
-"""Per-channel LNAV decoding: tracked bits -> TOW (transmit-time mapping) and ephemeris.
+"""Per-channel navigation decoding: tracked bits -> TOW (transmit-time mapping) and ephemeris.
 
-Wraps :class:`ultratight.signals.lnav.LnavDecoder`.  The tracking kernel emits one soft bit
-(sum of 20 prompt I values) per bit, tagged with the epoch index (C/A period count of the
-channel) of the bit's first period.  When the decoder finds a subframe, its HOW gives the GPS
-TOW (satellite clock) of the subframe's first bit, which fixes the satellite transmit time of
-every code period of the channel: ``t_tx(epoch) = tow_sf + (epoch - epoch_sf) * T_CA`` (the C/A
-period is exactly 1 ms of satellite time).
+The decoder of a signal is found by the name in its description
+(:attr:`ultratight.signals.signal.SignalDescription.navigation`) with :func:`channel_nav`; GPS
+LNAV (IS-GPS-200 section 20.3) is the one decoder now, :class:`ChannelNav`, which wraps
+:class:`ultratight.signals.lnav.LnavDecoder`.  The tracking kernel emits one soft bit (sum of the
+prompt I values of the ``codes_per_bit`` code periods of a bit, 20 for C/A) per bit, tagged with
+the epoch index (code-period count of the channel) of the bit's first period.  When the decoder
+finds a subframe, its HOW gives the GPS TOW (satellite clock) of the subframe's first bit, which
+fixes the satellite transmit time of every code period of the channel:
+``t_tx(epoch) = tow_sf + (epoch - epoch_sf) * T`` (T the code period, exactly 1 ms of satellite
+time for C/A).
 """
 
 import numpy as np
 
-from ultratight.constants import T_CA
+from ultratight.errors import ConfigError
 from ultratight.signals.lnav import LnavDecoder
+from ultratight.signals.signal import GPS_L1CA
 
 
 class ChannelNav:
-    """Nav-data state of one tracking channel (reset when the channel is re-acquired)."""
+    """LNAV state of one tracking channel (reset when the channel is re-acquired)."""
 
-    def __init__(self, prn, ref_week=None):
+    def __init__(self, prn, ref_week=None, signal=GPS_L1CA):
         self.prn = int(prn)
         self.ref_week = ref_week
+        self.signal = signal
         self.reset()
 
     def reset(self):
@@ -41,7 +47,7 @@ class ChannelNav:
         if len(bits_soft) == 0:
             return []
         e = np.asarray(bit_start_epochs, dtype=np.int64)
-        if self.bit_epochs and e[0] != self.bit_epochs[-1] + 20:
+        if self.bit_epochs and e[0] != self.bit_epochs[-1] + self.signal.codes_per_bit:
             # a gap in the bit stream: the decoder's stream indices would be wrong -> restart
             eph = self.ephemeris
             self.reset()
@@ -76,5 +82,19 @@ class ChannelNav:
         return self.epoch_ref is not None
 
     def tx_time(self, epoch):
-        """Satellite-clock transmit time (s of week) of the start of C/A period ``epoch``."""
-        return self.tow_ref + (np.asarray(epoch, dtype=float) - self.epoch_ref) * T_CA
+        """Satellite-clock transmit time (s of week) of the start of code period ``epoch``."""
+        return self.tow_ref + (np.asarray(epoch, dtype=float) - self.epoch_ref) * self.signal.code_period_s
+
+
+NAV_DECODERS = {"LNAV": ChannelNav}
+"""Channel navigation decoders by the ``navigation`` name of a signal description."""
+
+
+def channel_nav(signal, prn, ref_week=None):
+    """The navigation-decoding state of one channel of ``signal`` (by ``signal.navigation``)."""
+    try:
+        cls = NAV_DECODERS[signal.navigation]
+    except KeyError:
+        raise ConfigError(f"no navigation decoder for {signal.name} (navigation {signal.navigation!r}; "
+                          f"known: {', '.join(NAV_DECODERS)})") from None
+    return cls(prn, ref_week=ref_week, signal=signal)

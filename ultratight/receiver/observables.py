@@ -6,7 +6,8 @@ over the period, ``carr_acc_cycles`` = accumulated Doppler phase at its start). 
 epochs the NCOs are linear, so at any receive sample ``s`` inside period ``e``:
 
 * replica code phase  ``p(s) = code_phase + (s - sample_index) code_rate / fs`` chips into the
-  period, hence the satellite-clock transmit time ``t_tx(s) = t_tx(e) + p(s)/F_CA`` with
+  period, hence the satellite-clock transmit time ``t_tx(s) = t_tx(e) + p(s)/f_chip`` (the
+  signal's chip rate, :class:`ultratight.signals.signal.SignalDescription`) with
   ``t_tx(e)`` from the decoded TOW (:class:`ultratight.receiver.navdecode.ChannelNav`);
 * accumulated carrier (Doppler) phase ``acc(s) = carr_acc + (s - sample_index) doppler / fs``.
 
@@ -22,9 +23,10 @@ Observables at receive sample ``s`` (receiver-clock time ``t_rx``):
 
 import numpy as np
 
-from ultratight.constants import C, F_CA
+from ultratight.constants import C
 from ultratight.receiver.tracking import (R_CODE_PHASE, R_CODE_RATE, R_CARR_ACC, R_DOPP, R_CN0,
                                           RI_PTR, RI_N, RI_EPOCH, RI_FLAGS, FL_PLL_LOCK)
+from ultratight.signals.signal import GPS_L1CA
 
 HIST_KEEP_S = 1.0      # seconds of epoch records kept per channel
 
@@ -88,8 +90,8 @@ class ChannelHistory:
         return self.carr_acc[i] + (s - self.ptr[i]) * self.dopp[i] / self.fs
 
 
-def observe(hist, nav, s_obs, h_samples):
-    """Raw observables of one channel at receive sample ``s_obs`` or None if not available.
+def observe(hist, nav, s_obs, h_samples, signal=GPS_L1CA):
+    """Raw observables of one channel of ``signal`` at receive sample ``s_obs`` or None if not available.
 
     Returns dict(t_tx_sv (s of week, satellite clock), doppler_hz, carrier_cycles, cn0_dbhz,
     pll_lock, epoch)."""
@@ -113,7 +115,7 @@ def observe(hist, nav, s_obs, h_samples):
         "t_tx_sv": np.nan,
     }
     if nav is not None and nav.has_time:
-        out["t_tx_sv"] = float(nav.tx_time(hist.epoch[i0])) + out["code_phase_chips"] / F_CA
+        out["t_tx_sv"] = float(nav.tx_time(hist.epoch[i0])) + out["code_phase_chips"] / signal.chip_rate_hz
     return out
 
 
@@ -133,9 +135,8 @@ class CarrierSmoother:
     missing value or a code-carrier jump larger than ``reset_m`` (cycle slip / re-acquisition).
     """
 
-    def __init__(self, n_ch, max_epochs, reset_m=15.0):
-        from ultratight.constants import LAMBDA_L1
-        self.lam = LAMBDA_L1
+    def __init__(self, n_ch, max_epochs, reset_m=15.0, wavelength_m=GPS_L1CA.wavelength_m):
+        self.lam = float(wavelength_m)
         self.max_m = max(1, int(max_epochs))
         self.reset_m = float(reset_m)
         self.m = np.zeros(n_ch, dtype=np.int64)

@@ -10,12 +10,14 @@ target path never holds a half-written file.
 import json
 import os
 from pathlib import Path
+from xml.sax.saxutils import escape
 
 import h5py
 import numpy as np
 
 from ultratight import __version__
 from ultratight.errors import InputFileError
+from ultratight.io_guard import tmp_name, write_text_atomic
 
 CHUNK_ROWS = 1024
 FLUSH_ROWS = 2048
@@ -23,7 +25,6 @@ FLUSH_PIECES = 50
 
 
 def _tmp_path(path):
-    from ultratight.io_guard import tmp_name
     return tmp_name(path)
 
 
@@ -116,7 +117,6 @@ class H5Stream:
 
 
 def _write_atomic(path, text):
-    from ultratight.io_guard import write_text_atomic
     write_text_atomic(path, text)
 
 
@@ -136,7 +136,6 @@ def write_csv(path, pvt_rows):
 def write_kml(path, pvt_rows, name="ultratight track", options=None):
     """Positions as a KML LineString (lon,lat,h) plus the first point as a placemark; the
     document description names the package version and the ``options`` (dict) used."""
-    from xml.sax.saxutils import escape
     desc = escape(f"ultratight {__version__}" + "".join(f"; {k}={v}" for k, v in (options or {}).items()))
     coords = " ".join(f"{r['llh_deg'][1]:.9f},{r['llh_deg'][0]:.9f},{r['llh_deg'][2]:.3f}" for r in pvt_rows)
     first = pvt_rows[0]["llh_deg"] if pvt_rows else (0.0, 0.0, 0.0)

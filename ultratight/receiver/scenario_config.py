@@ -25,6 +25,10 @@ import tomllib
 from pathlib import Path
 
 from ultratight.errors import ConfigError
+from ultratight.receiver.scenario_schema import ENGINE_KEYS, check_known_keys, check_raw  # noqa: F401 (public here)
+from ultratight.signals.atmosphere import IONO_MODELS, MAPPINGS, TROPO_MODELS
+from ultratight.signals.frontend import FrontEnd
+from ultratight.signals.iffile import FORMATS, check_bits_for_format
 
 # limits (docs/reliability.md); the declared key schema is in ultratight.receiver.scenario_schema
 MIN_FS_HZ = 1.023e6            # the receiver needs at least the C/A chipping rate
@@ -48,9 +52,6 @@ DEFAULTS = {
     "nav": {"data_bits": True},
 }
 IMU_DEFAULTS = {"preset": "paper", "rate_hz": 100.0}
-# receiver settings a scenario may fix (the ultra-tight engine's EngineOptions fields); they do not
-# change the generated data, only how the scenario is processed
-ENGINE_KEYS = ("noise_tau_s",)
 
 
 def _scenario_dir():
@@ -125,7 +126,6 @@ def locate_scenario(name_or_path):
 
 def load_scenario(name_or_path, overrides=None):
     """Load, complete and validate a scenario (see module doc). Raises ConfigError."""
-    from ultratight.receiver.scenario_schema import check_raw
     path = locate_scenario(name_or_path)
     raw = read_toml(path)
     check_raw(raw, str(path))           # unknown tables/keys are errors (declared schema)
@@ -168,19 +168,6 @@ def _num(cfg, dotted, lo=None, hi=None, lo_open=False, integer=False):
     return check_number(d.get(parts[-1]), dotted, lo=lo, hi=hi, lo_open=lo_open, integer=integer)
 
 
-def check_known_keys(table, allowed, where):
-    """Refuse keys of ``table`` not in ``allowed`` (a did-you-mean names the closest one).
-
-    ``where`` names the table in the message (``"[imu]"``, ``"top level"``)."""
-    import difflib
-    unknown = sorted(set(table) - set(allowed))
-    if unknown:
-        k = unknown[0]
-        near = difflib.get_close_matches(k, list(allowed), n=1)
-        hint = f" (did you mean {near[0]!r}?)" if near else f"; expected one of {', '.join(sorted(allowed))}"
-        raise ConfigError(f"{where}: unknown key {k!r}{hint}")
-
-
 def _table(cfg, name):
     t = cfg.get(name)
     if not isinstance(t, dict):
@@ -190,9 +177,6 @@ def _table(cfg, name):
 
 def validate(cfg):
     """Check a completed scenario dict; raises ConfigError naming the field."""
-    from ultratight.signals.frontend import FrontEnd
-    from ultratight.signals.iffile import FORMATS, check_bits_for_format
-
     _num(cfg, "duration_s", lo=0, lo_open=True)
     _num(cfg, "seed", lo=0, integer=True)
     cfg["seed"] = int(cfg["seed"])
@@ -212,7 +196,23 @@ def validate(cfg):
     _num(cfg, "receiver.clock_bias_m")
     _num(cfg, "receiver.clock_drift_mps")
     _table(cfg, "trajectory")
-    sat = _table(cfg, "satellites")
+    _validate_satellites(cfg, _table(cfg, "satellites"))
+    _validate_noise_events(cfg.get("noise_events", []))
+    _validate_frontend(cfg, _table(cfg, "frontend"))
+    nav = _table(cfg, "nav")
+    if not isinstance(nav.get("data_bits"), bool):
+        raise ConfigError(f"nav.data_bits must be true or false, got {nav.get('data_bits')!r}")
+    if "imu" in cfg:
+        _table(cfg, "imu")
+        _num(cfg, "imu.rate_hz", lo=0, lo_open=True, hi=MAX_IMU_RATE_HZ)
+    if "atmosphere" in cfg:
+        _validate_atmosphere(_table(cfg, "atmosphere"))
+    if "engine" in cfg:
+        _validate_engine(_table(cfg, "engine"))
+    return cfg
+
+
+def _validate_satellites(cfg, sat):
     if sat.get("source") not in ("nominal", "rinex"):
         raise ConfigError(f"satellites.source must be 'nominal' or 'rinex', got {sat.get('source')!r}")
     if sat["source"] == "rinex":
@@ -239,7 +239,9 @@ def validate(cfg):
             raise ConfigError(f"satellites.cn0_dbhz must be a number (or list) in [0, 80] dB-Hz, got {cn0!r}")
     if isinstance(cn0, list) and len(cn0) != len(prns):
         raise ConfigError("satellites.cn0_dbhz as a list needs satellites.prns of the same length")
-    evs = cfg.get("noise_events", [])
+
+
+def _validate_noise_events(evs):
     if not isinstance(evs, list):
         raise ConfigError("noise_events must be an array of tables [[noise_events]]")
     for i, ev in enumerate(evs):
@@ -254,7 +256,9 @@ def validate(cfg):
         if not MIN_NOISE_FACTOR <= ev["noise_factor"] <= MAX_NOISE_FACTOR:
             raise ConfigError(f"noise_events[{i}].noise_factor must be in [{MIN_NOISE_FACTOR:g}, "
                               f"{MAX_NOISE_FACTOR:g}] (x the nominal noise std), got {ev['noise_factor']!r}")
-    fe = _table(cfg, "frontend")
+
+
+def _validate_frontend(cfg, fe):
     if fe.get("format") not in FORMATS:
         raise ConfigError(f"frontend.format: unknown IF sample format {fe.get('format')!r}; "
                           f"expected one of {', '.join(FORMATS)}")
@@ -266,25 +270,17 @@ def validate(cfg):
         raise ConfigError(f"frontend.format {fe['format']!r} does not match frontend.sampling "
                           f"{fe.get('sampling')!r}")
     check_bits_for_format(fe["format"], fe["bits"])
-    nav = _table(cfg, "nav")
-    if not isinstance(nav.get("data_bits"), bool):
-        raise ConfigError(f"nav.data_bits must be true or false, got {nav.get('data_bits')!r}")
-    if "imu" in cfg:
-        _table(cfg, "imu")
-        _num(cfg, "imu.rate_hz", lo=0, lo_open=True, hi=MAX_IMU_RATE_HZ)
-    if "atmosphere" in cfg:
-        _validate_atmosphere(_table(cfg, "atmosphere"))
-    if "engine" in cfg:
-        eng = _table(cfg, "engine")
-        unknown = sorted(set(eng) - set(ENGINE_KEYS))
-        if unknown:
-            raise ConfigError(f"[engine]: unknown key(s) {', '.join(unknown)}; expected {', '.join(ENGINE_KEYS)}")
-        if "noise_tau_s" in eng:
-            v = eng["noise_tau_s"]
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0:
-                raise ConfigError(f"engine.noise_tau_s must be >= 0 s (or inf), got {v!r}")
-            eng["noise_tau_s"] = float(v)
-    return cfg
+
+
+def _validate_engine(eng):
+    unknown = sorted(set(eng) - set(ENGINE_KEYS))
+    if unknown:
+        raise ConfigError(f"[engine]: unknown key(s) {', '.join(unknown)}; expected {', '.join(ENGINE_KEYS)}")
+    if "noise_tau_s" in eng:
+        v = eng["noise_tau_s"]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0:
+            raise ConfigError(f"engine.noise_tau_s must be >= 0 s (or inf), got {v!r}")
+        eng["noise_tau_s"] = float(v)
 
 
 # [atmosphere] (opt-in): delays the generator applies (ultratight.signals.atmosphere); the default
@@ -295,8 +291,6 @@ ATMOSPHERE_DEFAULTS = {"iono": "off", "tropo": "off", "tropo_mapping": "cosz", "
 
 
 def _validate_atmosphere(atm):
-    from ultratight.signals.atmosphere import IONO_MODELS, MAPPINGS, TROPO_MODELS
-
     check_known_keys(atm, ATMOSPHERE_DEFAULTS, "[atmosphere]")
     for k, v in ATMOSPHERE_DEFAULTS.items():
         atm.setdefault(k, list(v) if isinstance(v, list) else v)

@@ -15,18 +15,40 @@ navigation solution; attributes with the resolved configuration) and ``metrics.j
 figures like the paper's Fig. 4–7 when matplotlib is installed.
 """
 
+import dataclasses
 import hashlib
 import json
 import time
 from contextlib import contextmanager
 from pathlib import Path
 
+import h5py
 import numpy as np
 
-from ultratight import __version__
+from ultratight import __version__, io_guard
 from ultratight.errors import ConfigError, InputFileError
+from ultratight.ins.earth import dcm_ecef_from_enu, llh_to_ecef
+from ultratight.ins.imu import read_imu_h5
+from ultratight.ins.trajectory import build_trajectory
+from ultratight.io_guard import atomic_path, note_complete, output_error, write_h5_atomic, write_text_atomic
 from ultratight.receiver import metrics as M
+from ultratight.receiver.blockstream import BlockStream
+from ultratight.receiver.commands.generate import estimate
+from ultratight.receiver.engine import EngineOptions, EngineResult, UltratightEngine, check_method, monitor_mode
+from ultratight.receiver.methods import method_spec
+from ultratight.receiver.scenario_config import IMU_DEFAULTS, load_scenario
+from ultratight.receiver.startup import StartupErrors, perturb_state, predict_channels
+from ultratight.receiver.tracking import REC_F_NAMES, REC_I_NAMES, ScalarTracker
+from ultratight.signals.constellation import nominal_ephemerides
+from ultratight.signals.generator import generate
+from ultratight.signals.iffile import open_if
+from ultratight.signals.rinex import read_rinex_nav
 from ultratight.signals.signal import GPS_L1CA
+
+try:
+    import fcntl
+except ImportError:      # pragma: no cover - no fcntl (not POSIX): cache entries are not locked
+    fcntl = None
 
 SCHEMA = "ultratight scenario results v1 (docs/ultratight.md)"
 
@@ -61,7 +83,6 @@ def _cache_entry_ok(d, done):
     if "if" not in paths or "truth" not in paths:
         return None
     try:
-        from ultratight.signals.iffile import open_if
         open_if(paths["if"]).close()
     except (OSError, ValueError):
         return None
@@ -75,11 +96,8 @@ def _cache_lock(d):
     lock_path = d.with_name(d.name + ".lock")
     fh = open(lock_path, "a+")
     try:
-        try:
-            import fcntl
+        if fcntl is not None:
             fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
-        except ImportError:      # pragma: no cover - no fcntl (not POSIX)
-            pass
         yield
     finally:
         fh.close()               # releases the lock
@@ -90,8 +108,6 @@ def prepare_data(cfg, seed, out_dir, progress=False):
 
     The entry is guarded by a per-key lock; ``done.json`` records every file's name and size and is
     written last (atomically); an entry that does not verify is regenerated."""
-    from ultratight.io_guard import output_error, write_text_atomic
-    from ultratight.signals.generator import generate
     c = dict(cfg)
     c["seed"] = int(seed)
     c.pop("source_file", None)
@@ -135,7 +151,6 @@ def prepare_data(cfg, seed, out_dir, progress=False):
 def load_truth(path):
     """Truth arrays of the generator (docs/generator.md): t_s (n,), prn (n_ch,), code phase,
     Doppler (n, n_ch)."""
-    import h5py
     try:
         with h5py.File(path, "r") as f:
             return {"t_s": f["t_s"][()], "prn": [int(p) for p in f.attrs["prn"]],
@@ -151,9 +166,7 @@ def ephemerides_for(cfg):
     sat = cfg.get("satellites", {})
     week, tow = int(cfg["time"]["week"]), float(cfg["time"]["tow_s"])
     if sat.get("source", "nominal") == "nominal":
-        from ultratight.signals.constellation import nominal_ephemerides
         return nominal_ephemerides(week, tow)
-    from ultratight.signals.rinex import read_rinex_nav
     nav = read_rinex_nav(sat.get("rinex_path", sat.get("rinex")))
     out = {}
     for prn in sorted(nav.ephemerides):
@@ -168,7 +181,6 @@ def ephemerides_for(cfg):
 
 def truth_initial_state(cfg):
     """True INS/clock state at t = 0 from the scenario trajectory."""
-    from ultratight.ins.trajectory import build_trajectory
     traj = build_trajectory(cfg.get("trajectory", {"kind": "static"}), cfg.get("receiver", {}),
                             float(cfg["duration_s"]))
     k = traj.kinematics(np.zeros(1))
@@ -181,9 +193,6 @@ def truth_initial_state(cfg):
 def engine_options_for(cfg, options=None):
     """EngineOptions for a scenario: ``options`` (default EngineOptions()) with the scenario's
     ``[engine]`` table applied (e.g. its noise-floor estimator)."""
-    import dataclasses
-
-    from ultratight.receiver.engine import EngineOptions
     opt = options or EngineOptions()
     eng = cfg.get("engine") or {}
     return dataclasses.replace(opt, **eng) if eng else opt
@@ -191,11 +200,6 @@ def engine_options_for(cfg, options=None):
 
 def run_method(paths, cfg, method, seed, options=None, startup_errors=None, duration_s=None):
     """Run one method on generated files; returns (EngineResult, truth dict)."""
-    from ultratight.ins.imu import read_imu_h5
-    from ultratight.receiver.engine import EngineOptions, UltratightEngine
-    from ultratight.receiver.methods import method_spec
-    from ultratight.receiver.startup import StartupErrors, perturb_state
-    from ultratight.signals.iffile import open_if
     spec = method_spec(method)
     options = engine_options_for(cfg, options)
     truth = load_truth(paths["truth"])
@@ -218,22 +222,17 @@ def run_method(paths, cfg, method, seed, options=None, startup_errors=None, dura
 
 
 def run_scalar(src, prns, ephs, week, tow0, init, duration_s=None, block_ms=100):
-    """The scalar tracking loops of receiver.tracking (no INS) from the same hot-start predictions; returns an
+    """The scalar tracking bank (:class:`ultratight.receiver.tracking.ScalarTracker`, no INS) over the
+    IF block stream from the same hot-start predictions as the ultra-tight methods; returns an
     EngineResult-like record of the per-epoch NCO Doppler and code phase."""
-    import time as _time
-    from ultratight.ins.earth import dcm_ecef_from_enu, llh_to_ecef
-    from ultratight.receiver.blockstream import BlockStream
-    from ultratight.receiver.engine import EngineResult
-    from ultratight.receiver.startup import predict_channels
-    from ultratight.receiver.tracking import REC_F_NAMES, REC_I_NAMES, ScalarTracker
-    t0 = _time.perf_counter()
+    t0 = time.perf_counter()
     n_ch = len(prns)
     fs = src.fs_hz
     lat, lon, h = init["llh"]
     pos = np.array(llh_to_ecef(lat, lon, h))
     vel = dcm_ecef_from_enu(lat, lon) @ np.asarray(init["vel_l"])
     pr = predict_channels(ephs, prns, week, tow0, pos, vel, init["clk_bias_m"], init["clk_drift_mps"])
-    trk = ScalarTracker(n_ch, fs, src.if_hz, src.is_complex, max_rows=block_ms + 8)
+    trk = ScalarTracker(n_ch, fs, src.if_hz, src.is_complex, max_rows=block_ms + 8, signal=GPS_L1CA)
     for ch, prn in enumerate(prns):
         trk.start_channel(ch, prn, pr["code_phase_chips"][ch], pr["doppler_hz"][ch], 0, 20.0)
     dur = src.duration_s if duration_s is None else min(duration_s, src.duration_s)
@@ -242,25 +241,12 @@ def run_scalar(src, prns, ephs, week, tow0, init, duration_s=None, block_ms=100)
     i_cp, i_f = REC_F_NAMES.index("code_phase_chips"), REC_F_NAMES.index("doppler_hz")
     i_s = REC_I_NAMES.index("sample_index")
     rows_t, rows_f, rows_c = [[] for _ in range(n_ch)], [[] for _ in range(n_ch)], [[] for _ in range(n_ch)]
-    stream = BlockStream(src, blk, sigma_stop=n_total)
-    start = 0
-    while start < n_total:
-        lo = trk.next_needed_sample()
-        if lo is None:
-            break
-        lo = min(lo, start)
-        stream.ensure(start + blk, keep_from=lo)
-        buf, lo = stream.view(lo)
-        if buf.shape[0] == 0:
-            break
-        sig = float(stream.sigma_at(start))
-        rf, ri, nr = trk.run(buf, lo, sig, stop_sample=min(start + blk, n_total))
+    for rf, ri, nr in trk.track_aligned(BlockStream(src, blk, sigma_stop=n_total), n_total):
         for ch in range(n_ch):
             k = nr[ch]
             rows_t[ch].append(ri[ch, :k, i_s] / fs)
             rows_f[ch].append(rf[ch, :k, i_f])
             rows_c[ch].append(rf[ch, :k, i_cp])
-        start += blk
     n = min(sum(len(x) for x in rows_t[ch]) for ch in range(n_ch))
     cat = lambda rows: np.stack([np.concatenate(r)[:n] for r in rows], axis=1)  # noqa: E731
     t = cat(rows_t)
@@ -269,7 +255,7 @@ def run_scalar(src, prns, ephs, week, tow0, init, duration_s=None, block_ms=100)
                         code_phase_chips=np.mod(cat(rows_c), float(GPS_L1CA.code_length)), amp=np.full(t.shape, np.nan),
                         mode=np.zeros(t.shape, dtype=np.int8), nav_t=np.zeros(0), nav_pos_e=empty,
                         nav_vel_e=empty, nav_clk=np.zeros((0, 2)), nav_sigma_doppler_hz=np.zeros((0, n_ch)),
-                        runtime_s=_time.perf_counter() - t0, duration_s=n * 1e-3,
+                        runtime_s=time.perf_counter() - t0, duration_s=n * GPS_L1CA.code_period_s,
                         info={"pipeline": "receiver.tracking ScalarTracker (FLL-assisted PLL, DLL), no INS"})
 
 
@@ -278,10 +264,9 @@ def errors_vs_truth(res, truth):
                              truth["doppler_hz"], truth["code_phase_chips"])
 
 
-def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scenario_out", duration_s=None,
-                 fs_hz=None, channel=0, plots=True, progress=True, options=None, overrides=None):
-    from ultratight.receiver.engine import check_method
-    from ultratight.receiver.scenario_config import load_scenario
+def scenario_config(name, methods, runs=1, duration_s=None, fs_hz=None, overrides=None):
+    """The resolved scenario configuration of a ``run_scenario`` call (methods and overrides checked;
+    a scenario without ``[imu]`` gets the default IMU when an ultra-tight method runs)."""
     for m in methods:
         check_method(m)
     if int(runs) < 1:
@@ -296,8 +281,13 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
     cfg = load_scenario(name, ov)
     if any(m != "scalar" for m in methods) and "imu" not in cfg:
         # the ultra-tight methods run on an IMU: a scenario without [imu] gets the default one
-        from ultratight.receiver.scenario_config import IMU_DEFAULTS
         cfg["imu"] = dict(IMU_DEFAULTS)
+    return cfg
+
+
+def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scenario_out", duration_s=None,
+                 fs_hz=None, channel=0, plots=True, progress=True, options=None, overrides=None):
+    cfg = scenario_config(name, methods, runs, duration_s, fs_hz, overrides)
     base_seed = int(cfg.get("seed", 0) if seed is None else seed)
     if base_seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {base_seed}")
@@ -308,13 +298,16 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        from ultratight.io_guard import output_error
         raise output_error(out, exc, "cannot create output directory") from None
-    dur = float(cfg["duration_s"])
-    segs = M.SEGMENTS_S
+    per, raw = _run_all(cfg, methods, int(runs), base_seed, out, channel, progress, options)
+    return _report(name, cfg, methods, int(runs), base_seed, out, channel, plots, options, per, raw)
+
+
+def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options):
+    """Every method on every run's data: per-run summaries and raw (result, errors) per (run, method)."""
     per = {m: [] for m in methods}
     raw = {}
-    for r in range(int(runs)):
+    for r in range(runs):
         s = base_seed + r
         t0 = time.perf_counter()
         paths, cached = prepare_data(cfg, s, out, progress=progress)
@@ -327,7 +320,7 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
         for m in methods:
             res, truth = run_method(paths, cfg, m, s, options=options)
             d_err, c_err = errors_vs_truth(res, truth)
-            summ = M.summarize(res.t_start, d_err, c_err, segs, channel=channel)
+            summ = M.summarize(res.t_start, d_err, c_err, M.SEGMENTS_S, channel=channel)
             summ["runtime_s"] = res.runtime_s
             # wall-clock seconds per signal second (as `ultratight process`): < 1 = faster than real time
             summ["realtime_factor"] = res.runtime_s / res.duration_s if res.duration_s > 0 else float("nan")
@@ -338,13 +331,19 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
                 print(f"  {m:10s} Doppler RMS {np.round(summ['doppler_rms_hz'], 4).tolist()} Hz, code RMS "
                       f"{np.round(summ['code_rms_chips'], 4).tolist()} chip, lost {summ['lock_lost_channels']}, "
                       f"{res.runtime_s:.1f} s (real-time factor {summ['realtime_factor']:.3f})", flush=True)
+    return per, raw
+
+
+def _report(name, cfg, methods, runs, base_seed, out, channel, plots, options, per, raw):
+    """metrics.json, results.h5, figures and the text tables of a scenario run."""
+    dur = float(cfg["duration_s"])
+    segs = M.SEGMENTS_S
     agg = {m: aggregate(per[m], raw, m, segs, channel) for m in methods}
     events = _event_windows(cfg, dur)
     for m in methods:
         agg[m]["noise_events"] = event_rms(raw, m, events)
-    from ultratight.receiver.engine import EngineOptions, monitor_mode
     mon = monitor_mode(options or EngineOptions())
-    js = {"scenario": cfg.get("name", str(name)), "seed": base_seed, "runs": int(runs), "duration_s": dur,
+    js = {"scenario": cfg.get("name", str(name)), "seed": base_seed, "runs": runs, "duration_s": dur,
           "segments_s": [list(x) for x in segs], "channel": channel,
           "methods": {m: {k: agg[m][k] for k in ("doppler_rms_hz", "code_rms_chips", "diverged",
                                                   "lock_lost_channels", "runtime_s", "realtime_factor",
@@ -352,17 +351,13 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
                                                   "segment_diverged", "noise_events")}
                       for m in methods}, "monitor": mon,
           "per_run": per, "version": __version__, "paper_table3": M.PAPER_TABLE3, "paper_table4_s": M.PAPER_TABLE4_S}
-    from ultratight.io_guard import write_text_atomic
     mpath = out / "metrics.json"
     write_text_atomic(mpath, json.dumps(M.json_clean(js), indent=2))
     hpath = out / "results.h5"
     write_results_h5(hpath, cfg, raw, methods, runs, base_seed)
-    from ultratight.io_guard import note_complete
     note_complete(mpath)
     note_complete(hpath)
-    figs = []
-    if plots:
-        figs = make_plots(out, raw, methods, channel)
+    figs = make_plots(out, raw, methods, channel) if plots else []
     text = M.format_tables(agg, segs) + "\n" + (
         f"\n{runs} run(s), seeds {base_seed}..{base_seed + runs - 1}; RMS over all channels and runs; "
         "'\\' = lock lost (diverged) in that segment.")
@@ -432,8 +427,6 @@ def aggregate(summaries, raw, method, segs, channel):
 
 def _check_out_dir(out, cfg, runs):
     """--out: a directory (existing or creatable) with room for the runs' data (estimate)."""
-    from ultratight import io_guard
-    from ultratight.receiver.commands.generate import estimate
     io_guard.check_path_length(out, "--out")
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out} exists and is not a directory")
@@ -445,7 +438,6 @@ def _check_out_dir(out, cfg, runs):
 
 
 def write_results_h5(path, cfg, raw, methods, runs, base_seed):
-    from ultratight.io_guard import write_h5_atomic
 
     def build(f):
         f.attrs["schema"] = SCHEMA
@@ -472,7 +464,7 @@ def write_results_h5(path, cfg, raw, methods, runs, base_seed):
 
 def make_plots(out, raw, methods, channel):
     """Paper-style figures (Fig. 4–7): Doppler and code-phase error of one channel vs time."""
-    try:
+    try:                        # matplotlib: optional dependency (the "plot" extra)
         import matplotlib
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
@@ -498,7 +490,6 @@ def make_plots(out, raw, methods, channel):
         ax.grid(True, alpha=0.3)
         ax.legend()
         p = Path(out) / name
-        from ultratight.io_guard import atomic_path
         try:
             with atomic_path(p) as tmp:
                 fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")

@@ -10,8 +10,15 @@ Tables in :data:`PASS_THROUGH_TABLES` belong to other stages, which check their 
 to that experiment's module (its ``load`` validates its own schema).
 """
 
-from ultratight.receiver.scenario_config import ENGINE_KEYS, check_known_keys
+import difflib
+
 from ultratight.errors import ConfigError
+from ultratight.ins import trajectory
+from ultratight.ins.imu import _KNOWN_KEYS as _IMU_KNOWN_KEYS
+
+# receiver settings a scenario may fix (the ultra-tight engine's EngineOptions fields); they do not
+# change the generated data, only how the scenario is processed
+ENGINE_KEYS = ("noise_tau_s",)
 
 TOP_LEVEL_KEYS = ("name", "description", "duration_s", "seed", "experiment")
 TABLES = {
@@ -24,7 +31,7 @@ TABLES = {
                  "gain", "headroom"),
     "nav": ("data_bits",),
     "engine": ENGINE_KEYS,
-    "imu": None,          # filled lazily from ultratight.ins.imu (its known keys)
+    "imu": None,          # the known keys of ultratight.ins.imu
 }
 ARRAY_TABLES = {"noise_events": ("t0_s", "t1_s", "noise_factor")}
 TRAJECTORY_SEGMENT_KEYS = ("t0", "acc_enu", "jerk_enu", "turn_rate_dps", "acc_mps2", "speed_mps", "rate_dps")
@@ -33,16 +40,26 @@ PASS_THROUGH_TABLES = ("atmosphere",)
 
 
 def _imu_keys():
-    from ultratight.ins.imu import _KNOWN_KEYS
-    return tuple(sorted(_KNOWN_KEYS))
+    return tuple(sorted(_IMU_KNOWN_KEYS))
 
 
 def _declared(name, keys):
     """``keys`` plus any the stage itself declares (``ultratight.ins.trajectory.CONFIG_KEYS`` ...)."""
     if name == "trajectory":
-        from ultratight.ins import trajectory
         return tuple(keys) + tuple(getattr(trajectory, "CONFIG_KEYS", ()))
     return keys
+
+
+def check_known_keys(table, allowed, where):
+    """Refuse keys of ``table`` not in ``allowed`` (a did-you-mean names the closest one).
+
+    ``where`` names the table in the message (``"[imu]"``, ``"top level"``)."""
+    unknown = sorted(set(table) - set(allowed))
+    if unknown:
+        k = unknown[0]
+        near = difflib.get_close_matches(k, list(allowed), n=1)
+        hint = f" (did you mean {near[0]!r}?)" if near else f"; expected one of {', '.join(sorted(allowed))}"
+        raise ConfigError(f"{where}: unknown key {k!r}{hint}")
 
 
 def check_raw(raw, where="scenario"):

@@ -1,7 +1,12 @@
 """Scalar tracking: FLL-assisted Costas PLL, carrier-aided DLL, C/N0, lock indicators, bit sync.
 
+The signal is a :class:`ultratight.signals.signal.SignalDescription` (default GPS L1 C/A): its
+code (length ``L`` chips at ``f_chip``), carrier ``f_carrier`` and code periods per data bit reach
+the kernel as parameters (``prm[P_CODE_LEN]``, ``prm[P_CHIP_RATE]``, ``prm[P_CARRIER]``, the width
+of the bit-sync histogram); an epoch is one code period (1 ms for C/A).
+
 All per-epoch work runs in one numba call per IF block (:func:`_track_block`): for every
-active channel it integrates C/A periods with the correlator kernel of
+active channel it integrates code periods with the correlator kernel of
 :mod:`ultratight.receiver.correlator` (E/P/L, normalised per
 :mod:`ultratight.signals.corr_model`: unit noise per arm, prompt amplitude
 ``A = sqrt(2 C/N0 T)``), runs the discriminators and loop filters, updates the NCOs,
@@ -20,7 +25,7 @@ trapezoidal integrators; ``w0`` natural frequency in rad/s, phase in cycles, fre
   ``f = x + b3 w0p e_p``;  ``w0p = Bn/0.7845``, ``w0f = Bn_f/0.53``, a2 = sqrt 2, a3 = 1.1, b3 = 2.4.
 * DLL: normalised early-minus-late envelope ``dtau = (1 - D/2)(|E| - |L|)/(|E| + |L|)`` (chips,
   input minus replica; exact inside the linear range for a triangle correlation), carrier aided:
-  ``code_rate = F_CA (1 + f/F_L1) + u`` with ``u = 4 Bn dtau`` (order 1) or
+  ``code_rate = f_chip (1 + f/f_carrier) + u`` with ``u = 4 Bn dtau`` (order 1) or
   ``z += T w0^2 dtau``; ``u = z + a2 w0 dtau`` (order 2).
 * Pull-in mode (after (re)acquisition): wide PLL + FLL assist, 1 ms. Track mode (after the
   phase-lock indicator has held for ``lock_s``): track bandwidths, and after bit sync the
@@ -34,11 +39,17 @@ trapezoidal integrators; ``w0`` natural frequency in rad/s, phase in cycles, fre
   constant ``pli_tau_s``.
 * Loss of lock: C/N0 estimate below ``cn0_lost_dbhz`` for ``lost_s`` -> channel mode LOST and
   deactivated (the pipeline re-acquires it).
-* Bit sync: sign changes of 1 ms I_P counted in 20 bins (epoch mod 20); declared when the largest
+* Bit sync: sign changes of the per-period I_P counted in one bin per code period of a bit (20 for
+  C/A: epoch mod 20); declared when the largest
   bin leads the second by ``bs_margin`` and stands 6 sigma above the mean of the others (Poisson
   noise transitions; works before phase lock too: a
   residual beat adds transitions to every bin alike).  Coherent integration then grows to
   ``coh_ms`` in both modes (the FLL then sees the higher SNR of the longer sums).
+
+The per-epoch logic (:func:`_epoch_update`) is split into small numba functions (C/N0, mode,
+bit sync, coherent sums, PLI, bandwidths, loop filters) compiled into the block kernel; the
+per-sample correlation loops (:func:`_integrate_pel`, ``correlator.integrate_channel``) are the
+hot path and stay single functions.
 """
 
 import math
@@ -47,9 +58,10 @@ from dataclasses import dataclass, asdict
 import numpy as np
 from numba import njit, prange
 
-from ultratight.constants import CA_LEN, F_CA, F_L1, CODE_PER_BIT
+from ultratight.errors import ConfigError
 from ultratight.receiver.correlator import (COS_LUT, LUT_BITS, LUT_SIZE, SIN_LUT, integrate_channel,
-                                            nco_fixed_point, period_samples, tap_fixed_point)
+                                            nco_fixed_point, tap_fixed_point)
+from ultratight.signals.signal import GPS_L1CA
 
 # channel modes
 MODE_OFF, MODE_PULL, MODE_TRACK, MODE_LOST = 0, 1, 2, 3
@@ -68,8 +80,8 @@ N_SI = 10
 (P_PULL_PLL_BW, P_PULL_FLL_BW, P_PULL_DLL_BW, P_TRK_PLL_BW, P_TRK_FLL_BW, P_TRK_DLL_BW, P_PLL_ORDER,
  P_DLL_ORDER, P_COH_MS, P_SPACING, P_CN0_WIN, P_CN0_LOST, P_LOST_S, P_PLI_LOCK, P_LOCK_S, P_UNLOCK_S,
  P_BS_MARGIN, P_PLI_TAU, P_MAX_BNT, P_CN0_ALPHA, P_WEAK_DBHZ, P_PULL_COH_MS, P_WEAK_LONG_COH_MS,
- P_WEAK_PLL_BW, P_PEL) = range(25)
-N_PRM = 25
+ P_WEAK_PLL_BW, P_PEL, P_CODE_LEN, P_CHIP_RATE, P_CARRIER) = range(28)
+N_PRM = 28          # the last three: the signal's code length (chips), chip rate and carrier (Hz)
 
 # record columns: float (rf) and int (ri)
 (R_CODE_PHASE, R_CODE_RATE, R_CARR_ACC, R_DOPP, R_IP, R_QP, R_IE, R_QE, R_IL, R_QL, R_CN0, R_PLI,
@@ -119,7 +131,6 @@ class TrackingConfig:
     fast_el: bool = True            # 1-chip spacing: prompt + (E-L) kernel and dot-product DLL
 
     def validate(self):
-        from ultratight.errors import ConfigError
         if self.coh_ms not in (1, 2, 4, 5, 10, 20) or self.weak_long_coh_ms not in (1, 2, 4, 5, 10, 20):
             raise ConfigError(f"tracking coh_ms must be one of 1, 2, 4, 5, 10, 20 (divides a 20 ms bit), "
                               f"got {self.coh_ms}")
@@ -132,7 +143,9 @@ class TrackingConfig:
         if not 0.0 < self.spacing_chips < 2.0:
             raise ConfigError(f"tracking spacing_chips must be in (0, 2), got {self.spacing_chips}")
 
-    def params(self):
+    def params(self, signal=GPS_L1CA):
+        """The kernel's parameter vector: these loop parameters and the ``signal``'s code length,
+        chip rate and carrier (a :class:`ultratight.signals.signal.SignalDescription`)."""
         p = np.zeros(N_PRM)
         p[P_PULL_PLL_BW] = self.pull_pll_bw_hz
         p[P_PULL_FLL_BW] = self.pull_fll_bw_hz
@@ -159,6 +172,9 @@ class TrackingConfig:
         p[P_WEAK_LONG_COH_MS] = self.weak_long_coh_ms
         p[P_WEAK_PLL_BW] = self.weak_pll_bw_hz
         p[P_PEL] = 1.0 if (self.fast_el and self.spacing_chips == 1.0) else 0.0
+        p[P_CODE_LEN] = signal.code_length
+        p[P_CHIP_RATE] = signal.chip_rate_hz
+        p[P_CARRIER] = signal.carrier_hz
         return p
 
 
@@ -239,17 +255,9 @@ def dll_update(z, dtau, t, bn, order):
 
 # ------------------------------------------------------------------------------ per-epoch logic
 @njit(cache=True)
-def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2):
-    """Bookkeeping + loops for one channel after one ~1 ms epoch with outputs o[0:6].
-
-    Returns (doppler_hz, code_rate_corr, flags, bit_soft)."""
-    ip, ie, il, qp, qe, ql = o[0], o[1], o[2], o[3], o[4], o[5]
-    mode = si[ch, S_MODE]
-    epoch = si[ch, S_EPOCH]
-    flags = 0
-    bit_soft = 0.0
-    # --- C/N0 (power with unit-noise reference)
-    p = ip * ip + qp * qp
+def _cn0_update(ch, p, t_ep, sf, si, prm):
+    """C/N0 from the prompt power ``p`` with the unit-noise reference: ``(mean P - 2)/(2 T)`` over
+    ``cn0_win_ms`` epochs, smoothed exponentially in dB."""
     sf[ch, F_CN0_P] += p
     sf[ch, F_CN0_T] += t_ep
     si[ch, S_CN0_N] += 1
@@ -268,31 +276,45 @@ def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2):
         sf[ch, F_CN0_P] = 0.0
         sf[ch, F_CN0_T] = 0.0
         si[ch, S_CN0_N] = 0
-    # --- phase lock indicator: from the coherent sums at each loop update (below)
+
+
+@njit(cache=True)
+def _mode_update(ch, mode, t_ep, sf, si, prm):
+    """Pull-in / track / lost transitions; returns (mode, flags with FL_PLL_LOCK)."""
+    flags = 0
     if mode == MODE_PULL and sf[ch, F_LOCK_T] >= prm[P_LOCK_S]:
         mode = MODE_TRACK
     elif mode == MODE_TRACK and sf[ch, F_UNLOCK_T] >= prm[P_UNLOCK_S]:
         mode = MODE_PULL
     if mode == MODE_TRACK and (si[ch, S_CN0_VALID] == 0 or sf[ch, F_CN0_DB] >= prm[P_CN0_LOST]):
         flags |= FL_PLL_LOCK
-    # --- loss of lock (code): C/N0 too low for too long
+    # loss of lock (code): C/N0 too low for too long
     if si[ch, S_CN0_VALID] == 1 and sf[ch, F_CN0_DB] < prm[P_CN0_LOST]:
         sf[ch, F_LOW_T] += t_ep
     else:
         sf[ch, F_LOW_T] = 0.0
     if sf[ch, F_LOW_T] >= prm[P_LOST_S]:
         mode = MODE_LOST
-    # --- bit synchronisation (sign-change histogram), in track mode
+    return mode, flags
+
+
+@njit(cache=True)
+def _bit_sync(ch, ip, epoch, mode, sf, si, hist, prm):
+    """Bit synchronisation (sign-change histogram over the ``hist.shape[1]`` code periods of a data
+    bit) and the bit sums after it; returns (bit phase or -1, flags, soft bit)."""
+    cpb = hist.shape[1]
+    flags = 0
+    bit_soft = 0.0
     bph = si[ch, S_BIT_PHASE]
     if bph < 0 and mode != MODE_LOST:
         if sf[ch, F_LAST_I] != 0.0 and (ip > 0.0) != (sf[ch, F_LAST_I] > 0.0):
-            b = epoch % CODE_PER_BIT
+            b = epoch % cpb
             hist[ch, b] += 1
             si[ch, S_NTRANS] += 1
             m1 = 0
             m2 = 0
             kbest = 0
-            for k in range(CODE_PER_BIT):
+            for k in range(cpb):
                 h = hist[ch, k]
                 if h > m1:
                     m2 = m1
@@ -302,7 +324,7 @@ def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2):
                     m2 = h
             # the other bins collect noise transitions (Poisson, mean mu): the edge bin must stand
             # 6 sigma above them and lead the runner-up by the margin
-            mu = (si[ch, S_NTRANS] - m1) / (CODE_PER_BIT - 1.0)
+            mu = (si[ch, S_NTRANS] - m1) / (cpb - 1.0)
             if m1 - m2 >= prm[P_BS_MARGIN] and m1 - mu >= 6.0 * math.sqrt(max(mu, 1.0)):
                 bph = kbest
                 si[ch, S_BIT_PHASE] = bph
@@ -310,20 +332,24 @@ def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2):
     sf[ch, F_LAST_I] = ip
     if bph >= 0:
         flags |= FL_BIT_SYNC
-        pos = (epoch - bph) % CODE_PER_BIT
+        pos = (epoch - bph) % cpb
         if pos == 0:
             sf[ch, F_BIT_SUM] = 0.0
             si[ch, S_BIT_N] = 0
         if si[ch, S_BIT_N] >= 0:
             sf[ch, F_BIT_SUM] += ip
             si[ch, S_BIT_N] += 1
-            if pos == CODE_PER_BIT - 1 and si[ch, S_BIT_N] == CODE_PER_BIT:
+            if pos == cpb - 1 and si[ch, S_BIT_N] == cpb:
                 flags |= FL_BIT_DONE
                 bit_soft = sf[ch, F_BIT_SUM]
-    # --- coherent accumulation
+    return bph, flags, bit_soft
+
+
+@njit(cache=True)
+def _coherent_length(ch, bph, weak, si, prm):
+    """Coherent integration (epochs) and its reference epoch for this epoch."""
     coh = 1
     ref = 0
-    weak = si[ch, S_CN0_VALID] == 1 and sf[ch, F_CN0_DB] < prm[P_WEAK_DBHZ]
     if bph >= 0:
         coh = int(prm[P_COH_MS])
         ref = bph
@@ -333,100 +359,157 @@ def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2):
         # weak signal before bit sync: short coherent sums (a bit edge spoils at most one of them)
         # give the FLL/PLL a usable SNR per update
         coh = int(prm[P_PULL_COH_MS])
-    if coh > 1:
-        if (epoch - ref) % coh == 0:
-            sf[ch, F_AIP] = 0.0
-            sf[ch, F_AQP] = 0.0
-            sf[ch, F_AIE] = 0.0
-            sf[ch, F_AQE] = 0.0
-            sf[ch, F_AIL] = 0.0
-            sf[ch, F_AQL] = 0.0
-            sf[ch, F_AT] = 0.0
-            si[ch, S_ACC_N] = 0
-            si[ch, S_ACC_COH] = coh
-        elif si[ch, S_ACC_COH] != coh:
-            # the integration length changed mid-way: no update until the next boundary
-            si[ch, S_ACC_N] = -(1 << 30)
-            si[ch, S_ACC_COH] = coh
-        sf[ch, F_AIP] += ip
-        sf[ch, F_AQP] += qp
-        sf[ch, F_AIE] += ie
-        sf[ch, F_AQE] += qe
-        sf[ch, F_AIL] += il
-        sf[ch, F_AQL] += ql
-        sf[ch, F_AT] += t_ep
-        si[ch, S_ACC_N] += 1
-        do_upd = si[ch, S_ACC_N] == coh
-        cip, cqp, cie, cqe, cil, cql, tc = (sf[ch, F_AIP], sf[ch, F_AQP], sf[ch, F_AIE], sf[ch, F_AQE],
-                                           sf[ch, F_AIL], sf[ch, F_AQL], sf[ch, F_AT])
-    else:
-        do_upd = True
-        cip, cqp, cie, cqe, cil, cql, tc = ip, qp, ie, qe, il, ql, t_ep
+    return coh, ref
+
+
+@njit(cache=True)
+def _accumulate(ch, o, t_ep, epoch, coh, ref, sf, si, acc7):
+    """Coherent sums of ``coh`` epochs aligned to ``ref``; fills ``acc7`` = [I_P, Q_P, I_E, Q_E, I_L,
+    Q_L, T] of the sum and returns True when the sum is complete (a loop update is due)."""
+    ip, ie, il, qp, qe, ql = o[0], o[1], o[2], o[3], o[4], o[5]
+    if coh <= 1:
         si[ch, S_ACC_N] = 0
+        acc7[0], acc7[1], acc7[2], acc7[3], acc7[4], acc7[5], acc7[6] = ip, qp, ie, qe, il, ql, t_ep
+        return True
+    if (epoch - ref) % coh == 0:
+        sf[ch, F_AIP] = 0.0
+        sf[ch, F_AQP] = 0.0
+        sf[ch, F_AIE] = 0.0
+        sf[ch, F_AQE] = 0.0
+        sf[ch, F_AIL] = 0.0
+        sf[ch, F_AQL] = 0.0
+        sf[ch, F_AT] = 0.0
+        si[ch, S_ACC_N] = 0
+        si[ch, S_ACC_COH] = coh
+    elif si[ch, S_ACC_COH] != coh:
+        # the integration length changed mid-way: no update until the next boundary
+        si[ch, S_ACC_N] = -(1 << 30)
+        si[ch, S_ACC_COH] = coh
+    sf[ch, F_AIP] += ip
+    sf[ch, F_AQP] += qp
+    sf[ch, F_AIE] += ie
+    sf[ch, F_AQE] += qe
+    sf[ch, F_AIL] += il
+    sf[ch, F_AQL] += ql
+    sf[ch, F_AT] += t_ep
+    si[ch, S_ACC_N] += 1
+    acc7[0], acc7[1], acc7[2], acc7[3], acc7[4], acc7[5], acc7[6] = (
+        sf[ch, F_AIP], sf[ch, F_AQP], sf[ch, F_AIE], sf[ch, F_AQE], sf[ch, F_AIL], sf[ch, F_AQL], sf[ch, F_AT])
+    return si[ch, S_ACC_N] == coh
+
+
+@njit(cache=True)
+def _pli_update(ch, cip, cqp, tc, n_acc, sf, prm):
+    """Phase-lock indicator LP(I^2 - Q^2) / (LP(I^2 + Q^2) - 2 n) on sums of n unit-noise epochs
+    (~ cos 2 dphi) and the lock / unlock timers."""
+    a = tc / prm[P_PLI_TAU]
+    if a > 1.0:
+        a = 1.0
+    sf[ch, F_PLI_N] += a * ((cip * cip - cqp * cqp) / n_acc - sf[ch, F_PLI_N])
+    sf[ch, F_PLI_D] += a * ((cip * cip + cqp * cqp) / n_acc - 2.0 - sf[ch, F_PLI_D])
+    den = sf[ch, F_PLI_D]
+    pli = sf[ch, F_PLI_N] / den if den > PLI_MIN_POWER else 0.0     # no signal power: no lock
+    sf[ch, F_PLI] = pli
+    if pli > prm[P_PLI_LOCK]:
+        sf[ch, F_LOCK_T] += tc
+        sf[ch, F_UNLOCK_T] = 0.0
+    else:
+        sf[ch, F_UNLOCK_T] += tc
+        sf[ch, F_LOCK_T] = 0.0
+
+
+@njit(cache=True)
+def _bandwidths(ch, mode, weak, tc, sf, si, prm):
+    """Noise bandwidths (PLL, FLL, DLL) of this update: mode, FLL SNR scaling, weak-signal and
+    stability caps."""
+    if mode == MODE_TRACK:
+        bn_p, bn_f, bn_d = prm[P_TRK_PLL_BW], prm[P_TRK_FLL_BW], prm[P_TRK_DLL_BW]
+    else:
+        bn_p, bn_f, bn_d = prm[P_PULL_PLL_BW], prm[P_PULL_FLL_BW], prm[P_PULL_DLL_BW]
+    if mode != MODE_TRACK and si[ch, S_CN0_VALID] == 1:
+        # the cross-product FLL's noise variance grows like 1/(C/N0 T)^2 at low SNR and then
+        # drags the PLL off lock: scale the assist bandwidth by the squared per-update SNR
+        # relative to 10 (40 dB-Hz at 1 ms)
+        snr = 10.0 ** (sf[ch, F_CN0_DB] / 10.0) * tc / 10.0
+        if snr < 1.0:
+            bn_f = bn_f * snr * snr
+    if weak and bn_p > prm[P_WEAK_PLL_BW]:
+        bn_p = prm[P_WEAK_PLL_BW]
+    cap = prm[P_MAX_BNT] / tc
+    if bn_p > cap:
+        bn_p = cap
+    if bn_f > cap:
+        bn_f = cap
+    return bn_p, bn_f, bn_d
+
+
+@njit(cache=True)
+def _loop_update(ch, mode, weak, n_acc, acc7, sf, si, prm, tmp2):
+    """Discriminators and loop filters on a complete coherent sum; returns (doppler_hz, u)."""
+    cip, cqp, cie, cqe, cil, cql, tc = acc7[0], acc7[1], acc7[2], acc7[3], acc7[4], acc7[5], acc7[6]
+    _pli_update(ch, cip, cqp, tc, n_acc, sf, prm)
+    ep = costas_disc(cip, cqp)
+    ef = 0.0
+    if si[ch, S_HAVE_PREV] == 1:
+        ef = fll_disc(sf[ch, F_PREV_I], sf[ch, F_PREV_Q], cip, cqp, tc)
+    sf[ch, F_PREV_I] = cip
+    sf[ch, F_PREV_Q] = cqp
+    si[ch, S_HAVE_PREV] = 1
+    if prm[P_PEL] > 0.0:
+        dtau = dll_disc_dot(cie, cqe, cip, cqp)      # cie, cqe hold E - L
+    else:
+        dtau = dll_disc(cie, cqe, cil, cql, prm[P_SPACING])
+    bn_p, bn_f, bn_d = _bandwidths(ch, mode, weak, tc, sf, si, prm)
+    tmp2[0] = sf[ch, F_PLL_X]
+    tmp2[1] = sf[ch, F_PLL_Y]
+    dopp = pll_fll_update(tmp2, ep, ef, tc, bn_p, bn_f, int(prm[P_PLL_ORDER]))
+    sf[ch, F_PLL_X] = tmp2[0]
+    sf[ch, F_PLL_Y] = tmp2[1]
+    u, z = dll_update(sf[ch, F_DLL_Z], dtau, tc, bn_d, int(prm[P_DLL_ORDER]))
+    sf[ch, F_DLL_Z] = z
+    sf[ch, F_DOPP] = dopp
+    sf[ch, F_DLL_U] = u
+    sf[ch, F_DLL_ERR] = dtau
+    sf[ch, F_PLL_ERR] = ep
+    sf[ch, F_FLL_ERR] = ef
+    return dopp, u
+
+
+@njit(cache=True)
+def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2, acc7):
+    """Bookkeeping + loops for one channel after one code-period epoch with outputs o[0:6]
+    (C/N0, mode, bit sync, coherent sums, then the loops when a sum is complete).
+
+    ``tmp2`` (2) and ``acc7`` (7) are scratch arrays. Returns (doppler_hz, code_rate_corr, flags, bit_soft)."""
+    ip, qp = o[0], o[3]
+    epoch = si[ch, S_EPOCH]
+    _cn0_update(ch, ip * ip + qp * qp, t_ep, sf, si, prm)
+    mode, flags = _mode_update(ch, si[ch, S_MODE], t_ep, sf, si, prm)
+    bph, fl_bit, bit_soft = _bit_sync(ch, ip, epoch, mode, sf, si, hist, prm)
+    flags |= fl_bit
+    weak = si[ch, S_CN0_VALID] == 1 and sf[ch, F_CN0_DB] < prm[P_WEAK_DBHZ]
+    coh, ref = _coherent_length(ch, bph, weak, si, prm)
+    do_upd = _accumulate(ch, o, t_ep, epoch, coh, ref, sf, si, acc7)
     dopp = sf[ch, F_DOPP]
     u = sf[ch, F_DLL_U]
     if do_upd and mode != MODE_LOST:
         flags |= FL_LOOP_UPD
-        # PLI = LP(I^2 - Q^2) / (LP(I^2 + Q^2) - 2 n) on sums of n unit-noise epochs  ~ cos(2 dphi)
         n_acc = si[ch, S_ACC_N] if coh > 1 else 1
-        a = tc / prm[P_PLI_TAU]
-        if a > 1.0:
-            a = 1.0
-        sf[ch, F_PLI_N] += a * ((cip * cip - cqp * cqp) / n_acc - sf[ch, F_PLI_N])
-        sf[ch, F_PLI_D] += a * ((cip * cip + cqp * cqp) / n_acc - 2.0 - sf[ch, F_PLI_D])
-        den = sf[ch, F_PLI_D]
-        pli = sf[ch, F_PLI_N] / den if den > PLI_MIN_POWER else 0.0     # no signal power: no lock
-        sf[ch, F_PLI] = pli
-        if pli > prm[P_PLI_LOCK]:
-            sf[ch, F_LOCK_T] += tc
-            sf[ch, F_UNLOCK_T] = 0.0
-        else:
-            sf[ch, F_UNLOCK_T] += tc
-            sf[ch, F_LOCK_T] = 0.0
-        ep = costas_disc(cip, cqp)
-        ef = 0.0
-        if si[ch, S_HAVE_PREV] == 1:
-            ef = fll_disc(sf[ch, F_PREV_I], sf[ch, F_PREV_Q], cip, cqp, tc)
-        sf[ch, F_PREV_I] = cip
-        sf[ch, F_PREV_Q] = cqp
-        si[ch, S_HAVE_PREV] = 1
-        if prm[P_PEL] > 0.0:
-            dtau = dll_disc_dot(cie, cqe, cip, cqp)      # cie, cqe hold E - L
-        else:
-            dtau = dll_disc(cie, cqe, cil, cql, prm[P_SPACING])
-        if mode == MODE_TRACK:
-            bn_p, bn_f, bn_d = prm[P_TRK_PLL_BW], prm[P_TRK_FLL_BW], prm[P_TRK_DLL_BW]
-        else:
-            bn_p, bn_f, bn_d = prm[P_PULL_PLL_BW], prm[P_PULL_FLL_BW], prm[P_PULL_DLL_BW]
-        if mode != MODE_TRACK and si[ch, S_CN0_VALID] == 1:
-            # the cross-product FLL's noise variance grows like 1/(C/N0 T)^2 at low SNR and then
-            # drags the PLL off lock: scale the assist bandwidth by the squared per-update SNR
-            # relative to 10 (40 dB-Hz at 1 ms)
-            snr = 10.0 ** (sf[ch, F_CN0_DB] / 10.0) * tc / 10.0
-            if snr < 1.0:
-                bn_f = bn_f * snr * snr
-        if weak and bn_p > prm[P_WEAK_PLL_BW]:
-            bn_p = prm[P_WEAK_PLL_BW]
-        cap = prm[P_MAX_BNT] / tc
-        if bn_p > cap:
-            bn_p = cap
-        if bn_f > cap:
-            bn_f = cap
-        tmp2[0] = sf[ch, F_PLL_X]
-        tmp2[1] = sf[ch, F_PLL_Y]
-        dopp = pll_fll_update(tmp2, ep, ef, tc, bn_p, bn_f, int(prm[P_PLL_ORDER]))
-        sf[ch, F_PLL_X] = tmp2[0]
-        sf[ch, F_PLL_Y] = tmp2[1]
-        u, z = dll_update(sf[ch, F_DLL_Z], dtau, tc, bn_d, int(prm[P_DLL_ORDER]))
-        sf[ch, F_DLL_Z] = z
-        sf[ch, F_DOPP] = dopp
-        sf[ch, F_DLL_U] = u
-        sf[ch, F_DLL_ERR] = dtau
-        sf[ch, F_PLL_ERR] = ep
-        sf[ch, F_FLL_ERR] = ef
+        dopp, u = _loop_update(ch, mode, weak, n_acc, acc7, sf, si, prm, tmp2)
     si[ch, S_MODE] = mode
     si[ch, S_EPOCH] = epoch + 1
     return dopp, u, flags, bit_soft
+
+
+@njit(cache=True)
+def period_samples(code_phase, dp, code_len):
+    """Samples k >= 1 of the code period starting at ``code_phase`` (chips) with ``dp`` chips per
+    sample: the smallest k with code_phase + k dp >= code_len; a sample within 1e-9 sample of the
+    period end counts as the next period's first (exact rates give exactly fs x period samples)."""
+    n = np.int64(np.ceil((code_len - code_phase) / dp - 1e-9))
+    if n < 1:
+        n = 1
+    return n
 
 
 @njit(cache=True)
@@ -506,15 +589,16 @@ _CS_LUT[0::2] = COS_LUT
 _CS_LUT[1::2] = SIN_LUT
 
 
-def half_chip_tables(prn, pad):
-    """Interleaved [P, E-L] float32 table over half-chip indices of the padded code (see _integrate_pel)."""
-    from ultratight.signals.ca_code import ca_code
-    code = ca_code(int(prn)).astype(np.float32)
-    nh = 2 * (CA_LEN + 2 * pad)
+def half_chip_tables(prn, pad, signal=GPS_L1CA):
+    """Interleaved [P, E-L] float32 table over half-chip indices of the padded code of ``prn`` of
+    ``signal`` (see _integrate_pel)."""
+    code = np.asarray(signal.code(int(prn))).astype(np.float32)
+    n_code = signal.code_length
+    nh = 2 * (n_code + 2 * pad)
     h = np.arange(nh)
 
     def chip(i):                      # padded chip i (i counts from -pad)
-        return code[(i - pad) % CA_LEN]
+        return code[(i - pad) % n_code]
 
     tab = np.empty(2 * nh, dtype=np.float32)
     tab[0::2] = chip(h >> 1)
@@ -532,10 +616,14 @@ def _track_channel(ch, buf, is_complex, buf_start, n_buf, stop_sample, code_ext,
     acc = np.zeros(2 * n_taps)
     o = np.zeros(6)
     tmp2 = np.zeros(2)
+    acc7 = np.zeros(7)
+    code_len = prm[P_CODE_LEN]
+    chip_rate = prm[P_CHIP_RATE]
+    carrier = prm[P_CARRIER]
     max_rows = rec_f.shape[1]
     while active[ch] and n_rec[ch] < max_rows:
         dp = code_rate[ch] / fs
-        n = period_samples(code_phase[ch], dp)
+        n = period_samples(code_phase[ch], dp, code_len)
         off = sample_ptr[ch] - buf_start
         if off < 0 or off + n > n_buf or sample_ptr[ch] + n > stop_sample:
             break
@@ -558,15 +646,15 @@ def _track_channel(ch, buf, is_complex, buf_start, n_buf, stop_sample, code_ext,
         rec_f[ch, r, R_CARR_ACC] = sf[ch, F_CARR_ACC]
         rec_f[ch, r, R_DOPP] = carr_freq[ch] - if_hz
         # advance NCOs exactly (as the correlator bank does)
-        code_phase[ch] = code_phase[ch] + n * dp - CA_LEN
+        code_phase[ch] = code_phase[ch] + n * dp - code_len
         ph = carr_phase[ch] + n * (carr_freq[ch] / fs)
         carr_phase[ch] = ph - np.floor(ph)
         sf[ch, F_CARR_ACC] += n * ((carr_freq[ch] - if_hz) / fs)
         sample_ptr[ch] = sample_ptr[ch] + n
         t_ep = n / fs
-        dopp, u, flags, bit_soft = _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2)
+        dopp, u, flags, bit_soft = _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2, acc7)
         carr_freq[ch] = if_hz + dopp
-        code_rate[ch] = F_CA * (1.0 + dopp / F_L1) + u
+        code_rate[ch] = chip_rate * (1.0 + dopp / carrier) + u
         rec_f[ch, r, R_IP] = o[0]
         rec_f[ch, r, R_QP] = o[3]
         rec_f[ch, r, R_IE] = o[1]
@@ -636,16 +724,31 @@ def cn0_m2m4(i_p, q_p, t_int):
 
 
 # ------------------------------------------------------------------------------ channel bank state
-class TrackingState:
-    """Loop state of ``n_ch`` channels (arrays for the numba kernel) plus record buffers."""
+STATE_NAMES = ("doppler_hz", "pll_x_hz", "pll_y_hz_s", "dll_z_cps", "prev_I", "prev_Q", "acc_I_P", "acc_Q_P",
+               "acc_I_E", "acc_Q_E", "acc_I_L", "acc_Q_L", "acc_t_s", "cn0_power_sum", "cn0_time_s", "cn0_dbhz",
+               "pli_num", "pli_den", "pli", "bit_sum", "lock_t_s", "unlock_t_s", "low_cn0_t_s",
+               "carrier_acc_cycles", "last_I_P", "dll_err_chips", "pll_err_cycles", "fll_err_hz", "dll_u_cps")
+"""Names of the float loop-state columns ``TrackingState.sf`` (indices ``F_*``; the first four are
+the loop filters' states)."""
+assert len(STATE_NAMES) == N_SF
+P_DOPP, P_PLL_X, P_PLL_Y, P_DLL_Z = F_DOPP, F_PLL_X, F_PLL_Y, F_DLL_Z   # state indices of the loop filters
 
-    def __init__(self, n_ch, config=None, max_rows=256):
+
+class TrackingState:
+    """Loop state of ``n_ch`` channels (arrays for the numba kernel) plus record buffers.
+
+    ``sf`` (n_ch, N_SF) float state (columns ``F_*``, names :data:`STATE_NAMES`), ``si`` (n_ch, N_SI)
+    int state (``S_*``), ``hist`` (n_ch, codes per bit) bit-edge histogram, ``prm`` the kernel
+    parameters (:meth:`TrackingConfig.params` with the signal's code length, chip rate and carrier),
+    ``rec_f`` / ``rec_i`` / ``n_rec`` the records of the last block (columns ``R_*`` / ``RI_*``)."""
+
+    def __init__(self, n_ch, config=None, max_rows=256, signal=GPS_L1CA):
         self.config = config or TrackingConfig()
         self.config.validate()
-        self.prm = self.config.params()
+        self.prm = self.config.params(signal)
         self.sf = np.zeros((n_ch, N_SF))
         self.si = np.zeros((n_ch, N_SI), dtype=np.int64)
-        self.hist = np.zeros((n_ch, CODE_PER_BIT), dtype=np.int64)
+        self.hist = np.zeros((n_ch, int(signal.codes_per_bit)), dtype=np.int64)
         self.rec_f = np.zeros((n_ch, max_rows, N_RF))
         self.rec_i = np.zeros((n_ch, max_rows, N_RI), dtype=np.int64)
         self.n_rec = np.zeros(n_ch, dtype=np.int64)
@@ -670,50 +773,153 @@ class TrackingState:
         return float(self.sf[ch, F_CN0_DB]) if self.si[ch, S_CN0_VALID] else float("nan")
 
 
-class ScalarTracker:
-    """A correlator bank + tracking loops; feed it IF buffers with :meth:`run`.
+class ChannelNcos:
+    """Code and carrier NCOs of ``n_ch`` tracking channels for one signal (arrays the kernel updates
+    in place): ``code_phase`` (chips at ``sample_ptr``), ``code_rate`` (chips/s), ``carr_phase``
+    (cycles), ``carr_freq`` (Hz, IF + Doppler), ``sample_ptr`` (absolute sample), ``active``;
+    ``code_ext`` (n_ch, code length + 2 pad) the +-1 codes with ``pad`` chips of wrap-around and
+    ``tap_offsets_chips`` the code offsets of [P, E, L] (the layout of
+    :class:`ultratight.receiver.correlator.CorrelatorBank`, whose kernels read them)."""
 
-    ``channels`` are added with :meth:`start_channel` (from acquisition); each call to :meth:`run`
-    tracks every active channel through the buffer and returns the new epoch records as
-    ``(rec_f (n_ch, rows, N_RF), rec_i (n_ch, rows, N_RI), n_rec (n_ch,))`` (copies).
+    def __init__(self, n_ch, fs_hz, if_hz, spacing_chips, signal=GPS_L1CA):
+        fs_hz, if_hz = float(fs_hz), float(if_hz)
+        if not (math.isfinite(fs_hz) and fs_hz >= signal.chip_rate_hz):
+            raise ConfigError(f"tracking: fs_hz = {fs_hz!r} Hz is below the {signal.name} chip rate "
+                              f"{signal.chip_rate_hz} Hz")
+        if not math.isfinite(if_hz) or abs(if_hz) >= fs_hz:
+            raise ConfigError(f"tracking: if_hz must satisfy |if_hz| < fs_hz = {fs_hz}, got {if_hz!r}")
+        self.signal = signal
+        self.fs_hz, self.if_hz = fs_hz, if_hz
+        self.tap_offsets_chips = np.array([0.0, 0.5 * spacing_chips, -0.5 * spacing_chips])
+        self.pad = int(math.ceil(0.5 * spacing_chips)) + 2
+        self.code_phase = np.zeros(n_ch)
+        self.code_rate = np.full(n_ch, float(signal.chip_rate_hz))
+        self.carr_phase = np.zeros(n_ch)
+        self.carr_freq = np.full(n_ch, if_hz)
+        self.sample_ptr = np.zeros(n_ch, dtype=np.int64)
+        self.active = np.zeros(n_ch, dtype=np.bool_)
+        self.code_ext = np.zeros((n_ch, signal.code_length + 2 * self.pad), dtype=np.float32)
+
+    def init_channel(self, ch, prn, code_phase_chips, doppler_hz, sample_index):
+        """Start channel ``ch`` on ``prn`` from a code phase / Doppler valid at ``sample_index``; the NCOs
+        are advanced to the next code-period start so that every integration spans a full period."""
+        sig, L = self.signal, self.signal.code_length
+        if int(prn) not in sig.prns:
+            raise ConfigError(f"tracking: PRN {prn} is not a {sig.name} PRN")
+        code = np.asarray(sig.code(int(prn))).astype(np.float32)
+        self.code_ext[ch] = code[(np.arange(L + 2 * self.pad) - self.pad) % L]
+        cp = float(code_phase_chips) % L
+        self.code_rate[ch] = sig.code_rate_cps(float(doppler_hz))
+        if L - cp < 1e-9 * self.code_rate[ch] / self.fs_hz:
+            cp = 0.0                           # within round-off of a period start: it is the start
+        self.code_phase[ch] = cp
+        self.carr_freq[ch] = self.if_hz + float(doppler_hz)
+        self.carr_phase[ch] = 0.0
+        self.sample_ptr[ch] = int(sample_index)
+        self.active[ch] = True
+        if self.code_phase[ch] > 0.0:
+            n = int(period_samples(self.code_phase[ch], self.code_rate[ch] / self.fs_hz, float(L)))
+            self.advance_to(ch, int(sample_index) + n)
+            if L - self.code_phase[ch] < 1e-9:     # round-off just below the period start
+                self.code_phase[ch] = 0.0
+
+    def advance_to(self, ch, sample_index):
+        """Propagate channel ``ch``'s NCOs (open loop, current rates) to ``sample_index``."""
+        dn = int(sample_index) - int(self.sample_ptr[ch])
+        dt_chips = dn * self.code_rate[ch] / self.fs_hz
+        self.code_phase[ch] = (self.code_phase[ch] + dt_chips) % self.signal.code_length
+        ph = self.carr_phase[ch] + dn * self.carr_freq[ch] / self.fs_hz
+        self.carr_phase[ch] = ph - math.floor(ph)
+        self.sample_ptr[ch] = int(sample_index)
+
+
+class ScalarTracker:
+    """The scalar tracking bank: code/carrier NCOs + FLL-assisted PLL and DLL per channel.
+
+    The vocabulary of the ultra-tight prefilter banks (``fusion.prefilter.PrefilterBank``,
+    ``fusion.pbkf.PbKfBank``): :meth:`reset` (channels, optional initial state), :meth:`describe`
+    (the loop parameters), :data:`STATE_NAMES` and the indices ``P_DOPP``, ``P_PLL_X``,
+    ``P_PLL_Y``, ``P_DLL_Z`` of the recorded loop state; :meth:`run` is its ``step`` over a block.
+    Unlike the prefilter banks, whose ``step`` takes correlator outputs, the scalar loops take the
+    IF samples: correlation and loop update are one fused numba kernel per block
+    (:func:`_track_block`), which keeps the 1 ms loop closure inside compiled code (speed).
+
+    ``signal``: the :class:`ultratight.signals.signal.SignalDescription` tracked (code, chip rate,
+    carrier, codes per data bit; default GPS L1 C/A). ``channels`` start with :meth:`start_channel`
+    (from acquisition); each :meth:`run` tracks every active channel through the buffer and returns
+    the new epoch records ``(rec_f (n_ch, rows, N_RF), rec_i (n_ch, rows, N_RI), n_rec (n_ch,))``
+    (copies).
     """
 
-    def __init__(self, n_ch, fs_hz, if_hz, is_complex, config=None, max_rows=256, parallel=False):
-        from ultratight.receiver.correlator import CorrelatorBank
+    def __init__(self, n_ch, fs_hz, if_hz, is_complex, config=None, max_rows=256, parallel=False,
+                 signal=GPS_L1CA):
         self.parallel = bool(parallel) and n_ch > 1
         self.config = config or TrackingConfig()
-        self.bank = CorrelatorBank([1] * n_ch, fs_hz, if_hz, is_complex,
-                                   spacing_chips=self.config.spacing_chips)
-        self.state = TrackingState(n_ch, self.config, max_rows)
+        self.signal = signal
+        self.nco = ChannelNcos(n_ch, fs_hz, if_hz, self.config.spacing_chips, signal)
+        self.state = TrackingState(n_ch, self.config, max_rows, signal)
         self.fs_hz = float(fs_hz)
         self.if_hz = float(if_hz)
         self.is_complex = bool(is_complex)
         self.n_ch = n_ch
-        nh = 2 * (CA_LEN + 2 * self.bank.pad)
+        nh = 2 * (signal.code_length + 2 * self.nco.pad)
         self.half_tab = np.zeros((n_ch, 2 * nh), dtype=np.float32)
 
     @property
     def active(self):
-        return self.bank.active
+        return self.nco.active
+
+    def describe(self):
+        """The loop parameters (TrackingConfig fields) and the signal tracked."""
+        return {**asdict(self.config), "signal": self.signal.name, "channels": self.n_ch,
+                "fs_hz": self.fs_hz, "if_hz": self.if_hz}
+
+    STATE_NAMES = STATE_NAMES
+    P_DOPP, P_PLL_X, P_PLL_Y, P_DLL_Z = P_DOPP, P_PLL_X, P_PLL_Y, P_DLL_Z
+
+    def _channels(self, channels):
+        ch = np.atleast_1d(np.asarray(channels, dtype=np.int64))
+        if ch.size and (ch.min() < 0 or ch.max() >= self.n_ch):
+            raise ConfigError(f"scalar tracking: channel index out of range 0..{self.n_ch - 1}: {ch}")
+        return ch
+
+    def reset(self, channels, x0=None, P0=None):
+        """Restart ``channels`` in pull-in mode from their current NCO Doppler, or from ``x0``
+        (per channel: Doppler in Hz); ``P0`` is accepted for the bank protocol (the scalar loops
+        carry no covariance)."""
+        for k, ch in enumerate(self._channels(channels)):
+            d = float(self.nco.carr_freq[ch] - self.if_hz) if x0 is None else float(np.atleast_1d(x0)[k])
+            self.state.reset_channel(int(ch), d)
+
+    def correct(self, dx):
+        """Apply external corrections ``dx`` (n_ch, 2): [Doppler (Hz), code phase (chips)] per channel
+        to the NCOs and the carrier loop's frequency states (an aided scalar loop)."""
+        dx = np.asarray(dx, dtype=float).reshape(self.n_ch, 2)
+        if not np.all(np.isfinite(dx)):
+            raise ConfigError("scalar tracking: corrections must be finite")
+        self.nco.carr_freq += dx[:, 0]
+        self.state.sf[:, F_DOPP] += dx[:, 0]
+        self.state.sf[:, F_PLL_X] += dx[:, 0]
+        self.nco.code_phase += dx[:, 1]
 
     def start_channel(self, ch, prn, code_phase_chips, doppler_hz, sample_index, cn0_dbhz=None):
         """Start (or restart) channel ``ch`` from an acquisition result valid at ``sample_index``."""
-        self.bank.init_channel(ch, int(prn), code_phase_chips, doppler_hz, int(sample_index), align=True)
-        self.half_tab[ch] = half_chip_tables(prn, self.bank.pad)
+        self.nco.init_channel(ch, int(prn), code_phase_chips, doppler_hz, int(sample_index))
+        self.half_tab[ch] = half_chip_tables(prn, self.nco.pad, self.signal)
         self.state.reset_channel(ch, float(doppler_hz), cn0_dbhz)
 
     def stop_channel(self, ch):
-        self.bank.active[ch] = False
+        self.nco.active[ch] = False
         self.state.si[ch, S_MODE] = MODE_OFF
 
     def next_needed_sample(self):
         """Smallest sample_ptr of the active channels (None if none is active)."""
-        if not self.bank.active.any():
+        if not self.nco.active.any():
             return None
-        return int(self.bank.sample_ptr[self.bank.active].min())
+        return int(self.nco.sample_ptr[self.nco.active].min())
 
     def run(self, buf, buf_start, sigma_arm, stop_sample=None):
-        b = self.bank
+        b = self.nco
         st = self.state
         if self.is_complex:
             raw = np.ascontiguousarray(buf, dtype=np.complex64).view(np.float32)
@@ -730,3 +936,34 @@ class ScalarTracker:
            st.rec_f, st.rec_i, st.n_rec, self.half_tab)
         m = int(st.n_rec.max()) if st.n_rec.size else 0
         return st.rec_f[:, :m].copy(), st.rec_i[:, :m].copy(), st.n_rec.copy()
+
+    step = run
+
+    def track_at(self, stream, start, count, head, min_samples, stop_sample):
+        """Track through ``count`` samples of ``stream`` (:class:`ultratight.receiver.blockstream.BlockStream`)
+        read at ``start``, normalised by the noise estimate of their first ``head`` samples (the
+        scalar receiver: channels stop, re-acquire and restart anywhere). Returns the records as
+        :meth:`run`, or None when fewer than ``min_samples`` samples are left."""
+        buf, sigma_arm = stream.read_at(start, count, head)
+        if buf.shape[0] < min_samples:
+            return None
+        return self.run(buf, start, sigma_arm, stop_sample=stop_sample)
+
+    def track_aligned(self, stream, n_total):
+        """Track through the aligned blocks ``[k L, (k + 1) L)`` of ``stream`` up to sample ``n_total``,
+        each normalised by its own noise estimate; yields the records of every block (as :meth:`run`).
+        The samples a channel still needs before a block stay in the stream's buffer."""
+        blk = stream.block_len
+        start = 0
+        while start < n_total:
+            lo = self.next_needed_sample()
+            if lo is None:
+                return
+            lo = min(lo, start)
+            stream.ensure(start + blk, keep_from=lo)
+            buf, lo = stream.view(lo)
+            if buf.shape[0] == 0:
+                return
+            sig = float(stream.sigma_at(start))
+            yield self.run(buf, lo, sig, stop_sample=min(start + blk, n_total))
+            start += blk

@@ -39,6 +39,7 @@ import time
 from pathlib import Path
 
 from ultratight.errors import ConfigError
+from ultratight.receiver.scenario_config import locate_scenario, read_toml
 
 DEFAULT_EXPERIMENT = "if-double-loop"
 
@@ -67,7 +68,6 @@ def get(name):
 
 def resolve(scenario):
     """(path, raw TOML dict, experiment module) of a scenario name or TOML path."""
-    from ultratight.receiver.scenario_config import locate_scenario, read_toml
     path = locate_scenario(scenario)
     raw = read_toml(path)
     return path, raw, get(raw.get("experiment", DEFAULT_EXPERIMENT))

@@ -16,7 +16,13 @@ default engine options plus the scenario's ``[engine]`` table.
 from pathlib import Path
 from types import SimpleNamespace
 
+from ultratight.errors import ConfigError
+from ultratight.receiver import metrics as M
+from ultratight.receiver import scenario_runner
 from ultratight.receiver.engine import METHODS  # noqa: F401  (the accepted method names)
+from ultratight.receiver.scenario_config import IMU_DEFAULTS, load_scenario
+from ultratight.receiver.scenario_runner import (_event_windows, _f, aggregate, errors_vs_truth, event_rms,
+                                                 prepare_data, run_method)
 
 DEFAULT_METHODS = ("pb-kf-utc", "dlb-ukf", "dlb-ckf", "dlb-rackf")
 
@@ -26,14 +32,11 @@ DATA_DIR_KEY = "_data_dir"
 
 
 def run_scenario(scenario, **kwargs):
-    from ultratight.receiver.scenario_runner import run_scenario as _run
-    return _run(scenario, **kwargs)
+    return scenario_runner.run_scenario(scenario, **kwargs)
 
 
 def load(path, raw, overrides):
     """The resolved scenario (``scenario_config.load_scenario``)."""
-    from ultratight.errors import ConfigError
-    from ultratight.receiver.scenario_config import load_scenario
     ov = dict(overrides or {})
     if "duration_s" in ov and not float(ov["duration_s"]) > 0:
         raise ConfigError(f"--duration must be > 0 s, got {ov['duration_s']}")
@@ -49,13 +52,10 @@ def with_data_dir(cfg, out_dir):
 
 def run_one(cfg, methods, seed, progress=False):
     """One run: data of ``seed`` (generated or reused), every method on it, metrics vs truth."""
-    from ultratight.receiver import metrics as M
-    from ultratight.receiver.scenario_runner import errors_vs_truth, prepare_data, run_method
     c = dict(cfg)
     data_dir = c.pop(DATA_DIR_KEY, "scenario_out")
     if any(m != "scalar" for m in methods) and "imu" not in c:
         # the ultra-tight methods run on an IMU: the default one, as run_scenario adds it
-        from ultratight.receiver.scenario_config import IMU_DEFAULTS
         c["imu"] = dict(IMU_DEFAULTS)
     paths, _cached = prepare_data(c, int(seed), data_dir, progress=progress)
     out = {"seed": int(seed), "methods": {}, "series": {}}
@@ -73,8 +73,6 @@ def run_one(cfg, methods, seed, progress=False):
 
 def summarize(cfg, runs):
     """Tables 3 and 4 over the runs, as ``run_scenario`` prints them (channel 0)."""
-    from ultratight.receiver import metrics as M
-    from ultratight.receiver.scenario_runner import _event_windows, _f, aggregate, event_rms
     segs = M.SEGMENTS_S
     methods = list(runs[0]["methods"])
     per = {m: [dict(r["methods"][m], seed=r["seed"]) for r in runs] for m in methods}

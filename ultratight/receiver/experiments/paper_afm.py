@@ -21,18 +21,22 @@ and for the jump the time after the fault from which roll and pitch stay within
 
 from __future__ import annotations
 
+import json
 import math
 import time
 
 import numpy as np
 
+from ultratight import __version__
 from ultratight.errors import ConfigError
+from ultratight.io_guard import h5_atomic, savefig_atomic, write_text_atomic
 from ultratight.fusion.quat_aukf import (ATT, BG, N_ERR, POS, VEL, NavModel, Nominal, QuatAUKF, QuatEKF,
                                          euler_from_q_nb, process_noise, q_nb_from_euler, C_nb_from_C_lb)
 from ultratight.ins.attitude import dcm_to_quat, rotvec_to_quat, quat_mult, quat_normalize
 from ultratight.ins.imu import (DPH_TO_RADPS, DPRH_TO_RADPRS, apply_errors, ideal_increments,
                                 imu_errors_from_config)
 from ultratight.ins.trajectory import build_trajectory
+from ultratight.receiver.metrics import json_clean
 from ultratight.receiver.scenario_config import check_known_keys, check_number
 
 METHODS = ("ukf", "aff", "afm", "ekf")
@@ -341,10 +345,27 @@ def reduction(x_filter, x_ukf):
 
 
 def summarize(cfg, runs):
-    from ultratight import __version__
-    from ultratight.receiver.metrics import json_clean
     methods = list(runs[0]["methods"])
     exp = cfg.get("paper_experiment", "")
+    stats = _method_stats(runs, methods)
+    red = _reductions_vs_ukf(runs, methods, stats)
+    ordering = _ordering(exp, runs, methods)
+    paper = PAPER_TABLE1.get(exp)
+    lines = _summary_lines(cfg, exp, runs, methods, stats, red, ordering, paper)
+    js = {"scenario": cfg["name"], "seed": runs[0]["seed"], "runs": len(runs),
+          "methods": {m: {"att_err_mean_deg": stats[m]["att_err_mean_deg"], "att_err_std_deg": stats[m]["att_err_std_deg"],
+                          "runtime_s": stats[m]["runtime_s"]} for m in methods},
+          "details": stats, "reduction_vs_ukf": red, "ordering": ordering,
+          "paper": {"table1": paper, "reduction": PAPER_REDUCTION.get(exp)},
+          "config": cfg, "version": __version__}
+    for m in methods:
+        if "recovery_s" in stats[m]:
+            js["methods"][m]["recovery_s"] = stats[m]["recovery_s_mean"]
+    return {"text": "\n".join(lines), "json": json_clean(js)}
+
+
+def _method_stats(runs, methods):
+    """Per method: attitude error mean / std over the runs, run time, velocity / position RMS ..."""
     stats = {}
     for m in methods:
         mean = np.array([r["methods"][m]["att_err_mean_deg"] for r in runs])
@@ -365,6 +386,11 @@ def summarize(cfg, runs):
             d["recovery_s_mean"] = float(np.mean(rec))
             d["first_within_s"] = [r["methods"][m]["first_within_s"] for r in runs]
         stats[m] = d
+    return stats
+
+
+def _reductions_vs_ukf(runs, methods, stats):
+    """Per method: reduction (%) of the attitude error mean / std against the UKF."""
     red = {}
     if "ukf" in methods:
         for m in methods:
@@ -376,14 +402,17 @@ def summarize(cfg, runs):
                       "std_pct_min": float(np.min(rs)), "std_pct_max": float(np.max(rs)),
                       "of_averaged_table_mean_pct": reduction(stats[m]["att_err_mean_deg"], stats["ukf"]["att_err_mean_deg"]),
                       "of_averaged_table_std_pct": reduction(stats[m]["att_err_std_deg"], stats["ukf"]["att_err_std_deg"])}
-    ordering = _ordering(exp, runs, methods)
+    return red
+
+
+def _summary_lines(cfg, exp, runs, methods, stats, red, ordering, paper):
+    """The text tables (Table 1 with the paper's values, reductions, per-seed figures)."""
     lines = [f"{cfg['name']} (seed 002 §{exp}): {len(runs)} run(s), seeds {runs[0]['seed']}..{runs[-1]['seed']}, "
              f"{cfg['duration_s']:.0f} s at {cfg['imu']['rate_hz']:.0f} Hz, GPS {cfg['gps']['rate_hz']:.0f} Hz",
              f"filter: alpha={cfg['filter']['alpha']} beta={cfg['filter']['beta']} kappa={cfg['filter']['kappa']} "
              f"chi2_alpha={cfg['filter']['chi2_alpha']}; fault: {cfg['fault']}",
              "", "Table 1 — attitude error (deg), mean over runs; paper in brackets",
              f"{'':10s}{'stat':6s}" + "".join(f"{a:>22s}" for a in AXES)]
-    paper = PAPER_TABLE1.get(exp)
     for stat in ("mean", "std"):
         for m in methods:
             vals = stats[m][f"att_err_{stat}_deg"]
@@ -417,16 +446,7 @@ def summarize(cfg, runs):
         f"{LABELS[m]} {stats[m]['runtime_s']:.1f}" for m in methods)]
     if ordering:
         lines += ["", "Ordering checks (every seed): " + "; ".join(f"{k}: {v}" for k, v in ordering.items())]
-    js = {"scenario": cfg["name"], "seed": runs[0]["seed"], "runs": len(runs),
-          "methods": {m: {"att_err_mean_deg": stats[m]["att_err_mean_deg"], "att_err_std_deg": stats[m]["att_err_std_deg"],
-                          "runtime_s": stats[m]["runtime_s"]} for m in methods},
-          "details": stats, "reduction_vs_ukf": red, "ordering": ordering,
-          "paper": {"table1": paper, "reduction": PAPER_REDUCTION.get(exp)},
-          "config": cfg, "version": __version__}
-    for m in methods:
-        if "recovery_s" in stats[m]:
-            js["methods"][m]["recovery_s"] = stats[m]["recovery_s_mean"]
-    return {"text": "\n".join(lines), "json": json_clean(js)}
+    return lines
 
 
 def _ordering(exp, runs, methods):
@@ -445,8 +465,6 @@ def _ordering(exp, runs, methods):
 
 
 def write_outputs(cfg, runs, summary, out_dir, plots):
-    import json
-    from ultratight.io_guard import h5_atomic, write_text_atomic
     name = str(cfg["name"]).replace("/", "_")
     mpath = out_dir / f"{name}_metrics.json"
     write_text_atomic(mpath, json.dumps(summary["json"], indent=2, allow_nan=False))
@@ -478,7 +496,6 @@ def _figures(cfg, runs, out_dir, name):
         import matplotlib.pyplot as plt
     except ImportError:
         return []
-    from ultratight.io_guard import savefig_atomic
     r = runs[0]
     figures = []
     panels = (("attitude_error", "att_err_deg", AXES, "error (°)", "attitude error", "Figs. 1, 4, 5"),

@@ -32,7 +32,10 @@ import numpy as np
 from ultratight.errors import ConfigError
 from ultratight.fusion import integration as I
 from ultratight.ins import error_model as em
+from ultratight.ins.earth import radii
+from ultratight.ins.trajectory import build_trajectory
 from ultratight.receiver.experiments import _sins_gnss as C
+from ultratight.receiver.experiments.paper_static_iakf import ephemerides
 from ultratight.signals.obssim import GrossErrors, fix_noise_scale, gnss_fixes, simulate_observables
 
 DEFAULT_METHODS = ("kf", "chi2-newton", "chi2-newton-lit", "ins-only")
@@ -130,7 +133,6 @@ def _gross(cfg, factor=None):
 
 def simulate(cfg, seed):
     """Truth, IMU, clean fix noise (σ units) and initial errors of one seed."""
-    from ultratight.ins.trajectory import build_trajectory
     rng = np.random.default_rng(seed)
     dur = float(cfg["duration_s"])
     tr = cfg["trajectory"]
@@ -150,7 +152,6 @@ def simulate(cfg, seed):
     if g["mode"] == "truth":
         data["unit_noise"] = rng.standard_normal((t_gnss.size, 6))      # in σ units; gross errors applied per run
     else:
-        from ultratight.receiver.experiments.paper_static_iakf import ephemerides
         data["obs_rng_state"] = rng.bit_generator.state
         data["ephs"] = ephemerides({"satellites": {"source": "nominal"}, "time": cfg["time"]})
         data["pos_e"], data["vel_e"] = k["pos_e"], k["vel_e"]
@@ -187,7 +188,6 @@ def fixes(cfg, data, factor):
 def noise_model(cfg, llh0):
     """(q_psd, R (6x6, metres N/E/U and m/s), P0) of the filters: R from the GNSS σ, Q from the IMU
     specs, P0 from the initial-error σ (SPEC §7 choices)."""
-    from ultratight.ins.earth import radii
     im, g, ie = cfg["imu"], cfg["gnss"], cfg["initial_errors"]
     q = I.imu_psd(math.radians(im["gyro_arw_dprh"]) / 60.0, im["accel_vrw_g_rhz"] * C.G0, n_states=em.N15)
     rm, rn = radii(float(llh0[0]))
@@ -264,6 +264,25 @@ def _reduction(a_kf, a_rob):
 def summarize(cfg, runs):
     methods = list(runs[0]["methods"])
     agg = C.aggregate(runs, methods)
+    L = _range_table(cfg, runs, agg, methods)
+    L += _rms_table(agg, methods)
+    red = _reductions(L, agg, runs)
+    clean = _clean_summary(L, cfg, runs)
+    sweep = _sweep_summary(L, runs)
+    js = {"scenario": cfg["name"], "seed": int(runs[0]["seed"]), "runs": len(runs),
+          "axis_order": {"vel_rms_mps": "E, N, U", "pos_rms_m": "N, E, U", "pos_max_m": "N, E, U (max |error|)",
+                         "vel_max_mps": "E, N, U (max |error|)"},
+          "gross": {k: cfg["gross"][k] for k in ("factor", "period_s", "mode", "components")},
+          "methods": C.json_methods(agg), "rms_reduction_vs_kf": red, "paper_reduction": PAPER_REDUCTION,
+          "clean": clean, "sweep": sweep, "paper_ranges_enu": PAPER_RANGES,
+          "ranges_min_max": {m: {"pos_neu_m": [agg[m]["pos_min_signed_m"].tolist(), agg[m]["pos_max_signed_m"].tolist()],
+                                 "vel_enu_mps": [agg[m]["vel_min_signed_mps"].tolist(), agg[m]["vel_max_signed_mps"].tolist()]}
+                             for m in methods}}
+    return {"text": "\n".join(L), "json": C.json_clean(js)}
+
+
+def _range_table(cfg, runs, agg, methods):
+    """Text lines: min..max of the signed position / velocity errors per method (and the paper's)."""
     fac = cfg["gross"]["factor"]
     L = [f"paper-robust-flight (seed 003): {len(runs)} run(s), seeds {runs[0]['seed']}..{runs[-1]['seed']}; "
          f"gross errors x{fac:g} ({cfg['gross']['mode']}) every {cfg['gross']['period_s']:g} s; GNSS {cfg['gnss']['mode']}",
@@ -281,6 +300,12 @@ def summarize(cfg, runs):
             cells = [f"{pe[i][0]:7.0f}..{pe[i][1]:<6.0f}" for i in (1, 0, 2)]   # paper E, N, U -> our N, E, U
             cells += [f"{ve[i][0]:6.1f}..{ve[i][1]:<5.1f}" for i in range(3)]
             L.append(f"{'  paper':16s} " + " ".join(cells))
+    return L
+
+
+def _rms_table(agg, methods):
+    """Text lines: RMS errors, NEES band fraction, false-alarm rate and run time per method."""
+    L = []
     L.append("")
     L.append(f"{'RMS':16s} {'pos N':>8s}{'pos E':>8s}{'pos U':>8s}{'vel E':>8s}{'vel N':>8s}{'vel U':>8s}"
              f"{'NEES95':>8s}{'FA rate':>9s}{'time s':>8s}")
@@ -293,6 +318,11 @@ def summarize(cfg, runs):
                  + "".join(f"{v:8.3f}" for v in a["vel_rms_mps_seed_min"]))
         L.append(f"{'  seed max':16s} " + "".join(f"{v:8.2f}" for v in a["pos_rms_m_seed_max"])
                  + "".join(f"{v:8.3f}" for v in a["vel_rms_mps_seed_max"]))
+    return L
+
+
+def _reductions(L, agg, runs):
+    """RMS reduction of the robust filters against the KF (appends text lines to ``L``)."""
     red = {}
     for m in ("chi2-newton", "chi2-newton-lit"):
         if m in agg and "kf" in agg:
@@ -304,6 +334,11 @@ def summarize(cfg, runs):
                      f"{100 * red[m]['seed_range_pos'][0]:.1f}..{100 * red[m]['seed_range_pos'][1]:.1f}), velocity "
                      f"{100 * red[m]['vel']:.1f} % (seeds {100 * red[m]['seed_range_vel'][0]:.1f}.."
                      f"{100 * red[m]['seed_range_vel'][1]:.1f}); abstract: 75 % / 80 %")
+    return red
+
+
+def _clean_summary(L, cfg, runs):
+    """The runs without gross errors (appends text lines to ``L``)."""
     clean = {}
     cms = [m for m in CLEAN_METHODS if all(m in r["clean"] for r in runs)]
     if cms:
@@ -338,6 +373,11 @@ def summarize(cfg, runs):
                     L.append(f"  {m} / kf on clean data: position RMS x{clean[m]['rms_vs_kf']['pos']:.3f} (seeds "
                              f"x{min(per_seed[m]):.3f}..x{max(per_seed[m]):.3f}), "
                              f"velocity RMS x{clean[m]['rms_vs_kf']['vel']:.3f}")
+    return clean
+
+
+def _sweep_summary(L, runs):
+    """The gross-error factor sweep (appends text lines to ``L``)."""
     sweep = {}
     keys = sorted({k.split("/")[0] for r in runs for k in r["sweep"]}, key=float)
     if keys:
@@ -359,16 +399,7 @@ def summarize(cfg, runs):
                 L.append(f"  m = {fk:>4s}: {100 * rd['pos']:5.1f} % / {100 * rd['vel']:5.1f} %   "
                          f"(kf pos {np.linalg.norm(sa['kf']['pos_rms_m']):.1f} m, vel {np.linalg.norm(sa['kf']['vel_rms_mps']):.3f} m/s; "
                          f"kf max |err| vs the paper's Figs. 4/6, mean |ln| {dist[0]:.2f} (pos {dist[1]:.2f}, vel {dist[2]:.2f}))")
-    js = {"scenario": cfg["name"], "seed": int(runs[0]["seed"]), "runs": len(runs),
-          "axis_order": {"vel_rms_mps": "E, N, U", "pos_rms_m": "N, E, U", "pos_max_m": "N, E, U (max |error|)",
-                         "vel_max_mps": "E, N, U (max |error|)"},
-          "gross": {k: cfg["gross"][k] for k in ("factor", "period_s", "mode", "components")},
-          "methods": C.json_methods(agg), "rms_reduction_vs_kf": red, "paper_reduction": PAPER_REDUCTION,
-          "clean": clean, "sweep": sweep, "paper_ranges_enu": PAPER_RANGES,
-          "ranges_min_max": {m: {"pos_neu_m": [agg[m]["pos_min_signed_m"].tolist(), agg[m]["pos_max_signed_m"].tolist()],
-                                 "vel_enu_mps": [agg[m]["vel_min_signed_mps"].tolist(), agg[m]["vel_max_signed_mps"].tolist()]}
-                             for m in methods}}
-    return {"text": "\n".join(L), "json": C.json_clean(js)}
+    return sweep
 
 
 def _figures(out, run):
