@@ -39,6 +39,7 @@ from ultratight.receiver.methods import method_spec
 from ultratight.receiver.scenario_config import IMU_DEFAULTS, load_scenario
 from ultratight.receiver.startup import StartupErrors, perturb_state, predict_channels
 from ultratight.receiver.tracking import REC_F_NAMES, REC_I_NAMES, ScalarTracker
+from ultratight.receiver.workers import check_workers, default_workers, run_jobs
 from ultratight.signals.constellation import nominal_ephemerides
 from ultratight.signals.generator import generate
 from ultratight.signals.iffile import open_if
@@ -286,8 +287,9 @@ def scenario_config(name, methods, runs=1, duration_s=None, fs_hz=None, override
 
 
 def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scenario_out", duration_s=None,
-                 fs_hz=None, channel=0, plots=True, progress=True, options=None, overrides=None):
+                 fs_hz=None, channel=0, plots=True, progress=True, options=None, overrides=None, workers=None):
     cfg = scenario_config(name, methods, runs, duration_s, fs_hz, overrides)
+    workers = check_workers(workers)
     base_seed = int(cfg.get("seed", 0) if seed is None else seed)
     if base_seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {base_seed}")
@@ -299,14 +301,23 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise output_error(out, exc, "cannot create output directory") from None
-    per, raw = _run_all(cfg, methods, int(runs), base_seed, out, channel, progress, options)
+    per, raw = _run_all(cfg, methods, int(runs), base_seed, out, channel, progress, options, workers)
     return _report(name, cfg, methods, int(runs), base_seed, out, channel, plots, options, per, raw)
 
 
-def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options):
-    """Every method on every run's data: per-run summaries and raw (result, errors) per (run, method)."""
-    per = {m: [] for m in methods}
-    raw = {}
+def _method_job(paths, cfg, method, seed, options):
+    """One method on one run's data in a worker process (one numba thread: the workers share the cores)."""
+    opt = dataclasses.replace(engine_options_for(cfg, options), threads=1)
+    return run_method(paths, cfg, method, seed, options=opt)
+
+
+def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, workers=None):
+    """Every method on every run's data: per-run summaries and raw (result, errors) per (run, method).
+
+    The data of every run are prepared first; then the (run, method) jobs run in worker processes
+    when cores are free (:mod:`ultratight.receiver.workers`; ``workers`` = 1 runs them here, one
+    after the other). The results do not depend on where a job ran."""
+    all_paths = []
     for r in range(runs):
         s = base_seed + r
         t0 = time.perf_counter()
@@ -317,21 +328,48 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options):
         if progress:
             print(f"run {r + 1}/{runs} seed {s}: data {'reused' if cached else 'generated'} "
                   f"({time.perf_counter() - t0:.1f} s)", flush=True)
-        for m in methods:
-            res, truth = run_method(paths, cfg, m, s, options=options)
-            d_err, c_err = errors_vs_truth(res, truth)
-            summ = M.summarize(res.t_start, d_err, c_err, M.SEGMENTS_S, channel=channel)
-            summ["runtime_s"] = res.runtime_s
-            # wall-clock seconds per signal second (as `ultratight process`): < 1 = faster than real time
-            summ["realtime_factor"] = res.runtime_s / res.duration_s if res.duration_s > 0 else float("nan")
-            summ["seed"] = s
-            per[m].append(summ)
-            raw[(r, m)] = (res, d_err, c_err)
-            if progress:
-                print(f"  {m:10s} Doppler RMS {np.round(summ['doppler_rms_hz'], 4).tolist()} Hz, code RMS "
-                      f"{np.round(summ['code_rms_chips'], 4).tolist()} chip, lost {summ['lock_lost_channels']}, "
-                      f"{res.runtime_s:.1f} s (real-time factor {summ['realtime_factor']:.3f})", flush=True)
+        all_paths.append(paths)
+    keys = [(r, m) for r in range(runs) for m in methods]
+    jobs = [(all_paths[r], cfg, m, base_seed + r, options) for r, m in keys]
+    n_workers = default_workers(len(jobs)) if workers is None else min(int(workers), len(jobs))
+    if progress and n_workers > 1:
+        print(f"{len(jobs)} method run(s) in {n_workers} worker processes", flush=True)
+    per_job = {}
+
+    def done(i, result):
+        r, m = keys[i]
+        res, truth = result
+        per_job[i] = _summarize_method(res, truth, channel, base_seed + r)
+        if progress:
+            summ = per_job[i][0]
+            print(f"  {m:10s} {'' if runs == 1 else f'(seed {base_seed + r}) '}Doppler RMS "
+                  f"{np.round(summ['doppler_rms_hz'], 4).tolist()} Hz, code RMS "
+                  f"{np.round(summ['code_rms_chips'], 4).tolist()} chip, lost {summ['lock_lost_channels']}, "
+                  f"{res.runtime_s:.1f} s (real-time factor {summ['realtime_factor']:.3f})", flush=True)
+
+    if n_workers > 1:
+        run_jobs(_method_job, jobs, workers=n_workers, on_done=done)
+    else:
+        for i, (p, c, m, s, o) in enumerate(jobs):
+            done(i, run_method(p, c, m, s, options=o))
+    per = {m: [] for m in methods}
+    raw = {}
+    for i, (r, m) in enumerate(keys):
+        summ, entry = per_job[i]
+        per[m].append(summ)
+        raw[(r, m)] = entry
     return per, raw
+
+
+def _summarize_method(res, truth, channel, seed):
+    """The per-run summary of one method's result and its (result, Doppler error, code error)."""
+    d_err, c_err = errors_vs_truth(res, truth)
+    summ = M.summarize(res.t_start, d_err, c_err, M.SEGMENTS_S, channel=channel)
+    summ["runtime_s"] = res.runtime_s
+    # wall-clock seconds per signal second (as `ultratight process`): < 1 = faster than real time
+    summ["realtime_factor"] = res.runtime_s / res.duration_s if res.duration_s > 0 else float("nan")
+    summ["seed"] = seed
+    return summ, (res, d_err, c_err)
 
 
 def _report(name, cfg, methods, runs, base_seed, out, channel, plots, options, per, raw):

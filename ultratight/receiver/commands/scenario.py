@@ -36,6 +36,11 @@ def add_arguments(parser):
                         help="double loop: channels whose rows are out of the tight filter (faded) take the "
                              "outer loop's Doppler as a frequency pseudo-measurement (not in the paper; off "
                              "by default, see docs/ultratight.md)")
+    parser.add_argument("--workers", type=int, default=None, metavar="K",
+                        help="worker processes for the methods and runs (default: one per free core; 1: all in "
+                             "this process)")
+    parser.add_argument("--threads", type=int, default=None, metavar="K",
+                        help="threads of one run's channel stages (default: all cores when idle, else 1)")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
     parser.add_argument("--no-plots", action="store_true", help="do not write PNG figures")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
@@ -85,7 +90,8 @@ def run(args):
 
 
 # flags only the IF-level experiment understands (argparse dest names)
-IF_ONLY = ("fs_hz", "channel", "monitor", "noise_tau", "frontend_gain", "format", "outer_freq_update")
+IF_ONLY = ("fs_hz", "channel", "monitor", "noise_tau", "frontend_gain", "format", "outer_freq_update", "workers",
+           "threads")
 
 
 def _run_if(args, path, module):
@@ -98,6 +104,10 @@ def _run_if(args, path, module):
         raise ConfigError(f"--monitor: {exc}") from None
     if args.outer_freq_update:
         mon["outer_freq_update"] = True
+    if args.threads is not None:
+        if args.threads < 1:
+            raise ConfigError(f"--threads must be an integer >= 1, got {args.threads}")
+        mon["threads"] = args.threads
     overrides = {}
     if args.noise_tau is not None:
         if not args.noise_tau >= 0:
@@ -112,6 +122,7 @@ def _run_if(args, path, module):
         runs=args.runs, seed=args.seed, out_dir=args.out, duration_s=args.duration,
         fs_hz=args.fs_hz, channel=0 if args.channel is None else args.channel, plots=not args.no_plots,
         progress=not (args.quiet or args.json), options=EngineOptions(**mon), overrides=overrides,
+        workers=args.workers,
     )
     _print_summary(args, summary)
     return 0

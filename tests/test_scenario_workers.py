@@ -1,0 +1,29 @@
+"""`ultratight scenario` with its methods in worker processes gives the tables of the same run in
+one process (receiver.workers + scenario_runner)."""
+
+import json
+
+from ultratight.receiver.scenario_runner import run_scenario
+
+CUT = {"frontend.fs_hz": 2.046e6, "satellites.max_count": 3}
+TIMING = ("runtime_s", "realtime_factor")
+
+
+def _strip(o):
+    """The summary without wall-clock figures (they differ between any two runs)."""
+    if isinstance(o, dict):
+        return {k: _strip(v) for k, v in o.items() if k not in TIMING}
+    if isinstance(o, list):
+        return [_strip(v) for v in o]
+    return o
+
+
+def test_methods_in_workers_equal_methods_here(tmp_path):
+    kw = dict(methods=("dlb-rackf", "pb-kf-utc", "dlb-ckf"), runs=2, seed=3, duration_s=1.0, plots=False,
+              progress=False, overrides=CUT)
+    run_scenario("paper-highdyn", out_dir=tmp_path / "one", workers=1, **kw)
+    run_scenario("paper-highdyn", out_dir=tmp_path / "two", workers=2, **kw)
+    a = _strip(json.loads((tmp_path / "one" / "metrics.json").read_text()))
+    b = _strip(json.loads((tmp_path / "two" / "metrics.json").read_text()))
+    assert a["methods"].keys() == b["methods"].keys() == {"dlb-rackf", "pb-kf-utc", "dlb-ckf"}
+    assert a == b
