@@ -1,4 +1,4 @@
-"""Issue 6 acceptance: the ultra-tight methods on paper-highdyn, several seeds, with the
+"""Acceptance of the ultra-tight engine: the methods on paper-highdyn, several seeds, with the
 engine-level signal monitor off / gating only / coasting (see docs/ultratight.md).
 
     python benchmarks/acceptance_ultratight.py [--seeds 1,2,3,4,5] [--duration 60] [--fs-hz 4e6]

@@ -4,7 +4,7 @@
 
 Reports M samples/s per channel (channel-samples per second) for the bank (complex and real input)
 and for the minimal kernel, and their ratio.  The minimal kernel is the reference of
-the project's design notes ("a plain numba kernel of this kind reaches ~300 M samples/s per core"):
+the design goal of a plain numba kernel of this kind (~300 M samples/s per core):
 one channel, complex input, E/P/L in one loop into a 4096-entry cos/sin table, no normalisation or
 NCO bookkeeping, in two flavours (float64 phases with floor, and integer phase accumulators); the
 ratio is taken to the faster of the two.  Timings are best-of-``--repeat`` (the machine is shared).

@@ -4,7 +4,7 @@ the signal monitor in ``coast`` mode through a x20 noise burst (loss of lock, co
 prefilter restarts), and ``process`` on a
 generated static file of 8.5 s (time of week decoded, fixes), compared with values stored in ``tests/data/regression_v1.npz``.
 
-The stored values were computed by the receiver before its stages were separated (issue 11); a
+The stored values were computed by the receiver before its stages were separated into modules; a
 change of any per-epoch Doppler or code estimate, navigation solution, acquisition or fix by more
 than 1e-9 (absolute; 1e-12 relative for ECEF positions) fails. Regenerate the file only for an intended change of behaviour:
 ``python tests/test_regression_fixture.py --write``.

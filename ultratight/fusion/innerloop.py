@@ -1,4 +1,4 @@
-"""Inner-loop NCO feedback law of the double-loop (DLB) structure (SPEC §1).
+"""Inner-loop NCO feedback law of the double-loop (DLB) structure (Zhao et al. 2014, Fig. 1).
 
 Every epoch, after the prefilter bank has predicted the tracking errors for
 the start of the next integration interval (``bank.x``, rows

@@ -1,4 +1,4 @@
-"""PB-KF-UTC baseline (SPEC §1, seed 000 §3 "method 1"): discriminators -> linear KF per channel.
+"""PB-KF-UTC baseline (Zhao et al. 2014, §3 "method 1"): discriminators -> linear KF per channel.
 
 The single-loop cascaded ultra-tight baseline does not feed raw I/Q to a nonlinear filter:
 each epoch three classical discriminators are formed from the correlator outputs and a

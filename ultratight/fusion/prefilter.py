@@ -1,6 +1,6 @@
-"""Per-channel nonlinear I/Q prefilters (SPEC §2–§3): CKF, UKF and RACKF, batched in numba.
+"""Per-channel nonlinear I/Q prefilters (Zhao et al. 2014, §2.1–2.3): CKF, UKF and RACKF, batched in numba.
 
-State (SPEC §2, eq. 1), one row per channel::
+State (Zhao et al. 2014, §2.1), one row per channel::
 
     x = [A, dtau, dphi, df, da]
     A     normalised prompt amplitude (the correlator units of
@@ -13,7 +13,7 @@ State (SPEC §2, eq. 1), one row per channel::
 All errors are *true minus NCO* and refer to the **start** of the coherent
 integration interval [t_k, t_k + T].
 
-Measurement (SPEC eq. 3), z = [I_P, I_E, I_L, Q_P, Q_E, Q_L]::
+Measurement (Zhao et al. 2014, eq. 3), z = [I_P, I_E, I_L, Q_P, Q_E, Q_L]::
 
     I_x = A D R(dtau_m + d_x) sinc(df T/2) cos(df T/2 + dphi)
     Q_x = A D R(dtau_m + d_x) sinc(df T/2) sin(df T/2 + dphi)
@@ -83,7 +83,7 @@ Filters
   noise when significant — the robust part's answer to a sustained noise
   increase (noise x20), where the per-output Huber factor |r'|/c alone inflates
   the variance ~10x for a 400x variance increase.
-Huber equivalent noise (eqs. 20–21, SPEC §3): with standardised residuals
+Huber equivalent noise (Zhao et al. 2014, eqs. 20–21): with standardised residuals
 r'_i = r_i / sqrt((P_zz)_ii) and gamma_i = max(1, |r'_i| / c), the equivalent
 weights shrink the weight of element (i, j) by 1/gamma_ij with gamma_ii =
 gamma_i and gamma_ij = max(gamma_i, gamma_j) (the off-diagonal rule); applied
@@ -803,7 +803,7 @@ class PrefilterBank:
     T : coherent integration time (s), default one C/A period.
     spacing_chips : early-late spacing (the correlator's).
     q : dict overriding DEFAULT_Q (continuous process noise densities, eq. 2).
-    huber_c : Huber constant c (SPEC §3: 1.3–2.0).
+    huber_c : Huber constant c (Zhao et al. 2014, §2.3: 1.3–2.0).
     correction_period : RACKF robust-adaptive correction period in epochs (50 = 50 ms).
     robust_mode : "every" (default: Huber every epoch, adaptive factor on correction epochs)
         or "period" (paper: Huber + adaptive only on correction epochs, plain CKF between).

@@ -1,4 +1,4 @@
-"""Rate converters of the double-loop structure (SPEC §1): averaging decimator and CIC interpolator.
+"""Rate converters of the double-loop structure (Zhao et al. 2014, Fig. 1): averaging decimator and CIC interpolator.
 
 Averaging decimator (prefilter 1000 Hz -> integration filter N Hz)
 ------------------------------------------------------------------

@@ -7,7 +7,7 @@ multiplication for the prompt, early and late taps (plus very-early/very-late
 when asked), and the coherent sums.  The outputs are normalised as defined in
 :mod:`ultratight.signals.corr_model` (unit noise per arm).
 
-Sign conventions (the prefilter model of SPEC §2 eq. 3 relies on them)
+Sign conventions (the prefilter model of Zhao et al. 2014, eq. 3 relies on them)
 ------------------------------------------------------------------------
 Carrier.  ``carr_phase`` is in cycles, ``carr_freq`` in Hz (IF + Doppler;
 for complex baseband IF = 0).  The local carrier replica at sample ``k`` of an
@@ -28,7 +28,7 @@ sample ``k``; the **early tap is ahead** of the prompt: ``o_E = +D/2``,
 error defined as ``dtau = p_in - p_replica`` (chips, input minus prompt
 replica), tap ``x`` sees ``R(dtau + d_x)`` with ``d_P = 0, d_E = -D/2,
 d_L = +D/2`` exactly as :func:`ultratight.signals.corr_model.tap_offsets`
-and SPEC §2 eq. 3.  So an input whose code phase is *larger* than the
+and Zhao et al. 2014, eq. 3.  So an input whose code phase is *larger* than the
 replica's (``dtau > 0``: the replica lags and must be advanced) gives
 ``|E| > |L|``; ``E - L > 0`` therefore means "advance the code NCO".
 

@@ -1,4 +1,4 @@
-"""The double-loop ultra-tight receiver engine (seed 000 Fig. 1, SPEC §1).
+"""The double-loop ultra-tight receiver engine (Zhao et al. 2014, Fig. 1).
 
 Stages, in the order of the paper's Fig. 1 (each a module of its own, arrays in and out)::
 

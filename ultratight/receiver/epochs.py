@@ -1,4 +1,4 @@
-"""The inner loop at the epoch rate (1 kHz), compiled: seed 000 Fig. 1 from the IF block to the
+"""The inner loop at the epoch rate (1 kHz), compiled: Zhao et al. 2014, Fig. 1, from the IF block to the
 NCO command, for every channel, epoch after epoch, until the outer part of the engine is needed.
 
 One epoch (:func:`run_epochs`, in this order; every step is a compiled stage of its own module)::

@@ -64,7 +64,7 @@ REGISTRY = {s.name: s for s in (
     MethodSpec("dlb-ckf", "ckf", "double", "double loop, CKF prefilters"),
     MethodSpec("dlb-rackf", "rackf", "double", "double loop, robust adaptive CKF prefilters"),
     MethodSpec("dlb-rackf-paper", "rackf", "double",
-               "double loop, RACKF as the paper's Algorithm 1 (SPEC §3): robust and adaptive corrections "
+               "double loop, RACKF as Algorithm 1 of Zhao et al. 2014: robust and adaptive corrections "
                "only every correction period, adaptive statistic of the epoch alone (eq. 38)",
                bank_options={"robust_mode": "period", "adaptive_stat": "epoch"}),
     MethodSpec("scalar", "scalar", "scalar", "scalar DLL/PLL/FLL tracking, no INS"),

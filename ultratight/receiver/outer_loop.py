@@ -1,6 +1,6 @@
 """Outer (vector) loop: per-channel carrier Doppler and code-phase rate predicted from the
 corrected SINS position/velocity, the broadcast ephemeris and the receiver-clock estimates
-(seed 000 Fig. 1, the "倍频" branch), at the SINS rate (100 Hz), CIC-interpolated to the
+(Zhao et al. 2014, Fig. 1, the "倍频" branch), at the SINS rate (100 Hz), CIC-interpolated to the
 prefilter rate (1000 Hz) to aid every channel's NCO.
 
 Speed.  The light-time solution is the one of :func:`ultratight.signals.geometry.light_time`
