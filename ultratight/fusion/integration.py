@@ -33,7 +33,10 @@ Cores (by name, :data:`CORES`):
                 alternative reading of SPEC §5 ("fixed true Q, R": ``akf0_adaptive = False``),
                 the literal one (eq. 15 still adapting) with ``akf0_adaptive = True``.
 ``iakf``        improved AKF (seed 001 eqs. 16–26, :class:`ultratight.fusion.adaptive.IAKF`) with
-                the best-4 GDOP selection of §3.1 (tight only).
+                the best-4 GDOP selection of §3.1 (tight only).  Defaults (docs/integration-
+                experiments.md): R̂ and Q̂ from the first epoch over the terms available
+                (``iakf_start="growing"``), eq. 26 projected onto the eq. 3 noise structure
+                (``"model-diag"``) and capped at the given noise (``iakf_q_ceiling``).
 ``chi2-newton`` seed 003's per-dimension χ² detection with Newton-extrapolated replacement,
                 implementable reading (innovation as the proxy of V, SPEC §7,
                 :func:`ultratight.fusion.robust.chi2_newton_kf_update`).
