@@ -144,6 +144,69 @@ def test_iakf_model_structure_needs_a_basis():
             filt.update(H_TC @ np.zeros(NX) + SIG * rng.standard_normal(2 * NSAT), H_TC, LOS)
 
 
+def test_iakf_growing_start_estimates_r_from_the_first_epoch():
+    """start="growing": R̂ of eqs. 21–25 after k < N epochs is the mean of the k per-epoch terms
+    tr(M Mᵀ)/GDOP², M = (AᵀA)⁻¹Aᵀ ε (an independent computation here); "full-window" keeps R0
+    until N innovations exist."""
+    rng = np.random.default_rng(2)
+    x0 = np.sqrt(np.diag(P0)) * rng.standard_normal(NX)
+    grow = _iakf(x0, start="growing")
+    full = _iakf(x0)
+    A = np.hstack([LOS, np.ones((NSAT, 1))])
+    L = np.linalg.solve(A.T @ A, A.T)
+    g2 = AD.gdop(LOS) ** 2
+    terms = []
+    for _ in range(3):
+        z = H_TC @ np.zeros(NX) + SIG * rng.standard_normal(2 * NSAT)
+        for f in (grow, full):
+            f.predict(PHI)
+        eps = z - H_TC @ grow.x
+        grow.update(z, H_TC, LOS)
+        full.update(z, H_TC, LOS)
+        m_pr, m_prr = L @ eps[:NSAT], L @ eps[NSAT:]
+        terms.append((m_pr @ m_pr / g2, m_prr @ m_prr / g2))
+        r = np.diag(grow.R)
+        np.testing.assert_allclose([r[0], r[NSAT]], np.mean(terms, axis=0), rtol=1e-10)
+        np.testing.assert_array_equal(full.R, R_WRONG)
+    with pytest.raises(FilterError, match="start"):
+        _iakf(x0, start="later")
+
+
+def test_iakf_q_ceiling_caps_the_projected_noise_at_the_given_one():
+    """q_ceiling: the projected Q̂ weights never exceed those of the given Q on the same basis; a
+    ceiling below the floor is raised to it; the ceiling needs a model structure."""
+    rng = np.random.default_rng(4)
+    B = np.zeros((2, 3, 3))
+    B[0, 0, 0] = B[1, 1, 1] = 1.0
+    Qh = np.diag([5.0, 0.2, 0.0])
+    Q, q = AD.project_q(Qh, B, ceiling=[1.0, 1.0])
+    np.testing.assert_allclose(q, [1.0, 0.2])
+    Q, q = AD.project_q(Qh, B, ceiling=[1.0, 0.0], floor=1e-6)
+    np.testing.assert_allclose(q, [1.0, 1e-6])
+    with pytest.raises(FilterError, match="q_ceiling"):
+        _iakf(np.zeros(NX), q_ceiling=True)
+    # the 8-state model: position/velocity noise per axis and the clock pair as the basis
+    Bm = np.zeros((4, NX, NX))
+    for i in range(3):
+        Bm[0][np.ix_([i, i + 3], [i, i + 3])] = np.array([[1 / 3, 1 / 2], [1 / 2, 1]])
+    Bm[1, CLK_B, CLK_B] = 1.0
+    Bm[2][np.ix_([6, 7], [6, 7])] = np.array([[1 / 3, 1 / 2], [1 / 2, 1]])
+    Bm[3, 0, 0] = 1e-9          # a noise the given Q does not have
+    Q_given = 0.01 * Bm[0] + 0.1 * Bm[1] + 0.01 * Bm[2]
+    f = AD.IAKF(np.zeros(NX), P0, Q_given, R_WRONG, range(NSAT), range(NSAT, 2 * NSAT), [0, 1, 2, CLK_B],
+                [3, 4, 5, CLK_D], window=10, q_structure="model-diag", start="growing", q_ceiling=True)
+    f.q_basis, f.q_fixed = Bm, np.zeros((NX, NX))
+    _, cap = AD.project_q(Q_given, Bm, None, np.ones(NX), diagonal=True)
+    x = np.zeros(NX)
+    Lq = np.linalg.cholesky(Q_TRUE)
+    for _ in range(40):
+        x = PHI @ x + Lq @ rng.standard_normal(NX)
+        f.predict(PHI)
+        f.update(H_TC @ x + SIG * rng.standard_normal(2 * NSAT), H_TC, LOS)
+        assert np.all(f.q_w <= np.maximum(cap, 1e-12 / np.max(np.diagonal(Bm, axis1=1, axis2=2), axis=1)) * (1 + 1e-9))
+    np.testing.assert_allclose(f.Q, np.tensordot(f.q_w, Bm, axes=1), atol=1e-15)
+
+
 def test_akf_bad_input():
     with pytest.raises(FilterError):
         AD.AKF(np.zeros(2), np.eye(2), np.eye(2), np.eye(1), window=0)

@@ -35,12 +35,12 @@ def _check_methods(js, methods):
 
 def test_static_iakf_cli_json_runs_the_tight_iakf(tmp_path, capsys, shared_data):
     out = tmp_path / "o"
-    rc = main(["scenario", "paper-static-iakf", "--methods", "iakf,akf0", "--duration", "40", "--runs", "2",
-               "--seed", "5", "--json", "--no-plots", "--out", str(out)])
+    rc = main(["scenario", "paper-static-iakf", "--methods", "iakf,akf0,kf-true-noise", "--duration", "40", "--runs",
+               "2", "--seed", "5", "--json", "--no-plots", "--out", str(out)])
     assert rc == 0
     js = _strict(capsys.readouterr().out)
     assert js["scenario"] == "paper-static-iakf" and js["seed"] == 5 and js["runs"] == 2
-    _check_methods(js, ["iakf", "akf0"])
+    _check_methods(js, ["iakf", "akf0", "kf-true-noise"])
     assert js["ratios"]["iakf/akf0"]["paper"][0] == pytest.approx(0.0491 / 0.0311)
     doc = _strict((out / "metrics.json").read_text())
     assert doc["version"] == __version__ and doc["config"]["duration_s"] == 40.0
@@ -79,6 +79,11 @@ def test_config_errors_are_clear(tmp_path, capsys):
     p2, raw2, _ = E.resolve("paper-static-iakf")
     with pytest.raises(ConfigError, match="top level: unknown key 'duraton_s'"):
         SI.load(p2, dict(raw2, duraton_s=3.0), {})
+    with pytest.raises(ConfigError, match="filter.iakf_start must be one of full-window, growing"):
+        SI.load(p2, raw2, {"filter.iakf_start": "late"})
+    with pytest.raises(ConfigError, match="iakf_q_ceiling = true needs iakf_q_structure"):
+        SI.load(p2, raw2, {"filter.iakf_q_structure": "full"})
+    assert SI.load(p2, raw2, {"filter.iakf_q_structure": "full", "filter.iakf_q_ceiling": False})
     cfg = SI.load(p2, dict(raw2, satellites=dict(raw2["satellites"], rinex=str(tmp_path / "none.22n"))), {})
     with pytest.raises(InputFileError, match="satellites.rinex"):
         SI.ephemerides(cfg)

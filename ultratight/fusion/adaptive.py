@@ -16,6 +16,12 @@
    wording, which collapses R̂ when the prior is tight).
    Q̂ = (1/N) Σ_{i=k−N+1..k} (Δx̂_i Δx̂_iᵀ + P_i − Φ P_{i−1} Φᵀ) (26), Δx̂_i = K_i ε_i (12).
    R̂ feeds the next update (it needs this update's gain).  Both Q̂ and R̂ are guarded PD.
+   Start (``start``): "full-window" keeps the given Q₀, R₀ until the window holds N terms (the
+   AKF's rule); "growing" estimates from the first epoch on with the n < N terms available (each
+   estimate is the mean of its terms, so it is weighted by their count), then slides with N.
+   Q̂ may be projected onto the model's noise structure (``q_structure``, :func:`project_q`) and
+   capped there by the given noise (``q_ceiling``): the noise variances of Q̂ may fall below
+   those of the given Q (projected the same way) but not exceed them.
 3. Adaptive fading factor (AFF) and adaptive fading matrix (AFM) for UKF/AUKF (seed 002) –
    :func:`fading_terms`, :func:`fading_factor`, :func:`fading_matrix`, :func:`apply_fading`,
    :class:`FadingUKF`.
@@ -37,6 +43,7 @@ from __future__ import annotations
 from collections import deque
 
 import numpy as np
+from scipy.optimize import nnls
 from scipy.stats import chi2
 
 from ultratight.errors import FilterError
@@ -76,6 +83,7 @@ __all__ = [
 
 
 Q_STRUCTURES = ("full", "model", "model-diag")
+IAKF_STARTS = ("full-window", "growing")
 
 
 def _floor(M: np.ndarray, rel: float, absolute: float) -> float:
@@ -184,19 +192,32 @@ class IAKF:
     project it onto the noise structure of the model (eq. 3: Q = Σ q_i Q_i over the white noises
     of W, :func:`project_q`, fitted on all entries / on the diagonal), with the basis ``q_basis``
     (k, n, n) and the fixed part ``q_fixed`` set by the caller before each update.
+    ``start``: "full-window" (default: Q₀, R₀ until N terms exist) or "growing" (estimates from the
+    first epoch with the terms available).  ``q_ceiling`` (model structures only): the projected
+    noise variances are capped at those of ``Q_given`` (the given noise, Q₀ unless the caller
+    sets it each epoch), projected onto the same basis.
+    With ``r_source="lsq"`` each epoch's term is tr E(M Mᵀ)/GDOP² with that epoch's geometry A
+    and GDOP (the best satellites change over a window).
     """
 
     def __init__(self, x0, P0, Q0, R0, pr_rows, prr_rows, pos_clk_idx, vel_drift_idx,
                  window: int = 20, adapt_q: bool = True, adapt_r: bool = True,
-                 floor: float = 1e-12, r_source: str = "lsq", q_structure: str = "full"):
+                 floor: float = 1e-12, r_source: str = "lsq", q_structure: str = "full",
+                 start: str = "full-window", q_ceiling: bool = False):
         if int(window) < 1:
             raise FilterError(f"window must be an integer ≥ 1, got {window}")
         if r_source not in ("lsq", "correction"):
             raise FilterError(f"r_source: expected 'lsq' or 'correction', got {r_source!r}")
         if q_structure not in Q_STRUCTURES:
             raise FilterError(f"q_structure: expected one of {', '.join(Q_STRUCTURES)}, got {q_structure!r}")
+        if start not in IAKF_STARTS:
+            raise FilterError(f"start: expected one of {', '.join(IAKF_STARTS)}, got {start!r}")
+        if q_ceiling and q_structure == "full":
+            raise FilterError("q_ceiling: needs a model q_structure ('model' or 'model-diag'), got 'full'")
         self.r_source = r_source
         self.q_structure = q_structure
+        self.start = start
+        self.q_ceiling = bool(q_ceiling)
         self.q_basis = None      # (k, n, n) discretised Q of each model noise at unit PSD ("model*")
         self.q_fixed = None      # (n, n) the part of Q that is not estimated
         self.q_w = None          # the last estimated noise variances (PSDs) of the basis
@@ -204,6 +225,7 @@ class IAKF:
         n = self.x.shape[0]
         self.P = check_covariance("P0", P0, n)
         self.Q = check_covariance("Q0", Q0, n)
+        self.Q_given = self.Q.copy()
         self.R = check_covariance("R0", R0, None)
         self.pr_rows = np.asarray(pr_rows, dtype=int)
         self.prr_rows = np.asarray(prr_rows, dtype=int)
@@ -215,11 +237,16 @@ class IAKF:
                 raise FilterError(f"{name}: indices must lie in [0, {lim}), got {idx.tolist()}")
         self.N = int(window)
         self.eps = deque(maxlen=self.N)
+        self.rterms = deque(maxlen=self.N)   # r_source="lsq": per-epoch (pseudorange, rate) terms of eq. 24
         self.qterms = deque(maxlen=self.N)
         self.adapt_q, self.adapt_r = adapt_q, adapt_r
         self.floor = floor
         self._Phi = np.eye(n)
         self._P_prev = self.P.copy()
+
+    def ready(self, n_terms: int) -> bool:
+        """Whether a window of ``n_terms`` terms gives an estimate (all N, or ≥ 1 when growing)."""
+        return n_terms >= (1 if self.start == "growing" else self.N)
 
     # same time update as the AKF (eq. 15), keeping Phi and P_{k-1} for the windowed Q estimate
     predict = AKF.predict
@@ -254,43 +281,50 @@ class IAKF:
         self.x = self.x + dx
         IKH = np.eye(n) - K @ H
         self.P = symmetrize(IKH @ Pp @ IKH.T + K @ self.R @ K.T)
-        full = len(self.eps) == self.N
-        if full and self.adapt_r:
-            E = np.array(self.eps)
+        if self.adapt_r:
             if self.r_source == "correction":
-                Pe = symmetrize(E.T @ E / E.shape[0])  # eq. 7
-                Pdx = K @ Pe @ K.T  # eq. 13
-                d = np.diag(Pdx)
-                num_pr = d[self.pos_clk_idx].sum()
-                num_prr = d[self.vel_drift_idx].sum()
+                if self.ready(len(self.eps)):
+                    E = np.array(self.eps)
+                    Pe = symmetrize(E.T @ E / E.shape[0])  # eq. 7
+                    d = np.diag(K @ Pe @ K.T)  # eq. 13
+                    r_pr = d[self.pos_clk_idx].sum() / gdop_pr**2  # eqs. 24–25, pseudorange
+                    r_prr = d[self.vel_drift_idx].sum() / gdop_prr**2  # eq. 25, rate
+                    self._set_r(r_pr, r_prr)
             else:
-                # eqs. 21–22 read directly: M = (AᵀA)⁻¹Aᵀ Δδρ from the windowed innovations
+                # eqs. 21–22 read directly: M = (AᵀA)⁻¹Aᵀ Δδρ of this epoch's innovations, tr E(M Mᵀ) = σ² GDOP²
                 Lsq = np.linalg.solve(A.T @ A, A.T)
-                Mpr = E[:, self.pr_rows] @ Lsq.T
-                Mprr = E[:, self.prr_rows] @ Lsq.T
-                num_pr = float(np.sum(Mpr * Mpr)) / E.shape[0]  # tr E(M Mᵀ)
-                num_prr = float(np.sum(Mprr * Mprr)) / E.shape[0]
-            r_pr = num_pr / gdop_pr**2  # eqs. 24–25, pseudorange
-            r_prr = num_prr / gdop_prr**2  # eq. 25, rate
-            Rn = self.R.copy()
-            Rn[self.pr_rows, self.pr_rows] = max(r_pr, self.floor)
-            Rn[self.prr_rows, self.prr_rows] = max(r_prr, self.floor)
-            self.R = Rn
+                Mpr = Lsq @ eps[self.pr_rows]
+                Mprr = Lsq @ eps[self.prr_rows]
+                self.rterms.append((float(Mpr @ Mpr) / gdop_pr**2, float(Mprr @ Mprr) / gdop_prr**2))
+                if self.ready(len(self.rterms)):
+                    r_pr, r_prr = np.mean(np.array(self.rterms), axis=0)  # eqs. 24–25 over the window
+                    self._set_r(r_pr, r_prr)
         self.qterms.append(np.outer(dx, dx) + self.P - self._Phi @ self._P_prev @ self._Phi.T)
-        if len(self.qterms) == self.N and self.adapt_q:
-            Qh = sum(self.qterms) / self.N  # eq. 26
+        if self.adapt_q and self.ready(len(self.qterms)):
+            Qh = sum(self.qterms) / len(self.qterms)  # eq. 26 (growing: over the terms available)
             if self.q_structure == "full":
                 self.Q = nearest_pd(Qh, _floor(Qh, 1e-9, self.floor))
             else:
-                self.Q, self.q_w = project_q(Qh, self.q_basis, self.q_fixed, np.diag(Pp),
-                                             diagonal=self.q_structure == "model-diag", floor=self.floor)
+                diagonal = self.q_structure == "model-diag"
+                ceiling = None
+                if self.q_ceiling:
+                    _, ceiling = project_q(self.Q_given, self.q_basis, self.q_fixed, np.diag(Pp), diagonal=diagonal,
+                                           floor=self.floor)
+                self.Q, self.q_w = project_q(Qh, self.q_basis, self.q_fixed, np.diag(Pp), diagonal=diagonal,
+                                             floor=self.floor, ceiling=ceiling)
         check_state(self.x, self.P, "IAKF.update")
         res = UpdateResult(self.x, self.P, eps, S, K, _nis(eps, S), H @ (self.x - dx), Pp @ H.T)
         res.info.update(Q_hat=self.Q, R_hat=self.R)
         return res
 
+    def _set_r(self, r_pr, r_prr):
+        Rn = self.R.copy()
+        Rn[self.pr_rows, self.pr_rows] = max(float(r_pr), self.floor)
+        Rn[self.prr_rows, self.prr_rows] = max(float(r_prr), self.floor)
+        self.R = Rn
 
-def project_q(Q_hat, basis, fixed=None, scale=None, diagonal=False, floor=1e-12):
+
+def project_q(Q_hat, basis, fixed=None, scale=None, diagonal=False, floor=1e-12, ceiling=None):
     """Q̂ of eq. 26 projected onto the noise structure of the model (seed 001 eq. 3).
 
     The model admits only Q = Q_fixed + Σ_i q_i Q_i, q_i ≥ 0, with Q_i the discretised process
@@ -301,9 +335,11 @@ def project_q(Q_hat, basis, fixed=None, scale=None, diagonal=False, floor=1e-12)
     (``scale`` = its diagonal), so states of different units weigh alike; each q_i is then
     floored so that its Q_i adds at least ``floor`` on its largest diagonal entry.  Whatever of
     Q̂ falls outside the span (noise on states the model drives by no white noise, arbitrary
-    couplings) is discarded.  Returns (Q, q).
+    couplings) is discarded.  ``ceiling`` (k,), optional: upper bounds of the q_i (applied after
+    the floor; a bound below the floor is raised to it).  Returns (Q, q).
     """
-    from scipy.optimize import nnls
+    if basis is None:
+        raise FilterError("q_basis: the model noise basis must be set before a projected Q estimate")
     B = np.asarray(basis, float)
     if B.ndim != 3 or B.shape[1:] != Q_hat.shape:
         raise FilterError(f"q_basis: expected (k, {Q_hat.shape[0]}, {Q_hat.shape[0]}), got {B.shape}")
@@ -319,6 +355,8 @@ def project_q(Q_hat, basis, fixed=None, scale=None, diagonal=False, floor=1e-12)
     q, _ = nnls(A.T, b)
     qmin = floor / np.maximum(np.max(np.diagonal(B, axis1=1, axis2=2), axis=1), 1e-300)
     q = np.maximum(q, qmin)
+    if ceiling is not None:
+        q = np.minimum(q, np.maximum(np.asarray(ceiling, float), qmin))
     return symmetrize(F + np.tensordot(q, B, axes=1)), q
 
 

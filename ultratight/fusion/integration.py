@@ -33,7 +33,10 @@ Cores (by name, :data:`CORES`):
                 alternative reading of SPEC §5 ("fixed true Q, R": ``akf0_adaptive = False``),
                 the literal one (eq. 15 still adapting) with ``akf0_adaptive = True``.
 ``iakf``        improved AKF (seed 001 eqs. 16–26, :class:`ultratight.fusion.adaptive.IAKF`) with
-                the best-4 GDOP selection of §3.1 (tight only).
+                the best-4 GDOP selection of §3.1 (tight only).  Defaults (docs/integration-
+                experiments.md): R̂ and Q̂ from the first epoch over the terms available
+                (``iakf_start="growing"``), eq. 26 projected onto the eq. 3 noise structure
+                (``"model-diag"``) and capped at the given noise (``iakf_q_ceiling``).
 ``chi2-newton`` seed 003's per-dimension χ² detection with Newton-extrapolated replacement,
                 implementable reading (innovation as the proxy of V, SPEC §7,
                 :func:`ultratight.fusion.robust.chi2_newton_kf_update`).
@@ -57,7 +60,7 @@ from ultratight.fusion.filters import kf_update
 from ultratight.fusion.guards import symmetrize
 from ultratight.fusion.robust import ChiSquareNewton, chi2_newton_kf_update, newton_coefficients
 from ultratight.ins import error_model as em
-from ultratight.ins.attitude import dcm_to_rotvec, quat_to_dcm
+from ultratight.ins.attitude import dcm_to_rotvec, quat_mult, quat_to_dcm, rotvec_to_quat
 from ultratight.ins.earth import dcm_ecef_from_enu, radii
 from ultratight.ins.sins import make_state, sins_run_final, state_pos_vel_e
 from ultratight.signals.obssim import gdop_best4, predict_observables
@@ -126,22 +129,26 @@ class AKFCore(_Core):
 
 
 class IAKFCore(_Core):
-    """Seed 001 IAKF (eqs. 16–26): R from GDOP (eqs. 24–25), Q windowed (eq. 26)."""
+    """Seed 001 IAKF (eqs. 16–26): R from GDOP (eqs. 24–25), Q windowed (eq. 26); ``start``,
+    ``q_structure`` and ``q_ceiling`` as :class:`ultratight.fusion.adaptive.IAKF`."""
     adaptive = True
 
-    def __init__(self, P0, Q0, R0, m_sat, window=20, r_source="lsq", adapt_q=True, q_structure="full"):
+    def __init__(self, P0, Q0, R0, m_sat, window=20, r_source="lsq", adapt_q=True, q_structure="model-diag",
+                 start="growing", q_ceiling=True):
         super().__init__(P0)
         self.f = IAKF(self.x, self.P, Q0, R0, pr_rows=np.arange(m_sat), prr_rows=np.arange(m_sat, 2 * m_sat),
                       pos_clk_idx=[6, 7, 8, CLK], vel_drift_idx=[3, 4, 5, DRIFT], window=window,
-                      r_source=r_source, adapt_q=adapt_q, q_structure=q_structure)
+                      r_source=r_source, adapt_q=adapt_q, q_structure=q_structure, start=start,
+                      q_ceiling=q_ceiling and adapt_q)
         self.wants_q_basis = adapt_q and q_structure != "full"
 
     def set_q_basis(self, B, Q_fixed):
         self.f.q_basis, self.f.q_fixed = B, Q_fixed
 
     def predict(self, Phi, Q):
-        if not self.f.adapt_q or len(self.f.qterms) < self.f.N:
-            self.f.Q = Q        # the given Q until eq. 26 has a full window (always, without Q adaptation)
+        self.f.Q_given = Q      # the given Q of this step (the ceiling of the projected Q estimate)
+        if not self.f.adapt_q or not self.f.ready(len(self.f.qterms)):
+            self.f.Q = Q        # the given Q until eq. 26 has its terms (always, without Q adaptation)
         self.f.x, self.f.P = self.x, self.P
         self.x, self.P = self.f.predict(Phi)
 
@@ -199,8 +206,8 @@ class Chi2NewtonCore(_Core):
 
 
 def make_core(name, P0, Q0, R0, *, window=20, m_sat=4, alpha=0.01, delta=4.0, akf0_adaptive=False,
-              iakf_r_source="lsq", iakf_adapt_q=True, iakf_q_structure="full", newton_guard=True,
-              release_after=None, weight_replacements=False):
+              iakf_r_source="lsq", iakf_adapt_q=True, iakf_q_structure="model-diag", iakf_start="growing",
+              iakf_q_ceiling=True, newton_guard=True, release_after=None, weight_replacements=False):
     """A core by name (see the module docstring); Q0/R0 are the *given* noise (true or wrong)."""
     if name == "kf":
         return KFCore(P0)
@@ -212,7 +219,7 @@ def make_core(name, P0, Q0, R0, *, window=20, m_sat=4, alpha=0.01, delta=4.0, ak
         return AKFCore(P0, Q0, R0, window=window, adapt=bool(akf0_adaptive))
     if name == "iakf":
         return IAKFCore(P0, Q0, R0, m_sat, window=window, r_source=iakf_r_source, adapt_q=iakf_adapt_q,
-                        q_structure=iakf_q_structure)
+                        q_structure=iakf_q_structure, start=iakf_start, q_ceiling=iakf_q_ceiling)
     if name in ("chi2-newton", "chi2-newton-lit"):
         return Chi2NewtonCore(P0, R0.shape[0], alpha=alpha, delta=delta, literal=name.endswith("-lit"),
                               guard=newton_guard, release_after=release_after,
@@ -449,7 +456,6 @@ def loose_measurement_fn(gnss_llh, gnss_vel, noise, R):
 def initial_state(truth_q, truth_vel, truth_llh, att_err_rad, vel_err, pos_err_m):
     """SINS initial state = truth + the given initial errors (attitude rotation vector, ENU
     velocity, N/E/U metres), in the convention of the error model."""
-    from ultratight.ins.attitude import quat_mult, rotvec_to_quat
     q = quat_mult(rotvec_to_quat(-np.asarray(att_err_rad, float)), np.asarray(truth_q, float))
     T = pos_scale(truth_llh[0], truth_llh[2])
     return make_state(q, np.asarray(truth_vel) + vel_err, np.asarray(truth_llh) + np.asarray(pos_err_m) / T)

@@ -22,8 +22,9 @@ from ultratight.errors import ConfigError
 from ultratight.io_guard import h5_atomic, savefig_atomic, write_text_atomic
 from ultratight.fusion.integration import nees_band
 from ultratight.ins import error_model as em
+from ultratight.ins.imu import ImuErrors, synthesize_imu
 from ultratight.receiver.metrics import json_clean
-from ultratight.receiver.scenario_config import check_known_keys, check_number
+from ultratight.receiver.scenario_config import _apply_overrides, _deep_merge, check_known_keys, check_number
 
 AXES = {"vel": ["E", "N", "U"], "pos": ["N (lat)", "E (lon)", "U (h)"]}
 G0 = 9.80665
@@ -42,7 +43,6 @@ def num(table, key, where, lo=None, hi=None, lo_open=False, integer=False):
 def tables(raw, schema, overrides):
     """Validate the scenario against ``schema`` {table: {key: default}} (top-level keys under
     ``""``), apply dotted ``overrides`` and return the completed config (a new dict)."""
-    from ultratight.receiver.scenario_config import _apply_overrides, _deep_merge
     top_allowed = set(schema[""]) | {k for k in schema if k}
     check_known_keys(raw, top_allowed, "top level")
     for name in schema:
@@ -59,7 +59,6 @@ def tables(raw, schema, overrides):
 def draw_imu(traj, rate_hz, gyro_bias_sigma, gyro_white, accel_bias_sigma, accel_white, rng):
     """IMU increments along ``traj`` with constant biases drawn per axis from N(0, σ²) (rad/s,
     m/s²) and white noise (rad/√s, (m/s)/√s).  Returns (ImuData, bias_true [bg, ba] (6,))."""
-    from ultratight.ins.imu import ImuErrors, synthesize_imu
     bg = rng.standard_normal(3) * gyro_bias_sigma
     ba = rng.standard_normal(3) * accel_bias_sigma
     e = ImuErrors(gyro_bias=bg, accel_bias=ba, gyro_arw=np.full(3, gyro_white),

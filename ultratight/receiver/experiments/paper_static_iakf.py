@@ -23,10 +23,17 @@ epoch for all cores so that the adaptive windows have a fixed dimension m = 8):
   least-squares reading of eqs. 21–22 (``[filter] iakf_r_source = "lsq"``, default) or from
   P_ΔX̂ = K P̂_ε Kᵀ (eq. 13, ``"correction"``, which collapses R̂ as K shrinks: measured 2–3x worse
   velocity RMS on this scenario, docs/integration-experiments.md);
+  ``[filter] iakf_start``: "growing" (default: R̂ and Q̂ from the first epoch over the terms
+  available, then the sliding window N) or "full-window" (the given settings until N terms exist);
+  ``[filter] iakf_q_structure``: eq. 26's Q̂ projected onto the eq. 3 noise structure
+  ("model-diag", default; "model") or as printed ("full");
+  ``[filter] iakf_q_ceiling = true`` (default): the projected noise variances may fall below the
+  given (wrong) ones but not exceed them;
   ``[filter] iakf_adapt_q = false`` keeps the given Q (R adaptation only: a diagnostic);
-  ``[filter] iakf_q_structure``: eq. 26's Q̂ as printed ("full", default) or projected onto the
-  eq. 3 noise structure ("model", "model-diag"; docs/integration-experiments.md);
 * ``kf`` — fixed-gain KF with the wrong settings (no adaptation: what the settings alone do);
+* ``kf-true-noise`` — diagnostic bound: fixed-gain KF with the *true* Q, R but the wrong settings'
+  initial covariance of the biases and the clock (what perfect Q/R estimation could reach from the
+  wrong start; the attitude/velocity/position P0 is the same for every method);
 * ``ins-only`` — free inertial.
 
 Wrong settings (SPEC §5 reading): gyro (0.1 °/h)², accelerometer (1e-2 g)² (white noise per
@@ -37,19 +44,23 @@ sample and bias P0), clock bias (35 m)², drift (0.3 m/s)² (per-epoch Q and P0)
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 
 from ultratight.errors import ConfigError, InputFileError
 from ultratight.fusion import integration as I
-from ultratight.fusion.adaptive import Q_STRUCTURES
+from ultratight.fusion.adaptive import IAKF_STARTS, Q_STRUCTURES
 from ultratight.ins import error_model as em
+from ultratight.ins.trajectory import build_trajectory
 from ultratight.receiver.experiments import _sins_gnss as C
+from ultratight.receiver.scenario_config import shared_data_dir
+from ultratight.receiver.scenario_runner import ephemerides_for
 from ultratight.signals.obssim import clock_q, simulate_clock, simulate_observables
 
 DEFAULT_METHODS = ("akf0", "akf", "iakf")
-METHODS = ("akf0", "akf", "iakf", "kf", "ins-only")
-TRUE_NOISE = ("akf0",)
+METHODS = ("akf0", "akf", "iakf", "kf", "kf-true-noise", "ins-only")
+TRUE_NOISE = ("akf0", "kf-true-noise")
 
 # seed 001 Table 1 (RMS): velocity E, N, U (m/s); latitude, longitude, height (m)
 PAPER_TABLE1 = {
@@ -72,7 +83,7 @@ SCHEMA = {
     "wrong": {"gyro_dph": 0.1, "accel_g": 1e-2, "clock_bias_m": 35.0, "clock_drift_mps": 0.3,
               "sigma_pr_m": 50.0, "sigma_prr_mps": 0.6},
     "filter": {"window": 20, "akf0_adaptive": False, "iakf_r_source": "lsq", "iakf_adapt_q": True,
-               "iakf_q_structure": "full", "best4": True},
+               "iakf_start": "growing", "iakf_q_structure": "model-diag", "iakf_q_ceiling": True, "best4": True},
 }
 
 
@@ -101,22 +112,24 @@ def load(path, raw, overrides):
     C.num(cfg["satellites"], "mask_deg", "satellites", lo=-5.0, hi=60.0)
     if cfg["satellites"]["source"] not in ("rinex", "nominal"):
         raise ConfigError(f"satellites.source must be 'rinex' or 'nominal', got {cfg['satellites']['source']!r}")
-    for k in ("akf0_adaptive", "iakf_adapt_q", "best4"):
+    for k in ("akf0_adaptive", "iakf_adapt_q", "iakf_q_ceiling", "best4"):
         if not isinstance(cfg["filter"][k], bool):
             raise ConfigError(f"filter.{k} must be true or false, got {cfg['filter'][k]!r}")
     if cfg["filter"]["iakf_q_structure"] not in Q_STRUCTURES:
         raise ConfigError(f"filter.iakf_q_structure must be one of {', '.join(Q_STRUCTURES)}, "
                           f"got {cfg['filter']['iakf_q_structure']!r}")
+    if cfg["filter"]["iakf_start"] not in IAKF_STARTS:
+        raise ConfigError(f"filter.iakf_start must be one of {', '.join(IAKF_STARTS)}, "
+                          f"got {cfg['filter']['iakf_start']!r}")
+    if cfg["filter"]["iakf_q_ceiling"] and cfg["filter"]["iakf_q_structure"] == "full":
+        raise ConfigError("filter.iakf_q_ceiling = true needs iakf_q_structure 'model' or 'model-diag' "
+                          "(the ceiling acts on the projected noise variances)")
     if cfg["filter"]["iakf_r_source"] not in ("correction", "lsq"):
         raise ConfigError("filter.iakf_r_source must be 'correction' (eq. 13) or 'lsq' (eqs. 21–22)")
     return cfg
 
 
 def ephemerides(cfg):
-    from pathlib import Path
-
-    from ultratight.receiver.scenario_config import shared_data_dir
-    from ultratight.receiver.scenario_runner import ephemerides_for
     sat = dict(cfg["satellites"])
     if sat["source"] == "rinex":
         p = Path(sat["rinex"])
@@ -130,7 +143,6 @@ def ephemerides(cfg):
 
 def simulate(cfg, seed):
     """Shared data of one seed: trajectory truth, IMU, observables, initial errors."""
-    from ultratight.ins.trajectory import build_trajectory
     rng = np.random.default_rng(seed)
     dur = float(cfg["duration_s"])
     rcv = cfg["receiver"]
@@ -161,8 +173,9 @@ def simulate(cfg, seed):
     return inp, obs
 
 
-def noise_settings(cfg, true):
-    """(q_psd, clock Q_d, R variances (pr, prr), P0) a core is given: the true or the wrong ones."""
+def noise_settings(cfg, true, p0_true=None):
+    """(q_psd, clock Q_d, R variances (pr, prr), P0) a core is given: the true or the wrong ones;
+    ``p0_true`` (default ``true``) selects the initial covariance of the biases and the clock."""
     imu_c, g, ie = cfg["imu"], cfg["gnss"], cfg["initial_errors"]
     rate = float(imu_c["rate_hz"])
     dt = 1.0 / float(g["rate_hz"])
@@ -181,19 +194,23 @@ def noise_settings(cfg, true):
         r = (w["sigma_pr_m"] ** 2, w["sigma_prr_mps"] ** 2)
     # white noise given as the 1σ of each IMU sample (SPEC §5 choice): PSD σ²/rate
     q = I.imu_psd(gyro / math.sqrt(rate), accel / math.sqrt(rate), n_states=em.N17)
+    if p0_true is not None and p0_true != true:
+        _, _, _, P0 = noise_settings(cfg, p0_true)
+        return q, cq, r, P0
     P0 = C.initial_P(em.N17, math.radians(ie["att_deg"]), ie["vel_mps"], ie["pos_m"], bg, ba, clk0)
     return q, cq, r, P0
 
 
 def run_method(cfg, method, inp, obs):
     true = method in TRUE_NOISE
-    q, cq, r, P0 = noise_settings(cfg, true)
+    q, cq, r, P0 = noise_settings(cfg, true, p0_true=method == "akf0")
     f = cfg["filter"]
     R0 = np.diag([r[0]] * 4 + [r[1]] * 4)
     Q0 = np.diag(np.full(em.N17, 1e-12))
-    core = I.make_core(method, P0, Q0, R0, window=int(f["window"]), m_sat=4, akf0_adaptive=f["akf0_adaptive"],
-                       iakf_r_source=f["iakf_r_source"], iakf_adapt_q=f["iakf_adapt_q"],
-                       iakf_q_structure=f["iakf_q_structure"])
+    core = I.make_core("kf" if method == "kf-true-noise" else method, P0, Q0, R0, window=int(f["window"]), m_sat=4,
+                       akf0_adaptive=f["akf0_adaptive"], iakf_r_source=f["iakf_r_source"],
+                       iakf_adapt_q=f["iakf_adapt_q"], iakf_q_structure=f["iakf_q_structure"],
+                       iakf_start=f["iakf_start"], iakf_q_ceiling=f["iakf_q_ceiling"])
     meas = I.tight_measurement_fn(obs, r[0], r[1], select_best4=bool(f["best4"]) or method == "iakf")
     return I.run_integration("tight", core, inp, meas, q, cq)
 
