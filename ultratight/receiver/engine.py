@@ -30,7 +30,7 @@ Methods (all on the same IF/IMU data; each is a spec of the registry
   (``ultratight.fusion.pbkf``); the NCOs are driven by the outer loop only (absolute
   SINS-predicted Doppler and code phase, no inner loop).
 * ``scalar``: the scalar tracking pipeline of receiver.tracking (no INS), for reference;
-  :meth:`UltratightEngine.run` hands it to :func:`ultratight.receiver.scenario_runner.run_scalar`.
+  :meth:`UltratightEngine.run` hands it to :func:`ultratight.receiver.scalar_reference.run_scalar`.
 
 Arbitration (double loop, logged per channel per epoch in ``mode``): after every tight
 update the 1-sigma of each channel's predicted Doppler is computed from the tight filter
@@ -75,6 +75,7 @@ from ultratight.receiver.lockmon import LockMonitor, amplitude_threshold
 from ultratight.receiver.methods import DEFAULT_METHOD, METHODS, check_method, method_spec  # noqa: F401
 from ultratight.receiver.outer_loop import OuterLoop, SinsFollower
 from ultratight.receiver.recorder import EngineResult, EpochRecorder  # noqa: F401 (EngineResult: public here)
+from ultratight.receiver.scalar_reference import run_scalar
 from ultratight.receiver.sins_clock import InsClock  # noqa: F401 (public here too)
 from ultratight.receiver.startup import (BitWipeoff, StartupErrors, first_period_ms, perturb_state,
                                          predict_channels)
@@ -261,7 +262,6 @@ class UltratightEngine:
     def run(self, progress=False):
         if self.spec.scalar:
             # the scalar pipeline has no INS: it is the scenario's reference receiver
-            from ultratight.receiver.scenario_runner import run_scalar  # noqa: PLC0415 (scenario_runner imports this module)
             return run_scalar(self.src, self.prns, self.ephs, self.week, self.tow0, self.init_state,
                               self.duration_s)
         t_wall0 = time.perf_counter()
