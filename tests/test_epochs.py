@@ -72,3 +72,25 @@ def test_inner_loop_takes_an_nco_bank_only():
     law.apply(bank, nco)
     np.testing.assert_allclose(nco.carr_freq, 5.0)
     np.testing.assert_allclose(nco.code_rate, 1.023e6 * (1 + 5.0 / 1575.42e6))
+
+
+def test_scalar_receiver_threads_give_the_serial_results(tmp_path):
+    """`process` with its channels spread over threads gives the one-thread fixes and tracking."""
+    from ultratight.receiver.process import ProcessConfig, process
+    from ultratight.signals.constellation import nominal_ephemerides
+    from ultratight.signals.iffile import open_if
+    cfg = load_scenario("static-open-sky", {"duration_s": 8.5, "frontend.fs_hz": 2.046e6, "satellites.max_count": 5})
+    paths, _ = prepare_data(cfg, 2, tmp_path)
+    ephs = nominal_ephemerides(int(cfg["time"]["week"]), float(cfg["time"]["tow_s"]))
+    runs = []
+    for par in (False, True):
+        pc = ProcessConfig(n_channels=5, record_epochs=True, iono="off", tropo="off", acq_min_cn0_dbhz=30.0,
+                           parallel=par)
+        runs.append(process(open_if(paths["if"]), pc, ephemerides=ephs))
+    one, two = runs
+    assert len(one.fixes) > 3 and len(one.fixes) == len(two.fixes)
+    for a, b in zip(one.fixes, two.fixes):
+        np.testing.assert_array_equal(a["pos_e"], b["pos_e"])
+    assert sorted(one.epochs) == sorted(two.epochs)
+    for prn in one.epochs:
+        np.testing.assert_array_equal(one.epochs[prn]["doppler_hz"], two.epochs[prn]["doppler_hz"])

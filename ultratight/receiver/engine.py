@@ -49,7 +49,6 @@ References: docs/references.md.
 
 import json
 import math
-import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -81,6 +80,7 @@ from ultratight.receiver.startup import (BitWipeoff, StartupErrors, first_period
                                          predict_channels)
 from ultratight.receiver.tracking_banks import bank_view, make_tracking_bank, restart_covariance
 from ultratight.receiver.wipeoff import DataWipeoff
+from ultratight.receiver.workers import stage_threads
 from ultratight.signals.constellation import nominal_ephemerides
 from ultratight.signals.iffile import open_if
 from ultratight.signals.rinex import read_rinex_nav
@@ -190,18 +190,8 @@ class EngineOptions:
 
 
 def epoch_threads(requested):
-    """Threads for the compiled epoch stages (channels spread over them): ``requested`` when > 0
-    (capped by numba's pool), else every core of the pool when at least 1.5 cores are idle by the
-    1-minute load average, and one otherwise — on a busy machine the threads wait for each other
-    at every stop of the epoch runner and lose more than they gain."""
-    pool = numba.config.NUMBA_NUM_THREADS
-    if requested and requested > 0:
-        return max(1, min(int(requested), pool))
-    try:
-        idle = (os.cpu_count() or 1) - os.getloadavg()[0]
-    except OSError:
-        idle = 0.0
-    return pool if pool > 1 and idle >= 1.5 else 1
+    """Threads for the compiled epoch stages (:func:`ultratight.receiver.workers.stage_threads`)."""
+    return stage_threads(requested)
 
 
 class EpochState:

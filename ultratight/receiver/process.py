@@ -64,6 +64,7 @@ from ultratight.receiver.rinex_out import RinexObsWriter, write_rinex_nav
 from ultratight.receiver.tracking import (
     FL_BIT_DONE, FL_BIT_SYNC, FL_PLL_LOCK, MODE_LOST, MODE_TRACK, R_BIT, R_CN0, R_CODE_PHASE, R_DOPP, R_IP,
     REC_F_NAMES, REC_I_NAMES, RI_EPOCH, RI_FLAGS, RI_MODE, RI_PTR, S_MODE, ScalarTracker, TrackingConfig)
+from ultratight.receiver.workers import stage_threads
 from ultratight.signals.atmosphere import IONO_MODELS, MAPPINGS, TROPO_MODELS, AtmosphereModel
 from ultratight.signals.ephemeris import sat_state
 from ultratight.signals.iffile import open_if
@@ -109,7 +110,7 @@ class ProcessConfig:
     tropo: str = "saastamoinen"         # saastamoinen | off
     tropo_mapping: str = "cosz"         # mapping function of the Saastamoinen model
     record_epochs: bool = False
-    parallel: bool = False              # spread channels over numba threads
+    parallel: bool = None               # spread channels over numba threads (None: when >= 1.5 cores are idle)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
 
     def validate(self, source):
@@ -730,8 +731,9 @@ class ScalarReceiver:
         self.block_len = int(round(cfg.block_ms * 1e-3 * fs))
         self.margin = int(math.ceil(2.2e-3 * fs))
         self.stream = BlockStream(src, self.block_len, on_zero=1.0)
+        parallel = (stage_threads(0) > 1) if cfg.parallel is None else bool(cfg.parallel)
         self.tracker = ScalarTracker(n_ch, fs, src.if_hz, src.is_complex, cfg.tracking,
-                                     max_rows=int(cfg.block_ms * 1.1) + 8, parallel=cfg.parallel, signal=sig)
+                                     max_rows=int(cfg.block_ms * 1.1) + 8, parallel=parallel, signal=sig)
         self.chinfo = []
         for ch, a in enumerate(found):
             self.tracker.start_channel(ch, a.prn, a.code_phase_chips, a.doppler_hz, a.sample_index, a.cn0_dbhz)

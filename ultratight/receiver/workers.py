@@ -12,6 +12,8 @@ import multiprocessing
 import os
 from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
 
+import numba
+
 from ultratight.errors import ConfigError
 
 
@@ -39,6 +41,17 @@ def check_workers(workers):
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ConfigError(f"--workers must be an integer >= 1, got {workers!r}")
     return workers
+
+
+def stage_threads(requested):
+    """Threads for the compiled stages that spread channels over numba's thread pool: ``requested``
+    when > 0 (capped by the pool), else every thread of the pool when at least 1.5 cores are idle by
+    the 1-minute load average, and one otherwise — on a busy machine the threads wait for each other
+    at every synchronisation and lose more than they gain."""
+    pool = numba.config.NUMBA_NUM_THREADS
+    if requested and requested > 0:
+        return max(1, min(int(requested), pool))
+    return pool if pool > 1 and free_cores() >= 1.5 else 1
 
 
 def _init_worker():
