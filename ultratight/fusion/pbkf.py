@@ -312,7 +312,6 @@ def _pbkf_views(fbuf, ibuf, n, n_prm, n_tab):
     x0 = fbuf[o:o + n * NX].reshape((n, NX)); o += n * NX
     P0 = fbuf[o:o + n * NK * NK].reshape((n, NK, NK)); o += n * NK * NK
     Phi = fbuf[o:o + NK * NK].reshape((NK, NK)); o += NK * NK
-    Phi_inv = fbuf[o:o + NK * NK].reshape((NK, NK)); o += NK * NK
     Qd = fbuf[o:o + NK * NK].reshape((NK, NK)); o += NK * NK
     prm = fbuf[o:o + n_prm]; o += n_prm
     prev = fbuf[o:o + 2 * n].reshape((n, 2)); o += 2 * n
@@ -325,15 +324,15 @@ def _pbkf_views(fbuf, ibuf, n, n_prm, n_tab):
     active = ibuf[n:2 * n]
     have_prev = ibuf[2 * n:3 * n]
     n_resets = ibuf[3 * n:4 * n]
-    return x, x_post, P, x0, P0, Phi, Phi_inv, Qd, prm, prev, rot, innov, mom, tab_k, tab_u, flags, active, \
-        have_prev, n_resets
+    return x, x_post, P, x0, P0, Phi, Qd, prm, prev, rot, innov, mom, tab_k, tab_u, flags, active, have_prev, \
+        n_resets
 
 
 @njit(cache=True)
 def pbkf_channel_epoch(fbuf, ibuf, c, z, bits, n_prm, n_tab):
     """Channel ``c``'s part of :func:`pbkf_epoch` (touches only row ``c``); -1 - c for a non-finite input."""
     n = z.shape[0]
-    (x, x_post, P, x0, P0, Phi, Phi_inv, Qd, prm, prev, rot, innov, mom, tab_k, tab_u, flags, active,
+    (x, x_post, P, x0, P0, Phi, Qd, prm, prev, rot, innov, mom, tab_k, tab_u, flags, active,
      have_prev, n_resets) = _pbkf_views(fbuf, ibuf, n, n_prm, n_tab)
     for m in range(NZ):
         if active[c] and not np.isfinite(z[c, m]):
@@ -342,21 +341,18 @@ def pbkf_channel_epoch(fbuf, ibuf, c, z, bits, n_prm, n_tab):
                   tab_k, tab_u)
     if (flags[c] & FLAG_DIVERGED) != 0:
         n_resets[c] += 1
+    # posterior at the interval start: the time update undone (LAPACK's solve, as numpy's)
     x_post[c, 0] = x[c, 0]
-    for i in range(NK):
-        acc = 0.0
-        for k in range(NK):
-            acc += Phi_inv[i, k] * x[c, 1 + k]
-        x_post[c, 1 + i] = acc
+    x_post[c, 1:] = np.linalg.solve(Phi, np.ascontiguousarray(x[c, 1:]))
     return 0
 
 
 @njit(cache=True)
 def pbkf_epoch(fbuf, ibuf, z, bits, n_prm, n_tab):
     """One epoch of a packed PB-KF bank: discriminators + KF (:func:`_pbkf_step`), divergence count,
-    and the posterior at the interval start (the time update undone: x_post = Phi^-1 x)."""
+    and the posterior at the interval start (the time update undone: x_post solves Phi x_post = x)."""
     n = z.shape[0]
-    (x, x_post, P, x0, P0, Phi, Phi_inv, Qd, prm, prev, rot, innov, mom, tab_k, tab_u, flags, active,
+    (x, x_post, P, x0, P0, Phi, Qd, prm, prev, rot, innov, mom, tab_k, tab_u, flags, active,
      have_prev, n_resets) = _pbkf_views(fbuf, ibuf, n, n_prm, n_tab)
     st = _pbkf_step(x, P, Phi, Qd, z, bits, active, prm, prev, have_prev, rot, innov, flags, x0, P0, mom,
                     tab_k, tab_u)
@@ -366,11 +362,7 @@ def pbkf_epoch(fbuf, ibuf, z, bits, n_prm, n_tab):
         if (flags[c] & FLAG_DIVERGED) != 0:
             n_resets[c] += 1
         x_post[c, 0] = x[c, 0]
-        for i in range(NK):
-            acc = 0.0
-            for k in range(NK):
-                acc += Phi_inv[i, k] * x[c, 1 + k]
-            x_post[c, 1 + i] = acc
+    x_post[:, 1:] = np.linalg.solve(Phi, np.ascontiguousarray(x[:, 1:].T)).T
     return st
 
 
@@ -378,8 +370,8 @@ def pbkf_epoch(fbuf, ibuf, z, bits, n_prm, n_tab):
 def pbkf_note_correction_one(fbuf, ibuf, c, dx, n_prm, n_tab):
     """:func:`pbkf_note_correction` for channel ``c`` alone."""
     views = _pbkf_views(fbuf, ibuf, dx.shape[0], n_prm, n_tab)
-    prm = views[8]
-    rot = views[10]
+    prm = views[7]
+    rot = views[9]
     rot[c] += dx[c, 2] - 0.5 * prm[0] * dx[c, 3]
 
 
@@ -389,8 +381,8 @@ def pbkf_note_correction(fbuf, ibuf, dx, n_prm, n_tab):
     angle(P_k conj(P_{k-1})) + u_phi - u_f T/2 measures the corrected df (module docstring)."""
     n = dx.shape[0]
     views = _pbkf_views(fbuf, ibuf, n, n_prm, n_tab)
-    prm = views[8]
-    rot = views[10]
+    prm = views[7]
+    rot = views[9]
     T = prm[0]
     for c in range(n):
         rot[c] += dx[c, 2] - 0.5 * T * dx[c, 3]
@@ -435,14 +427,13 @@ class PbKfBank:
         # arrays, :attr:`packed`); the attributes below are views of them
         self._n_prm = prm.size
         self._n_tab = tab_k.size
-        n_f = n_ch * (4 * NX + 2 * NK * NK + 2 + 1 + NM + 2) + 3 * NK * NK + prm.size + 2 * tab_k.size
+        n_f = n_ch * (4 * NX + 2 * NK * NK + 2 + 1 + NM + 2) + 2 * NK * NK + prm.size + 2 * tab_k.size
         self._fbuf = np.zeros(n_f)
         self._ibuf = np.zeros(4 * n_ch, dtype=np.int64)
-        (self.x, self.x_post, self.P, self.x0, self.P0, self.Phi, self._Phi_inv, self.Qd, self._prm, self._prev,
+        (self.x, self.x_post, self.P, self.x0, self.P0, self.Phi, self.Qd, self._prm, self._prev,
          self._rot, self.innov, self._mom, self._tab_k, self._tab_u, self.flags, self._active_i, self._have_prev,
          self.n_resets) = _pbkf_views(self._fbuf, self._ibuf, n_ch, self._n_prm, self._n_tab)
         self.Phi[:] = Phi4
-        self._Phi_inv[:] = np.linalg.inv(Phi4)
         self.Qd[:] = Qd4
         self._prm[:] = prm
         self._tab_k[:] = tab_k
