@@ -59,8 +59,8 @@ import numpy as np
 from numba import njit, prange
 
 from ultratight.errors import ConfigError
-from ultratight.receiver.correlator import (COS_LUT, LUT_BITS, LUT_SIZE, SIN_LUT, integrate_channel,
-                                            nco_fixed_point, tap_fixed_point)
+from ultratight.receiver.correlator import (COS_LUT, LUT_BITS, LUT_SIZE, SIN_LUT, CorrelatorBank, integrate_channel,
+                                            nco_fixed_point, period_samples, tap_fixed_point)
 from ultratight.signals.signal import GPS_L1CA
 
 # channel modes
@@ -502,17 +502,6 @@ def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2, acc7):
 
 
 @njit(cache=True)
-def period_samples(code_phase, dp, code_len):
-    """Samples k >= 1 of the code period starting at ``code_phase`` (chips) with ``dp`` chips per
-    sample: the smallest k with code_phase + k dp >= code_len; a sample within 1e-9 sample of the
-    period end counts as the next period's first (exact rates give exactly fs x period samples)."""
-    n = np.int64(np.ceil((code_len - code_phase) / dp - 1e-9))
-    if n < 1:
-        n = 1
-    return n
-
-
-@njit(cache=True)
 def _integrate_pel(buf, is_complex, off, n, tab, cp_fix0, cstep, ph0, phstep, lut, acc):
     """Prompt and early-minus-late (1 chip spacing) sums in one pass.
 
@@ -773,66 +762,6 @@ class TrackingState:
         return float(self.sf[ch, F_CN0_DB]) if self.si[ch, S_CN0_VALID] else float("nan")
 
 
-class ChannelNcos:
-    """Code and carrier NCOs of ``n_ch`` tracking channels for one signal (arrays the kernel updates
-    in place): ``code_phase`` (chips at ``sample_ptr``), ``code_rate`` (chips/s), ``carr_phase``
-    (cycles), ``carr_freq`` (Hz, IF + Doppler), ``sample_ptr`` (absolute sample), ``active``;
-    ``code_ext`` (n_ch, code length + 2 pad) the +-1 codes with ``pad`` chips of wrap-around and
-    ``tap_offsets_chips`` the code offsets of [P, E, L] (the layout of
-    :class:`ultratight.receiver.correlator.CorrelatorBank`, whose kernels read them)."""
-
-    def __init__(self, n_ch, fs_hz, if_hz, spacing_chips, signal=GPS_L1CA):
-        fs_hz, if_hz = float(fs_hz), float(if_hz)
-        if not (math.isfinite(fs_hz) and fs_hz >= signal.chip_rate_hz):
-            raise ConfigError(f"tracking: fs_hz = {fs_hz!r} Hz is below the {signal.name} chip rate "
-                              f"{signal.chip_rate_hz} Hz")
-        if not math.isfinite(if_hz) or abs(if_hz) >= fs_hz:
-            raise ConfigError(f"tracking: if_hz must satisfy |if_hz| < fs_hz = {fs_hz}, got {if_hz!r}")
-        self.signal = signal
-        self.fs_hz, self.if_hz = fs_hz, if_hz
-        self.tap_offsets_chips = np.array([0.0, 0.5 * spacing_chips, -0.5 * spacing_chips])
-        self.pad = int(math.ceil(0.5 * spacing_chips)) + 2
-        self.code_phase = np.zeros(n_ch)
-        self.code_rate = np.full(n_ch, float(signal.chip_rate_hz))
-        self.carr_phase = np.zeros(n_ch)
-        self.carr_freq = np.full(n_ch, if_hz)
-        self.sample_ptr = np.zeros(n_ch, dtype=np.int64)
-        self.active = np.zeros(n_ch, dtype=np.bool_)
-        self.code_ext = np.zeros((n_ch, signal.code_length + 2 * self.pad), dtype=np.float32)
-
-    def init_channel(self, ch, prn, code_phase_chips, doppler_hz, sample_index):
-        """Start channel ``ch`` on ``prn`` from a code phase / Doppler valid at ``sample_index``; the NCOs
-        are advanced to the next code-period start so that every integration spans a full period."""
-        sig, L = self.signal, self.signal.code_length
-        if int(prn) not in sig.prns:
-            raise ConfigError(f"tracking: PRN {prn} is not a {sig.name} PRN")
-        code = np.asarray(sig.code(int(prn))).astype(np.float32)
-        self.code_ext[ch] = code[(np.arange(L + 2 * self.pad) - self.pad) % L]
-        cp = float(code_phase_chips) % L
-        self.code_rate[ch] = sig.code_rate_cps(float(doppler_hz))
-        if L - cp < 1e-9 * self.code_rate[ch] / self.fs_hz:
-            cp = 0.0                           # within round-off of a period start: it is the start
-        self.code_phase[ch] = cp
-        self.carr_freq[ch] = self.if_hz + float(doppler_hz)
-        self.carr_phase[ch] = 0.0
-        self.sample_ptr[ch] = int(sample_index)
-        self.active[ch] = True
-        if self.code_phase[ch] > 0.0:
-            n = int(period_samples(self.code_phase[ch], self.code_rate[ch] / self.fs_hz, float(L)))
-            self.advance_to(ch, int(sample_index) + n)
-            if L - self.code_phase[ch] < 1e-9:     # round-off just below the period start
-                self.code_phase[ch] = 0.0
-
-    def advance_to(self, ch, sample_index):
-        """Propagate channel ``ch``'s NCOs (open loop, current rates) to ``sample_index``."""
-        dn = int(sample_index) - int(self.sample_ptr[ch])
-        dt_chips = dn * self.code_rate[ch] / self.fs_hz
-        self.code_phase[ch] = (self.code_phase[ch] + dt_chips) % self.signal.code_length
-        ph = self.carr_phase[ch] + dn * self.carr_freq[ch] / self.fs_hz
-        self.carr_phase[ch] = ph - math.floor(ph)
-        self.sample_ptr[ch] = int(sample_index)
-
-
 class ScalarTracker:
     """The scalar tracking bank: code/carrier NCOs + FLL-assisted PLL and DLL per channel.
 
@@ -856,7 +785,10 @@ class ScalarTracker:
         self.parallel = bool(parallel) and n_ch > 1
         self.config = config or TrackingConfig()
         self.signal = signal
-        self.nco = ChannelNcos(n_ch, fs_hz, if_hz, self.config.spacing_chips, signal)
+        # the channels' NCOs and code tables: a correlator bank of the signal (its kernels' layout);
+        # the fused tracking kernel integrates, the bank's own step is not used
+        self.nco = CorrelatorBank([signal.prns[0]] * n_ch, fs_hz, if_hz, is_complex,
+                                  spacing_chips=self.config.spacing_chips, signal=signal)
         self.state = TrackingState(n_ch, self.config, max_rows, signal)
         self.fs_hz = float(fs_hz)
         self.if_hz = float(if_hz)
