@@ -10,6 +10,7 @@ the first failure cancels the jobs not yet started and is raised in the parent.
 import math
 import multiprocessing
 import os
+import time
 from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
 
 import numba
@@ -17,9 +18,35 @@ import numba
 from ultratight.errors import ConfigError
 
 
-def free_cores():
-    """Cores not busy by the 1-minute load average (at least 0), of ``os.cpu_count()``."""
+def _cpu_times():
+    """(available, total) jiffies of all CPUs from /proc/stat — available: idle, waiting for I/O or
+    running niced work (which yields to ours) — or None where there is none."""
+    try:
+        with open("/proc/stat") as f:
+            v = [int(x) for x in f.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    return v[1] + v[3] + (v[4] if len(v) > 4 else 0), sum(v[:8])
+
+
+_FREE = {"t": -1e9, "v": 0.0}     # last measurement (reused for a few seconds: many short runs)
+
+
+def free_cores(window_s=0.2, max_age_s=5.0):
+    """Available cores now: the share of all CPUs idle or running niced work over ``window_s``
+    (``/proc/stat``) times the core count; where that is not available, the cores not busy by the 1-minute load average. (The load
+    average alone lags by a minute: right after a heavy job it still counts that job.)"""
     n = os.cpu_count() or 1
+    now = time.monotonic()
+    if now - _FREE["t"] < max_age_s:
+        return _FREE["v"]
+    a = _cpu_times()
+    if a is not None:
+        time.sleep(window_s)
+        b = _cpu_times()
+        if b is not None and b[1] > a[1]:
+            _FREE.update(t=time.monotonic(), v=n * (b[0] - a[0]) / (b[1] - a[1]))
+            return _FREE["v"]
     try:
         load = os.getloadavg()[0]
     except OSError:
