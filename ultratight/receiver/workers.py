@@ -55,9 +55,10 @@ def free_cores(window_s=0.2, max_age_s=5.0):
 
 
 def default_workers(n_jobs):
-    """Worker processes for ``n_jobs`` jobs: one per free core (rounded), at most one per job, and
-    1 (run in this process) when fewer than two cores are free."""
-    k = int(math.floor(free_cores() + 0.5))
+    """Worker processes for ``n_jobs`` jobs: one per available core (a core counts when at least a
+    quarter of it is available), at most one per job; 1 (run in this process) when fewer than about
+    1.25 cores are available."""
+    k = int(math.floor(free_cores() + 0.75))
     return max(1, min(int(n_jobs), k))
 
 
@@ -72,13 +73,13 @@ def check_workers(workers):
 
 def stage_threads(requested):
     """Threads for the compiled stages that spread channels over numba's thread pool: ``requested``
-    when > 0 (capped by the pool), else every thread of the pool when at least 1.5 cores are idle by
-    the 1-minute load average, and one otherwise — on a busy machine the threads wait for each other
-    at every synchronisation and lose more than they gain."""
+    when > 0 (capped by the pool), else every thread of the pool when at least 1.25 cores are
+    available (:func:`free_cores`), and one otherwise — on a busy machine the threads wait for each
+    other at every synchronisation and lose more than they gain."""
     pool = numba.config.NUMBA_NUM_THREADS
     if requested and requested > 0:
         return max(1, min(int(requested), pool))
-    return pool if pool > 1 and free_cores() >= 1.5 else 1
+    return pool if pool > 1 and free_cores() >= 1.25 else 1
 
 
 def _init_worker():
