@@ -37,7 +37,7 @@ from ultratight.receiver.methods import method_spec
 from ultratight.receiver.scalar_reference import run_scalar  # noqa: F401 (public here too)
 from ultratight.receiver.scenario_config import IMU_DEFAULTS, load_scenario
 from ultratight.receiver.startup import StartupErrors, perturb_state
-from ultratight.receiver.workers import check_workers, default_workers, run_jobs
+from ultratight.receiver.workers import WorkerPool, check_workers, default_workers
 from ultratight.signals.constellation import nominal_ephemerides
 from ultratight.signals.generator import generate
 from ultratight.signals.iffile import open_if
@@ -276,24 +276,10 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
     The data of every run are prepared first; then the (run, method) jobs run in worker processes
     when cores are free (:mod:`ultratight.receiver.workers`; ``workers`` = 1 runs them here, one
     after the other). The results do not depend on where a job ran."""
-    all_paths = []
-    for r in range(runs):
-        s = base_seed + r
-        t0 = time.perf_counter()
-        paths, cached = prepare_data(cfg, s, out, progress=progress)
-        n_ch = len(load_truth(paths["truth"])["prn"])
-        if channel >= n_ch:
-            raise ConfigError(f"--channel {channel}: the scenario has {n_ch} channel(s) (0..{n_ch - 1})")
-        if progress:
-            print(f"run {r + 1}/{runs} seed {s}: data {'reused' if cached else 'generated'} "
-                  f"({time.perf_counter() - t0:.1f} s)", flush=True)
-        all_paths.append(paths)
-    keys = [(r, m) for r in range(runs) for m in methods]
-    jobs = [(all_paths[r], cfg, m, base_seed + r, options) for r, m in keys]
-    n_workers = default_workers(len(jobs)) if workers is None else min(int(workers), len(jobs))
-    if progress and n_workers > 1:
-        print(f"{len(jobs)} method run(s) in {n_workers} worker processes", flush=True)
+    n_jobs = runs * len(methods)
+    n_workers = default_workers(n_jobs) if workers is None else min(int(workers), n_jobs)
     per_job = {}
+    keys = [(r, m) for r in range(runs) for m in methods]
 
     def done(i, result):
         r, m = keys[i]
@@ -306,11 +292,13 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
                   f"{np.round(summ['code_rms_chips'], 4).tolist()} chip, lost {summ['lock_lost_channels']}, "
                   f"{res.runtime_s:.1f} s (real-time factor {summ['realtime_factor']:.3f})", flush=True)
 
-    if n_workers > 1:
-        run_jobs(_method_job, jobs, workers=n_workers, on_done=done)
-    else:
-        for i, (p, c, m, s, o) in enumerate(jobs):
-            done(i, run_method(p, c, m, s, options=o))
+    # the workers start (and import the engine) while this process generates the data
+    with WorkerPool(n_workers, preload=(__name__,)) as pool:
+        all_paths = [_prepare_run(cfg, r, runs, base_seed + r, out, channel, progress) for r in range(runs)]
+        jobs = [(all_paths[r], cfg, m, base_seed + r, options) for r, m in keys]
+        if progress and n_workers > 1:
+            print(f"{len(jobs)} method run(s) in {n_workers} worker processes", flush=True)
+        pool.map(_method_job if n_workers > 1 else _method_here, jobs, on_done=done)
     per = {m: [] for m in methods}
     raw = {}
     for i, (r, m) in enumerate(keys):
@@ -318,6 +306,23 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
         per[m].append(summ)
         raw[(r, m)] = entry
     return per, raw
+
+
+def _method_here(paths, cfg, method, seed, options):
+    return run_method(paths, cfg, method, seed, options=options)
+
+
+def _prepare_run(cfg, r, runs, seed, out, channel, progress):
+    """The data of run ``r`` (generated or reused), its channel count checked against ``channel``."""
+    t0 = time.perf_counter()
+    paths, cached = prepare_data(cfg, seed, out, progress=progress)
+    n_ch = len(load_truth(paths["truth"])["prn"])
+    if channel >= n_ch:
+        raise ConfigError(f"--channel {channel}: the scenario has {n_ch} channel(s) (0..{n_ch - 1})")
+    if progress:
+        print(f"run {r + 1}/{runs} seed {seed}: data {'reused' if cached else 'generated'} "
+              f"({time.perf_counter() - t0:.1f} s)", flush=True)
+    return paths
 
 
 def _summarize_method(res, truth, channel, seed):

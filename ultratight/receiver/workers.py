@@ -7,6 +7,7 @@ workers use two cores without competing for them. The results come back in the o
 the first failure cancels the jobs not yet started and is raised in the parent.
 """
 
+import importlib
 import math
 import multiprocessing
 import os
@@ -82,27 +83,53 @@ def stage_threads(requested):
     return pool if pool > 1 and free_cores() >= 1.25 else 1
 
 
-def _init_worker():
+def _init_worker(preload):
     os.environ["NUMBA_NUM_THREADS"] = "1"
+    for name in preload:              # import the job's modules now, while the parent still works
+        importlib.import_module(name)
 
 
-def run_jobs(fn, jobs, workers=None, on_done=None):
-    """``[fn(*job) for job in jobs]``, in worker processes when ``workers`` (default
-    :func:`default_workers`) is above 1. ``fn`` must be a module-level function and its arguments
-    and result picklable. ``on_done(i, result)`` is called in the parent as each job finishes."""
-    jobs = list(jobs)
-    workers = default_workers(len(jobs)) if workers is None else min(int(workers), max(1, len(jobs)))
-    if workers <= 1 or len(jobs) <= 1:
-        out = []
-        for i, job in enumerate(jobs):
-            out.append(fn(*job))
-            if on_done is not None:
-                on_done(i, out[-1])
-        return out
-    results = [None] * len(jobs)
-    ctx = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker) as pool:
-        futs = {pool.submit(fn, *job): i for i, job in enumerate(jobs)}
+def _ready():
+    return os.getpid()
+
+
+class WorkerPool:
+    """``workers`` spawned worker processes (none when ``workers`` <= 1: jobs then run in this
+    process). Started on entering the ``with`` block, with the modules of ``preload`` imported by
+    every worker at once — so their start-up overlaps what the parent does before :meth:`map`."""
+
+    def __init__(self, workers, preload=()):
+        self.workers = int(workers)
+        self.preload = tuple(preload)
+        self._pool = None
+
+    def __enter__(self):
+        if self.workers > 1:
+            ctx = multiprocessing.get_context("spawn")
+            self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx, initializer=_init_worker,
+                                             initargs=(self.preload,))
+            self._warm = [self._pool.submit(_ready) for _ in range(self.workers)]   # spawns them all now
+        return self
+
+    def __exit__(self, *exc):
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+        return False
+
+    def map(self, fn, jobs, on_done=None):
+        """``[fn(*job) for job in jobs]`` in the workers (module-level ``fn``, picklable arguments and
+        results); ``on_done(i, result)`` in this process as each job finishes; the first failure
+        cancels the jobs not yet started and is raised here."""
+        jobs = list(jobs)
+        if self._pool is None:
+            out = []
+            for i, job in enumerate(jobs):
+                out.append(fn(*job))
+                if on_done is not None:
+                    on_done(i, out[-1])
+            return out
+        results = [None] * len(jobs)
+        futs = {self._pool.submit(fn, *job): i for i, job in enumerate(jobs)}
         pending = set(futs)
         try:
             while pending:
@@ -115,6 +142,14 @@ def run_jobs(fn, jobs, workers=None, on_done=None):
         except BaseException:
             for f in pending:
                 f.cancel()
-            pool.shutdown(wait=True, cancel_futures=True)
             raise
-    return results
+        return results
+
+
+def run_jobs(fn, jobs, workers=None, on_done=None):
+    """``[fn(*job) for job in jobs]``, in worker processes when ``workers`` (default
+    :func:`default_workers`) is above 1 (:class:`WorkerPool`)."""
+    jobs = list(jobs)
+    workers = default_workers(len(jobs)) if workers is None else min(int(workers), max(1, len(jobs)))
+    with WorkerPool(workers if len(jobs) > 1 else 1) as pool:
+        return pool.map(fn, jobs, on_done)

@@ -55,6 +55,7 @@ import math
 import os
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import h5py
@@ -95,7 +96,7 @@ C0, C1, C2, P0, P1, P2 = range(6)
 # ------------------------------------------------------------------------------------------
 # numba kernels
 # ------------------------------------------------------------------------------------------
-@njit(cache=True, fastmath=True, parallel=True)
+@njit(cache=True, fastmath=True, parallel=True, nogil=True)
 def _synth_complex(out, L, n_int, codes, coefs, amps, bits, cos_lut, sin_lut):
     """Add the satellites' signals to ``out`` (float32 (n_int*L, 2): I, Q)."""
     nsat = codes.shape[0]
@@ -134,7 +135,7 @@ def _synth_complex(out, L, n_int, codes, coefs, amps, bits, cos_lut, sin_lut):
                 out[base + i, 1] += v * sin_lut[li]
 
 
-@njit(cache=True, fastmath=True, parallel=True)
+@njit(cache=True, fastmath=True, parallel=True, nogil=True)
 def _synth_real(out, L, n_int, codes, coefs, amps, bits, cos_lut):
     """Add the satellites' signals to ``out`` (float32 (n_int*L,))."""
     nsat = codes.shape[0]
@@ -392,6 +393,37 @@ def noise_factor(events, e):
     return f
 
 
+class _NoiseAhead:
+    """The unit Gaussian noise of the generator's blocks, drawn from ``rng`` in block order (the same
+    stream as drawing each block when it is needed) one block ahead by a helper thread, into two
+    alternating buffers, so the draw overlaps the synthesis, filtering and writing of the block
+    before (numpy's generator releases the GIL while it fills an array)."""
+
+    def __init__(self, rng, max_len, sizes):
+        self._rng = rng
+        self._bufs = [np.empty(max_len, dtype=np.float32), np.empty(max_len, dtype=np.float32)]
+        self._sizes = list(sizes)
+        self._k = 0
+        self._pool = ThreadPoolExecutor(max_workers=1)
+        self._next = self._submit(0)
+
+    def _submit(self, k):
+        if k >= len(self._sizes):
+            return None
+        x = self._bufs[k % 2][:self._sizes[k]]
+        return self._pool.submit(self._rng.standard_normal, out=x, dtype=np.float32)
+
+    def next(self):
+        """The next block's noise (float32 view of a buffer, valid until the next-but-one call)."""
+        x = self._next.result()
+        self._k += 1
+        self._next = self._submit(self._k)
+        return x
+
+    def close(self):
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+
 def _tmp(path):
     return tmp_name(path)
 
@@ -523,7 +555,7 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
              "format": spec.name, "week": week, "tow0_s": tow0, "samples_per_row": L,
              "prn": plan.prns, "cn0_dbhz_config": plan.cn0_dbhz, "seed": int(seed),
              "n_samples": n_total, "schema": "ultratight generator truth v1 (docs/generator.md)"}
-    writer = truth = None
+    writer = truth = noise = None
     extra_tmps = []
     bar = _progress(duration, progress, f"generate {stem}")
     try:
@@ -534,7 +566,9 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
         truth = _TruthWriter(paths["truth"], len(ephs), attrs)
         nsat = len(ephs)
         comps = 2 if fe.is_complex else 1
-        buf = np.empty(BLOCK_INTERVALS * L * comps, dtype=np.float32)
+        noise = _NoiseAhead(rng, BLOCK_INTERVALS * L * comps,
+                            [min(BLOCK_INTERVALS, n_int_total - j) * L * comps
+                             for j in range(0, n_int_total, BLOCK_INTERVALS)])
         for j0 in range(0, n_int_total, BLOCK_INTERVALS):
             n_int = min(BLOCK_INTERVALS, n_int_total - j0)
             ns = n_int * L
@@ -545,8 +579,7 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
                 # terrain / obstructions block the satellites below the horizon elevation
                 el = np.stack([g["elev_rad"] for g in starts], 1)
                 amps = amps * (el > math.radians(float(horizon))).astype(np.float32)
-            x = buf[:ns * comps]
-            rng.standard_normal(out=x, dtype=np.float32)
+            x = noise.next()          # this block's unit noise (drawn while the last block was processed)
             t_b0, t_b1 = j0 * L / fe.fs_hz, (j0 * L + ns) / fe.fs_hz
             fac = None
             if any(ev["t0_s"] < t_b1 and ev["t1_s"] > t_b0 for ev in events):
@@ -616,6 +649,8 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
                 pass
         raise
     finally:
+        if noise is not None:
+            noise.close()
         if bar is not None:
             bar.close()
     result["summary"] = {"prns": plan.prns.tolist(), "cn0_dbhz": plan.cn0_dbhz.tolist(),
