@@ -130,6 +130,12 @@ def test_direct_altitude_curve_and_frames():
     assert fads.direct_altitude_sigma(0.0) == pytest.approx(1.0)
     assert fads.direct_altitude_sigma(10000.0) == pytest.approx(10.0)
     assert fads.direct_altitude_sigma(20000.0) == pytest.approx(100.0)
+    assert fads.direct_altitude_sigma(30000.0) == pytest.approx(100.0)          # clipped at the top of the curve
+    # the linear shape: 1 m + 99 m * h / 20 km
+    assert fads.direct_altitude_sigma(10000.0, shape="linear") == pytest.approx(50.5)
+    assert fads.direct_altitude_sigma(np.array([0.0, 20000.0]), shape="linear") == pytest.approx([1.0, 100.0])
+    with pytest.raises(ConfigError, match="shape"):
+        fads.direct_altitude_sigma(1000.0, shape="cubic")
     th, ps, ph = 0.3, -1.2, 0.05
     C = euler_to_dcm(th, ps, ph)
     assert np.allclose(C @ C.T, np.eye(3), atol=1e-14)

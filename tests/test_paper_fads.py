@@ -1,6 +1,7 @@
 """The paper-fads experiment (seed 004) behind ``ultratight scenario``."""
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -30,6 +31,12 @@ def test_scenario_is_registered_and_validated(mod_cfg, tmp_path):
         mod.load(path, {**raw, "fads": {**raw["fads"], "noise_p": 1.0}}, {})
     with pytest.raises(ConfigError, match="fads.altitude_mode"):
         mod.load(path, {**raw, "fads": {**raw["fads"], "altitude_mode": "baro"}}, {})
+    with pytest.raises(ConfigError, match=r"imu.error_model must be one of 'white', 'bias', 'bias\+white'; got 'drift'"):
+        mod.load(path, {**raw, "imu": {**raw["imu"], "error_model": "drift"}}, {})
+    with pytest.raises(ConfigError, match="filter.altitude_row"):
+        mod.load(path, raw, {"filter.altitude_row": "gnss"})
+    with pytest.raises(ConfigError, match="filter.bias_horizon_s"):
+        mod.load(path, raw, {"filter.bias_horizon_s": 0.0})
     with pytest.raises(ConfigError, match="imu.rate_hz"):
         mod.load(path, {**raw, "imu": {**raw["imu"], "rate_hz": 105.0}}, {})
     with pytest.raises(ConfigError, match="duration_s"):
@@ -86,6 +93,54 @@ def test_cli_json_and_outputs(tmp_path, capsys):
     pytest.importorskip("matplotlib")
     assert (out / "fig6_max_aoa_deg.png").is_file()
     assert not list(out.glob(".*part*"))
+
+
+def test_imu_readings_of_table_1_and_their_process_noise(mod_cfg):
+    """Table 1's IMU figures as white noise per sample, as a constant per-run bias, or both; Q per
+    filter step of T = 0.1 s is per·(σ dt)² for the noise and σ² τ T for the bias (τ = bias_horizon_s)."""
+    mod, path, raw, _ = mod_cfg
+    n, dt, T, tau = 20000, 0.01, 0.1, 20.0
+    sa, sg = 0.05, math.radians(0.01)
+    dth0, dv0 = np.zeros((n, 3)), np.tile([0.0, 0.0, -9.8 * dt], (n, 1))
+    out = {}
+    for model in ("white", "bias", "bias+white"):
+        cfg = mod.load(path, raw, {"duration_s": 10.0, "imu.error_model": model, "filter.bias_horizon_s": tau})
+        dth, dv, b = mod.imu_data(cfg, dth0, dv0, np.random.default_rng(7))
+        eg, ea = dth / dt - b["gyro_rps"], (dv - dv0) / dt - b["accel_mps2"]
+        noise = model != "bias"
+        assert np.std(eg) == pytest.approx(sg if noise else 0.0, rel=0.03, abs=1e-15)
+        assert np.std(ea) == pytest.approx(sa if noise else 0.0, rel=0.03, abs=1e-12)
+        assert np.all(np.abs(np.mean(eg, axis=0)) < 5 * sg / math.sqrt(n))
+        assert (np.any(b["gyro_rps"]) and np.any(b["accel_mps2"])) == (model != "white")
+        out[model] = np.diag(mod.process_noise(cfg, np.ones(9)))
+    q_white = np.array([10 * (sa * dt) ** 2] * 3 + [10 * (sg * dt) ** 2] * 3)
+    q_bias = np.array([sa ** 2 * tau * T] * 3 + [sg ** 2 * tau * T] * 3)
+    assert np.allclose(out["white"][3:], q_white, rtol=1e-12)
+    assert np.allclose(out["bias"][3:], q_bias, rtol=1e-12)
+    assert np.allclose(out["bias+white"][3:], q_white + q_bias, rtol=1e-12)
+    # the per-run biases are N(0, σ²) per axis across runs
+    cfg = mod.load(path, raw, {"duration_s": 10.0, "imu.error_model": "bias"})
+    bs = [mod.imu_data(cfg, dth0[:1], dv0[:1], np.random.default_rng(s)) for s in range(600)]
+    assert np.std([b[2]["gyro_rps"] for b in bs]) == pytest.approx(sg, rel=0.07)
+    assert np.std([b[2]["accel_mps2"] for b in bs]) == pytest.approx(sa, rel=0.07)
+
+
+def test_fads_altitude_curve_readings_and_the_altitude_row(mod_cfg):
+    """The 1 -> 100 m curve as σ or as a 3σ envelope, log-linear or linear, sets h_F's noise and R_F1/R_F2
+    of eq. 4; the altitude row is h_GF (default) or the filter's ĥ."""
+    mod, path, raw, cfg0 = mod_cfg
+    cfg = mod.load(path, raw, {"duration_s": 40.0, "fads.altitude_curve": "envelope", "fads.altitude_shape": "linear"})
+    assert mod.direct_altitude_sigma(cfg, 20000.0) == pytest.approx(100.0 / 3.0)
+    sim = mod.simulate(cfg, 3)
+    assert sim["R_f"] == pytest.approx((((1.0 + 99.0 / 20.0) / 3.0) ** 2, (50.5 / 3.0) ** 2))
+    h = sim["truth"]["h"][1:]
+    z = (sim["h_fads"] - h) / mod.direct_altitude_sigma(cfg, h)
+    assert np.std(z) == pytest.approx(1.0, abs=0.1) and abs(np.mean(z)) < 0.15      # 400 epochs: ±3 standard errors
+    r = mod.run_one(cfg0, ["fads-ckf"], 2)["methods"]["fads-ckf"]
+    assert r["altitude_m"] == r["prefused_altitude_m"] and r["altitude_m"] != r["filter_altitude_m"]
+    cfg_f = mod.load(path, raw, {"duration_s": 40.0, "filter.altitude_row": "filter"})
+    r = mod.run_one(cfg_f, ["fads-ckf"], 2)["methods"]["fads-ckf"]
+    assert r["altitude_m"] == r["filter_altitude_m"] and r["altitude_m"] != r["prefused_altitude_m"]
 
 
 @pytest.mark.parametrize("override", [{"fads.altitude_mode": "pressure"},

@@ -207,10 +207,18 @@ def derived(y, cov, C_bn=None):
     return out
 
 
-def direct_altitude_sigma(h_m, sigma0_m=1.0, sigma1_m=100.0, h1_m=20000.0):
-    """σ_F(h): log-linear from ``sigma0_m`` at 0 m to ``sigma1_m`` at ``h1_m`` (clipped to [0, h1])."""
+def direct_altitude_sigma(h_m, sigma0_m=1.0, sigma1_m=100.0, h1_m=20000.0, shape="log-linear"):
+    """σ_F(h) from ``sigma0_m`` at 0 m to ``sigma1_m`` at ``h1_m`` (h clipped to [0, h1]).
+
+    ``shape`` "log-linear" (SPEC §8 choice: log σ linear in h, the growth of a pressure altitude's
+    error, dh/dp ∝ 1/ρ) or "linear" (σ linear in h); the paper gives only the end values."""
     s = np.clip(np.asarray(h_m, float), 0.0, h1_m) / h1_m
-    out = sigma0_m * (sigma1_m / sigma0_m) ** s
+    if shape == "log-linear":
+        out = sigma0_m * (sigma1_m / sigma0_m) ** s
+    elif shape == "linear":
+        out = sigma0_m + (sigma1_m - sigma0_m) * s
+    else:
+        raise ConfigError(f"FADS altitude curve shape must be 'log-linear' or 'linear', got {shape!r}")
     return float(out) if out.ndim == 0 else out
 
 

@@ -30,6 +30,7 @@ import math
 import numpy as np
 from numba import njit
 
+from ultratight.airdata.frames import euler_to_dcm
 from ultratight.constants import OMEGA_E
 from ultratight.fusion.filters import ckf_predict, ckf_update, ekf_predict, ekf_update
 from ultratight.ins.earth import gravity_nu, radii
@@ -202,7 +203,6 @@ def fads_velocity_h(C_pred, c_f, wind_n=None):
     trusts a velocity that carries its own attitude error (|V| δψ ≈ 4 m/s at Mach 8 per 0.1°): it
     diverges (AoA errors of tens of degrees in this scenario). With a known constant wind W the FADS
     ground velocity is ``C_pred v_b,F + W`` and its expectation ``C_pred C_nb(X) (V − W) + W``."""
-    from ultratight.airdata.frames import euler_to_dcm
     c_f = np.asarray(c_f, float)
     w = np.zeros(3) if wind_n is None else np.asarray(wind_n, float)
 
