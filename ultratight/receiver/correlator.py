@@ -136,6 +136,9 @@ def integrate_channel(buf, is_complex, off, n, code_ext, cp_fix0, cstep, ph0, ph
     32-bit carrier phase and step; ``cos_lut``/``sin_lut`` are :data:`COS_LUT`/:data:`SIN_LUT`.
     ``tap_fix[t]`` are the tap offsets in fixed point (code chips * 2**32).
     ``acc`` (2*n_taps,) receives [I_t..., Q_t...] raw sums (float64).
+
+    One function (86 lines) on purpose: the three-tap loop is the receiver's hot spot and keeps its
+    twelve accumulators in registers; split into calls, numba would not keep them there.
     """
     n_taps = tap_fix.shape[0]
     shift = 32 - LUT_BITS
