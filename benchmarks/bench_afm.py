@@ -1,4 +1,4 @@
-"""Seed 002's filters on the quaternion SINS/GPS model: cost per 100 Hz step and per 300 s run.
+"""The filters of Sun et al. 2012 on the quaternion SINS/GPS model: cost per 100 Hz step and per 300 s run.
 
     python benchmarks/bench_afm.py [--quick] [--json OUT.json]
 

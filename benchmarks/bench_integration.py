@@ -1,4 +1,4 @@
-"""Loose/tight SINS/GNSS integration speed (seeds 001 and 003 experiments).
+"""Loose/tight SINS/GNSS integration speed (the experiments of Fang 2017 and Cai et al. 2020).
 
     python benchmarks/bench_integration.py [--quick] [--repeat R] [--json OUT.json]
 

@@ -1,4 +1,4 @@
-"""Adaptive parts: AKF / IAKF (seed 001) and AFF / AFM fading UKF/AUKF (seed 002)."""
+"""Adaptive parts: AKF / IAKF (Fang 2017) and AFF / AFM fading UKF/AUKF (Sun et al. 2012)."""
 
 import numpy as np
 import pytest
@@ -82,7 +82,7 @@ def test_iakf_with_wrong_noise_matches_akf_with_true_noise():
     akf0 = _mean(lambda x0: AD.AKF(x0, P0, Q_TRUE, R_TRUE, window=50))
     akf = _mean(lambda x0: AD.AKF(x0, P0, 100 * Q_TRUE, R_WRONG, window=50))
     iakf = _mean(_iakf)
-    # seed 001 Table 1: IAKF (wrong initial noise) ≈ AKF0 (true noise) ≪ AKF (wrong initial noise)
+    # Fang 2017, Table 1: IAKF (wrong initial noise) ≈ AKF0 (true noise) ≪ AKF (wrong initial noise)
     assert np.all(np.abs(iakf - akf0) <= 0.3 * akf0), (akf0, iakf)
     assert np.all(akf > 3 * iakf), (akf, iakf)
 

@@ -1,4 +1,4 @@
-"""Air-data physics: standard atmosphere, pitot relations, FADS model and inversion (SPEC §8)."""
+"""Air-data physics: standard atmosphere, pitot relations, FADS model and inversion (Duan et al. 2024)."""
 
 import math
 
@@ -48,7 +48,7 @@ def test_pitot_relations_known_values_and_continuity_at_mach_1():
     lo, hi = 1.0 - 1e-9, 1.0 + 1e-9
     assert abs(fads.impact_ratio(lo) - fads.impact_ratio(hi)) < 1e-8
     assert abs(fads.impact_ratio_dmach(lo) - fads.impact_ratio_dmach(hi)) < 1e-7
-    # the SPEC's rounded constant 166.92 is the exact 1.2^3.5 6^2.5 to 5 digits
+    # the usual rounded constant 166.92 is the exact 1.2^3.5 6^2.5 to 5 digits
     assert fads.RAYLEIGH_K == pytest.approx(166.92, abs=5e-3)
     m = np.linspace(0.3, 10.0, 500)
     assert np.max(np.abs(fads.mach_from_impact_ratio(fads.impact_ratio(m)) - m)) < 1e-10

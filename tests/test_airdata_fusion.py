@@ -1,4 +1,4 @@
-"""The 9-state ESD total-state air-data filter (SPEC §8): mechanization, eq. 4, eqs. 9–10, CKF/EKF."""
+"""The 9-state ESD total-state air-data filter (Duan et al. 2024): mechanization, eq. 4, eqs. 9–10, CKF/EKF."""
 
 import math
 

@@ -34,7 +34,7 @@ def _free_inertial(imu, dth=None, dv=None, x0=None):
 
 
 def test_error_free_paper_highdyn(paper_traj, paper_imu100):
-    # acceptance: 60 s of SPEC Table 2 (20 g, 6 km/s) at 100 Hz: <= 0.05 m, 5 mm/s, 1e-4 deg
+    # acceptance: 60 s of Zhao et al. 2014, Table 2 (20 g, 6 km/s) at 100 Hz: <= 0.05 m, 5 mm/s, 1e-4 deg
     _, (dp, dv, da) = _free_inertial(paper_imu100)
     e100 = (np.linalg.norm(dp[-1]), np.linalg.norm(dv[-1]), math.degrees(np.linalg.norm(da[-1])))
     assert np.max(np.linalg.norm(dp, axis=1)) <= 0.05

@@ -1,4 +1,5 @@
-"""Analytic trajectory: SPEC Table 2 kinematics, ECEF mapping, attitude/rate consistency, turns, config errors."""
+"""Analytic trajectory: Zhao et al. 2014 Table 2 kinematics, ECEF mapping, attitude/rate consistency, turns,
+config errors."""
 
 import math
 
@@ -19,7 +20,7 @@ def paper():
 
 
 def test_table2_velocities(paper):
-    # SPEC §4 Table 2 integrated by hand: east speed 100 t, +150 in 20-21 s, 200 m/s^2 to 40 s, ...
+    # Zhao et al. 2014, Table 2 integrated by hand: east speed 100 t, +150 in 20-21 s, 200 m/s^2 to 40 s, ...
     t = np.array([0.0, 10.0, 20.0, 21.0, 40.0, 41.0, 60.0])
     k = paper.kinematics(t)
     vE = np.array([0.0, 1000.0, 2000.0, 2150.0, 5950.0, 5950.0, 2150.0])

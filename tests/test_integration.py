@@ -1,4 +1,4 @@
-"""Loose/tight SINS/GNSS runners (fusion.integration) on the seed 001 / 003 experiments' data:
+"""Loose/tight SINS/GNSS runners (fusion.integration) on the Fang 2017 / Cai et al. 2020 experiments' data:
 closed-loop runs against simulator truth, covariance consistency (NEES), the χ² + Newton
 cores' false alarms and gross-error rejection, the adaptive cores with the paper's wrong noise."""
 
@@ -127,7 +127,7 @@ def test_newton_replacement_guard_prevents_runaway(flight):
 
 
 def test_tight_akf0_consistent_and_akf_with_wrong_noise_worse(static):
-    """Seed 001 static case: AKF0 (true noise) with velocity RMS of a few cm/s and its 17-state NEES
+    """Fang 2017 static case: AKF0 (true noise) with velocity RMS of a few cm/s and its 17-state NEES
     in the 95 % band ≥ 90 % of epochs; AKF started from the paper's wrong settings ≥ 5x worse in
     velocity; IAKF (same wrong settings, the scenario's defaults) near AKF0 after the start-up and
     ≥ 5x better than AKF in horizontal velocity."""

@@ -1,4 +1,4 @@
-"""Seed 002's experiments behind ``ultratight scenario paper-afm-*``."""
+"""The experiments of Sun et al. 2012 behind ``ultratight scenario paper-afm-*``."""
 
 import json
 import math

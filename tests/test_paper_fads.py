@@ -1,4 +1,4 @@
-"""The paper-fads experiment (seed 004) behind ``ultratight scenario``."""
+"""The paper-fads experiment (Duan et al. 2024) behind ``ultratight scenario``."""
 
 import json
 import math

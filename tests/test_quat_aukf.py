@@ -1,4 +1,4 @@
-"""Seed 002: augmented UKF (L = n + q + m) with AFF / AFM, the quaternion SINS/GPS model, the swing base."""
+"""Sun et al. 2012: augmented UKF (L = n + q + m) with AFF / AFM, the quaternion SINS/GPS model, the swing base."""
 
 import math
 
@@ -77,7 +77,7 @@ def test_fading_on_linear_case_matches_the_kalman_form(mode):
             Hp = H[:, :3]
             S = np.eye(5)
             S[:3, :3] = np.linalg.solve(Hp.T @ Hp, Hp.T @ np.diag(w) @ Hp)   # eqs. 9–10
-            Pf = 0.5 * (S @ Pn + Pn @ S.T) + G @ Q @ G.T      # eq. 13, SPEC §6 reading
+            Pf = 0.5 * (S @ Pn + Pn @ S.T) + G @ Q @ G.T      # eq. 13, this project's reading
             if np.linalg.eigvalsh(Pf).min() <= 0:             # documented guard: D P′ D, D = √diag S
                 d = np.sqrt(np.maximum(np.diag(S), 1.0))
                 Pf = Pn * np.outer(d, d) + G @ Q @ G.T

@@ -1,4 +1,4 @@
-"""Robust parts: Huber R̄ / adaptive factor / RACKF (seed 000) and chi-square + Newton (seed 003)."""
+"""Robust parts: Huber R̄ / adaptive factor / RACKF (Zhao et al. 2014) and chi-square + Newton (Cai et al. 2020)."""
 
 import numpy as np
 import pytest
@@ -100,7 +100,7 @@ def test_rackf_correction_period():
         RB.RACKF(np.zeros(4), np.eye(4), correction_period=0)
 
 
-# range/bearing tracking: measurement-noise burst and abrupt manoeuvre (SPEC §3 claim)
+# range/bearing tracking: measurement-noise burst and abrupt manoeuvre (the claim of Zhao et al. 2014)
 DT = 1.0
 A_CV = np.array([[1, 0, DT, 0], [0, 1, 0, DT], [0, 0, 1, 0], [0, 0, 0, 1.0]])
 Q_CV = 0.01 * np.array([[DT**3 / 3, 0, DT**2 / 2, 0], [0, DT**3 / 3, 0, DT**2 / 2],
@@ -203,7 +203,7 @@ def test_detector_replaces_only_faulty_dimension():
 
 def _gross_error_run(seed, robust, T=300):
     # 2-axis position/velocity, GNSS-like position+velocity measurements at 1 Hz,
-    # every 10 s the measurement noise of that epoch ×30 (SPEC §7 scenario, scaled down)
+    # every 10 s the measurement noise of that epoch ×30 (the scenario of Cai et al. 2020, scaled down)
     rng = np.random.default_rng(seed)
     n = 4
     A = np.eye(n)

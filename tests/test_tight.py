@@ -174,7 +174,7 @@ def test_bad_core_and_shapes():
 
 
 def test_iakf_core_updates_and_converges():
-    """The "iakf" core (seed 001 IAKF) runs repeated updates on the linear model (it raised
+    """The "iakf" core (Fang 2017 IAKF) runs repeated updates on the linear model (it raised
     FilterError on its first update when GDOP was passed as the line-of-sight matrix) and, started
     with a 25x too large R, estimates a constant injected error as well as the EKF given the true R."""
     los_l, M, P0, x_true = _linear_case(8)

@@ -1,4 +1,4 @@
-"""Air-data physics (seed 004, SPEC §8): standard atmosphere, flush air-data sensing (FADS), air data.
+"""Air-data physics (Duan et al. 2024): standard atmosphere, flush air-data sensing (FADS), air data.
 
 * :mod:`ultratight.airdata.atmosphere` — ICAO standard atmosphere through the ``ambiance`` library
   (pressure, temperature, density, speed of sound; altitude of a pressure), optional constant wind.

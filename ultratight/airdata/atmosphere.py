@@ -1,11 +1,11 @@
-"""ICAO standard atmosphere (= U.S. Standard Atmosphere 1976 below 32 km, SPEC §8) via ``ambiance``.
+"""ICAO standard atmosphere (= U.S. Standard Atmosphere 1976 below 32 km, this project's choice) via ``ambiance``.
 
 All functions take the geometric altitude ``h_m`` (m, scalar or array) and return SI values
 (Pa, K, kg/m³, m/s). The valid range is the library's, -5 km to 81 km; outside it a
 :class:`ConfigError`/ValueError names the altitude. :func:`altitude_from_pressure` is the
-inverse of :func:`pressure` (the FADS "pressure altitude" h_F of SPEC §8).
+inverse of :func:`pressure` (the FADS "pressure altitude" h_F of Duan et al. 2024).
 
-Constants of SPEC §8: γ = 1.4, R = 287.053 J/(kg·K), g₀ = 9.80665 m/s²; the speed of sound is
+Constants: γ = 1.4, R = 287.053 J/(kg·K), g₀ = 9.80665 m/s²; the speed of sound is
 a = sqrt(γ R T).
 """
 
@@ -15,7 +15,7 @@ from ambiance import Atmosphere
 from ultratight.errors import ConfigError
 
 GAMMA = 1.4                 # ratio of specific heats of air
-R_AIR = 287.05287           # specific gas constant of dry air, J/(kg K) (ICAO; SPEC rounds 287.053)
+R_AIR = 287.05287           # specific gas constant of dry air, J/(kg K) (ICAO; 287.053 rounded)
 G0 = 9.80665                # standard gravity, m/s^2
 H_MIN_M = -5000.0
 H_MAX_M = 81020.0

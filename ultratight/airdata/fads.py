@@ -1,4 +1,4 @@
-"""Flush air-data sensing (FADS): port pressures, their inversion, and air data (SPEC §8).
+"""Flush air-data sensing (FADS): port pressures, their inversion, and air data (for Duan et al. 2024).
 
 Pressure model (Whitmore et al., AIAA 98-0201, the paper's ref. [13])::
 
@@ -6,9 +6,9 @@ Pressure model (Whitmore et al., AIAA 98-0201, the paper's ref. [13])::
     cos θ_i = cos α cos β cos λ_i + sin β sin φ_i sin λ_i + sin α cos β cos φ_i sin λ_i
 
 λ_i cone angle, φ_i clock angle of port i (φ = 0 on the windward side at positive α, φ = 90° on
-the right at positive β); ε = 0 (modified Newtonian, SPEC choice). Impact pressure q_c of Mach M
+the right at positive β); ε = 0 (modified Newtonian, this project's choice). Impact pressure q_c of Mach M
 (:func:`impact_ratio`): subsonic isentropic ``q_c/p_∞ = (1 + 0.2 M²)^3.5 − 1``; supersonic Rayleigh
-pitot ``(q_c + p_∞)/p_∞ = K M⁷ / (7 M² − 1)^2.5`` with K = 1.2^3.5 · 6^2.5 = 166.9216 (SPEC's
+pitot ``(q_c + p_∞)/p_∞ = K M⁷ / (7 M² − 1)^2.5`` with K = 1.2^3.5 · 6^2.5 = 166.9216 (the usual
 166.92 rounded), which makes the two branches continuous with a continuous slope at M = 1.
 
 Inversion (:func:`invert`): per epoch, Gauss–Newton on y = (α, β, q_c, p_∞) over all ports
@@ -33,7 +33,8 @@ I_ALPHA, I_BETA, I_QC, I_PINF = 0, 1, 2, 3
 
 
 def default_ports():
-    """SPEC §8 layout: nose + cones 20° and 40° at clock 0/90/180/270° → (cone λ, clock φ) in rad, (9,) each."""
+    """Port layout (this project's choice; the paper gives none): nose + cones 20° and 40° at clock
+    0/90/180/270° → (cone λ, clock φ) in rad, (9,) each."""
     cone = [0.0] + [20.0] * 4 + [40.0] * 4
     clock = [0.0] + [0.0, 90.0, 180.0, 270.0] * 2
     return np.radians(cone), np.radians(clock)
@@ -210,7 +211,7 @@ def derived(y, cov, C_bn=None):
 def direct_altitude_sigma(h_m, sigma0_m=1.0, sigma1_m=100.0, h1_m=20000.0, shape="log-linear"):
     """σ_F(h) from ``sigma0_m`` at 0 m to ``sigma1_m`` at ``h1_m`` (h clipped to [0, h1]).
 
-    ``shape`` "log-linear" (SPEC §8 choice: log σ linear in h, the growth of a pressure altitude's
+    ``shape`` "log-linear" (this project's choice: log σ linear in h, the growth of a pressure altitude's
     error, dh/dp ∝ 1/ρ) or "linear" (σ linear in h); the paper gives only the end values."""
     s = np.clip(np.asarray(h_m, float), 0.0, h1_m) / h1_m
     if shape == "log-linear":
@@ -227,7 +228,7 @@ def direct_altitude_sigma(h_m, sigma0_m=1.0, sigma1_m=100.0, h1_m=20000.0, shape
 def air_data(vel_n, C_bn, h_m, wind_n=None):
     """α, β (rad), Mach, true airspeed (m/s) from ESD velocity (n, 3), attitude C_bn (n, 3, 3) and altitude.
 
-    SPEC §8 post-processing: ``v_b = C_nb (V − W)``, ``α = atan2(v_b,z, v_b,x)``,
+    Post-processing of Duan et al. 2024 (Fig. 1): ``v_b = C_nb (V − W)``, ``α = atan2(v_b,z, v_b,x)``,
     ``β = asin(v_b,y / |v_b|)``, ``Ma = |v_b| / a(h)`` (W = 0 as the paper)."""
     v = np.asarray(vel_n, float)
     if wind_n is not None:

@@ -1,17 +1,17 @@
-"""Truth flight of the paper-fads scenario (SPEC §8 "Scenario"): profile, attitude and ideal IMU.
+"""Truth flight of the paper-fads scenario (Duan et al. 2024, §2): profile, attitude and ideal IMU.
 
-Choices of SPEC §8 (the paper gives none): heading East at constant latitude (V_y = 0), wings level
+This project's choices (the paper gives none): heading East at constant latitude (V_y = 0), wings level
 (zero bank about the velocity); climb 0–``t_climb`` from ``h0`` to ``h_cruise`` with Mach ``mach0`` →
 ``mach_cruise``, cruise, descent to ``h_end`` with Mach → ``mach_end``; altitude and ground speed
 follow quintic smoothsteps (zero rate and acceleration at the phase joints, so the specific force
 is continuous) between the end speeds ``M a(h)``; in cruise (isothermal above 11 km) the Mach is
 exact. α = α₀ + α₁ sin(2πt/P_α), β = β₁ sin(2πt/P_β). Attitude ``C_bn = Ry(γ) C_bw(α, β)ᵀ``-chain:
 the wind axes are the velocity axes (flight-path angle γ = asin(ḣ/V), track East, no wind), and the
-body is rotated from them by α and β, so pitch = γ + α exactly when β = 0 (SPEC: "pitch = flight-path
+body is rotated from them by α and β, so pitch = γ + α exactly when β = 0 (the chosen "pitch = flight-path
 angle + α"); with β ≠ 0 a small roll appears (≈ β·sin γ, under 0.07° here).
 
 IMU truth (body frame x nose, y right, z down): ``f_b = C_nb (V̇_n − g_n + (2ω_ie + ω_en) × V_n)``,
-``ω_ib_b = ω_nb_b + C_nb (ω_ie + ω_en)`` in ESD (the mechanization of SPEC §8 run backwards),
+``ω_ib_b = ω_nb_b + C_nb (ω_ie + ω_en)`` in ESD (the air-data filter's mechanization run backwards),
 integrated over each IMU interval by 3-point Gauss–Legendre quadrature into increments
 (Δθ, Δv), the form :func:`ultratight.ins.imu.apply_errors` corrupts. Time derivatives are central
 differences (δ = 1 ms) of the analytic profile (error < 1e-8 m/s², rad/s).
@@ -64,7 +64,7 @@ def gravity_esd_batch(lat, h):
 
 @njit(cache=True)
 def nav_rates_esd(lat, h, vel):
-    """Earth rate ω_ie and transport rate ω_en in ESD, (n, 3) each (SPEC §8 mechanization)."""
+    """Earth rate ω_ie and transport rate ω_en in ESD, (n, 3) each (the air-data filter's mechanization)."""
     n = lat.shape[0]
     wie = np.zeros((n, 3))
     wen = np.zeros((n, 3))

@@ -1,4 +1,4 @@
-"""The paper's frames (SPEC §8 / seed 004 §1.1): East–South–Down navigation frame "n" and the body
+"""The paper's frames (Duan et al. 2024, §1.1): East–South–Down navigation frame "n" and the body
 frame x nose, y right wing, z down; Euler angles pitch θ, yaw ψ, roll φ of the 3-2-1 sequence
 (ψ = 0 points East, positive toward South; θ positive nose up; φ positive right wing down), so
 ``C_bn = Rz(ψ) Ry(θ) Rx(φ)`` maps body vectors to ESD (``v_n = C_bn @ v_b``).

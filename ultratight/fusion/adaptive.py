@@ -1,11 +1,11 @@
 """Adaptive filters composable with the generic filters.
 
-1. Innovation-based adaptive KF, AKF (seed 001 §2, eqs. 6–15) – :class:`AKF`
+1. Innovation-based adaptive KF, AKF (Fang 2017 §2, eqs. 6–15) – :class:`AKF`
    ε_k = z − H x⁻ (6); P̂_ε = (1/N) Σ_window ε εᵀ (7, window of the last N innovations);
    R̂ = P̂_ε − H P⁻ Hᵀ (8); Q̂ = K P̂_ε Kᵀ + P_k − Φ P_{k−1} Φᵀ (14); filter eq. 15 with the gain
    K = P⁻ Hᵀ (H P⁻ Hᵀ + R̂)⁻¹ (= P⁻ Hᵀ P̂_ε⁻¹ whenever the PD guard leaves R̂ untouched) and the
    Joseph covariance with R̂.  Until the window is full the nominal Q₀, R₀ are used.
-2. Improved AKF, IAKF (seed 001 §3, eqs. 16–26) – :class:`IAKF`
+2. Improved AKF, IAKF (Fang 2017 §3, eqs. 16–26) – :class:`IAKF`
    R from the geometry: G = (H_SIᵀ H_SI)⁻¹ with H_SI = [e_j, 1] the line-of-sight rows of the
    corrected-SINS position (17–19), GDOP = sqrt(tr G) (20); σ² = [sum of the four position/clock
    error variances]/GDOP² (24–25), the same for rates with GDOP_ENU (the trace of G is invariant
@@ -22,11 +22,11 @@
    Q̂ may be projected onto the model's noise structure (``q_structure``, :func:`project_q`) and
    capped there by the given noise (``q_ceiling``): the noise variances of Q̂ may fall below
    those of the given Q (projected the same way) but not exceed them.
-3. Adaptive fading factor (AFF) and adaptive fading matrix (AFM) for UKF/AUKF (seed 002) –
+3. Adaptive fading factor (AFF) and adaptive fading matrix (AFM) for UKF/AUKF (Sun et al. 2012) –
    :func:`fading_terms`, :func:`fading_factor`, :func:`fading_matrix`, :func:`apply_fading`,
    :class:`FadingUKF`.
    Sigma-point equivalents (eqs. 11–12): H = P_xzᵀ P⁻⁻¹, A = H P′ Hᵀ (P′ = propagated covariance
-   without process noise; the SPEC's "A = P′" read in measurement space, as eq. 1 requires an m×m
+   without process noise; eq. 12's printed "A = P′" read in measurement space, as eq. 1 requires an m×m
    A), B = P_zz − A.  Per-innovation χ² reasoning (eqs. 1, 5–6): the i-th innovation is consistent
    when y_i²/(ω_i A_ii + B_ii) ≤ T (T = χ²₁ quantile), giving
    ω_i = max(1, (y_i²/T − B_ii)/A_ii).  AFF: λ = max(1, ω_1..ω_m) (eq. 1) scales the whole P′;
@@ -35,7 +35,7 @@
    P⁻_f = S ⊙ P′ + (P⁻ − P′) (eq. 13, read as "fade the noiseless part, keep the process noise");
    the product S P′ is symmetrised (and, if that is not PD, replaced by D P′ D with
    D = diag(√diag S)).  Then the sigma points are redrawn from P⁻_f and the measurement update is
-   redone (seed 002 steps 5–8).
+   redone (Sun et al. 2012, steps 5–8).
 """
 
 from __future__ import annotations
@@ -91,7 +91,7 @@ def _floor(M: np.ndarray, rel: float, absolute: float) -> float:
 
 
 class AKF:
-    """Innovation-based adaptive Kalman filter (seed 001 eqs. 6–15).
+    """Innovation-based adaptive Kalman filter (Fang 2017 eqs. 6–15).
 
     ``AKF(x0, P0, Q0, R0, window=N)``; ``predict(Phi)``; ``update(z, H) -> UpdateResult`` (info has
     ``Q_hat``, ``R_hat``).  ``adapt_q``/``adapt_r`` switch the two estimators; ``floor`` is the
@@ -159,7 +159,7 @@ class AKF:
 
 
 def gdop(los_unit, C=None) -> float:
-    """GDOP = sqrt(tr (H_SIᵀ H_SI)⁻¹), H_SI = [e_j, 1] (seed 001 eqs. 17–20).
+    """GDOP = sqrt(tr (H_SIᵀ H_SI)⁻¹), H_SI = [e_j, 1] (Fang 2017 eqs. 17–20).
 
     ``los_unit`` (k, 3) unit line-of-sight vectors (any frame; ``C`` optionally rotates them first,
     e.g. ECEF→ENU for GDOP_ENU — the trace, hence GDOP, is rotation invariant).
@@ -178,7 +178,7 @@ def gdop(los_unit, C=None) -> float:
 
 
 class IAKF:
-    """Improved adaptive KF (seed 001 §3): GDOP-based R̂ (eqs. 16–25) and windowed Q̂ (eq. 26).
+    """Improved adaptive KF (Fang 2017 §3): GDOP-based R̂ (eqs. 16–25) and windowed Q̂ (eq. 26).
 
     Parameters: ``pr_rows``/``prr_rows`` index the pseudorange / pseudorange-rate rows of z;
     ``pos_clk_idx`` the four state indices (δx, δy, δz, δt_u) and ``vel_drift_idx`` the four
@@ -325,7 +325,7 @@ class IAKF:
 
 
 def project_q(Q_hat, basis, fixed=None, scale=None, diagonal=False, floor=1e-12, ceiling=None):
-    """Q̂ of eq. 26 projected onto the noise structure of the model (seed 001 eq. 3).
+    """Q̂ of eq. 26 projected onto the noise structure of the model (Fang 2017 eq. 3).
 
     The model admits only Q = Q_fixed + Σ_i q_i Q_i, q_i ≥ 0, with Q_i the discretised process
     noise of the i-th white noise of W alone at unit PSD (G_i Q_w,i G_iᵀ through the
@@ -360,11 +360,11 @@ def project_q(Q_hat, basis, fixed=None, scale=None, diagonal=False, floor=1e-12,
     return symmetrize(F + np.tensordot(q, B, axes=1)), q
 
 
-# --------------------------------------------------------------------------- fading (seed 002)
+# --------------------------------------------------------------------------- fading (Sun et al. 2012)
 
 
 def fading_terms(Pxz, P_pred, P_noiseless, Pzz):
-    """Sigma-point equivalents (seed 002 eqs. 11–12): H = P_xzᵀ P⁻⁻¹, A = H P′ Hᵀ, B = P_zz − A."""
+    """Sigma-point equivalents (Sun et al. 2012 eqs. 11–12): H = P_xzᵀ P⁻⁻¹, A = H P′ Hᵀ, B = P_zz − A."""
     L = cholesky_lower(P_pred, "P_pred")
     H = np.linalg.solve(L.T, np.linalg.solve(L, Pxz)).T  # P_xzᵀ P⁻¹ (P symmetric)
     A = symmetrize(H @ P_noiseless @ H.T)
@@ -382,15 +382,15 @@ def _omega(y, A, B, threshold):
 
 
 def fading_factor(y, A, B, threshold: float) -> float:
-    """AFF (seed 002 eq. 1): λ = max(1, s_1..s_m), s_i = (y_i²/T − B_ii)/A_ii."""
+    """AFF (Sun et al. 2012 eq. 1): λ = max(1, s_1..s_m), s_i = (y_i²/T − B_ii)/A_ii."""
     return float(np.max(_omega(np.asarray(y, float), A, B, threshold)))
 
 
 def fading_matrix(y, A, B, H, threshold: float, zero_tol: float = 1e-12, nonzero_cols=None) -> np.ndarray:
-    """AFM (seed 002 eqs. 5–10): S = (H′ᵀH′)⁻¹ H′ᵀ Ω H′ on the non-zero columns of H, I elsewhere.
+    """AFM (Sun et al. 2012 eqs. 5–10): S = (H′ᵀH′)⁻¹ H′ᵀ Ω H′ on the non-zero columns of H, I elsewhere.
 
     The all-zero columns are found numerically (``zero_tol`` relative to the largest column) unless
-    ``nonzero_cols`` gives them from the model's structure (SPEC §6 choice for the SINS model, whose
+    ``nonzero_cols`` gives them from the model's structure (this project's choice for the SINS model, whose
     sigma-point H = P_xzᵀ P⁻¹ is only numerically ≈ 0 on the unmeasured states).
     """
     y = np.asarray(y, float)
@@ -417,7 +417,7 @@ def fading_matrix(y, A, B, H, threshold: float, zero_tol: float = 1e-12, nonzero
 
 
 def apply_fading(P_pred, P_noiseless, fade) -> np.ndarray:
-    """Faded prediction P⁻_f = fade ⊙ P′ + (P⁻ − P′) (seed 002 eq. 13); ``fade`` scalar λ or matrix S."""
+    """Faded prediction P⁻_f = fade ⊙ P′ + (P⁻ − P′) (Sun et al. 2012 eq. 13); ``fade`` scalar λ or matrix S."""
     Qpart = P_pred - P_noiseless
     if np.isscalar(fade) or np.ndim(fade) == 0:
         return symmetrize(float(fade) * P_noiseless + Qpart)
@@ -480,7 +480,7 @@ class FadingUKF:
             else:
                 fade = fading_matrix(y, A, B, H, self.threshold)
             Pf = apply_fading(Pp, Pnl, fade)
-        # redraw the sigma points from the (faded) prediction and update (seed 002 steps 5–8)
+        # redraw the sigma points from the (faded) prediction and update (Sun et al. 2012, steps 5–8)
         zhat, Pzz, Pxz = self._measure(xp, Pf, h, R, m)
         res = gain_update(xp, Pf, z, zhat, Pzz, Pxz, np.zeros((m, m)))
         res.info["fade"] = fade
@@ -490,7 +490,7 @@ class FadingUKF:
 
 def aukf_fading_step(x, P, z, f, h, Q, R, mode=None, threshold: float | None = None, alpha: float = 1.0,
                      beta: float = 2.0, kappa: float = 0.0, nonzero_cols=None) -> UpdateResult:
-    """One step of seed 002's augmented UKF with process *and* measurement noise in the state (§3).
+    """One step of Sun et al. 2012's augmented UKF with process *and* measurement noise in the state (§3).
 
     ``f(X, W) -> X⁺`` and ``h(X, V) -> Z`` act on arrays of points (rows).  Steps 1–3:
     ``x^a = [x; w; v]``, ``P^a = diag(P, Q, R)``, L = n + q + m, 2L+1 points through f → x̂⁻, P⁻; the
@@ -498,7 +498,7 @@ def aukf_fading_step(x, P, z, f, h, Q, R, mode=None, threshold: float | None = N
     points → ẑ, P_xz, P_zz.  ``mode=None`` (the "UKF"): K = P_xz P_zz⁻¹ from these points (step 8).
     ``mode="aff"``/``"afm"``: λ (eq. 1) or S (eqs. 5–10) from eqs. 11–12, P^l by eq. 13, then the
     redraw ``x^b = [x; v]``, L′ = n + m (steps 5–7) and the update (step 8).  ``threshold``: the
-    χ²₁ bound ε_i (default the 1 % quantile, SPEC §6).  ``info["fade"]`` holds λ or S.
+    χ²₁ bound ε_i (default the 1 % quantile; the paper gives no α).  ``info["fade"]`` holds λ or S.
     """
     x = as_vector("x", x)
     n = x.shape[0]

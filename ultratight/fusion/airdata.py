@@ -1,4 +1,4 @@
-"""Air-data fusion of seed 004 (SPEC §8): the 9-state total-state filter in the ESD frame.
+"""Air-data fusion of Duan et al. 2024: the 9-state total-state filter in the ESD frame.
 
 State ``X = [λ, L, h, V_x, V_y, V_z, θ, ψ, φ]`` (longitude, latitude rad; altitude m; ESD velocity
 m/s; pitch, yaw, roll rad), process ``Ẋ = f(X, u) + w`` (eq. 1) with u the IMU increments between
@@ -11,11 +11,11 @@ instead carries the navigation solution itself (positions, velocities, Euler ang
 no sensor biases, and the mechanization is the process model: every cubature point is pushed
 through the strapdown equations (:func:`propagate`), and the EKF (eqs. 7–8) propagates the mean
 through the same equations with a finite-difference Jacobian F. The cubature machinery
-(:func:`ultratight.fusion.filters.ckf_predict` / ``ckf_update``, eqs. 4–17 of SPEC §3) and the
+(:func:`ultratight.fusion.filters.ckf_predict` / ``ckf_update``, Zhao et al. 2014 eqs. 4–17) and the
 EKF functions of :mod:`ultratight.fusion.filters` are used unchanged; Euler angles are averaged
 as numbers (fine away from ψ = ±π and θ = ±π/2, true of this flight).
 
-Mechanization (SPEC §8 choice, Titterton & Weston ch. 3, ESD): per IMU interval dt,
+Mechanization (this project's choice, the paper prints none: Titterton & Weston ch. 3, ESD): per IMU interval dt,
 ``C_bn ← (I − [ζ×]) C_bn R(Δθ)`` with ζ = (ω_ie + ω_en) dt (Euler rates from body rates, done on
 the DCM), ``V ← V + (C̄_bn Δv/dt + g − (2ω_ie + ω_en) × V) dt``, ``λ̇ = V_x/((R_N+h) cos L)``,
 ``L̇ = −V_y/(R_M+h)``, ``ḣ = −V_z`` (trapezoidal); WGS-84 radii and normal gravity of
@@ -35,7 +35,7 @@ from ultratight.constants import OMEGA_E
 from ultratight.fusion.filters import ckf_predict, ckf_update, ekf_predict, ekf_update
 from ultratight.ins.earth import gravity_nu, radii
 
-# state layout (SPEC §8)
+# state layout (Duan et al. 2024, §1.1)
 I_LON, I_LAT, I_H = 0, 1, 2
 POS = slice(0, 3)
 VEL = slice(3, 6)
@@ -178,7 +178,7 @@ def fads_weight(h_gnss_m, R_g, R_f1, R_f2):
 
 
 def fused_variance(h_gnss_m, R_g, R_f1, R_f2):
-    """R_G R_F(h) / (R_G + R_F(h)) with R_F interpolated as in eq. 4 (SPEC §8 choice for R_kmin)."""
+    """R_G R_F(h) / (R_G + R_F(h)) with R_F interpolated as in eq. 4 (this project's choice for R_kmin)."""
     R_f1, R_f2 = np.asarray(R_f1, float), np.asarray(R_f2, float)
     R_f = R_f1 + (R_f2 - R_f1) * blend_weight(h_gnss_m)
     return R_g * R_f / (R_g + R_f)
@@ -197,7 +197,7 @@ def fads_velocity_h(C_pred, c_f, wind_n=None):
     """Measurement function (rows X (N, 9) → (N, 6)) of the pre-fused observation ``[λ_G, L_G, h_GF, V_GF]``.
 
     V_GF = (1 − c_F) V_G + c_F V_F with ``V_F = C_pred v_b,F``: the FADS air velocity (body axes) turned
-    to ESD with the INS attitude C_pred of the epoch (SPEC §8). Its expectation given a state X is
+    to ESD with the INS attitude C_pred of the epoch (this project's FADS model). Its expectation given a state X is
     ``(1 − c_F) V + c_F C_pred C_nb(X) V``: the FADS part depends on the state's attitude (it equals V
     only at X's attitude = C_pred). Eq. 3 as printed (h linear) ignores this, and the filter then
     trusts a velocity that carries its own attitude error (|V| δψ ≈ 4 m/s at Mach 8 per 0.1°): it
@@ -226,7 +226,7 @@ def numerical_jacobian(h, x, steps=_JAC_STEP):
 
 
 def run(kind, x0, P0, Q, dtheta, dv, imu_dt, per_epoch, measure):
-    """Run the 9-state filter over epochs; ``kind`` 'ckf' (cubature, SPEC §3) or 'ekf' (eqs. 7–8).
+    """Run the 9-state filter over epochs; ``kind`` 'ckf' (cubature, Zhao et al. 2014 §2.2) or 'ekf' (eqs. 7–8).
 
     ``dtheta``, ``dv``: IMU increments (n_epochs · per_epoch, 3). ``measure(k, x_pred, P_pred)``
     returns (z (6,), R (6, 6)) or (z, R, h) with a row-vectorised measurement function h (default:

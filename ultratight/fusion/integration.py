@@ -1,22 +1,22 @@
 """Loose (15-state) and tight (17-state) SINS/GNSS integration runners with pluggable cores
-(seed 001: tight SINS/GPS with AKF/IAKF, SPEC §5; seed 003: loose SINS/GNSS with the χ² +
-Newton robust KF, SPEC §7).
+(Fang 2017: tight SINS/GPS with AKF/IAKF; Cai et al. 2020: loose SINS/GNSS with the χ² +
+Newton robust KF).
 
 Error state: the layout of :mod:`ultratight.ins.error_model` (ATT, VEL, POS, BG, BA [, CLK,
 DRIFT]), with one change of units inside the filters: the position block is carried in metres
 (north, east, up) instead of (dlat, dlon, dh), ``x_m = T x`` with T = diag(…, M + h,
-(N + h) cos L, 1, …).  Φ and Q are transformed as T Φ T⁻¹ and T Q Tᵀ.  This makes the seed 001
-GDOP noise sum (eq. 25: "position terms in metres") and the seed 003 measurement (6 × 15,
+(N + h) cos L, 1, …).  Φ and Q are transformed as T Φ T⁻¹ and T Q Tᵀ.  This makes the Fang 2017
+GDOP noise sum (eq. 25: "position terms in metres") and the Cai et al. 2020 measurement (6 × 15,
 H = [I₆ 0] on POS, VEL, eq. 8) direct, and keeps P well scaled.  The position row order (N, E,
 U) is the printed order of Table 1 (latitude, longitude, height).
 
 Sign convention (estimate minus truth, as the error model): the measurement is always
 "SINS prediction minus GNSS measurement", z = H δx − v:
 
-* tight (seed 001 eqs. 4–5): ``z_ρ = ρ_SINS − ρ_G = −u·δr + δt_u − v``,
+* tight (Fang 2017 eqs. 4–5): ``z_ρ = ρ_SINS − ρ_G = −u·δr + δt_u − v``,
   ``z_ρ̇ = ρ̇_SINS − ρ̇_G = −u·δv + δt_ru − v`` with u the unit line of sight receiver → satellite
-  (the SPEC's −e_jᵀ with e_j satellite → receiver written the other way round);
-* loose (seed 003 eq. 8, printed Z = r_GNSS − r_SINS = −(this)): ``z = [r_SINS − r_GNSS;
+  (the paper prints no H; this project's −e_jᵀ with e_j satellite → receiver, written the other way round);
+* loose (Cai et al. 2020 eq. 8, printed Z = r_GNSS − r_SINS = −(this)): ``z = [r_SINS − r_GNSS;
   v_SINS − v_GNSS] = [δr; δv] − v``.
 
 The runner closes the loop after every update: position/velocity/attitude are corrected in the
@@ -26,19 +26,19 @@ clock estimate is corrected, and the core's error state returns to zero
 
 Cores (by name, :data:`CORES`):
 
-``kf``          Joseph-form Kalman filter with fixed Q, R (seed 003 eqs. 1–5).
-``akf``         innovation-based adaptive KF, window N (seed 001 eqs. 6–15,
+``kf``          Joseph-form Kalman filter with fixed Q, R (Cai et al. 2020 eqs. 1–5).
+``akf``         innovation-based adaptive KF, window N (Fang 2017 eqs. 6–15,
                 :class:`ultratight.fusion.adaptive.AKF`), started from the given Q, R.
-``akf0``        the AKF started from the *true* noise (seed 001's AKF0); by default the
-                alternative reading of SPEC §5 ("fixed true Q, R": ``akf0_adaptive = False``),
+``akf0``        the AKF started from the *true* noise (Fang 2017's AKF0); by default the
+                alternative reading of the paper ("fixed true Q, R": ``akf0_adaptive = False``),
                 the literal one (eq. 15 still adapting) with ``akf0_adaptive = True``.
-``iakf``        improved AKF (seed 001 eqs. 16–26, :class:`ultratight.fusion.adaptive.IAKF`) with
+``iakf``        improved AKF (Fang 2017 eqs. 16–26, :class:`ultratight.fusion.adaptive.IAKF`) with
                 the best-4 GDOP selection of §3.1 (tight only).  Defaults (docs/integration-
                 experiments.md): R̂ and Q̂ from the first epoch over the terms available
                 (``iakf_start="growing"``), eq. 26 projected onto the eq. 3 noise structure
                 (``"model-diag"``) and capped at the given noise (``iakf_q_ceiling``).
-``chi2-newton`` seed 003's per-dimension χ² detection with Newton-extrapolated replacement,
-                implementable reading (innovation as the proxy of V, SPEC §7,
+``chi2-newton`` Cai et al. 2020's per-dimension χ² detection with Newton-extrapolated replacement,
+                this project's implementable reading (innovation as the proxy of V, §3,
                 :func:`ultratight.fusion.robust.chi2_newton_kf_update`).
 ``chi2-newton-lit`` the paper-literal reading: Z′(i) = Z(i) − V(i) + V′(i) with the stored noise
                 realisations (simulation only).
@@ -90,7 +90,7 @@ class _Core:
         self.x[:] = 0.0
 
     def update(self, z, H, R, aux):
-        res = kf_update(self.x, self.P, z, H, R)       # seed 003 eqs. 1–5 (Joseph)
+        res = kf_update(self.x, self.P, z, H, R)       # Cai et al. 2020 eqs. 1–5 (Joseph)
         self.x, self.P = res.x, res.P
         return {"nis": res.nis}
 
@@ -105,7 +105,7 @@ class InsOnlyCore(_Core):
 
 
 class AKFCore(_Core):
-    """Seed 001 AKF (eqs. 6–15); Q adapted by eq. 14, R by eq. 8 once N innovations exist."""
+    """Fang 2017 AKF (eqs. 6–15); Q adapted by eq. 14, R by eq. 8 once N innovations exist."""
     adaptive = True
 
     def __init__(self, P0, Q0, R0, window=20, adapt=True):
@@ -129,7 +129,7 @@ class AKFCore(_Core):
 
 
 class IAKFCore(_Core):
-    """Seed 001 IAKF (eqs. 16–26): R from GDOP (eqs. 24–25), Q windowed (eq. 26); ``start``,
+    """Fang 2017 IAKF (eqs. 16–26): R from GDOP (eqs. 24–25), Q windowed (eq. 26); ``start``,
     ``q_structure`` and ``q_ceiling`` as :class:`ultratight.fusion.adaptive.IAKF`."""
     adaptive = True
 
@@ -160,7 +160,7 @@ class IAKFCore(_Core):
 
 
 class Chi2NewtonCore(_Core):
-    """Seed 003: per-dimension χ² (eq. 15) + Newton replacement (eqs. 21–28), both readings."""
+    """Cai et al. 2020: per-dimension χ² (eq. 15) + Newton replacement (eqs. 21–28), both readings."""
 
     def __init__(self, P0, m, alpha=0.01, delta=4.0, order=4, literal=False, guard=True, release_after=None,
                  weight_replacements=False):
@@ -195,7 +195,7 @@ class Chi2NewtonCore(_Core):
                 used[faulty] = ext[faulty]
                 z = z - v + used                           # eqs. 24, 28: Z' = Z − V + V'
             else:
-                keep = ~faulty                             # fewer than 4 past epochs: drop (SPEC choice)
+                keep = ~faulty                             # fewer than 4 past epochs: drop (this project's choice)
                 z, H, R = z[keep], H[keep], R[np.ix_(keep, keep)]
             self.n_faults += int(faulty.sum())
         self._hist.append(used)
@@ -241,7 +241,7 @@ def discrete_model(sins_x, f_b, dt, q_psd, n_states, clock_qd=None, basis=False)
     (Φ G Q_c Gᵀ Φᵀ + G Q_c Gᵀ) dt/2 (as :func:`ultratight.fusion.tight.phi_q`); the clock block,
     when given, is the exact discrete clock noise ``clock_qd`` (2 × 2).
 
-    ``basis=True`` also returns the noise structure of seed 001 eq. 3 (W = gyro 3, accelerometer
+    ``basis=True`` also returns the noise structure of Fang 2017 eq. 3 (W = gyro 3, accelerometer
     3 [, clock bias, clock drift] white noises): ``(Φ, Q_d, B, Q_fixed)`` with B (k, n, n) the
     discretised Q of each of these noises alone at unit PSD (same rule; the clock pair of
     δṫ_u = δt_ru + w_tu, δṫ_ru = w_tru exactly: dt·e_u e_uᵀ and [[dt³/3, dt²/2], [dt²/2, dt]])
@@ -406,7 +406,7 @@ def nees_band(n_states, p=0.95):
 
 # --------------------------------------------------------------------------- measurement builders
 def tight_measurement_fn(obs, r_pr, r_prr, select_best4=True):
-    """``meas_fn`` for the tight runner: best-4 GDOP satellites (seed 001 §3.1) of the visible
+    """``meas_fn`` for the tight runner: best-4 GDOP satellites (Fang 2017 §3.1) of the visible
     ones, pseudorange then pseudorange-rate rows; ``r_pr``/``r_prr`` the variances a core is given.
     ``aux`` holds ``los_e`` (4, 3) and ``gdop`` (eq. 20) for the IAKF."""
     def fn(k, x_sins, clk):
@@ -437,7 +437,7 @@ def tight_measurement_fn(obs, r_pr, r_prr, select_best4=True):
 
 def loose_measurement_fn(gnss_llh, gnss_vel, noise, R):
     """``meas_fn`` for the loose runner: z = [r_SINS − r_GNSS (N, E, U m); v_SINS − v_GNSS]
-    (seed 003 eq. 8 with the sign of this module), ``aux["noise"]`` the noise as it enters z."""
+    (Cai et al. 2020 eq. 8 with the sign of this module), ``aux["noise"]`` the noise as it enters z."""
     H = np.zeros((6, em.N15))
     H[0:3, POS] = np.eye(3)
     H[3:6, VEL] = np.eye(3)

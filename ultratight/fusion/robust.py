@@ -1,7 +1,7 @@
 """Robust parts composable with the generic filters.
 
-1. RACKF – robust adaptive cubature Kalman filter (seed 000 §2.3, SPEC §3)
-   * Huber equivalent weights → equivalent noise R̄ (eqs. 18–23), with the SPEC readings:
+1. RACKF – robust adaptive cubature Kalman filter (Zhao et al. 2014, §2.3)
+   * Huber equivalent weights → equivalent noise R̄ (eqs. 18–23), with this project's readings:
      σ_ri = sqrt((P_zz)_ii) (a standard deviation, eq. 22), r'_i = r_i/σ_ri, γ_i = max(1, |r'_i|/c);
      diagonal R̄_ii = R_ii γ_i (eq. 20 inverted), off-diagonal R̄_ij = R_ij max(γ_i, γ_j) (eq. 21
      inverted).  The element-wise off-diagonal rule can lose positive definiteness; then the
@@ -15,12 +15,12 @@
    * :class:`RACKF` applies the robust/adaptive corrections only on every ``correction_period``-th
      update (the paper: once per 50 ms at 1 kHz); the other updates are plain CKF updates.
 
-2. Chi-square fault detection + Newton-extrapolated noise (seed 003, SPEC §7)
+2. Chi-square fault detection + Newton-extrapolated noise (Cai et al. 2020)
    * Per-dimension statistic S_k(i) = J_k(i)²/D_k(i,i) (eq. 15), J = innovation, D = H P⁻ Hᵀ + R
      (eq. 13), tested against χ²₁ at significance α (threshold 6.635 for α = 0.01, 7.879 for 0.005).
    * A faulty dimension's noise value is replaced by the 4th-order Newton (binomial) extrapolation
      of its previous four values divided by the improvement factor δ = 4 (eqs. 21, 23, 27 with the
-     SPEC's corrected coefficients): V'_k = (4V_{k−1} − 6V_{k−2} + 4V_{k−3} − V_{k−4})/δ.
+     misprinted coefficients corrected): V'_k = (4V_{k−1} − 6V_{k−2} + 4V_{k−3} − V_{k−4})/δ.
    * Reading of "noise value" V_k(i): the filter cannot observe the noise realisation, so it uses
      the innovation J_k(i) (= H x̃ + V, ≈ V for a converged filter) as its estimate; a faulty
      measurement is replaced by z'(i) = ẑ(i) + V'_k(i), and the history stores the values actually
@@ -71,7 +71,7 @@ __all__ = [
 
 
 def huber_equivalent_R(r, Pzz, R, c: float = 1.5):
-    """Huber equivalent measurement noise R̄ (seed 000 eqs. 19–23, SPEC §3 readings).
+    """Huber equivalent measurement noise R̄ (Zhao et al. 2014 eqs. 19–23, this project's readings).
 
     r: innovation z − ẑ (23); Pzz: innovation covariance of eq. 13 (including R); R: nominal noise.
     Returns (R̄, γ) with γ_i = max(1, |r'_i|/c) the per-measurement variance inflation.
@@ -92,7 +92,7 @@ def huber_equivalent_R(r, Pzz, R, c: float = 1.5):
 
 
 def adaptive_factor(r, Pzz_bar) -> float:
-    """Approximate optimal adaptive factor ϑ (seed 000 eqs. 37–38): ϑ = min(1, tr(P̄_zz)/rᵀr)."""
+    """Approximate optimal adaptive factor ϑ (Zhao et al. 2014 eqs. 37–38): ϑ = min(1, tr(P̄_zz)/rᵀr)."""
     tr_hat = float(r @ r)  # eq. 38: tr(P̂_zz) = rᵀr
     tr_p = float(np.trace(Pzz_bar))
     if tr_hat <= tr_p:
@@ -102,7 +102,7 @@ def adaptive_factor(r, Pzz_bar) -> float:
 
 def rackf_update(x, P, z, h, R, c: float = 1.5, robust: bool = True, adaptive: bool = True,
                  theta_min: float = 1e-6, vectorized: bool = False, window=None) -> UpdateResult:
-    """RACKF measurement update (seed 000 Algorithm 1 steps 3–7).
+    """RACKF measurement update (Zhao et al. 2014, Algorithm 1 steps 3–7).
 
     Returns an UpdateResult whose ``P`` is the posterior of the adapted prior P⁻/ϑ and whose
     ``info`` holds ``Rbar`` (R̄), ``gamma`` (per-measurement inflation), ``theta`` (ϑ) and
@@ -128,7 +128,7 @@ def rackf_update(x, P, z, h, R, c: float = 1.5, robust: bool = True, adaptive: b
     Pzz_bar = Pzz0 + Rbar  # eq. 18
     # step 6: adaptive factor (37–38)
     if adaptive and window is not None:
-        # strategy 1 of seed 000 §2.3 (sliding window of the last N residual vectors):
+        # strategy 1 of Zhao et al. 2014, §2.3 (sliding window of the last N residual vectors):
         # mean of the Huber-clipped standardised residuals u = clip(r', −c, c);
         # tr(P̂_zz) = N·Σ_i (ū_i σ_ri)²  (equals rᵀr for N = 1 without clipping)
         sig = np.sqrt(np.diag(Pzz))
@@ -157,7 +157,7 @@ class RACKF:
 
     Corrections (Huber R̄ and the adaptive factor ϑ) are applied on every ``correction_period``-th
     update (updates number period, 2·period, …); the others are plain CKF updates
-    (SPEC §1: the paper uses 50 ms at 1 kHz, i.e. ``correction_period = 50``).
+    (Zhao et al. 2014 use 50 ms at 1 kHz, i.e. ``correction_period = 50``).
 
     ``window=None`` (default) is the paper's Algorithm 1 with the single-residual tr(P̂_zz) = rᵀr
     (eq. 38).  ``window=N`` uses the paper's alternative strategy 1: the mean of the last N
@@ -208,7 +208,7 @@ class RACKF:
 def newton_coefficients(order: int = 4) -> np.ndarray:
     """Coefficients M of the equidistant Newton extrapolation f_k = Σ_a M_a f_{k−a}, a = 1..order.
 
-    M_a = (−1)^(a+1) C(order, a): order 4 gives [4, −6, 4, −1] (SPEC §7; seed 003 eqs. 20, 26–27
+    M_a = (−1)^(a+1) C(order, a): order 4 gives [4, −6, 4, −1] (Cai et al. 2020 eqs. 20, 26–27
     with the misprinted last coefficient corrected).  Exact for polynomials of degree < order.
     """
     if order < 1:
@@ -234,7 +234,7 @@ def chi2_threshold(alpha: float, dof: int = 1) -> float:
 
 
 class ChiSquareNewton:
-    """Per-dimension χ² fault detector with Newton-extrapolated replacement noise (seed 003).
+    """Per-dimension χ² fault detector with Newton-extrapolated replacement noise (Cai et al. 2020).
 
     ``screen(r, S)`` returns (r_used, faulty, stat): stat_i = r_i²/S_ii (eq. 15); dimensions with
     stat_i > T (eq. 16, T = χ²_α(1)) get r_i replaced by newton_extrapolate(past values)/δ
@@ -304,7 +304,7 @@ class ChiSquareNewton:
 def chi2_newton_kf_update(x, P, z, H, R, detector: ChiSquareNewton) -> UpdateResult:
     """Linear KF update (Joseph form) with per-dimension χ² screening and Newton replacement.
 
-    Faulty measurements are replaced by z'(i) = ẑ(i) + V'_k(i) before the update (seed 003 eq. 28).
+    Faulty measurements are replaced by z'(i) = ẑ(i) + V'_k(i) before the update (Cai et al. 2020 eq. 28).
     ``info`` has ``faulty`` (bool mask), ``stat`` (χ² statistics) and ``z_used``.
     The reported innovation/nis are those of the raw measurement.
     """

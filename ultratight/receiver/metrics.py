@@ -1,4 +1,4 @@
-"""Tracking-error metrics of seed 000 §3 (Table 3 / Table 4) against the generator's truth.
+"""Tracking-error metrics of Zhao et al. 2014, §3 (Table 3 / Table 4) against the generator's truth.
 
 Tracking error of a channel at an epoch = the receiver's *estimate* minus the truth at the
 same instant:
@@ -28,7 +28,7 @@ LOCK_DOPPLER_HZ = 10.0        # 20 ms mean |Doppler error| above this -> lock lo
 LOCK_CODE_CHIPS = 0.5         # 20 ms mean |code error| above this -> lock lost
 LOCK_WINDOW_S = 0.020
 
-# Seed 000 Table 3 (one channel, #4) and Table 4 (run time, s).  None = diverged ("\").
+# Zhao et al. 2014, Table 3 (one channel, #4) and Table 4 (run time, s).  None = diverged ("\").
 PAPER_TABLE3 = {
     "pb-kf-utc": {"doppler_rms_hz": [1.8706, 1.3339, None], "code_rms_chips": [0.0182, 0.0271, 0.2379]},
     "dlb-ukf": {"doppler_rms_hz": [0.9153, 1.0574, None], "code_rms_chips": [0.0128, 0.0277, 0.2413]},

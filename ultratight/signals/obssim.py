@@ -1,5 +1,5 @@
 """Observable-level GNSS simulation (no IF samples): pseudoranges, pseudorange rates and
-position/velocity fixes for the integration experiments of seeds 001 and 003 (SPEC §5, §7).
+position/velocity fixes for the integration experiments of Fang 2017 and Cai et al. 2020.
 
 For a trajectory (ECEF position/velocity per epoch) and a set of ephemerides (a RINEX navigation
 file or the nominal constellation), per satellite and epoch:
@@ -13,13 +13,13 @@ file or the nominal constellation), per satellite and epoch:
   ``Q = c² [[S_f Δt + S_g Δt³/3, S_g Δt²/2], [S_g Δt²/2, S_g Δt]]``;
 * white noise of σ_ρ, σ_ρ̇ is added; satellites below the elevation mask (or behind the Earth)
   are flagged invisible;
-* optional gross errors (SPEC §7): at every ``period_s``-th epoch (t = period, 2·period, …) the
-  noise of the chosen components is amplified, ``V ← m·V`` (mode "scale", the SPEC's choice) or
+* optional gross errors (Cai et al. 2020, §4.1): at every ``period_s``-th epoch (t = period, 2·period, …) the
+  noise of the chosen components is amplified, ``V ← m·V`` (mode "scale", this project's choice) or
   ``V ← V + m·σ·sign(V)`` (mode "add").
 
 For loose coupling, :func:`gnss_fixes` gives GNSS position/velocity solutions either as
-truth + white noise of the paper's σ (``mode="truth"``, the paper's own description, seed 003
-§4.1) or as the epoch-wise least-squares fix of the simulated observables (``mode="lsq"``,
+truth + white noise of the paper's σ (``mode="truth"``, the paper's own description, Cai et al.
+2020, §4.1) or as the epoch-wise least-squares fix of the simulated observables (``mode="lsq"``,
 Gauss–Newton on ρ for position/clock, linear least squares on ρ̇ for velocity/drift).
 
 Everything is vectorised over epochs (the light-time kernel is numba, one call per satellite);
@@ -43,7 +43,7 @@ GROSS_MODES = ("scale", "add")
 
 @dataclass
 class GrossErrors:
-    """Gross errors injected into the measurement noise (SPEC §7).
+    """Gross errors injected into the measurement noise (Cai et al. 2020, §4.1).
 
     ``factor`` m; ``period_s``: every epoch whose time is a positive multiple of it;
     ``components``: indices into the measurement vector the experiment defines (all when None);
@@ -113,7 +113,7 @@ class Observables:
 
     ``pr_m``/``prr_mps``: measured (with noise, gross errors, receiver clock);
     ``pr_true_m``/``prr_true_mps``: noise-free; ``noise_pr``/``noise_prr``: the noise actually
-    added (seed 003's V_k for the paper-literal reading); ``sat_pos_e``/``sat_vel_e`` (n, k, 3):
+    added (Cai et al. 2020's V_k for the paper-literal reading); ``sat_pos_e``/``sat_vel_e`` (n, k, 3):
     satellite state at transmission in the ECEF frame of reception (what a receiver computes from
     the ephemeris); ``sat_clk_m``/``sat_clk_drift_mps``: satellite clock correction times c;
     ``los_e`` (n, k, 3) unit receiver → satellite; ``elev_rad``; ``clk_bias_m``/``clk_drift_mps`` (n,)
@@ -233,7 +233,7 @@ def lsq_fixes(obs, pos0_e, iterations=6):
 
 def fix_noise_scale(n, sigma_llh, sigma_vel_mps):
     """(n, 6) σ of the fix noise [dlat, dlon, dh, dvE, dvN, dvU]: ``sigma_llh`` = (σ_lat rad,
-    σ_lon rad, σ_h m) as the paper states them (seed 003: 0.00015° in latitude and longitude),
+    σ_lon rad, σ_h m) as the paper states them (Cai et al. 2020: 0.00015° in latitude and longitude),
     ``sigma_vel_mps`` (E, N, U)."""
     scale = np.empty((int(n), 6))
     scale[:, :3] = np.asarray(sigma_llh, float)
@@ -246,7 +246,7 @@ def gnss_fixes(mode, rng, llh_true, vel_true_l, sigma_llh, sigma_vel_mps, gross=
     noise (n,6) = [dlat, dlon, dh, dvE, dvN, dvU] actually added (rad, rad, m, m/s)).
 
     ``mode="truth"``: truth + white noise of σ = ``sigma_llh`` (lat rad, lon rad, h m) and
-    ``sigma_vel_mps`` (E, N, U), the paper's (seed 003 §4.1) description; gross errors (components
+    ``sigma_vel_mps`` (E, N, U), the paper's (Cai et al. 2020, §4.1) description; gross errors (components
     index the six entries) then apply to that noise.  ``mode="lsq"``: the least-squares fix of
     ``obs`` (its gross errors are those of the observables)."""
     llh_true = np.asarray(llh_true, float)
@@ -274,7 +274,7 @@ def gnss_fixes(mode, rng, llh_true, vel_true_l, sigma_llh, sigma_vel_mps, gross=
 
 
 def gdop_best4(los, visible=None):
-    """Best-4 satellite subset by GDOP (seed 001 §3.1, eqs. 16–20), vectorised over subsets.
+    """Best-4 satellite subset by GDOP (Fang 2017 §3.1, eqs. 16–20), vectorised over subsets.
 
     ``los`` (k, 3) unit vectors (any frame; the sign convention does not change GDOP);
     returns (indices (4,) into los, GDOP).  Subsets with a singular geometry are skipped."""

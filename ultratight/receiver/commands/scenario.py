@@ -1,7 +1,7 @@
 """``ultratight scenario``: run a scenario's experiment and report the paper's metrics.
 
 The scenario's ``experiment`` key picks the experiment (:mod:`ultratight.receiver.experiments`);
-without it, seed 000's IF-level double loop: generate (or reuse) IF + IMU + truth, run the
+without it, the IF-level double loop of Zhao et al. 2014: generate (or reuse) IF + IMU + truth, run the
 ultra-tight methods on it, report Tables 3 and 4."""
 
 HELP = "run a scenario end to end (simulate, run each method, print the paper's tables)"

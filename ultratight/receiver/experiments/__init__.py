@@ -1,7 +1,7 @@
 """Paper experiments behind ``ultratight scenario`` (and any campaign runner).
 
 A scenario TOML names the experiment that runs it with a top-level key
-``experiment = "NAME"``; without it the scenario is seed 000's IF-level
+``experiment = "NAME"``; without it the scenario is Zhao et al. 2014's IF-level
 double-loop experiment (``if-double-loop``: IF generator → correlators →
 prefilters → tight filter, ``receiver.scenario_runner``).
 

@@ -1,10 +1,10 @@
-"""Shared parts of the SINS/GNSS integration experiments (seeds 001 and 003): configuration
+"""Shared parts of the SINS/GNSS integration experiments (Fang 2017, Cai et al. 2020): configuration
 checks, IMU synthesis with per-run constant biases, metrics over a run, the summary across
 seeds, and the outputs (``metrics.json``, ``results.h5``, error-vs-time figures).
 
 Metric conventions (both experiments; axis order named in every output):
 velocity errors E, N, U (m/s); position errors N, E, U in metres (= latitude, longitude, height
-of seed 001's Table 1); RMS over the whole run (SPEC §5 choice) per axis; min/max per axis;
+of Fang 2017, Table 1); RMS over the whole run (this project's choice) per axis; min/max per axis;
 ``nees_in_band_fraction``: fraction of epochs whose full-state NEES lies in the two-sided 95 %
 χ²(n) band (n = 15 loose, 17 tight).
 """

@@ -1,4 +1,4 @@
-"""Seed 000's experiment: IF samples → correlators → prefilters → tight filter (the double loop).
+"""The experiment of Zhao et al. 2014: IF samples → correlators → prefilters → tight filter (the double loop).
 
 The scenario schema, data cache and metrics are those of :mod:`ultratight.receiver.scenario_runner`
 and :mod:`ultratight.receiver.scenario_config` (docs/ultratight.md); this module is the

@@ -1,4 +1,4 @@
-"""Seed 002's experiments (§4.1–4.3): UKF / AFF-AUKF / AFM-AUKF on a simulated SINS/GPS run.
+"""The experiments of Sun et al. 2012 (§4.1–4.3): UKF / AFF-AUKF / AFM-AUKF on a simulated SINS/GPS run.
 
 Scenarios ``paper-afm-jump`` (4.1: static base; at ``fault.t_s`` the filters' roll and pitch are
 moved by ``fault.roll_pitch_deg``), ``paper-afm-noise`` (4.2: swinging base; from ``fault.t_s`` the
@@ -14,7 +14,7 @@ velocity at ``gps.rate_hz`` with white noise, and an initial error drawn from P0
 (``ukf``, ``aff``, ``afm``, and ``ekf`` on request) runs on identical data.  Attitude error =
 estimated − true Euler angle (wrapped), sampled at ``output_rate_hz``; Table 1 reports its mean and
 standard deviation per axis over the whole run (the paper's window is not given; also after the
-fault), the paper-style reductions ``1 − |x_filter| / |x_UKF|`` averaged over the axes (SPEC §6),
+fault), the paper-style reductions ``1 − |x_filter| / |x_UKF|`` averaged over the axes (this project's reading),
 and for the jump the time after the fault from which roll and pitch stay within
 ``recovery_deg`` of the truth.
 """
@@ -44,7 +44,7 @@ DEFAULT_METHODS = ("ukf", "aff", "afm")
 LABELS = {"ukf": "UKF", "aff": "AFF-AUKF", "afm": "AFM-AUKF", "ekf": "EKF"}
 AXES = ("roll", "pitch", "yaw")
 
-# seed 002 Table 1 (degrees) and the §4 reductions (SPEC §6)
+# Sun et al. 2012, Table 1 (degrees) and the §4 reductions
 PAPER_TABLE1 = {
     "4.1": {"mean": {"ukf": [-0.329, -0.176, -0.153], "aff": [-0.168, -0.053, -0.130], "afm": [-0.045, -0.031, 0.029]},
             "std": {"ukf": [1.352, 0.962, 0.690], "aff": [0.994, 0.567, 0.485], "afm": [0.709, 0.399, 0.286]}},
@@ -186,7 +186,7 @@ def simulate(cfg, seed):
     dth, dv = apply_errors(dth, dv, errors, rng, dt)
     fault = cfg["fault"]
     if fault["kind"] == "noise-jump":
-        # variance × factor from t_s on: add white noise of variance (factor − 1) σ² (SPEC §6, 4.2/4.3)
+        # variance × factor from t_s on: add white noise of variance (factor − 1) σ² (§4.2/4.3)
         k0 = int(math.ceil(fault["t_s"] * rate - 1e-9))
         m = n - k0
         for arr, sig, fac in ((dth, errors.gyro_arw, fault["gyro_var_factor"]),
@@ -264,7 +264,7 @@ def run_filter(method, cfg, sim, nom0, P0, Q, R, progress=False):
                     fd = flt.last["fade"]
                     fades.append(float(np.max(np.diag(fd))) if np.ndim(fd) else float(fd))
         if k == k_jump:
-            # 4.1: the filter's roll and pitch jump (SPEC §6 choice); P is not told
+            # 4.1: the filter's roll and pitch jump (this project's choice); P is not told
             e = flt.nom.euler()
             e[0] += math.radians(fault["roll_pitch_deg"])
             e[1] += math.radians(fault["roll_pitch_deg"])
@@ -338,7 +338,7 @@ def run_one(cfg, methods, seed, progress=False):
 
 
 def reduction(x_filter, x_ukf):
-    """Paper-style reduction (percent): mean over axes of 1 − |x_filter| / |x_UKF| (SPEC §6)."""
+    """Paper-style reduction (percent): mean over axes of 1 − |x_filter| / |x_UKF| (this project's reading of §4)."""
     a = np.abs(np.asarray(x_filter, float))
     b = np.abs(np.asarray(x_ukf, float))
     return float(100.0 * np.mean(1.0 - a / b))
@@ -407,7 +407,8 @@ def _reductions_vs_ukf(runs, methods, stats):
 
 def _summary_lines(cfg, exp, runs, methods, stats, red, ordering, paper):
     """The text tables (Table 1 with the paper's values, reductions, per-seed figures)."""
-    lines = [f"{cfg['name']} (seed 002 §{exp}): {len(runs)} run(s), seeds {runs[0]['seed']}..{runs[-1]['seed']}, "
+    lines = [f"{cfg['name']} (Sun et al. 2012 §{exp}): {len(runs)} run(s), "
+             f"seeds {runs[0]['seed']}..{runs[-1]['seed']}, "
              f"{cfg['duration_s']:.0f} s at {cfg['imu']['rate_hz']:.0f} Hz, GPS {cfg['gps']['rate_hz']:.0f} Hz",
              f"filter: alpha={cfg['filter']['alpha']} beta={cfg['filter']['beta']} kappa={cfg['filter']['kappa']} "
              f"chi2_alpha={cfg['filter']['chi2_alpha']}; fault: {cfg['fault']}",
@@ -511,7 +512,7 @@ def _figures(cfg, runs, out_dir, name):
             axs[i].grid(alpha=0.3)
         axs[0].legend(loc="upper right")
         axs[-1].set_xlabel("t (s)")
-        axs[0].set_title(f"{cfg['name']}: {title}, seed {r['seed']} (cf. seed 002 {ref})")
+        axs[0].set_title(f"{cfg['name']}: {title}, seed {r['seed']} (cf. Sun et al. 2012 {ref})")
         path = out_dir / f"{name}_{tag}.png"
         savefig_atomic(fig, path)
         plt.close(fig)

@@ -1,4 +1,4 @@
-"""Seed 004's experiment ``paper-fads``: air data (α, β, Mach) from FADS/GNSS/INS (SPEC §8).
+"""The experiment of Duan et al. 2024, ``paper-fads``: air data (α, β, Mach) from FADS/GNSS/INS.
 
 Per run (one seed): the analytic flight of :mod:`ultratight.airdata.flight` (the same in every run),
 Table 1 noise drawn from ``numpy.random.SeedSequence(seed).spawn(4)`` streams (IMU, GNSS, FADS,
@@ -9,7 +9,7 @@ initial error), then three methods on the same data and the same initial state:
   latitude/longitude unchanged), the eq. 10 adaptive altitude noise, EKF (eqs. 7–8, linearized) or
   CKF; same Q, R, P0 and data.
 
-Air data from each filter output (SPEC §8): ``v_b = C_nb V̂``, α, β, ``Ma = |V̂|/a(ĥ)``; altitude row
+Air data from each filter output (Fig. 1): ``v_b = C_nb V̂``, α, β, ``Ma = |V̂|/a(ĥ)``; altitude row
 ĥ for GNSS/INS and h_GF for the FADS variants (the paper's reading: altitude is not part of the main
 filter); the FADS filters' own ĥ is reported too. Table 3 reading: Max = max |error| over all runs,
 Std = std of the pooled errors and, the other reading, the mean of per-run stds.
@@ -20,8 +20,8 @@ run's flight (the covariance is checked against the inversion's actual errors in
 ``tests/test_airdata.py``). FADS altitude: "direct" (σ_F log-linear 1 → 100 m) by default, or
 "pressure" (from the inverted p_∞).
 
-Readings of the paper that SPEC §8 leaves open or names as the alternative, selectable in the
-scenario TOML (:data:`CHOICES`; defaults = SPEC §8's choices): ``imu.error_model`` ("white" noise
+Readings where the paper is silent or ambiguous, each with its alternative, selectable in the
+scenario TOML (:data:`CHOICES`; defaults = this project's choices): ``imu.error_model`` ("white" noise
 per sample, or a per-run constant "bias", or "bias+white"; Q of the bias from
 ``filter.bias_horizon_s``, :func:`process_noise`), ``fads.altitude_shape`` ("log-linear" or
 "linear" 1 → 100 m curve), ``fads.altitude_curve`` (the curve as 1σ, or as a 3σ "envelope") and
@@ -55,7 +55,7 @@ METHODS = ("gnss-ins", "fads-ekf", "fads-ckf")
 DEFAULT_METHODS = METHODS
 ROWS = ("aoa_deg", "sideslip_deg", "mach", "altitude_m")
 ROW_LABEL = {"aoa_deg": "AoA (deg)", "sideslip_deg": "sideslip (deg)", "mach": "Mach", "altitude_m": "altitude (m)"}
-# SPEC §8, the paper's Tables 2 and 3: (max, std)
+# Duan et al. 2024, Tables 2 and 3: (max, std)
 PAPER_TABLE2 = {"gnss-ins": {"aoa_deg": (0.2617, 0.0473), "sideslip_deg": (0.1835, 0.0278), "mach": (0.0117, 0.0045),
                              "altitude_m": (69.54, 16.84)},
                 "fads-ckf": {"aoa_deg": (0.1222, 0.0201), "sideslip_deg": (0.1116, 0.0183), "mach": (0.0070, 0.0025),
@@ -233,7 +233,7 @@ def simulate(cfg, seed):
 def imu_data(cfg, dth0, dv0, rng):
     """Ideal increments corrupted by Table 1's IMU figures read as ``imu.error_model`` says.
 
-    "white" (SPEC §8 default): 1σ white noise per sample (increments get σ·dt); "bias": a constant
+    "white" (this project's default): 1σ white noise per sample (increments get σ·dt); "bias": a constant
     bias per axis drawn once per run, N(0, σ²); "bias+white": both. Returns (dθ, dv, biases
     {"gyro_rps", "accel_mps2"})."""
     dt = 1.0 / cfg["imu"]["rate_hz"]
@@ -332,7 +332,7 @@ def run_method(cfg, sim, method):
         R_g = cfg["gnss"]["alt_sigma_m"] ** 2
         R_f1, R_f2 = sim["R_f"]
         h_gf = AF.blend(zg[:, 2], zg[:, 2], sim["h_fads"], R_g, R_f1, R_f2)          # eq. 4
-        R_kmin = AF.fused_variance(zg[:, 2], R_g, R_f1, R_f2)                          # SPEC choice
+        R_kmin = AF.fused_variance(zg[:, 2], R_g, R_f1, R_f2)                          # this project's choice
         Rv_g = cfg["gnss"]["vel_sigma_mps"] ** 2
         Rv1, Rv2 = sim["R_vf"]
         R_vel = AF.fused_variance(zg[:, 2:3], Rv_g, Rv1, Rv2)                            # (n, 3)
@@ -342,7 +342,7 @@ def run_method(cfg, sim, method):
 
         def measure(k, x, P):
             C = euler_to_dcm(x[AF.I_PITCH], x[AF.I_YAW], x[AF.I_ROLL])               # INS attitude
-            v_f = C @ v_b[k] + wind                                                     # V_F of SPEC §8 (+ known wind)
+            v_f = C @ v_b[k] + wind                                                     # FADS V_F (+ known wind)
             v_gf = AF.blend(zg[k, 2], zg[k, 3:6], v_f, Rv_g, Rv1, Rv2)                 # eq. 4, velocities
             z = np.concatenate([zg[k, :2], [h_gf[k]], v_gf])
             R = np.diag(np.concatenate([sg[k, :2] ** 2,

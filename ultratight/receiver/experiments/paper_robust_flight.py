@@ -1,8 +1,8 @@
-"""Seed 003's experiment (SPEC §7, "paper-robust-flight"): loose SINS/GNSS of a 500-s aircraft
+"""The experiment of Cai et al. 2020 (§4, "paper-robust-flight"): loose SINS/GNSS of a 500-s aircraft
 flight with gross errors every 10 s; plain KF, χ² + Newton robust KF (both readings of V) and
 INS only, the paper's quoted error ranges and the abstract's 75 % / 80 % beside ours.
 
-Simulation (SPEC §7 choices): an aircraft at 3 km, 200 m/s east at the start, with two climbs /
+Simulation (this project's choices): an aircraft at 3 km, 200 m/s east at the start, with two climbs /
 descents and horizontal manoeuvres (``[trajectory]`` segments of constant ENU acceleration, body
 x along the velocity); IMU at 100 Hz with gyro constant 0.2 °/h and random walk 0.01 °/√h,
 accelerometer constant 0.01 g and random walk 0.01 g/√Hz (constants drawn per axis and run from
@@ -12,8 +12,8 @@ N(0, σ²)); GNSS fixes at 1 Hz = truth + white noise of σ 0.00015° (latitude,
 Gross errors: at t = 10, 20, …, 500 s the noise of all six components becomes V + m·σ·sign V
 (``[gross] mode = "add"``, m = ``factor`` = 50 by default: of the factors 5–50 and both readings
 the one whose plain-KF error magnitudes come closest to the paper's Figs. 4/6,
-:func:`kf_range_distance`) or m·V (``mode = "scale"``, the SPEC's ×20).  R from the GNSS σ, Q from
-the IMU specs, P0 matching the drawn initial errors.  ``[filter] weight_replacements`` (on): a
+:func:`kf_range_distance`) or m·V (``mode = "scale"``, this project's ×20).  R from the GNSS σ, Q
+from the IMU specs, P0 matching the drawn initial errors.  ``[filter] weight_replacements`` (on): a
 Newton-replaced innovation of the implementable reading enters the update with the variance of
 its extrapolation (:class:`ultratight.fusion.robust.ChiSquareNewton`).
 
@@ -43,7 +43,7 @@ METHODS = DEFAULT_METHODS
 CLEAN_METHODS = ("kf", "chi2-newton", "chi2-newton-lit")
 SWEEP_METHODS = ("kf", "chi2-newton")
 
-# seed 003 §4.2, ranges read from Figs. 4/6 (plain KF) and the robust filter, full 500 s:
+# Cai et al. 2020, §4.2, ranges read from Figs. 4/6 (plain KF) and the robust filter, full 500 s:
 # (min, max) per axis; position E, N, U (m), velocity E, N, U (m/s)
 PAPER_RANGES = {
     "kf": {"pos_enu_m": [[-2000, 0], [0, 1000], [0, 200]], "vel_enu_mps": [[0, 2], [-5, 0], [-2, 2]]},
@@ -187,7 +187,7 @@ def fixes(cfg, data, factor):
 
 def noise_model(cfg, llh0):
     """(q_psd, R (6x6, metres N/E/U and m/s), P0) of the filters: R from the GNSS σ, Q from the IMU
-    specs, P0 from the initial-error σ (SPEC §7 choices)."""
+    specs, P0 from the initial-error σ (this project's choices)."""
     im, g, ie = cfg["imu"], cfg["gnss"], cfg["initial_errors"]
     q = I.imu_psd(math.radians(im["gyro_arw_dprh"]) / 60.0, im["accel_vrw_g_rhz"] * C.G0, n_states=em.N15)
     rm, rn = radii(float(llh0[0]))
@@ -284,7 +284,7 @@ def summarize(cfg, runs):
 def _range_table(cfg, runs, agg, methods):
     """Text lines: min..max of the signed position / velocity errors per method (and the paper's)."""
     fac = cfg["gross"]["factor"]
-    L = [f"paper-robust-flight (seed 003): {len(runs)} run(s), seeds {runs[0]['seed']}..{runs[-1]['seed']}; "
+    L = [f"paper-robust-flight (Cai et al. 2020): {len(runs)} run(s), seeds {runs[0]['seed']}..{runs[-1]['seed']}; "
          f"gross errors x{fac:g} ({cfg['gross']['mode']}) every {cfg['gross']['period_s']:g} s; GNSS {cfg['gnss']['mode']}",
          "position N, E, U (m), velocity E, N, U (m/s); min..max over all seeds and epochs",
          f"{'method':16s} {'pos N':>15s} {'pos E':>15s} {'pos U':>15s} {'vel E':>13s} {'vel N':>13s} {'vel U':>13s}"]
@@ -406,15 +406,15 @@ def _figures(out, run):
     s = run["series"]
     ms = [m for m in ("kf", "chi2-newton", "chi2-newton-lit") if m in s]
     figs = [C.error_figure(out / "fig4_position_error.png", s, ms, em.POS, C.AXES["pos"], "(m)",
-                           f"position error, seed {run['seed']} (seed 003 Figs. 4/6)"),
+                           f"position error, seed {run['seed']} (Cai et al. 2020, Figs. 4/6)"),
             C.error_figure(out / "fig6_velocity_error.png", s, ms, em.VEL, C.AXES["vel"], "(m/s)",
-                           f"velocity error, seed {run['seed']} (seed 003 Figs. 4/6)"),
+                           f"velocity error, seed {run['seed']} (Cai et al. 2020, Figs. 4/6)"),
             C.error_figure(out / "fig5_position_error_100s.png", s, ms, em.POS, C.AXES["pos"], "(m)",
-                           "position error, first 100 s (seed 003 Figs. 5/7)", t_max=100.0)]
+                           "position error, first 100 s (Cai et al. 2020, Figs. 5/7)", t_max=100.0)]
     ms2 = [m for m in ("chi2-newton", "ins-only") if m in s]
     if len(ms2) == 2:
         figs.append(C.error_figure(out / "fig8_robust_vs_ins.png", s, ms2, em.POS, C.AXES["pos"], "(m)",
-                                   "position error, robust filter vs INS only (seed 003 Figs. 8/9)"))
+                                   "position error, robust filter vs INS only (Cai et al. 2020, Figs. 8/9)"))
     return figs
 
 

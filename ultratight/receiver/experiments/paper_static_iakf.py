@@ -1,7 +1,7 @@
-"""Seed 001's experiment (SPEC §5, "paper-static-iakf"): tight SINS/GPS of a static receiver with
+"""The experiment of Fang 2017 (§4, "paper-static-iakf"): tight SINS/GPS of a static receiver with
 AKF0 (true noise), AKF and IAKF (the paper's wrong noise settings), Table 1 beside ours.
 
-Simulation (the recorded GPS data are not available — SPEC §5 "Reproduction"): a static receiver
+Simulation (the recorded GPS data of the paper are not available): a static receiver
 at the test point (36.8103° N, 117.9996° E, 76.6825 m), satellites from a real broadcast
 ephemeris (``[satellites] rinex``; the nominal constellation with ``source = "nominal"``) above the
 elevation mask, pseudoranges/rates from :func:`ultratight.signals.obssim.simulate_observables`
@@ -16,7 +16,7 @@ Filters (tight 17-state, :mod:`ultratight.fusion.integration`, best-4 GDOP satel
 epoch for all cores so that the adaptive windows have a fixed dimension m = 8):
 
 * ``akf0`` — Q from the IMU simulation parameters and the clock model, R = (2 m)², (2 m/s)²;
-  fixed by default (``[filter] akf0_adaptive = false``, the SPEC's alternative reading),
+  fixed by default (``[filter] akf0_adaptive = false``, the alternative reading of the paper),
   eq. 15 still adapting with ``true``;
 * ``akf`` — AKF (eqs. 6–15, window N) started from the wrong settings;
 * ``iakf`` — IAKF (eqs. 16–26) started from the wrong settings; the numerator of eq. 24 from the
@@ -36,9 +36,9 @@ epoch for all cores so that the adaptive windows have a fixed dimension m = 8):
   wrong start; the attitude/velocity/position P0 is the same for every method);
 * ``ins-only`` — free inertial.
 
-Wrong settings (SPEC §5 reading): gyro (0.1 °/h)², accelerometer (1e-2 g)² (white noise per
-sample and bias P0), clock bias (35 m)², drift (0.3 m/s)² (per-epoch Q and P0), pseudorange
-(50 m)², rate (0.6 m/s)² (R).
+Wrong settings (this project's reading of the paper's list): gyro (0.1 °/h)², accelerometer
+(1e-2 g)² (white noise per sample and bias P0), clock bias (35 m)², drift (0.3 m/s)² (per-epoch Q
+and P0), pseudorange (50 m)², rate (0.6 m/s)² (R).
 """
 
 from __future__ import annotations
@@ -62,7 +62,7 @@ DEFAULT_METHODS = ("akf0", "akf", "iakf")
 METHODS = ("akf0", "akf", "iakf", "kf", "kf-true-noise", "ins-only")
 TRUE_NOISE = ("akf0", "kf-true-noise")
 
-# seed 001 Table 1 (RMS): velocity E, N, U (m/s); latitude, longitude, height (m)
+# Fang 2017, Table 1 (RMS): velocity E, N, U (m/s); latitude, longitude, height (m)
 PAPER_TABLE1 = {
     "akf0": {"vel_rms_mps": [0.0311, 0.0279, 0.0233], "pos_rms_m": [3.7023, 3.0533, 3.5617]},
     "akf": {"vel_rms_mps": [0.7512, 0.8526, 0.8936], "pos_rms_m": [8.1662, 7.1589, 12.4737]},
@@ -192,7 +192,7 @@ def noise_settings(cfg, true, p0_true=None):
         cq = np.diag([w["clock_bias_m"] ** 2, w["clock_drift_mps"] ** 2])
         clk0 = (w["clock_bias_m"], w["clock_drift_mps"])
         r = (w["sigma_pr_m"] ** 2, w["sigma_prr_mps"] ** 2)
-    # white noise given as the 1σ of each IMU sample (SPEC §5 choice): PSD σ²/rate
+    # white noise given as the 1σ of each IMU sample (this project's choice): PSD σ²/rate
     q = I.imu_psd(gyro / math.sqrt(rate), accel / math.sqrt(rate), n_states=em.N17)
     if p0_true is not None and p0_true != true:
         _, _, _, P0 = noise_settings(cfg, p0_true)
@@ -234,7 +234,7 @@ def summarize(cfg, runs):
     methods = list(runs[0]["methods"])
     agg = C.aggregate(runs, methods)
     cols = ["vE", "vN", "vU", "lat", "lon", "h"]
-    lines = [f"paper-static-iakf (seed 001 Table 1): {len(runs)} run(s), seeds {runs[0]['seed']}..{runs[-1]['seed']}; "
+    lines = [f"paper-static-iakf (Fang 2017 Table 1): {len(runs)} run(s), seeds {runs[0]['seed']}..{runs[-1]['seed']}; "
              "RMS over the whole run; velocity m/s (E, N, U), position m (lat = N, lon = E, h = U)",
              f"{'method':10s} {'':6s}" + "".join(f"{c:>9s}" for c in cols) + f"{'NEES in 95%':>13s}{'runtime s':>11s}"]
     for m in methods:
@@ -276,9 +276,9 @@ def _figures(out, run):
     s = run["series"]
     ms = list(s)
     return [C.error_figure(out / "fig1_velocity_error.png", s, ms, em.VEL, C.AXES["vel"], "(m/s)",
-                           f"velocity error, seed {run['seed']} (seed 001 Fig. 1)"),
+                           f"velocity error, seed {run['seed']} (Fang 2017, Fig. 1)"),
             C.error_figure(out / "fig2_position_error.png", s, ms, em.POS, C.AXES["pos"], "(m)",
-                           f"position error, seed {run['seed']} (seed 001 Fig. 2)")]
+                           f"position error, seed {run['seed']} (Fang 2017, Fig. 2)")]
 
 
 def write_outputs(cfg, runs, summary, out_dir, plots):
