@@ -395,7 +395,7 @@ def noise_factor(events, e):
 
 class _NoiseAhead:
     """The unit Gaussian noise of the generator's blocks, drawn from ``rng`` in block order (the same
-    stream as drawing each block when it is needed) one block ahead by a helper thread, into two
+    stream as drawing each block when it is needed) one block ahead by a second thread, into two
     alternating buffers, so the draw overlaps the synthesis, filtering and writing of the block
     before (numpy's generator releases the GIL while it fills an array)."""
 
