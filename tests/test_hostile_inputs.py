@@ -394,8 +394,9 @@ def test_sighup_and_sigterm_during_ultratight_process(long_rec, tmp_path):
     for f in ("v.ci8", "v.ci8.json", "v.imu.h5"):
         os.symlink(long_rec / f, tmp_path / f)
     for sig in (signal.SIGTERM, signal.SIGHUP):
+        # the engine runs 20 s of this recording in about 2 s: signal it soon after it maps the IF
         rc, err = _run_and_signal(["process", "v.ci8", "--mode", "ultratight", "--imu", "v.imu.h5", "--out", "u.h5"],
-                                  tmp_path, sig, _maps_file("v.ci8"))
+                                  tmp_path, sig, _maps_file("v.ci8", settle_s=0.2))
         assert rc == 128 + sig, err
         assert err.strip().splitlines() == [f"ultratight process: interrupted by {sig.name}; no output written"]
         assert not (tmp_path / "u.h5").exists()

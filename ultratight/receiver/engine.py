@@ -90,6 +90,8 @@ __all__ = ["EngineOptions", "EngineResult", "UltratightEngine", "NoiseFloor", "B
            "MODE_COMBINED", "MODE_OUTER", "MODE_COAST", "monitor_options", "monitor_mode",
            "check_imu_if_alignment", "run_ultratight_on_files", "write_result_h5"]
 
+PEND_EPOCHS = 256   # most epochs the compiled runner runs before summing their residuals
+
 MODE_INNER = 0
 MODE_COMBINED = 1
 MODE_OUTER = 2
@@ -349,6 +351,8 @@ class UltratightEngine:
         n_ch = len(self.prns)
         self.rec = EpochRecorder(int(self.duration_s * 1000.0 * 1.001) + 8, n_ch)
         self.dec = ResidualDecimator(n_ch, opt.tight_rate_hz)
+        self.pend = np.zeros((PEND_EPOCHS, n_ch, 6))          # residual inputs of epochs run, not yet summed
+        self.pend_ts = np.zeros((PEND_EPOCHS, n_ch), dtype=np.int64)
         self.mon = LockMonitor(n_ch, opt.lock_window_ms, opt.lock_off_dbhz, opt.lock_on_dbhz, sgl.code_period_s)
         self.mon.present = es.present           # one presence mask: the monitor's verdicts are the engine's
         blk = int(round(opt.block_ms * 1e-3 * self.fs))
@@ -382,24 +386,40 @@ class UltratightEngine:
         src = epochs.If(s.buf.view(np.float32), s.is_complex, int(s.buf_start), int(s.buf.shape[0]), self.n_total,
                         s.block_len, s._sigma[:max(n_sig, 1)])
         ring = self.follow.ring
-        outer = epochs.Outer(ring.t, ring.cp, ring.r, ring.f, ring.k, self.imu_dt, self.outer.aid_doppler,
+        outer = epochs.Outer(ring.t, ring.cp, ring.r, ring.f, ring.nf, ring.k, self.imu_dt, self.outer.aid_doppler,
                              self.outer.n_filled, self.opt.aid_time_offset_s, self.k_imu < self.imu_t.shape[0])
-        window = epochs.Window(self.dec.t_next, self.dec.acc)
+        window = epochs.Window(self.dec.t_next, self.dec.acc, self.pend, self.pend_ts)
         return (src, self.corr_view, self.wipe_view, self.bank_view, outer, window, self.rec_view, self.law_view,
                 self.sig_view)
 
     # ------------------------------------------------------------------ 100 Hz: IF blocks, SINS + outer loop
     def _read_if(self):
-        """Read IF blocks for the next epoch; False at the end of the file."""
+        """Read IF blocks for the next epoch — and on to the end of the decimator window, so the epochs
+        up to there can run in one compiled call; False at the end of the file."""
         sp = self.corr.sample_ptr
-        hi = int(sp.max()) + self.corr_view.per_max
-        return self.stream.ensure(hi, keep_from=int(sp.min()))
+        pm = self.corr_view.per_max
+        hi = int(sp.max()) + pm
+        ahead = min(self.n_total, max(hi, int(math.ceil(self.dec.t_next * self.fs)) + 2 * pm))
+        self.stream.ensure(ahead, keep_from=int(sp.min()))
+        return hi <= self.stream.buf_end
 
     def _advance_sins(self, st):
-        """SINS + outer loop run ahead until the aiding of the next interval exists."""
+        """SINS + outer loop run ahead until the aiding of the next interval exists — and on to what
+        they will have reached anyway when the next tight update comes.
+
+        The SINS state at a tight update (where the feedback lands) must be the one of a loop that
+        steps the SINS only when an epoch needs its aiding: the SINS runs while the aiding grid ends
+        at or before ``j_need`` of the epoch about to run, and ``j_need`` never decreases. The epoch
+        of the next update starts with every channel past the window end, so its ``j_need`` is at
+        least that of a channel exactly at the window end (``j_lb``); stepping up to ``j_lb`` early
+        is what that loop would have done by then, and lets the epochs up to the window end run in
+        one compiled call. Each epoch's residuals are formed against the SINS prediction that loop
+        would have had as its latest (``epochs.ring_latest_for``)."""
         tw = time.perf_counter()
+        pm = self.corr_view.per_max
         sp_max = int(self.corr.sample_ptr.max())
-        j_need = int((sp_max + self.corr_view.per_max) / self.fs * 1000.0) + 2
+        j_lb = int((int(math.ceil(self.dec.t_next * self.fs)) + pm) / self.fs * 1000.0) + 2
+        j_need = max(int((sp_max + pm) / self.fs * 1000.0) + 2, j_lb)
         while self.outer.n_filled <= j_need and self.k_imu < self.imu_t.shape[0]:
             k = self.k_imu
             dt = self.imu_t[k] - self.follow.t
@@ -472,10 +492,8 @@ class UltratightEngine:
             st.xp_view[ff | ~st.present_prev, 1:] = 0.0     # (a channel restarting now: estimate = NCO)
             xp_rec = st.xp_view
         epoch_post(st.k_ep, corr.t_start, corr.fs, sig.if_hz, corr.f0, corr.cp0, xp_rec, bank.P, bank.i_ptau,
-                   bank.i_pf, outer.ring_t, outer.ring_cp, outer.ring_r, outer.ring_f, outer.ring_k, outer.imu_dt,
-                   window.t_next_upd, window.acc, rec.rec_t, rec.rec_f, rec.rec_cp, rec.rec_a, rec.rec_mode,
-                   st.mode_now, outer.aid_grid, outer.n_filled, corr.sample_ptr, sig.half_period_s, sig.code_len,
-                   st.aid, outer.aid_dt)
+                   bank.i_pf, corr.per_max, outer, window, rec.rec_t, rec.rec_f, rec.rec_cp, rec.rec_a, rec.rec_mode,
+                   st.mode_now, corr.sample_ptr, sig, st.aid, outer.aid_dt, window.pend, window.pend_ts)
         if restart is not None:
             self._restart_channels(st, *restart)
             if init_now:

@@ -49,23 +49,19 @@ Corr = namedtuple("Corr", "code_ext pad active sample_ptr code_phase code_rate c
                           "tap_off per_max parallel out t_start n_s cp0 f0 sig")
 Wipe = namedtuple("Wipe", "bits t0_ms ms per_bit D")
 Bank = namedtuple("Bank", "bank_type kind fbuf ibuf n_prm n_tab x x_post P i_ptau i_pf active")
-Outer = namedtuple("Outer", "ring_t ring_cp ring_r ring_f ring_k imu_dt aid_grid n_filled aid_dt sins_more")
-Window = namedtuple("Window", "t_next_upd acc")
+Outer = namedtuple("Outer", "ring_t ring_cp ring_r ring_f ring_nf ring_k imu_dt aid_grid n_filled aid_dt sins_more")
+Window = namedtuple("Window", "t_next_upd acc pend pend_ts")
 Rec = namedtuple("Rec", "rec_t rec_f rec_cp rec_a rec_mode mode_now n_ep_max")
 Law = namedtuple("Law", "aid aid_prev rate_prev hist use_aid prm dx aid_prev_ff")
 Sig = namedtuple("Sig", "if_hz half_period_s code_len")
 
 
 @njit(cache=True)
-def epoch_post_one(c, k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, i_ptau, i_pf, ring_t, ring_cp, ring_r, ring_f,
-                   ring_k, imu_dt, t_next_upd, acc, rec_t, rec_f, rec_cp, rec_a, rec_mode, mode_now,
-                   aid_grid, n_filled, sample_ptr, half_period_s, code_len, aid_out, aid_dt):
-    """:func:`epoch_post` for channel ``c`` (touches only column / row ``c``)."""
+def record_one(c, k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, i_ptau, i_pf, rec_t, rec_f, rec_cp, rec_a, rec_mode,
+               mode_now, aid_grid, n_filled, sample_ptr, half_period_s, code_len, aid_out, aid_dt, pend, pend_ts):
+    """Channel ``c``'s estimates of epoch ``k_ep`` into the records and into its row of ``pend`` (the
+    inputs of :func:`residual_one`, formed later), and the outer-loop aiding of its next interval."""
     two_pi = 2.0 * math.pi
-    ring_n = ring_t.shape[0]
-    i1 = (ring_k - 1) % ring_n
-    t_last = ring_t[i1]
-    half = 0.5 * code_len
     tk = float(t_start[c]) / fs
     # Doppler estimate for the middle of the interval: NCO + df + da T/2 (state at the start)
     f_meas = f0[c] - if_hz + (x_post[c, 3] + x_post[c, 4] * half_period_s) / two_pi
@@ -75,12 +71,42 @@ def epoch_post_one(c, k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, i_ptau, i_pf
     rec_cp[k_ep, c] = cp_meas % code_len
     rec_a[k_ep, c] = x_post[c, 0]
     rec_mode[k_ep, c] = mode_now[c]
+    pend[c, 0] = tk
+    pend[c, 1] = f_meas
+    pend[c, 2] = cp_meas
+    pend[c, 3] = P[c, i_ptau, i_ptau]
+    pend[c, 4] = P[c, i_pf, i_pf]
+    pend[c, 5] = x_post[c, 0]
+    pend_ts[c] = t_start[c]
+    u = (sample_ptr[c] / fs + half_period_s + aid_dt) * 1000.0
+    j = int(math.floor(u))
+    if j < 0:
+        j = 0
+    if j > n_filled - 2:
+        j = n_filled - 2
+    fr = u - j
+    aid_out[c] = aid_grid[j, c] * (1.0 - fr) + aid_grid[j + 1, c] * fr
+
+
+@njit(cache=True)
+def residual_one(c, pend, ring_t, ring_cp, ring_r, ring_f, ring_latest, imu_dt, t_next_upd, acc, half_period_s,
+                 code_len):
+    """Channel ``c``'s code and Doppler residuals of one epoch against the SINS predictions (the ring
+    of 100 Hz predictions whose latest entry is the absolute count ``ring_latest``; linear in between),
+    summed into the decimator window ``acc`` (rows: n, code, Doppler, P_tautau, P_ff, amplitude)
+    when the epoch starts before the window end."""
+    ring_n = ring_t.shape[0]
+    half = 0.5 * code_len
+    tk = pend[c, 0]
+    f_meas = pend[c, 1]
+    cp_meas = pend[c, 2]
+    t_last = ring_t[ring_latest % ring_n]
     back = int(math.floor((t_last - tk) / imu_dt)) + 1
     if back < 1:
         back = 1
     if back > ring_n - 2:
         back = ring_n - 2
-    ia = (ring_k - 1 - back) % ring_n
+    ia = (ring_latest - back) % ring_n
     ib = (ia + 1) % ring_n
     ta = ring_t[ia]
     w = (tk - ta) / imu_dt
@@ -94,36 +120,54 @@ def epoch_post_one(c, k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, i_ptau, i_pf
         acc[0, c] += 1.0
         acc[1, c] += r_cp
         acc[2, c] += r_f
-        acc[3, c] += P[c, i_ptau, i_ptau]
-        acc[4, c] += P[c, i_pf, i_pf]
-        acc[5, c] += x_post[c, 0]
-    u = (sample_ptr[c] / fs + half_period_s + aid_dt) * 1000.0
-    j = int(math.floor(u))
-    if j < 0:
-        j = 0
-    if j > n_filled - 2:
-        j = n_filled - 2
-    fr = u - j
-    aid_out[c] = aid_grid[j, c] * (1.0 - fr) + aid_grid[j + 1, c] * fr
+        acc[3, c] += pend[c, 3]
+        acc[4, c] += pend[c, 4]
+        acc[5, c] += pend[c, 5]
 
 
 @njit(cache=True)
-def epoch_post(k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, i_ptau, i_pf, ring_t, ring_cp, ring_r, ring_f,
-               ring_k, imu_dt, t_next_upd, acc, rec_t, rec_f, rec_cp, rec_a, rec_mode, mode_now,
-               aid_grid, n_filled, sample_ptr, half_period_s, code_len, aid_out, aid_dt=0.0):
-    """Per-epoch bookkeeping for all channels in one compiled call.
+def ring_latest_for(ring_nf, ring_k, j_need):
+    """The absolute count of the SINS's latest prediction when an epoch with ``j_need`` runs in a loop
+    that steps the SINS only as the epochs need its aiding: the first entry whose aiding grid end
+    ``ring_nf`` exceeds ``j_need`` (the latest one when the IMU data ended before)."""
+    ring_n = ring_nf.shape[0]
+    k = ring_k - 1
+    oldest = max(0, ring_k - ring_n + 2)
+    while k - 1 >= oldest and ring_nf[(k - 1) % ring_n] > j_need:
+        k -= 1
+    return k
 
-    Records the estimates (NCO + tracking-bank posterior at the interval start), forms the
-    residuals against the SINS predictions (ring of 100 Hz predictions, linear in between),
-    accumulates them in the decimator window (``acc`` rows: n, code, doppler, P_tautau, P_ff,
-    amplitude) and interpolates the 1 kHz outer-loop Doppler aiding at the middle of each
-    channel's next interval. ``code_len``: chips per code period (the signal description's
-    ``code_length``).
-    """
+
+@njit(cache=True)
+def settle(E, pend, pend_ts, per_max, fs, outer, window, sig):
+    """The residuals of ``E`` recorded epochs (``pend[e]``, ``pend_ts[e]``), in epoch order, each against
+    the SINS predictions as a one-epoch loop would have had them (:func:`ring_latest_for` of the
+    epoch's ``j_need``)."""
+    n_ch = pend.shape[1]
+    for e in range(E):
+        sp_max = pend_ts[e, 0]
+        for c in range(1, n_ch):
+            if pend_ts[e, c] > sp_max:
+                sp_max = pend_ts[e, c]
+        j_need = int((sp_max + per_max) / fs * 1000.0) + 2
+        latest = ring_latest_for(outer.ring_nf, outer.ring_k, j_need)
+        for c in range(n_ch):
+            residual_one(c, pend[e], outer.ring_t, outer.ring_cp, outer.ring_r, outer.ring_f, latest, outer.imu_dt,
+                         window.t_next_upd, window.acc, sig.half_period_s, sig.code_len)
+
+
+@njit(cache=True)
+def epoch_post(k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, i_ptau, i_pf, per_max, src_outer, window, rec_t,
+               rec_f, rec_cp, rec_a, rec_mode, mode_now, sample_ptr, sig, aid_out, aid_dt, pend, pend_ts):
+    """Per-epoch bookkeeping for all channels in one compiled call: records the estimates
+    (NCO + tracking-bank posterior at the interval start), the residuals against the SINS
+    predictions summed into the decimator window, and the 1 kHz outer-loop Doppler aiding at the
+    middle of each channel's next interval (:func:`record_one`, :func:`settle`)."""
     for c in range(t_start.shape[0]):
-        epoch_post_one(c, k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, i_ptau, i_pf, ring_t, ring_cp, ring_r,
-                       ring_f, ring_k, imu_dt, t_next_upd, acc, rec_t, rec_f, rec_cp, rec_a, rec_mode, mode_now,
-                       aid_grid, n_filled, sample_ptr, half_period_s, code_len, aid_out, aid_dt)
+        record_one(c, k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, i_ptau, i_pf, rec_t, rec_f, rec_cp, rec_a,
+                   rec_mode, mode_now, src_outer.aid_grid, src_outer.n_filled, sample_ptr, sig.half_period_s,
+                   sig.code_len, aid_out, aid_dt, pend[0], pend_ts[0])
+    settle(1, pend, pend_ts, per_max, fs, src_outer, window, sig)
 
 
 @njit(cache=True)
@@ -171,9 +215,11 @@ def correlate(src, corr, sig):
 
 
 @njit(cache=True)
-def epoch_channel(c, k_ep, epoch, src, corr, wipe, bank, outer, window, rec, law, sig, tap_fix, W1, W2):
+def epoch_channel(c, k_ep, e_row, epoch, src, corr, wipe, bank, outer, window, rec, law, sig, tap_fix, W1, W2):
     """One epoch of channel ``c`` through every stage (touches only channel ``c``'s rows): 0, or
-    ERR_CORR / ERR_BANK. ``epoch``: the tracking bank's epoch count; ``W1``/``W2``: work arrays."""
+    ERR_CORR / ERR_BANK. ``epoch``: the tracking bank's epoch count; ``e_row``: the row of
+    ``window.pend`` for the epoch's residual inputs (:func:`settle` forms them); ``W1``/``W2``: work
+    arrays."""
     corr.cp0[c] = corr.code_phase[c]
     corr.f0[c] = corr.carr_freq[c]
     corr.sig[c] = src.sigma[corr.sample_ptr[c] // src.block_len]
@@ -189,11 +235,10 @@ def epoch_channel(c, k_ep, epoch, src, corr, wipe, bank, outer, window, rec, law
         sb = bank_channel_epoch(bank.kind, bank.fbuf, bank.ibuf, c, corr.out, wipe.D, epoch, W1, W2)
     if sb < 0:
         return ERR_BANK
-    epoch_post_one(c, k_ep, corr.t_start, corr.fs, sig.if_hz, corr.f0, corr.cp0, bank.x_post, bank.P, bank.i_ptau,
-                   bank.i_pf, outer.ring_t, outer.ring_cp, outer.ring_r, outer.ring_f, outer.ring_k, outer.imu_dt,
-                   window.t_next_upd, window.acc, rec.rec_t, rec.rec_f, rec.rec_cp, rec.rec_a, rec.rec_mode,
-                   rec.mode_now, outer.aid_grid, outer.n_filled, corr.sample_ptr, sig.half_period_s, sig.code_len,
-                   law.aid, outer.aid_dt)
+    record_one(c, k_ep, corr.t_start, corr.fs, sig.if_hz, corr.f0, corr.cp0, bank.x_post, bank.P, bank.i_ptau,
+               bank.i_pf, rec.rec_t, rec.rec_f, rec.rec_cp, rec.rec_a, rec.rec_mode, rec.mode_now, outer.aid_grid,
+               outer.n_filled, corr.sample_ptr, sig.half_period_s, sig.code_len, law.aid, outer.aid_dt,
+               window.pend[e_row], window.pend_ts[e_row])
     feedback_one(c, bank.x, bank.active, corr.code_phase, corr.code_rate, corr.carr_phase, corr.carr_freq,
                  law.aid, law.aid_prev, law.rate_prev, law.hist, law.use_aid, law.prm, law.dx)
     if bank.bank_type == BANK_PBKF:
@@ -225,7 +270,7 @@ def safe_epochs(k_ep, src, corr, outer, window, rec):
     sp_max = corr.sample_ptr.max()
     sp_min = corr.sample_ptr.min()
     limit = min(src.n_total, src.buf_start + src.n_buf)
-    E = min(rec.n_ep_max - k_ep, (limit - sp_max) // pm)
+    E = min(rec.n_ep_max - k_ep, (limit - sp_max) // pm, window.pend.shape[0] + 1)
     if outer.sins_more:
         E = min(E, int(math.floor(((outer.n_filled - 2) * corr.fs / 1000.0 - sp_max) / pm)))
     E = min(E, int(math.floor((window.t_next_upd * corr.fs - sp_min) / pm)) + 1)
@@ -240,7 +285,7 @@ def _channels_parallel(E, k_ep, epoch0, src, corr, wipe, bank, outer, window, re
         W1 = np.empty((N_W1, NZ))
         W2 = np.empty((N_W2, NZ, NZ))
         for e in range(E):
-            r = epoch_channel(c, k_ep + e, epoch0 + e, src, corr, wipe, bank, outer, window, rec, law, sig,
+            r = epoch_channel(c, k_ep + e, e, epoch0 + e, src, corr, wipe, bank, outer, window, rec, law, sig,
                               tap_fix, W1, W2)
             if r != 0:
                 err[c] = r
@@ -271,7 +316,7 @@ def run_epochs(k_ep, src, corr, wipe, bank, outer, window, rec, law, sig):
             E = 1
             epoch = _bank_epoch_count(bank, n)
             for c in range(n):
-                r = epoch_channel(c, k_ep, epoch, src, corr, wipe, bank, outer, window, rec, law, sig, tap_fix,
+                r = epoch_channel(c, k_ep, 0, epoch, src, corr, wipe, bank, outer, window, rec, law, sig, tap_fix,
                                   W1, W2)
                 if r != 0:
                     err[c] = r
@@ -279,6 +324,7 @@ def run_epochs(k_ep, src, corr, wipe, bank, outer, window, rec, law, sig):
         for c in range(n):
             if err[c] != 0:
                 return err[c], k_ep, c
+        settle(E, window.pend, window.pend_ts, corr.per_max, corr.fs, outer, window, sig)
         _bank_epoch_advance(bank, n, E)
         k_ep += E
         if corr.t_start.min() >= window.t_next_upd * corr.fs:

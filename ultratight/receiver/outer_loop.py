@@ -358,14 +358,16 @@ class PredictionRing:
         self.cp = np.zeros((size, n_ch))
         self.r = np.zeros((size, n_ch))
         self.f = np.zeros((size, n_ch))
+        self.nf = np.zeros(size, dtype=np.int64)   # the outer loop's aiding grid end after each entry
         self.k = 0                   # predictions put so far; the latest is at (k - 1) % size
 
     @property
     def latest(self):
         return (self.k - 1) % self.t.shape[0]
 
-    def put(self, t, pr):
+    def put(self, t, pr, n_filled):
         i = self.k % self.t.shape[0]
+        self.nf[i] = n_filled
         self.t[i] = t
         self.cp[i] = pr["code_phase_chips"]
         self.r[i] = pr["code_rate_cps"]
@@ -397,7 +399,7 @@ class SinsFollower:
             outer.aid_doppler[j] = pj["doppler_hz"]
             outer.aid_code_rate[j] = pj["code_rate_cps"]
         outer.push(self.t, pos_e, vel_e, acc0_e, ins.clk_b, ins.clk_d)
-        self.ring.put(self.t, self.first)
+        self.ring.put(self.t, self.first, outer.n_filled)
         self.vel_prev = vel_e.copy()
         self.acc_prev = acc0_e.copy()
 
@@ -410,9 +412,10 @@ class SinsFollower:
         jerk_e = (acc_e - self.acc_prev) / dt
         self.acc_prev = acc_e
         self.vel_prev = vel_e
-        self.ring.put(t_sins, self.outer.predict(t_sins, pos_e, vel_e, ins.clk_b, ins.clk_d))
+        pr = self.outer.predict(t_sins, pos_e, vel_e, ins.clk_b, ins.clk_d)
         # kinematics at the middle of the last interval -> extrapolate from there
         self.outer.push(t_sins, pos_e, vel_e, acc_e + 0.5 * dt * jerk_e, ins.clk_b, ins.clk_d, jerk_e)
+        self.ring.put(t_sins, pr, self.outer.n_filled)
 
     def los_e(self):
         """Unit lines of sight (ECEF) at the current SINS state."""
