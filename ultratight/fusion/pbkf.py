@@ -52,7 +52,7 @@ from numba import njit
 
 from ultratight.constants import BETA_CODE_CARRIER, T_CA
 from ultratight.errors import FilterError
-from ultratight.fusion.prefilter import DEFAULT_P_LIMITS, FLAG_DIVERGED, NX, NZ, prefilter_model
+from ultratight.fusion.prefilter import DEFAULT_P_LIMITS, FLAG_DIVERGED, NX, NZ, PackedActiveMask, prefilter_model
 from ultratight.signals import corr_model
 
 NK = 4        # KF states: dtau, dphi, df, da (prefilter indices 1..4)
@@ -388,7 +388,7 @@ def pbkf_note_correction(fbuf, ibuf, dx, n_prm, n_tab):
         rot[c] += dx[c, 2] - 0.5 * T * dx[c, 3]
 
 
-class PbKfBank:
+class PbKfBank(PackedActiveMask):
     """Batched PB-KF-UTC discriminator + linear-KF baseline (see module docstring).
 
     ``step(z, bits=None) -> x`` (n_ch, 5) predicted errors in the prefilter layout
@@ -468,18 +468,6 @@ class PbKfBank:
         if activate:
             self._active_i[ch] = 1
 
-    @property
-    def active(self):
-        """Per-channel active mask (read-only copy; change it with set_active / reset)."""
-        a = self._active_i != 0
-        a.flags.writeable = False
-        return a
-
-    def set_active(self, mask):
-        m = np.asarray(mask, dtype=np.bool_)
-        if m.shape != (self.n_ch,):
-            raise FilterError(f"PbKfBank active mask: expected shape ({self.n_ch},), got {m.shape}")
-        self._active_i[:] = m
 
     @property
     def packed(self):

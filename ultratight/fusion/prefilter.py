@@ -793,7 +793,24 @@ def default_initial_covariance(cn0_dbhz=35.0, T=T_CA, sigma_tau_chips=0.1, sigma
     return np.diag(sig ** 2)
 
 
-class PrefilterBank:
+class PackedActiveMask:
+    """The ``active`` mask of a bank that keeps it as integers in its packed buffer (``_active_i``)."""
+
+    @property
+    def active(self):
+        """Per-channel active mask (read-only copy; change it with set_active / reset)."""
+        a = self._active_i != 0
+        a.flags.writeable = False
+        return a
+
+    def set_active(self, mask):
+        m = np.asarray(mask, dtype=np.bool_)
+        if m.shape != (self.n_ch,):
+            raise FilterError(f"{type(self).__name__} active mask: expected shape ({self.n_ch},), got {m.shape}")
+        self._active_i[:] = m
+
+
+class PrefilterBank(PackedActiveMask):
     """Batched 5-state I/Q prefilters ("ckf" | "ukf" | "rackf") for ``n_ch`` channels.
 
     Parameters
@@ -947,18 +964,6 @@ class PrefilterBank:
         if activate:
             self._active_i[ch] = 1
 
-    @property
-    def active(self):
-        """Per-channel active mask (read-only copy; change it with set_active / reset)."""
-        a = self._active_i != 0
-        a.flags.writeable = False
-        return a
-
-    def set_active(self, mask):
-        m = np.asarray(mask, dtype=np.bool_)
-        if m.shape != (self.n_ch,):
-            raise FilterError(f"prefilter active mask: expected shape ({self.n_ch},), got {m.shape}")
-        self._active_i[:] = m
 
     # -- one epoch -----------------------------------------------------------------
     def step(self, z, bits=None):

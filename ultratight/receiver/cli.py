@@ -15,6 +15,7 @@ was written, exit status 128 + signal number (130, 143, 129). See docs/reliabili
 import argparse
 import importlib
 import sys
+import warnings
 
 from ultratight import __version__
 from ultratight.errors import UltratightError
@@ -54,6 +55,12 @@ def build_parser():
         mod.add_arguments(p)
         p.set_defaults(_run=mod.run)
     return parser
+
+
+# numba's thread pool takes a cross-process lock in /dev/shm when it starts; where it cannot (no
+# /dev/shm, or a file-size limit of a few bytes) it warns and goes on without it, which is safe here
+# (each process starts its own pool once): the command's own error, if any, is the one line to show
+warnings.filterwarnings("ignore", message="Could not obtain multiprocessing lock")
 
 
 def main(argv=None):

@@ -13,19 +13,25 @@ from numba import njit
 
 
 @njit(cache=True)
+def wipe_one(c, bits, t0_ms, ms, out, per_bit):
+    """:func:`wipe_bits` for channel ``c`` alone."""
+    nb = bits.shape[1]
+    k = (ms[c] - t0_ms[c]) // per_bit
+    if k < 0:
+        k = 0
+    if k > nb - 1:
+        k = nb - 1
+    out[c] = bits[c, k]
+    ms[c] += 1
+
+
+@njit(cache=True)
 def wipe_bits(bits, t0_ms, ms, out, per_bit):
     """Data bit of the code period starting at transmit code-period count ``ms`` (per channel;
     ``per_bit`` code periods per bit, :attr:`ultratight.signals.signal.SignalDescription.codes_per_bit`)
     into ``out``; advances ``ms`` by one period."""
-    nb = bits.shape[1]
     for c in range(bits.shape[0]):
-        k = (ms[c] - t0_ms[c]) // per_bit
-        if k < 0:
-            k = 0
-        if k > nb - 1:
-            k = nb - 1
-        out[c] = bits[c, k]
-        ms[c] += 1
+        wipe_one(c, bits, t0_ms, ms, out, per_bit)
 
 
 class DataWipeoff:
@@ -49,16 +55,3 @@ class DataWipeoff:
         """Signs of this epoch's code period (n_ch,); advances to the next period."""
         wipe_bits(self.bits, self.t0_ms, self.ms, self.D, self.per_bit)
         return self.D
-
-
-@njit(cache=True)
-def wipe_one(c, bits, t0_ms, ms, out, per_bit):
-    """:func:`wipe_bits` for channel ``c`` alone."""
-    nb = bits.shape[1]
-    k = (ms[c] - t0_ms[c]) // per_bit
-    if k < 0:
-        k = 0
-    if k > nb - 1:
-        k = nb - 1
-    out[c] = bits[c, k]
-    ms[c] += 1
