@@ -110,7 +110,7 @@ class ProcessConfig:
     tropo: str = "saastamoinen"         # saastamoinen | off
     tropo_mapping: str = "cosz"         # mapping function of the Saastamoinen model
     record_epochs: bool = False
-    parallel: bool = None               # spread channels over numba threads (None: when >= 1.25 cores are available)
+    parallel: bool = False              # spread channels over numba threads (None: when >= 1.25 cores are available)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
 
     def validate(self, source):
