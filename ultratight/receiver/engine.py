@@ -780,6 +780,6 @@ def write_result_h5(path, res, extra_attrs=None):
                      ("code_phase_chips", res.code_phase_chips), ("amplitude", res.amp), ("mode", res.mode),
                      ("nav_t_s", res.nav_t), ("nav_pos_e", res.nav_pos_e), ("nav_vel_e", res.nav_vel_e),
                      ("nav_clk", res.nav_clk), ("nav_sigma_doppler_hz", res.nav_sigma_doppler_hz)):
-            f.create_dataset(k, data=np.asarray(v), compression="gzip", compression_opts=1)
+            f.create_dataset(k, data=np.asarray(v), compression="gzip", compression_opts=1, shuffle=True)
 
     return write_h5_atomic(path, build)

@@ -459,7 +459,7 @@ def write_results_h5(path, cfg, raw, methods, runs, base_seed):
                          ("mode", res.mode), ("doppler_err_hz", d_err), ("code_err_chips", c_err),
                          ("nav_t_s", res.nav_t), ("nav_pos_e", res.nav_pos_e), ("nav_vel_e", res.nav_vel_e),
                          ("nav_clk", res.nav_clk), ("nav_sigma_doppler_hz", res.nav_sigma_doppler_hz)):
-                g.create_dataset(k, data=np.asarray(v), compression="gzip", compression_opts=1)
+                g.create_dataset(k, data=np.asarray(v), compression="gzip", compression_opts=1, shuffle=True)
 
     write_h5_atomic(path, build)
 
