@@ -136,7 +136,6 @@ def _pbkf_channel(c, x, P, Phi, Qd, z, bits, active, prm, prev, have_prev, rot, 
     sp = prm[2]
     alpha = prm[3]
     amin = prm[4]
-    n = x.shape[0]
     H0 = np.zeros((NM, NK))
     H0[0, 0] = 1.0
     H0[0, 2] = beta * T * 0.5

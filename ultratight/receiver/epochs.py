@@ -5,8 +5,8 @@ One epoch (:func:`run_epochs`, in this order; every step is a compiled stage of 
 
     IF block (noise sigma of its aligned block) ─► correlators (one code period per channel,
     receiver.correlator; channels spread over the threads)
-    ─► data wipe-off (receiver.wipeoff) ─► tracking bank epoch (fusion.prefilter.bank_epoch or
-    fusion.pbkf.pbkf_epoch) ─► recorder + residuals against the outer loop's predictions
+    ─► data wipe-off (receiver.wipeoff) ─► tracking bank epoch (fusion.prefilter.bank_channel_epoch
+    or fusion.pbkf.pbkf_channel_epoch) ─► recorder + residuals against the outer loop's predictions
     + decimator window + outer-loop aiding of the next interval (:func:`epoch_post`)
     ─► inner-loop NCO command (fusion.innerloop)
 
@@ -27,8 +27,8 @@ import numpy as np
 from numba import njit, prange
 
 from ultratight.fusion.innerloop import feedback_one
-from ultratight.fusion.pbkf import pbkf_channel_epoch, pbkf_epoch, pbkf_note_correction, pbkf_note_correction_one
-from ultratight.fusion.prefilter import N_W1, N_W2, NZ, bank_channel_epoch, bank_epoch
+from ultratight.fusion.pbkf import pbkf_channel_epoch, pbkf_note_correction_one
+from ultratight.fusion.prefilter import N_W1, N_W2, NZ, bank_channel_epoch
 from ultratight.receiver.correlator import _correlate_one, _step_bank, tap_fixed_point
 from ultratight.receiver.wipeoff import wipe_one
 
@@ -168,21 +168,6 @@ def epoch_post(k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, i_ptau, i_pf, per_m
                    rec_mode, mode_now, src_outer.aid_grid, src_outer.n_filled, sample_ptr, sig.half_period_s,
                    sig.code_len, aid_out, aid_dt, pend[0], pend_ts[0])
     settle(1, pend, pend_ts, per_max, fs, src_outer, window, sig)
-
-
-@njit(cache=True)
-def bank_step(bank, z, bits):
-    """One epoch of the tracking bank (dispatch on its type); the status of its kernel."""
-    if bank.bank_type == BANK_PBKF:
-        return pbkf_epoch(bank.fbuf, bank.ibuf, z, bits, bank.n_prm, bank.n_tab)
-    return bank_epoch(bank.kind, bank.fbuf, bank.ibuf, z, bits)
-
-
-@njit(cache=True)
-def bank_note_correction(bank, dx):
-    """Tell the tracking bank the NCO correction just applied (the PB-KF's FLL needs it)."""
-    if bank.bank_type == BANK_PBKF:
-        pbkf_note_correction(bank.fbuf, bank.ibuf, dx, bank.n_prm, bank.n_tab)
 
 
 @njit(cache=True)

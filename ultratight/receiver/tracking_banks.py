@@ -8,7 +8,7 @@ Every bank offers the same protocol: ``step(z, bits)`` (one epoch of correlator 
 the covariance ``P`` with the code / frequency indices ``P_ITAU`` / ``P_IF``, ``active``,
 ``n_resets`` and ``packed`` (its state as buffers for the compiled stages). A new bank is a class
 with that protocol, a compiled epoch function dispatched in
-:func:`ultratight.receiver.epochs.bank_step`, and an entry in :data:`FACTORIES`.
+:func:`ultratight.receiver.epochs.epoch_channel`, and an entry in :data:`FACTORIES`.
 """
 
 import math
