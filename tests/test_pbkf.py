@@ -43,14 +43,16 @@ def _eq3(A, tau, phi, f_rad):
     return np.concatenate([A * snc * R * math.cos(s + phi), A * snc * R * math.sin(s + phi)])
 
 
-def test_one_epoch_matches_batch_kalman_update():
+@pytest.mark.parametrize("rscale", [1.0, 20.0])
+def test_one_epoch_matches_batch_kalman_update(rscale):
+    """``rscale`` (a filter-R noise event, receiver.burst) multiplies the discriminator variances."""
     bank = PbKfBank(1, cn0_dbhz_init=40.0)
     x0 = np.array([bank.x0[0, 0], 0.02, -0.1, 2 * np.pi * 1.5, 3.0])
     P0 = np.diag([0.05 ** 2, 0.2 ** 2, (2 * np.pi * 3) ** 2, (2 * np.pi * 5) ** 2])
     bank.reset([0], x0=x0, P0=P0)
     a = float(corr_model.amplitude_from_cn0(40.0, T))
     z = _eq3(a, 0.1, 0.3, 2 * np.pi * 2.0) + np.array([0.3, -0.2, 0.1, 0.05, 0.4, -0.3])
-    bank.step(z[None], np.array([1.0]))
+    bank.step(z[None], np.array([1.0]), rscale=np.array([rscale]))
     # independent: moment C/N0, discriminators, gains from the table, batch KF (first epoch: no FLL)
     alpha = T / 1.0
     m2 = (1 - alpha) * (x0[0] ** 2 + 2) + alpha * (z[0] ** 2 + z[3] ** 2)
@@ -63,7 +65,7 @@ def test_one_epoch_matches_batch_kalman_update():
     e, l = math.hypot(z[1], z[4]), math.hypot(z[2], z[5])
     y = np.array([0.5 * (e - l) / (e + l), math.atan2(z[3], z[0])])
     H = np.array([[1, 0, BETA_CODE_CARRIER * T / 2, 0], [0, 1, T / 2, 0]]) * g[:2, None]
-    R = np.diag(g[3:5])
+    R = np.diag(g[3:5]) * rscale
     xs = x0[1:]
     S = H @ P0 @ H.T + R
     K = P0 @ H.T @ np.linalg.inv(S)

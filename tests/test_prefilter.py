@@ -103,10 +103,10 @@ def _ref_update(x, P, z, zh, Pzz, Pxz):
     return x + K @ (z - zh), P - K @ Pzz @ K.T
 
 
-def _one_step(kind, x0, P0, z, D, **kw):
+def _one_step(kind, x0, P0, z, D, rscale=None, **kw):
     bank = pf.PrefilterBank(1, kind=kind, **kw)
     bank.reset([0], x0=x0, P0=P0)
-    bank.step(z[None], np.array([D]))
+    bank.step(z[None], np.array([D]), rscale=None if rscale is None else np.array([rscale]))
     return bank
 
 
@@ -119,10 +119,12 @@ def _case():
     return x0, P0, z
 
 
-def test_ckf_update_matches_reference():
+@pytest.mark.parametrize("rscale", [None, 20.0])
+def test_ckf_update_matches_reference(rscale):
+    """With ``rscale`` (a filter-R noise event, receiver.burst) the update is the reference's with R x rscale."""
     x0, P0, z = _case()
-    bank = _one_step("ckf", x0, P0, z, -1.0)
-    R = corr_model.epl_noise_covariance()
+    bank = _one_step("ckf", x0, P0, z, -1.0, rscale=rscale)
+    R = corr_model.epl_noise_covariance() * (1.0 if rscale is None else rscale)
     pts, wm, wc = _ref_points_ckf(x0, P0)
     zh, Pzz, Pxz = _ref_moments(pts, wm, wc, -1.0)
     xu, Pu = _ref_update(x0, P0, z, zh, Pzz + R, Pxz)
@@ -167,13 +169,15 @@ def _ref_rackf(x0, P0, z, D, c, R):
     return x0 + K @ (z - zh), P0 / th - K @ Pzzb @ K.T, th
 
 
-@pytest.mark.parametrize("scale", [1.0, 6.0])
-def test_rackf_correction_epoch_matches_algorithm1(scale):
+@pytest.mark.parametrize("scale,rscale", [(1.0, None), (6.0, None), (6.0, 4.0)])
+def test_rackf_correction_epoch_matches_algorithm1(scale, rscale):
+    """``rscale``: a filter-R noise event (receiver.burst) — Algorithm 1 with R x rscale."""
     x0, P0, z = _case()
     z = z * scale                                               # scale 6: outliers -> Huber + theta
-    bank = _one_step("rackf", x0, P0, z, -1.0, adaptive_stat="epoch", robust_mode="period", huber_c=1.5,
-                     theta_min=1e-6)
-    xr, Pr, th = _ref_rackf(x0, P0, z, -1.0, 1.5, corr_model.epl_noise_covariance())
+    bank = _one_step("rackf", x0, P0, z, -1.0, rscale=rscale, adaptive_stat="epoch", robust_mode="period",
+                     huber_c=1.5, theta_min=1e-6)
+    R = corr_model.epl_noise_covariance() * (1.0 if rscale is None else rscale)
+    xr, Pr, th = _ref_rackf(x0, P0, z, -1.0, 1.5, R)
     assert bank.theta[0] == pytest.approx(th, rel=1e-9)
     if scale > 1:
         assert th < 1.0 and bank.flags[0] & pf.FLAG_ROBUST

@@ -128,7 +128,7 @@ def discriminator_calibration(spacing_chips, T, known_bits, n_mc=20000, seed=123
 
 
 @njit(cache=True)
-def _pbkf_channel(c, x, P, Phi, Qd, z, bits, active, prm, prev, have_prev, rot, innov, flags, x0, P0, mom,
+def _pbkf_channel(c, x, P, Phi, Qd, z, bits, rscale, active, prm, prev, have_prev, rot, innov, flags, x0, P0, mom,
                   tab_k, tab_u):
     """One epoch of channel ``c`` (the loop body of :func:`_pbkf_step`; touches only row ``c``)."""
     T = prm[0]
@@ -212,7 +212,7 @@ def _pbkf_channel(c, x, P, Phi, Qd, z, bits, active, prm, prev, have_prev, rot, 
     fr = u - i0
     for m in range(NM):
         gk[m] = tab[i0, m] * (1.0 - fr) + tab[i0 + 1, m] * fr
-        Rv[m] = tab[i0, NM + m] * (1.0 - fr) + tab[i0 + 1, NM + m] * fr
+        Rv[m] = (tab[i0, NM + m] * (1.0 - fr) + tab[i0 + 1, NM + m] * fr) * rscale[c]
     for m in range(NM):
         for i in range(NK):
             H[m, i] = gk[m] * H0[m, i]
@@ -287,7 +287,7 @@ def _pbkf_channel(c, x, P, Phi, Qd, z, bits, active, prm, prev, have_prev, rot, 
 
 
 @njit(cache=True)
-def _pbkf_step(x, P, Phi, Qd, z, bits, active, prm, prev, have_prev, rot, innov, flags, x0, P0, mom,
+def _pbkf_step(x, P, Phi, Qd, z, bits, rscale, active, prm, prev, have_prev, rot, innov, flags, x0, P0, mom,
                tab_k, tab_u):
     """prm = [T, beta, spacing, amp_alpha, amp_min, plim(4)...]; prev (n,2) prompt of the last epoch."""
     n = x.shape[0]
@@ -296,7 +296,7 @@ def _pbkf_step(x, P, Phi, Qd, z, bits, active, prm, prev, have_prev, rot, innov,
             if active[c] and not np.isfinite(z[c, m]):
                 return -1 - c
     for c in range(n):
-        _pbkf_channel(c, x, P, Phi, Qd, z, bits, active, prm, prev, have_prev, rot, innov, flags, x0, P0, mom,
+        _pbkf_channel(c, x, P, Phi, Qd, z, bits, rscale, active, prm, prev, have_prev, rot, innov, flags, x0, P0, mom,
                       tab_k, tab_u)
     return 0
 
@@ -328,7 +328,7 @@ def _pbkf_views(fbuf, ibuf, n, n_prm, n_tab):
 
 
 @njit(cache=True)
-def pbkf_channel_epoch(fbuf, ibuf, c, z, bits, n_prm, n_tab):
+def pbkf_channel_epoch(fbuf, ibuf, c, z, bits, rscale, n_prm, n_tab):
     """Channel ``c``'s part of :func:`pbkf_epoch` (touches only row ``c``); -1 - c for a non-finite input."""
     n = z.shape[0]
     (x, x_post, P, x0, P0, Phi, Qd, prm, prev, rot, innov, mom, tab_k, tab_u, flags, active,
@@ -336,7 +336,7 @@ def pbkf_channel_epoch(fbuf, ibuf, c, z, bits, n_prm, n_tab):
     for m in range(NZ):
         if active[c] and not np.isfinite(z[c, m]):
             return -1 - c
-    _pbkf_channel(c, x, P, Phi, Qd, z, bits, active, prm, prev, have_prev, rot, innov, flags, x0, P0, mom,
+    _pbkf_channel(c, x, P, Phi, Qd, z, bits, rscale, active, prm, prev, have_prev, rot, innov, flags, x0, P0, mom,
                   tab_k, tab_u)
     if (flags[c] & FLAG_DIVERGED) != 0:
         n_resets[c] += 1
@@ -347,13 +347,13 @@ def pbkf_channel_epoch(fbuf, ibuf, c, z, bits, n_prm, n_tab):
 
 
 @njit(cache=True)
-def pbkf_epoch(fbuf, ibuf, z, bits, n_prm, n_tab):
+def pbkf_epoch(fbuf, ibuf, z, bits, rscale, n_prm, n_tab):
     """One epoch of a packed PB-KF bank: discriminators + KF (:func:`_pbkf_step`), divergence count,
     and the posterior at the interval start (the time update undone: x_post solves Phi x_post = x)."""
     n = z.shape[0]
     (x, x_post, P, x0, P0, Phi, Qd, prm, prev, rot, innov, mom, tab_k, tab_u, flags, active,
      have_prev, n_resets) = _pbkf_views(fbuf, ibuf, n, n_prm, n_tab)
-    st = _pbkf_step(x, P, Phi, Qd, z, bits, active, prm, prev, have_prev, rot, innov, flags, x0, P0, mom,
+    st = _pbkf_step(x, P, Phi, Qd, z, bits, rscale, active, prm, prev, have_prev, rot, innov, flags, x0, P0, mom,
                     tab_k, tab_u)
     if st < 0:
         return st
@@ -448,6 +448,7 @@ class PbKfBank(PackedActiveMask):
         self._mom[:, 0] = a0 * a0 + 2.0
         self._mom[:, 1] = a0 ** 4 + 8 * a0 * a0 + 8.0
         self._bits_unknown = np.zeros(n_ch)
+        self._rscale_one = np.ones(n_ch)
 
     def reset(self, channels, x0=None, P0=None, activate=True):
         """(Re)initialise channels; P0 is the 4x4 covariance of [dtau, dphi, df, da]."""
@@ -474,14 +475,19 @@ class PbKfBank(PackedActiveMask):
         (:func:`pbkf_epoch`, :func:`pbkf_note_correction`)."""
         return self._fbuf, self._ibuf, self._n_prm, self._n_tab
 
-    def step(self, z, bits=None):
+    def step(self, z, bits=None, rscale=None):
+        """One epoch; ``rscale``: None or (n_ch,) factors on the discriminator variances (a filter-R
+        noise event, :mod:`ultratight.receiver.burst`)."""
         z = np.asarray(z, dtype=np.float64)
         if z.shape != (self.n_ch, NZ):
             raise FilterError(f"PbKfBank.step: z must have shape ({self.n_ch}, {NZ}), got {z.shape}")
         b = self._bits_unknown if bits is None else np.asarray(bits, dtype=np.float64)
         if b.shape != (self.n_ch,):
             raise FilterError(f"PbKfBank.step: bits must have shape ({self.n_ch},), got {b.shape}")
-        st = pbkf_epoch(self._fbuf, self._ibuf, z, b, self._n_prm, self._n_tab)
+        rs = self._rscale_one if rscale is None else np.asarray(rscale, dtype=np.float64)
+        if rs.shape != (self.n_ch,):
+            raise FilterError(f"PbKfBank.step: rscale must have shape ({self.n_ch},), got {rs.shape}")
+        st = pbkf_epoch(self._fbuf, self._ibuf, z, b, rs, self._n_prm, self._n_tab)
         if st < 0:
             raise FilterError(f"PbKfBank.step: non-finite measurement on active channel {-1 - st}")
         return self.x

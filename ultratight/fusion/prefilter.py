@@ -447,7 +447,7 @@ def _ilayout(n):
 
 
 @njit(cache=True)
-def bank_epoch(kind, fbuf, ibuf, z, bits):
+def bank_epoch(kind, fbuf, ibuf, z, bits, rscale):
     """One epoch of a packed bank, bookkeeping included: sets the correction flag from the epoch
     counter (every ``correction_period`` epochs), steps, counts divergences in ``n_resets`` and
     advances the counter. Returns the status of :func:`_bank_step`."""
@@ -456,7 +456,7 @@ def bank_epoch(kind, fbuf, ibuf, z, bits):
     epoch = ibuf[io[4]]
     period = ibuf[io[4] + 1]
     ibuf[2 * n] = 1 if epoch % period == 0 else 0
-    st = _bank_step_packed(kind, fbuf, ibuf, z, bits)
+    st = _bank_step_packed(kind, fbuf, ibuf, z, bits, rscale)
     if st < 0:
         return st
     ibuf[io[4]] = epoch + 1
@@ -492,7 +492,7 @@ def _views(fbuf, ibuf, n):
 
 
 @njit(cache=True)
-def _bank_step_packed(kind, fbuf, ibuf, z, bits):
+def _bank_step_packed(kind, fbuf, ibuf, z, bits, rscale):
     """Packed-argument entry point (few arguments = low dispatch cost).
 
     ibuf = [flags (n), active (n), do_correction, robust_every, windowed_adaptive, ...]
@@ -500,12 +500,12 @@ def _bank_step_packed(kind, fbuf, ibuf, z, bits):
     """
     x, P, xpost, x0, P0, innov, nis, theta, acc, Phi, Qd, R, prm, W1, W2, flags, active, iprm = \
         _views(fbuf, ibuf, z.shape[0])
-    return _bank_step(kind, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, prm, iprm,
+    return _bank_step(kind, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, rscale, active, prm, iprm,
                       innov, nis, theta, flags, W1, W2, acc)
 
 
 @njit(cache=True)
-def bank_channel_epoch(kind, fbuf, ibuf, c, z, bits, epoch, W1, W2):
+def bank_channel_epoch(kind, fbuf, ibuf, c, z, bits, rscale, epoch, W1, W2):
     """Channel ``c``'s part of :func:`bank_epoch` at epoch count ``epoch`` (the counter itself is not
     advanced), with work arrays ``W1`` (N_W1, 6) / ``W2`` (N_W2, 6, 6) of the caller's: channels
     stepped by different threads need their own. Returns -1 - c for a non-finite input, else 0."""
@@ -522,7 +522,7 @@ def bank_channel_epoch(kind, fbuf, ibuf, c, z, bits, epoch, W1, W2):
     ip[0] = 1 if epoch % ibuf[io[4] + 1] == 0 else 0
     ip[1] = iprm[1]
     ip[2] = iprm[2]
-    _channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, prm, ip,
+    _channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, rscale, active, prm, ip,
                     innov, nis, theta, flags, W1, W2, acc)
     if (flags[c] & FLAG_DIVERGED) != 0:
         ibuf[io[3] + c] += 1
@@ -530,7 +530,7 @@ def bank_channel_epoch(kind, fbuf, ibuf, c, z, bits, epoch, W1, W2):
 
 
 @njit(cache=True)
-def _channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, prm, iprm,
+def _channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, rscale, active, prm, iprm,
                     innov, nis, theta, flags, W1, W2, acc):
     """One epoch of channel ``c`` (the loop body of :func:`_bank_step`; touches only row ``c`` and the
     work arrays ``W1``/``W2``, so channels with work arrays of their own may run concurrently)."""
@@ -575,6 +575,7 @@ def _channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, p
         return
     xc = x[c]
     Pc = P[c]
+    rs = rscale[c]           # R scale of this epoch (1 but for a filter-R noise event)
     # data bit
     D = bits[c]
     if D == 0.0:
@@ -605,6 +606,7 @@ def _channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, p
             lam = acc[c, 5]          # measurement-noise scale held over this period
             if lam < 1.0:
                 lam = 1.0
+            lam *= rs                # (a filter-R noise event: receiver.burst)
             # eqs. 20-23: standardised residuals against P_zz of eq. 13 (with lam R)
             any_out = False
             for m in range(NZ):
@@ -648,7 +650,7 @@ def _channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, p
                 for a in range(NZ):
                     e_full += r[a] * r[a]
                     e_expl += Pzz0[a, a] + 2.0 * zhat[a] * zhat[a]
-                    trr += R[a, a]
+                    trr += rs * R[a, a]
                     acc[c, NACC_FIX + a] += D * r[a] / gam[a]   # bit-wiped, winsorised innovation sum
                 acc[c, 0] += trp
                 acc[c, 1] += rr
@@ -702,7 +704,7 @@ def _channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, p
         else:
             for a in range(NZ):
                 for b in range(NZ):
-                    Pzz[a, b] = Pzz0[a, b] + R[a, b]
+                    Pzz[a, b] = Pzz0[a, b] + rs * R[a, b]
         for m in range(NZ):
             innov[c, m] = r[m]
         # eqs. 15-17
@@ -748,7 +750,7 @@ def _channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, p
 
 
 @njit(cache=True)
-def _bank_step(kind, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, prm, iprm,
+def _bank_step(kind, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, rscale, active, prm, iprm,
                innov, nis, theta, flags, W1, W2, acc):
     """One epoch for all channels. Returns -1 - ch if z of an active channel is non-finite.
 
@@ -768,7 +770,7 @@ def _bank_step(kind, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, prm, iprm
             if not np.isfinite(bits[c]):
                 return -1 - c
     for c in range(n_ch):
-        _channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, active, prm, iprm,
+        _channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, rscale, active, prm, iprm,
                         innov, nis, theta, flags, W1, W2, acc)
     return 0
 
@@ -920,6 +922,7 @@ class PrefilterBank(PackedActiveMask):
         self.theta[:] = 1.0
         self._counters[1] = self.correction_period
         self._bits_unknown = np.zeros(n_ch)
+        self._rscale_one = np.ones(n_ch)
         a0 = float(corr_model.amplitude_from_cn0(cn0_dbhz_init, self.T))
         P_init = default_initial_covariance(cn0_dbhz_init, self.T)
         for c in range(n_ch):
@@ -966,10 +969,12 @@ class PrefilterBank(PackedActiveMask):
 
 
     # -- one epoch -----------------------------------------------------------------
-    def step(self, z, bits=None):
+    def step(self, z, bits=None, rscale=None):
         """Measurement update with z (n_ch, 6) then predict; returns the predicted x (n_ch, 5).
 
         bits: None (all unknown -> decision-directed) or (n_ch,) of +1/-1 (known) / 0 (unknown).
+        rscale: None or (n_ch,) factors on R for this epoch (a filter-R noise event,
+        :mod:`ultratight.receiver.burst`).
         """
         z = np.asarray(z, dtype=np.float64)
         if z.shape != (self.n_ch, NZ):
@@ -981,7 +986,10 @@ class PrefilterBank(PackedActiveMask):
             b = np.asarray(bits, dtype=np.float64)
             if b.shape != (self.n_ch,):
                 raise FilterError(f"prefilter step: bits must have shape ({self.n_ch},), got {b.shape}")
-        st = bank_epoch(self._kind, self._fbuf, self._ibuf, z, b)
+        rs = self._rscale_one if rscale is None else np.asarray(rscale, dtype=np.float64)
+        if rs.shape != (self.n_ch,):
+            raise FilterError(f"prefilter step: rscale must have shape ({self.n_ch},), got {rs.shape}")
+        st = bank_epoch(self._kind, self._fbuf, self._ibuf, z, b, rs)
         if st < 0:
             c = -1 - st
             raise FilterError(f"prefilter step: non-finite measurement or bit on active channel {c}: "

@@ -67,6 +67,7 @@ from ultratight.ins.imu import read_imu_csv, read_imu_h5
 from ultratight.io_guard import write_h5_atomic
 from ultratight.receiver import epochs
 from ultratight.receiver.blockstream import BlockStream, NoiseFloor
+from ultratight.receiver.burst import burst_one, make_burst
 from ultratight.receiver.correlator import CorrelatorBank
 from ultratight.receiver.epochs import (CONTINUE, END, ERR_BANK, ERR_CORR, NEED_IF, NEED_SINS, TIGHT,
                                         correlate, epoch_gate, epoch_post, run_epochs)
@@ -184,6 +185,10 @@ class EngineOptions:
     reinit_sigma_f_hz: float = 0.3       # frequency 1-sigma after a phase (re)initialisation
     reinit_sigma_a_hzps: float = 0.3     # Doppler-rate 1-sigma after a (re)initialisation (aided)
     prefilter_kwargs: dict = field(default_factory=dict)   # extra PrefilterBank parameters
+    # noise events inside the receiver (receiver.burst): [[noise_events]] entries whose place is
+    # "correlator" or "filter-r" ("if" ones are the generator's), and the seed of the correlator noise
+    noise_events: list = field(default_factory=list)
+    noise_seed: int = 0
     startup: dict = field(default_factory=dict)   # StartupErrors overrides
     threads: int = 0                     # epoch-stage threads: 0 = auto (epoch_threads), 1 = one, k = k
 
@@ -377,6 +382,7 @@ class UltratightEngine:
         self.law_view = epochs.Law(es.aid, law.aid_prev, law.rate_prev, law.hist, es.use_aid, law.prm, law.dx,
                                    es.aid_prev_ff)
         self.sig_view = epochs.Sig(self.if_hz, 0.5 * sgl.code_period_s, float(sgl.code_length))
+        self.burst = make_burst(opt.noise_events, n_ch, c.tap_offsets_chips[:3], sgl.code_period_s, opt.noise_seed)
 
     def _stage_views(self, st):
         """The arguments of the compiled epoch stages after :attr:`corr_view` etc.: the views whose
@@ -390,7 +396,7 @@ class UltratightEngine:
                              self.outer.n_filled, self.opt.aid_time_offset_s, self.k_imu < self.imu_t.shape[0])
         window = epochs.Window(self.dec.t_next, self.dec.acc, self.pend, self.pend_ts)
         return (src, self.corr_view, self.wipe_view, self.bank_view, outer, window, self.rec_view, self.law_view,
-                self.sig_view)
+                self.sig_view, self.burst)
 
     # ------------------------------------------------------------------ 100 Hz: IF blocks, SINS + outer loop
     def _read_if(self):
@@ -475,12 +481,14 @@ class UltratightEngine:
         """One epoch through the same stages as :func:`ultratight.receiver.epochs.run_epochs`, with the
         start-up phase initialisation (NCOs on the aiding alone, coherent sum of the wiped prompts,
         then a restart of every channel) and the lock monitor (coast, restart)."""
-        src, corr, _, bank, outer, window, rec, _, sig = self._stage_views(st)
+        src, corr, _, bank, outer, window, rec, _, sig, burst = self._stage_views(st)
         status = epoch_gate(st.k_ep, src, corr, outer, rec)
         if status != CONTINUE:
             return status
         if not correlate(src, corr, sig):
             self._check_status(ERR_CORR, 0)
+        for c in range(len(self.prns)):
+            burst_one(c, st.k_ep, corr.t_start[c] / corr.fs, burst, corr.out)
         init_now = st.init_left > 0
         D = self.wipe.step()
         restart = self._measure(st, corr.out, D, init_now)
@@ -514,7 +522,7 @@ class UltratightEngine:
                 st.counts["n_phase_inits"] += 1
                 return np.arange(len(self.prns)), np.angle(st.init_acc), np.abs(st.init_acc) / opt.phase_init_ms
             return None
-        self.pref.step(out, bits=D)
+        self.pref.step(out, bits=D, rscale=self.burst.rscale)
         if not (opt.lock_monitor or opt.monitor_gates_tight):
             return None
         st.present_prev[:] = st.present

@@ -5,8 +5,9 @@ One epoch (:func:`run_epochs`, in this order; every step is a compiled stage of 
 
     IF block (noise sigma of its aligned block) ─► correlators (one code period per channel,
     receiver.correlator; channels spread over the threads)
-    ─► data wipe-off (receiver.wipeoff) ─► tracking bank epoch (fusion.prefilter.bank_channel_epoch
-    or fusion.pbkf.pbkf_channel_epoch) ─► recorder + residuals against the outer loop's predictions
+    ─► noise events inside the receiver (receiver.burst; none by default) ─► data wipe-off
+    (receiver.wipeoff) ─► tracking bank epoch (fusion.prefilter.bank_channel_epoch or
+    fusion.pbkf.pbkf_channel_epoch) ─► recorder + residuals against the outer loop's predictions
     + decimator window + outer-loop aiding of the next interval (:func:`epoch_post`)
     ─► inner-loop NCO command (fusion.innerloop)
 
@@ -17,7 +18,8 @@ tight filter updates), so the engine's outer part runs at the same points of the
 one-epoch-at-a-time loop would and every result is the same.
 
 The stage arguments are named tuples of arrays (views of the stage objects' own state): ``If``,
-``Corr``, ``Wipe``, ``Bank``, ``Outer``, ``Window``, ``Rec``, ``Law``.
+``Corr``, ``Wipe``, ``Bank``, ``Outer``, ``Window``, ``Rec``, ``Law``, ``Sig`` and
+:class:`ultratight.receiver.burst.Burst`.
 """
 
 import math
@@ -29,6 +31,7 @@ from numba import njit, prange
 from ultratight.fusion.innerloop import feedback_one
 from ultratight.fusion.pbkf import pbkf_channel_epoch, pbkf_note_correction_one
 from ultratight.fusion.prefilter import N_W1, N_W2, NZ, bank_channel_epoch
+from ultratight.receiver.burst import burst_one
 from ultratight.receiver.correlator import _correlate_one, _step_bank, tap_fixed_point
 from ultratight.receiver.wipeoff import wipe_one
 
@@ -200,7 +203,7 @@ def correlate(src, corr, sig):
 
 
 @njit(cache=True)
-def epoch_channel(c, k_ep, e_row, epoch, src, corr, wipe, bank, outer, window, rec, law, sig, tap_fix, W1, W2):
+def epoch_channel(c, k_ep, e_row, epoch, src, corr, wipe, bank, outer, window, rec, law, sig, burst, tap_fix, W1, W2):
     """One epoch of channel ``c`` through every stage (touches only channel ``c``'s rows): 0, or
     ERR_CORR / ERR_BANK. ``epoch``: the tracking bank's epoch count; ``e_row``: the row of
     ``window.pend`` for the epoch's residual inputs (:func:`settle` forms them); ``W1``/``W2``: work
@@ -213,11 +216,12 @@ def epoch_channel(c, k_ep, e_row, epoch, src, corr, wipe, bank, outer, window, r
                    tap_fix, corr.sig, corr.out, corr.t_start, corr.n_s, sig.code_len)
     if corr.n_s[c] <= 0:
         return ERR_CORR
+    burst_one(c, k_ep, corr.t_start[c] / corr.fs, burst, corr.out)
     wipe_one(c, wipe.bits, wipe.t0_ms, wipe.ms, wipe.D, wipe.per_bit)
     if bank.bank_type == BANK_PBKF:
-        sb = pbkf_channel_epoch(bank.fbuf, bank.ibuf, c, corr.out, wipe.D, bank.n_prm, bank.n_tab)
+        sb = pbkf_channel_epoch(bank.fbuf, bank.ibuf, c, corr.out, wipe.D, burst.rscale, bank.n_prm, bank.n_tab)
     else:
-        sb = bank_channel_epoch(bank.kind, bank.fbuf, bank.ibuf, c, corr.out, wipe.D, epoch, W1, W2)
+        sb = bank_channel_epoch(bank.kind, bank.fbuf, bank.ibuf, c, corr.out, wipe.D, burst.rscale, epoch, W1, W2)
     if sb < 0:
         return ERR_BANK
     record_one(c, k_ep, corr.t_start, corr.fs, sig.if_hz, corr.f0, corr.cp0, bank.x_post, bank.P, bank.i_ptau,
@@ -263,7 +267,7 @@ def safe_epochs(k_ep, src, corr, outer, window, rec):
 
 
 @njit(cache=True, parallel=True)
-def _channels_parallel(E, k_ep, epoch0, src, corr, wipe, bank, outer, window, rec, law, sig, tap_fix, err):
+def _channels_parallel(E, k_ep, epoch0, src, corr, wipe, bank, outer, window, rec, law, sig, burst, tap_fix, err):
     """``E`` epochs of every channel, the channels spread over numba's threads (each with its own
     work arrays); ``err[c]``: 0 or the first error of channel ``c``."""
     for c in prange(corr.sample_ptr.shape[0]):
@@ -271,14 +275,14 @@ def _channels_parallel(E, k_ep, epoch0, src, corr, wipe, bank, outer, window, re
         W2 = np.empty((N_W2, NZ, NZ))
         for e in range(E):
             r = epoch_channel(c, k_ep + e, e, epoch0 + e, src, corr, wipe, bank, outer, window, rec, law, sig,
-                              tap_fix, W1, W2)
+                              burst, tap_fix, W1, W2)
             if r != 0:
                 err[c] = r
                 break
 
 
 @njit(cache=True)
-def run_epochs(k_ep, src, corr, wipe, bank, outer, window, rec, law, sig):
+def run_epochs(k_ep, src, corr, wipe, bank, outer, window, rec, law, sig, burst):
     """Steady epochs (no start-up phase initialisation, no restart, no coasting channel) from epoch
     ``k_ep`` on, until a stop (module docstring). Returns ``(status, k_ep, info)``.
 
@@ -296,13 +300,13 @@ def run_epochs(k_ep, src, corr, wipe, bank, outer, window, rec, law, sig):
         E = safe_epochs(k_ep, src, corr, outer, window, rec) if corr.parallel else 1
         if E >= 2:
             _channels_parallel(E, k_ep, _bank_epoch_count(bank, n), src, corr, wipe, bank, outer, window, rec,
-                               law, sig, tap_fix, err)
+                               law, sig, burst, tap_fix, err)
         else:
             E = 1
             epoch = _bank_epoch_count(bank, n)
             for c in range(n):
-                r = epoch_channel(c, k_ep, 0, epoch, src, corr, wipe, bank, outer, window, rec, law, sig, tap_fix,
-                                  W1, W2)
+                r = epoch_channel(c, k_ep, 0, epoch, src, corr, wipe, bank, outer, window, rec, law, sig, burst,
+                                  tap_fix, W1, W2)
                 if r != 0:
                     err[c] = r
                     break

@@ -26,6 +26,7 @@ from pathlib import Path
 
 from ultratight.errors import ConfigError
 from ultratight.receiver.scenario_schema import ENGINE_KEYS, check_known_keys, check_raw  # noqa: F401 (public here)
+from ultratight.receiver.burst import validate_place
 from ultratight.signals.atmosphere import IONO_MODELS, MAPPINGS, TROPO_MODELS
 from ultratight.signals.frontend import FrontEnd
 from ultratight.signals.iffile import FORMATS, check_bits_for_format
@@ -256,6 +257,7 @@ def _validate_noise_events(evs):
         if not MIN_NOISE_FACTOR <= ev["noise_factor"] <= MAX_NOISE_FACTOR:
             raise ConfigError(f"noise_events[{i}].noise_factor must be in [{MIN_NOISE_FACTOR:g}, "
                               f"{MAX_NOISE_FACTOR:g}] (x the nominal noise std), got {ev['noise_factor']!r}")
+        validate_place(ev, i)
 
 
 def _validate_frontend(cfg, fe):

@@ -31,6 +31,7 @@ from ultratight.ins.imu import read_imu_h5
 from ultratight.ins.trajectory import build_trajectory
 from ultratight.io_guard import atomic_path, note_complete, output_error, write_h5_atomic, write_text_atomic
 from ultratight.receiver import metrics as M
+from ultratight.receiver.burst import PLACE_IF, event_place
 from ultratight.receiver.commands.generate import estimate
 from ultratight.receiver.engine import EngineOptions, UltratightEngine, check_method, monitor_mode
 from ultratight.receiver.methods import method_spec
@@ -188,18 +189,21 @@ def truth_initial_state(cfg):
             "clk_drift_mps": float(rcv.get("clock_drift_mps", 0.0))}
 
 
-def engine_options_for(cfg, options=None):
+def engine_options_for(cfg, options=None, seed=0):
     """EngineOptions for a scenario: ``options`` (default EngineOptions()) with the scenario's
-    ``[engine]`` table applied (e.g. its noise-floor estimator)."""
+    ``[engine]`` table applied (e.g. its noise-floor estimator) and its noise events that act inside
+    the receiver (:mod:`ultratight.receiver.burst`; their noise drawn from ``seed``)."""
     opt = options or EngineOptions()
     eng = cfg.get("engine") or {}
-    return dataclasses.replace(opt, **eng) if eng else opt
+    opt = dataclasses.replace(opt, **eng) if eng else opt
+    inside = [dict(ev) for ev in cfg.get("noise_events", []) or [] if event_place(ev) != PLACE_IF]
+    return dataclasses.replace(opt, noise_events=inside, noise_seed=int(seed)) if inside else opt
 
 
 def run_method(paths, cfg, method, seed, options=None, startup_errors=None, duration_s=None):
     """Run one method on generated files; returns (EngineResult, truth dict)."""
     spec = method_spec(method)
-    options = engine_options_for(cfg, options)
+    options = engine_options_for(cfg, options, seed)
     truth = load_truth(paths["truth"])
     src = open_if(paths["if"])
     ephs = ephemerides_for(cfg)

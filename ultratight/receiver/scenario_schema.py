@@ -33,7 +33,7 @@ TABLES = {
     "engine": ENGINE_KEYS,
     "imu": None,          # the known keys of ultratight.ins.imu
 }
-ARRAY_TABLES = {"noise_events": ("t0_s", "t1_s", "noise_factor")}
+ARRAY_TABLES = {"noise_events": ("t0_s", "t1_s", "noise_factor", "place")}
 TRAJECTORY_SEGMENT_KEYS = ("t0", "acc_enu", "jerk_enu", "turn_rate_dps", "acc_mps2", "speed_mps", "rate_dps")
 PASS_THROUGH_TABLES = ("atmosphere",)
 

@@ -385,9 +385,12 @@ def atmosphere_from_config(atm):
 
 
 def noise_factor(events, e):
-    """Noise std factor at receiver-clock seconds ``e`` (array) from [[noise_events]]."""
+    """Noise std factor at receiver-clock seconds ``e`` (array) from [[noise_events]] (those at the IF:
+    ``place`` "if", the default; the others act inside the receiver)."""
     f = np.ones(np.shape(e), dtype=np.float32)
     for ev in events or []:
+        if ev.get("place", "if") != "if":
+            continue
         inside = (e >= ev["t0_s"]) & (e < ev["t1_s"])
         f[inside] *= np.float32(ev["noise_factor"])
     return f
@@ -508,7 +511,8 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
     fe = FrontEnd.from_config(fe_cfg)
     if fe.gain_mode == "fixed" and "headroom" not in fe_cfg:
         # fixed gain without an explicit headroom: the loudest noise event must fit the clip level
-        fe.headroom = max([1.0] + [float(ev["noise_factor"]) for ev in cfg.get("noise_events", []) or []])
+        fe.headroom = max([1.0] + [float(ev["noise_factor"]) for ev in cfg.get("noise_events", []) or []
+                                   if ev.get("place", "if") == "if"])
     fmt = fe_cfg.get("format", "ci8" if fe.is_complex else "i8")
     spec = get_format(fmt)
     if spec.is_complex != fe.is_complex:
