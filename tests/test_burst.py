@@ -89,3 +89,17 @@ def test_a_burst_at_the_correlators_equals_one_at_the_if(burst_runs):
     assert 0.5 < r["correlator"][1] / r["if"][1] < 2.0          # the same C/N0 loss, made in two places
     # R x 20 with the signal unchanged: the filter trusts its measurements less, no noise is added
     assert r["filter-r"][1] != r["none"][1] and r["filter-r"][1] < 2.0 * r["none"][1]
+
+
+def test_inside_events_share_the_data_and_engine_switches_are_checked():
+    from ultratight.receiver.scenario_config import load_scenario
+    from ultratight.receiver.scenario_runner import _cfg_key
+    base = load_scenario("paper-highdyn", {"noise_events": []})
+    ev = {"t0_s": 5.0, "t1_s": 10.0, "noise_factor": 20.0}
+    for place, same in (("correlator", True), ("filter-r", True), ("if", False)):
+        c = load_scenario("paper-highdyn", {"noise_events": [dict(ev, place=place)]})
+        assert (_cfg_key(c) == _cfg_key(base)) is same
+    c = load_scenario("paper-highdyn", {"engine.lock_monitor": True, "engine.monitor_gates_tight": True})
+    assert c["engine"]["lock_monitor"] is True
+    with pytest.raises(ConfigError, match="engine.lock_monitor must be true or false"):
+        load_scenario("paper-highdyn", {"engine.lock_monitor": "yes"})

@@ -283,6 +283,9 @@ def _validate_engine(eng):
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0:
             raise ConfigError(f"engine.noise_tau_s must be >= 0 s (or inf), got {v!r}")
         eng["noise_tau_s"] = float(v)
+    for k in ("lock_monitor", "monitor_gates_tight"):
+        if k in eng and not isinstance(eng[k], bool):
+            raise ConfigError(f"engine.{k} must be true or false, got {eng[k]!r}")
 
 
 # [atmosphere] (opt-in): delays the generator applies (ultratight.signals.atmosphere); the default

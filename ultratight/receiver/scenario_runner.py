@@ -53,6 +53,10 @@ SCHEMA = "ultratight scenario results v1 (docs/ultratight.md)"
 
 
 def _cfg_key(cfg):
+    evs = cfg.get("noise_events") or []
+    if any(event_place(ev) != PLACE_IF for ev in evs):
+        # noise events inside the receiver do not change the data: one cache entry for their readings
+        cfg = dict(cfg, noise_events=[ev for ev in evs if event_place(ev) == PLACE_IF])
     blob = json.dumps(cfg, sort_keys=True, default=str) + __version__
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 

@@ -18,7 +18,7 @@ from ultratight.ins.imu import _KNOWN_KEYS as _IMU_KNOWN_KEYS
 
 # receiver settings a scenario may fix (the ultra-tight engine's EngineOptions fields); they do not
 # change the generated data, only how the scenario is processed
-ENGINE_KEYS = ("noise_tau_s",)
+ENGINE_KEYS = ("noise_tau_s", "lock_monitor", "monitor_gates_tight")
 
 TOP_LEVEL_KEYS = ("name", "description", "duration_s", "seed", "experiment")
 TABLES = {
