@@ -101,7 +101,9 @@ def _synthesize(args, src):
         io_guard.check_disk(Path(args.save_imu).parent, duration * rate * 8 * 20, f"--save-imu {args.save_imu}")
     errors = imu_mod.imu_errors_from_config(imu_cfg)
     seed = int(args.seed if args.seed is not None else cfg.get("seed", 1))
-    imu = imu_mod.synthesize_imu(traj, rate, errors, np.random.default_rng(seed), duration_s=duration)
+    lever = imu_cfg.get("lever_arm_m")
+    imu = imu_mod.synthesize_imu(traj, rate, errors, np.random.default_rng(seed), duration_s=duration,
+                                 lever_arm_b=None if lever is None else np.asarray(lever, float))
     if args.save_imu:
         imu_mod.write_imu_h5(args.save_imu, imu, {"scenario": cfg.get("name", src), "seed": seed})
     return imu, cfg.get("name", src), errors.preset
