@@ -300,8 +300,12 @@ class UltratightEngine:
         self.imu_dv = np.asarray(self.imu.dv_b, dtype=float)
         self.k_imu = 0                                  # next IMU sample to apply
         t_sins = float(getattr(self.imu, "t0", 0.0))
+        lever = np.asarray(getattr(self.imu, "lever_arm_b", np.zeros(3)), dtype=float)
+        if np.any(lever):          # antenna away from the IMU: predictions and H at the antenna
+            self.ins.lever_b = lever
+            self.ins.w_b = self.imu_dth[0] / float(self.imu_t[0] - t_sins)
         # hot start predictions (from the perturbed state, not truth)
-        pos_e, vel_e, C_el = self.ins.pos_vel_e()
+        pos_e, vel_e, C_el = self.ins.antenna_pos_vel_e()
         pred0 = predict_channels(self.ephs, self.prns, self.week, self.tow0, pos_e, vel_e,
                                  self.ins.clk_b, self.ins.clk_d, signal=sgl)
         self.corr = CorrelatorBank(self.prns, self.fs, self.if_hz, self.src.is_complex, signal=sgl)
@@ -444,7 +448,8 @@ class UltratightEngine:
         los_l = self.follow.los_e() @ C_el
         Phi, Qd = tightmod.phi_q(ins, self.dec.step_s, self.imu_noise, opt.clock_q_drift)
         self.tf.predict(Phi, Qd)
-        dx = self.tf.update(m["dz_pr"], m["dz_prr"], los_l, M_pos, m["var_pr"], m["var_prr"], valid)
+        dx = self.tf.update(m["dz_pr"], m["dz_prr"], los_l, M_pos, m["var_pr"], m["var_prr"], valid,
+                            lever=ins.lever_terms())
         dfp_all = np.zeros(len(self.prns))
         if np.any(dx != 0.0):
             ins.feedback(dx)
