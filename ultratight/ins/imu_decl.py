@@ -27,16 +27,18 @@ conflict is an error.  Without a sidecar or flags the declaration is the interna
 
 **Stationary sanity check** (:func:`stationary_check`): the first 1-s window in which every
 accelerometer axis varies by less than 1 % of the mean specific-force magnitude and that
-magnitude is within 10 % of gravity under one of the readings (m/s^2, g, per-sample
-increments) counts as still.  There:
+magnitude is within 5 % of gravity under one of the readings (m/s^2, g, per-sample
+increments) counts as still (a steady turn or a steady acceleration can pass for still: the
+checks below are built to accept those when the declaration is right).  There:
 
 * the declared reading must give ``|f|`` within 5 % of 9.80665 m/s^2, else "accelerometer
   units look g, declared m/s^2" or "values look like increments, declared rates";
 * the specific force at rest points up: the file axis carrying most of it must be declared U
   (positive reading) or D (negative), else "axes look FLU, declared FRD" (the most common
   right-handed convention with the right vertical letter is named);
-* ``|omega|`` must lie within [1/20, 40] Earth rates, else, when the other gyro unit would put it
-  there, "gyro units look deg/s, declared rad/s".
+* ``|omega|`` outside [1/20, 40] Earth rates as declared while the other gyro unit puts it
+  within [0.2, 5] Earth rates (a tactical or better gyro at rest) gives "gyro units look deg/s,
+  declared rad/s".
 
 A record that never stands still is not checked (the report says so).  Limits: a swap of the
 two horizontal axes (FLU vs RFU) leaves gravity where it is and is not detected; a gyro whose
@@ -75,7 +77,8 @@ COMMON_AXES = ("FLU", "FRD", "RFU", "LFD", "RBD", "BRU", "LBU", "BLD")
 STILL_WINDOW_S = 1.0
 STILL_REL_STD = 0.01
 G_TOL = 0.05
-W_LO, W_HI = 1.0 / 20.0, 40.0
+W_LO, W_HI = 1.0 / 20.0, 40.0      # |omega| at rest accepted, in Earth rates
+W_FIT = (0.2, 5.0)                  # the other gyro unit "fits" when it puts |omega| here
 
 
 @dataclass
@@ -278,7 +281,7 @@ def units_for(dec, header_kind, header_gyro, header_accel, path):
 
 def _still_window(f_raw, n_win, scales):
     """Index range [a, b) of the first still window of the raw accelerometer columns (module doc):
-    every axis varies by less than 1 % of the mean magnitude, which is within 10 % of gravity
+    every axis varies by less than 1 % of the mean magnitude, which is within 5 % of gravity
     under one of the readings ``scales`` (raw -> m/s^2); None when there is none."""
     n = f_raw.shape[0]
     for s in range(0, n - n_win + 1, max(1, n_win // 2)):
@@ -286,7 +289,7 @@ def _still_window(f_raw, n_win, scales):
         m = float(np.linalg.norm(w.mean(axis=0)))
         if m <= 0.0 or np.max(w.std(axis=0)) > STILL_REL_STD * m:
             continue
-        if any(abs(m * sc / G0 - 1.0) < 0.10 for sc in scales):
+        if any(abs(m * sc / G0 - 1.0) < G_TOL for sc in scales):
             return s, s + n_win
     return None
 
@@ -340,7 +343,7 @@ def stationary_check(f_raw, w_raw, dt, dec, accel_unit, gyro_unit, kind, path):
     ofac = GYRO_UNITS[other][0] / (dt if kind == "increments" else 1.0)
     oratio = float(np.linalg.norm(wm)) * ofac / OMEGA_E
     gyro_ok = W_LO <= ratio <= W_HI
-    if not gyro_ok and W_LO <= oratio <= W_HI:
+    if not gyro_ok and W_FIT[0] <= oratio <= W_FIT[1]:
         raise InputFileError(f"{path}: gyro units look {other}, declared {gyro_unit} ({t_txt}: |omega| = "
                              f"{ratio:.3g} x Earth rate as declared, {oratio:.3g} x as {other})")
     return {"checked": True, "window": [int(a), int(b)], "f_mps2": float(mraw * decl[2]),
@@ -357,3 +360,52 @@ def _proper_axes():
             continue
         out.append(s)
     return out
+
+
+# ------------------------------------------------------------------ files
+def read_imu_file(path, overrides=None):
+    """An IMU file (CSV with its sidecar, or the project's HDF5) with the declaration
+    ``overrides`` (sidecar keys, e.g. from CLI flags) applied -> :class:`ultratight.ins.imu.ImuData`.
+
+    HDF5 files are in the internal convention already: only ``lever_arm_m`` (FLU) may be declared
+    for them."""
+    from ultratight.ins.imu import read_imu_csv, read_imu_h5
+
+    path = Path(path)
+    ov = {k: v for k, v in (overrides or {}).items() if v is not None}
+    if path.suffix.lower() == ".csv":
+        return read_imu_csv(path, resolve_declaration(path, ov))
+    other = sorted(k for k in ov if k not in ("lever_arm_m", "check"))
+    if other:
+        raise ConfigError(f"{path}: IMU HDF5 files are in the internal convention (FLU, increments, SI, run "
+                          f"time); {', '.join(other)} can only be declared for a CSV file")
+    imu = read_imu_h5(path)
+    if "lever_arm_m" in ov:
+        imu.lever_arm_b = resolve_declaration(None, {"lever_arm_m": ov["lever_arm_m"]}).lever_arm_b()
+    return imu
+
+
+def align_to_gps_start(imu, week, tow_s, path="IMU file", tol_s=1e-3):
+    """Drop the samples of a GPS-stamped IMU (``meta["start_tow_s"]``, time_ref = "gps_tow") that
+    precede the IF start ``(week, tow_s)``, when the IMU's sample grid meets that start within
+    ``tol_s``; the IMU's time axis then starts at the IF's first sample.  Other IMUs are returned
+    unchanged (the engine's alignment check reports any remaining offset)."""
+    meta = imu.meta or {}
+    if "start_tow_s" not in meta:
+        return imu
+    off = float(tow_s) - float(meta["start_tow_s"])
+    if meta.get("start_week") is not None and week is not None:
+        off += (int(week) - int(meta["start_week"])) * 604800.0
+    if off <= tol_s:
+        return imu
+    k = int(round(off * imu.rate_hz))
+    if abs(k / imu.rate_hz - off) > tol_s or k >= imu.n - 1:
+        raise InputFileError(f"{path}: IMU starts {off:.6f} s before the IF record, which is not on the IMU's "
+                             f"{1.0 / imu.rate_hz:.6g} s sample grid (tolerance {tol_s} s) or leaves no data")
+    t_cut = float(imu.t[k - 1])
+    imu.t = imu.t[k:] - t_cut
+    imu.dtheta_b = imu.dtheta_b[k:]
+    imu.dv_b = imu.dv_b[k:]
+    imu.t0 = 0.0
+    imu.meta = dict(meta, start_tow_s=float(meta["start_tow_s"]) + t_cut, trimmed_samples=k)
+    return imu

@@ -63,7 +63,7 @@ from ultratight.fusion.innerloop import InnerLoop
 from ultratight.fusion.prefilter import IF as PREFILTER_IF
 from ultratight.fusion.rateconv import ResidualDecimator
 from ultratight.ins.earth import radii
-from ultratight.ins.imu import read_imu_csv, read_imu_h5
+from ultratight.ins import imu_decl
 from ultratight.io_guard import write_h5_atomic
 from ultratight.receiver import epochs
 from ultratight.receiver.blockstream import BlockStream, NoiseFloor
@@ -703,7 +703,8 @@ def check_imu_if_alignment(src, imu, if_path="IF file", imu_path="IMU file", tol
 
 
 def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None, nav_path=None, prns=None,
-                            init_state=None, options=None, duration_s=None, seed=0, startup_errors=None):
+                            init_state=None, options=None, duration_s=None, seed=0, startup_errors=None,
+                            imu_declaration=None):
     """Run the ultra-tight engine on a recorded IF file and an IMU file (HDF5 or CSV).
 
     * ``meta``: sidecar/ION metadata for the IF file (default ``IFFILE.json``); the IF start time
@@ -713,6 +714,8 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
     * Initial INS state: ``init_state`` dict (``llh``, ``vel_l``, ``q_lb``, ``clk_bias_m``,
       ``clk_drift_mps``) or, for generator files, the IMU file's truth at t0 perturbed by
       ``startup_errors`` (seeded by ``seed``) — the hot start never uses the truth itself.
+    * IMU conventions: ``imu_declaration`` (sidecar keys, :mod:`ultratight.ins.imu_decl`) over the
+      IMU file's sidecar; a GPS-stamped IMU starting before the IF is cut to the IF start.
     * Time alignment is checked by :func:`check_imu_if_alignment` (gaps, out-of-order stamps,
       IMU/IF offset -> InputFileError).
     Returns an :class:`EngineResult`.
@@ -725,7 +728,9 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
         raise InputFileError(f"{if_path}: the IF start time (start_week, start_tow_s) is unknown; "
                              "give it in the sidecar/metadata")
     imu_path = Path(imu_path)
-    imu = read_imu_csv(imu_path) if imu_path.suffix.lower() == ".csv" else read_imu_h5(imu_path)
+    # the IMU's declared conventions (sidecar IMU.csv.json + ``imu_declaration`` overrides, ins.imu_decl)
+    imu = imu_decl.read_imu_file(imu_path, imu_declaration)
+    imu = imu_decl.align_to_gps_start(imu, src.start_week, src.start_tow_s, imu_path)
     usable = check_imu_if_alignment(src, imu, if_path, imu_path)
     dur = usable if duration_s is None else min(float(duration_s), usable)
     side = src.meta or {}
