@@ -69,16 +69,17 @@ def measurement_matrix(los_l, M_pos, lever=None):
     """H (2m, 17) for pseudorange rows then pseudorange-rate rows.
 
     ``los_l`` (m,3): unit line of sight receiver -> satellite in ENU; ``M_pos`` from
-    :func:`pos_error_to_enu`.  ``lever`` = ``(C_lb, l_l, a_l)`` (lever arm IMU -> antenna
-    ``l_l = C_lb l`` and ``a_l = C_lb (omega_ib_b x l)``, ENU) when the antenna is not at the IMU:
-    the predictions are made at ``r + C_lb l`` and ``v + C_lb (omega x l)``, and with
-    ``C_lb_est = (I - [phi x]) C_lb`` and the residual gyro bias ``bg`` in ``omega_est``::
+    :func:`pos_error_to_enu`.  ``lever`` = ``(C_lb, l_l, a_l, w_ie_l)`` when the antenna is not at the
+    IMU (lever arm ``l`` IMU -> antenna, ``l_l = C_lb l``, ``a_l = C_lb (omega_ib_b x l)``, Earth rate
+    ``w_ie_l``, all ENU): the predictions are made at ``r + C_lb l`` and
+    ``v + C_lb (omega_ib_b x l) - w_ie x C_lb l``; with ``C_lb_est = (I - [phi x]) C_lb`` and the
+    residual gyro bias ``bg`` in ``omega_est``::
 
-        d r_ant = d r + [l_l x] phi            d v_ant = d v + [a_l x] phi - C_lb [l x] bg
+        d r_ant = d r + [l_l x] phi
+        d v_ant = d v + ([a_l x] - [w_ie_l x][l_l x]) phi - C_lb [l x] bg
 
-    so the pseudorange rows gain ``-e^T [l_l x]`` on ATT and the rate rows ``-e^T [a_l x]`` on
-    ATT and ``e^T C_lb [l x]`` on BG (the Earth-rate part of ``omega_eb`` is left out of these
-    partials: < 1e-4 of the attitude term).
+    so the pseudorange rows gain ``-e^T [l_l x]`` on ATT and the rate rows
+    ``-e^T ([a_l x] - [w_ie_l x][l_l x])`` on ATT and ``e^T C_lb [l x]`` on BG.
     """
     los_l = np.asarray(los_l, dtype=float)
     m = los_l.shape[0]
@@ -88,10 +89,10 @@ def measurement_matrix(los_l, M_pos, lever=None):
     H[m:, VEL] = -los_l
     H[m:, CLK_D] = 1.0
     if lever is not None:
-        C_lb, l_l, a_l = lever
+        C_lb, l_l, a_l, w_ie_l = lever
         l_b = C_lb.T @ l_l
         H[:m, ATT] = -los_l @ skew(l_l)
-        H[m:, ATT] = -los_l @ skew(a_l)
+        H[m:, ATT] = -los_l @ (skew(a_l) - skew(w_ie_l) @ skew(l_l))
         H[m:, BG] = los_l @ (C_lb @ skew(l_b))
     return H
 

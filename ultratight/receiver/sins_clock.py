@@ -8,7 +8,7 @@ from ultratight.constants import OMEGA_E
 from ultratight.fusion import tight
 from ultratight.ins.attitude import quat_to_dcm
 from ultratight.ins import error_model, sins
-from ultratight.ins.earth import dcm_ecef_from_enu, llh_to_ecef
+from ultratight.ins.earth import dcm_ecef_from_enu, earth_rate_l, llh_to_ecef
 
 
 class InsClock:
@@ -68,12 +68,13 @@ class InsClock:
         return pos_e + C_eb @ self.lever_b, vel_e + C_eb @ np.cross(w_eb, self.lever_b), C_el
 
     def lever_terms(self):
-        """(C_lb, l_l = C_lb l, a_l = C_lb (omega_ib_b x l)) for the tight filter's measurement
-        model (:func:`ultratight.fusion.tight.measurement_matrix`), or None without a lever arm."""
+        """(C_lb, l_l = C_lb l, a_l = C_lb (omega_ib_b x l), omega_ie_l) for the tight filter's
+        measurement model (:func:`ultratight.fusion.tight.measurement_matrix`), or None without a
+        lever arm."""
         if self.lever_b is None:
             return None
         C_lb = quat_to_dcm(self.x[0:4])
-        return C_lb, C_lb @ self.lever_b, C_lb @ np.cross(self.w_b, self.lever_b)
+        return C_lb, C_lb @ self.lever_b, C_lb @ np.cross(self.w_b, self.lever_b), earth_rate_l(self.x[7])
 
     def feedback(self, dx):
         """Apply the tight filter's error state (estimate minus truth) and clear it."""
