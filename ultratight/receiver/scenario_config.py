@@ -166,6 +166,9 @@ def _resolve_trajectory_file(cfg, toml_path):
         tr["file_sha256"] = hashlib.sha256(fp.read_bytes()).hexdigest()
     except InputFileError as exc:
         raise ConfigError(str(exc)) from None
+    dur = cfg.get("duration_s")
+    if isinstance(dur, (int, float)) and not isinstance(dur, bool) and dur > fm.duration_s + 1e-6:
+        raise ConfigError(f"trajectory file {fp}: covers {fm.duration_s:.6g} s, shorter than duration_s = {dur:g} s")
     rcv = cfg.setdefault("receiver", {})
     rcv["lat_deg"], rcv["lon_deg"], rcv["h_m"] = math.degrees(fm.lat0), math.degrees(fm.lon0), float(fm.h0)
 
