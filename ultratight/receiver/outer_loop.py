@@ -378,7 +378,8 @@ class PredictionRing:
 class SinsFollower:
     """Feeds an :class:`OuterLoop` from the corrected SINS (:class:`ultratight.receiver.sins_clock.InsClock`):
     exact predictions at every SINS epoch into its :class:`PredictionRing`, and the kinematics
-    (velocity, finite-difference acceleration and jerk) for the CIC-interpolated aiding."""
+    (velocity, finite-difference acceleration and jerk) for the CIC-interpolated aiding.  Predictions
+    are made at the antenna (``InsClock.antenna_pos_vel_e``: the IMU point plus the lever arm)."""
 
     def __init__(self, outer, ins, t_sins, dtheta0, dv0, dt0, code_period_s):
         """Start the outer loop at the SINS epoch ``t_sins``: the acceleration from a trial step over
