@@ -42,6 +42,7 @@ from ultratight.fusion import filters
 from ultratight.fusion.adaptive import IAKF, gdop as gdop_fn
 from ultratight.ins import error_model as em
 from ultratight.ins import imu as imu_mod
+from ultratight.ins.attitude import skew
 from ultratight.ins.earth import radii
 
 # the 17-state layout is the INS error model's (one definition)
@@ -64,11 +65,21 @@ def pos_error_to_enu(lat, h, rm, rn):
                      [0.0, 0.0, 1.0]])
 
 
-def measurement_matrix(los_l, M_pos):
+def measurement_matrix(los_l, M_pos, lever=None):
     """H (2m, 17) for pseudorange rows then pseudorange-rate rows.
 
     ``los_l`` (m,3): unit line of sight receiver -> satellite in ENU; ``M_pos`` from
-    :func:`pos_error_to_enu`.
+    :func:`pos_error_to_enu`.  ``lever`` = ``(C_lb, l_l, a_l, w_ie_l)`` when the antenna is not at the
+    IMU (lever arm ``l`` IMU -> antenna, ``l_l = C_lb l``, ``a_l = C_lb (omega_ib_b x l)``, Earth rate
+    ``w_ie_l``, all ENU): the predictions are made at ``r + C_lb l`` and
+    ``v + C_lb (omega_ib_b x l) - w_ie x C_lb l``; with ``C_lb_est = (I - [phi x]) C_lb`` and the
+    residual gyro bias ``bg`` in ``omega_est``::
+
+        d r_ant = d r + [l_l x] phi
+        d v_ant = d v + ([a_l x] - [w_ie_l x][l_l x]) phi - C_lb [l x] bg
+
+    so the pseudorange rows gain ``-e^T [l_l x]`` on ATT and the rate rows
+    ``-e^T ([a_l x] - [w_ie_l x][l_l x])`` on ATT and ``e^T C_lb [l x]`` on BG.
     """
     los_l = np.asarray(los_l, dtype=float)
     m = los_l.shape[0]
@@ -77,6 +88,12 @@ def measurement_matrix(los_l, M_pos):
     H[:m, CLK_B] = 1.0
     H[m:, VEL] = -los_l
     H[m:, CLK_D] = 1.0
+    if lever is not None:
+        C_lb, l_l, a_l, w_ie_l = lever
+        l_b = C_lb.T @ l_l
+        H[:m, ATT] = -los_l @ skew(l_l)
+        H[m:, ATT] = -los_l @ (skew(a_l) - skew(w_ie_l) @ skew(l_l))
+        H[m:, BG] = los_l @ (C_lb @ skew(l_b))
     return H
 
 
@@ -154,8 +171,9 @@ class TightFilter:
         if self._iakf is not None:
             self._iakf.x = self.x.copy()
 
-    def update(self, dz_pr, dz_prr, los_l, M_pos, r_pr, r_prr, valid=None, gdop=None):
-        """Measurement update; returns dx (17,) (zeros when nothing was usable)."""
+    def update(self, dz_pr, dz_prr, los_l, M_pos, r_pr, r_prr, valid=None, gdop=None, lever=None):
+        """Measurement update; returns dx (17,) (zeros when nothing was usable).  ``lever``: see
+        :func:`measurement_matrix`."""
         dz_pr = np.asarray(dz_pr, dtype=float)
         dz_prr = np.asarray(dz_prr, dtype=float)
         m = dz_pr.shape[0]
@@ -163,7 +181,7 @@ class TightFilter:
             valid = np.ones(m, dtype=bool)
         valid = np.asarray(valid, dtype=bool) & np.isfinite(dz_pr) & np.isfinite(dz_prr)
         z = np.concatenate([dz_pr, dz_prr])
-        H = measurement_matrix(los_l, M_pos)
+        H = measurement_matrix(los_l, M_pos, lever)
         Rd = np.concatenate([np.broadcast_to(r_pr, (m,)), np.broadcast_to(r_prr, (m,))]).astype(float)
         use = np.concatenate([valid, valid])
         if self.core == "iakf":

@@ -34,9 +34,10 @@ import h5py
 import numpy as np
 from scipy.signal import lfilter
 
-from ultratight.constants import OMEGA_E
+from ultratight.constants import OMEGA_E, WGS84_A
 from ultratight.errors import ConfigError, InputFileError
-from ultratight.ins.earth import gravity_l
+from ultratight.ins.attitude import dcm_to_quat_vec
+from ultratight.ins.earth import dcm_ecef_from_enu_vec, ecef_to_llh_batch, gravity_l
 from ultratight.io_guard import atomic_path, write_h5_atomic
 
 # ------------------------------------------------------------------ unit conversions
@@ -108,7 +109,7 @@ _KNOWN_KEYS = {
     "preset", "rate_hz", "gyro_bias_dph", "accel_bias_ug", "gyro_noise_dph", "gyro_arw_dprh",
     "accel_noise_ug", "accel_vrw_ugrhz", "gyro_bi_dph", "gyro_bi_tau_s", "accel_bi_ug", "accel_bi_tau_s",
     "gyro_sf_ppm", "accel_sf_ppm", "gyro_misalign_mrad", "accel_misalign_mrad", "gyro_quant_urad",
-    "accel_quant_mmps", "seed", "file",
+    "accel_quant_mmps", "seed", "file", "lever_arm_m",
 }
 
 
@@ -201,6 +202,7 @@ class ImuData:
     t0: float = 0.0
     truth: dict | None = None        # optional: t, llh, vel_l, q_lb at t0 and every t[k]
     meta: dict = field(default_factory=dict)
+    lever_arm_b: np.ndarray = field(default_factory=lambda: np.zeros(3))   # IMU -> antenna, FLU, m
 
     @property
     def n(self):
@@ -215,8 +217,12 @@ class ImuData:
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(8)
 
 
-def body_signals(traj, t):
-    """True angular rate omega_ib_b and specific force f_b (FLU body) at times t: two (n, 3) arrays."""
+def body_signals(traj, t, lever_arm_b=None):
+    """True angular rate omega_ib_b and specific force f_b (FLU body) at times t: two (n, 3) arrays.
+
+    With ``lever_arm_b`` the specific force is that of the point ``antenna - C_eb l`` less the
+    angular-acceleration term (see :func:`ideal_increments`): minus the centripetal
+    ``w x (w x l)`` and with the normal gravity at the IMU's height."""
     k = traj.kinematics(t, extras=False)
     llh = k["llh"]
     g = np.empty_like(llh)
@@ -227,12 +233,32 @@ def body_signals(traj, t):
     w_ie[:, 1] = OMEGA_E * np.cos(lat)
     w_ie[:, 2] = OMEGA_E * np.sin(lat)
     f_l = k["acc_l"] + 2.0 * np.cross(w_ie, k["vel_l"]) - g
+    w = k["omega_ib_b"]
+    if lever_arm_b is not None:
+        lb = np.asarray(lever_arm_b, float)
+        # gravity at the IMU point d = -C_lb l from the antenna: the antenna's plus the gradient
+        # (vertical: normal gravity's d g/d h; horizontal: the direction turns by d_h / r, -g/r d_h)
+        d_l = -np.einsum("nij,j->ni", k["C_lb"], lb)
+        dgdh = (gravity_l(lat[0], llh[0, 2] + 0.5) - gravity_l(lat[0], llh[0, 2] - 0.5))
+        g_over_r = -g[:, 2] / (WGS84_A + llh[:, 2])
+        dg = d_l[:, 2:3] * dgdh[None, :]
+        dg[:, :2] -= g_over_r[:, None] * d_l[:, :2]
+        f_l = f_l - dg
+        f_b = np.einsum("nji,nj->ni", k["C_lb"], f_l) - np.cross(w, np.cross(w, lb))
+        return w, f_b
     f_b = np.einsum("nji,nj->ni", k["C_lb"], f_l)
-    return k["omega_ib_b"], f_b
+    return w, f_b
 
 
-def ideal_increments(traj, edges):
-    """Exact (8-point Gauss-Legendre per smooth piece) increments over [edges[k], edges[k+1]]."""
+def ideal_increments(traj, edges, lever_arm_b=None):
+    """Exact (8-point Gauss-Legendre per smooth piece) increments over [edges[k], edges[k+1]].
+
+    With ``lever_arm_b`` (FLU, m; IMU -> antenna, the trajectory being the antenna's) the
+    increments are those of an IMU at ``antenna - C_eb l``: rigid body, ``f_imu = f_ant - w' x l
+    - w x (w x l)`` with ``w = omega_ib_b``; the ``w' x l`` term integrates exactly to
+    ``(w(t_k+1) - w(t_k)) x l``, the centripetal term by the same quadrature (the gravitation
+    difference over the lever arm by its gradient: normal gravity's vertical d g/d h, ~3e-6 s^-2,
+    and -g/r across)."""
     edges = np.asarray(edges, dtype=float)
     bps = traj.breakpoints()
     bps = bps[(bps > edges[0]) & (bps < edges[-1])]
@@ -248,13 +274,31 @@ def ideal_increments(traj, edges):
     w_all = np.empty((tq.size, 3))
     f_all = np.empty((tq.size, 3))
     for s in range(0, tq.size, chunk):
-        w_all[s:s + chunk], f_all[s:s + chunk] = body_signals(traj, tq[s:s + chunk])
+        w_all[s:s + chunk], f_all[s:s + chunk] = body_signals(traj, tq[s:s + chunk], lever_arm_b)
     wts = (half[:, None] * _GL_W[None, :]).ravel()[:, None]
     pw = (w_all * wts).reshape(-1, len(_GL_X), 3).sum(axis=1)
     pf = (f_all * wts).reshape(-1, len(_GL_X), 3).sum(axis=1)
     np.add.at(dth, owner, pw)
     np.add.at(dv, owner, pf)
+    if lever_arm_b is not None:
+        w_edge = traj.kinematics(edges, extras=False)["omega_ib_b"]
+        dv -= np.cross(np.diff(w_edge, axis=0), np.asarray(lever_arm_b, float))
     return dth, dv
+
+
+def lever_arm_truth(k, lever_arm_b):
+    """Truth of the IMU point from the antenna's kinematics ``k`` (Trajectory.kinematics, with
+    q_lb) and the lever arm IMU -> antenna ``lever_arm_b`` (FLU, m): llh, vel_l, q_lb."""
+    lb = np.asarray(lever_arm_b, float)
+    C_el = dcm_ecef_from_enu_vec(k["llh"][:, 0], k["llh"][:, 1])
+    C_eb = C_el @ k["C_lb"]
+    pos = k["pos_e"] - np.einsum("nij,j->ni", C_eb, lb)
+    vel = k["vel_e"] - np.einsum("nij,nj->ni", C_eb, np.cross(k["omega_eb_b"], lb))
+    llh = ecef_to_llh_batch(pos)
+    C_el_i = dcm_ecef_from_enu_vec(llh[:, 0], llh[:, 1])
+    vel_l = np.einsum("nji,nj->ni", C_el_i, vel)
+    C_lb = np.transpose(C_el_i, (0, 2, 1)) @ C_eb
+    return llh, vel_l, dcm_to_quat_vec(C_lb)
 
 
 def _gauss_markov(rng, n, sigma, tau, dt):
@@ -298,12 +342,19 @@ def apply_errors(dtheta, dv, errors, rng, dt):
     return _quantise(dth, errors.gyro_quant), _quantise(dvm, errors.accel_quant)
 
 
-def synthesize_imu(traj, rate_hz, errors=None, rng=None, duration_s=None, with_truth=True):
+def synthesize_imu(traj, rate_hz, errors=None, rng=None, duration_s=None, with_truth=True, lever_arm_b=None):
     """IMU increments along ``traj`` at ``rate_hz`` with ``errors`` (None = ideal).
 
     ``rng``: numpy Generator (required when the errors are random).  Returns :class:`ImuData`
     whose ``truth`` holds t, llh, vel_l, q_lb at the interval edges (t0 = 0 and every t[k]).
+    ``lever_arm_b`` (FLU, m): the IMU sits at ``antenna - C_eb l`` where ``traj`` is the
+    antenna's path; the increments and ``truth`` (llh, vel_l, q_lb) are then the IMU point's,
+    ``truth["llh_antenna"]``/``truth["vel_l_antenna"]`` the antenna's, and ``lever_arm_b`` is
+    recorded in the data.
     """
+    lever = None
+    if lever_arm_b is not None and np.any(np.asarray(lever_arm_b, float)):
+        lever = np.asarray(lever_arm_b, float).reshape(3)
     rate_hz = float(rate_hz)
     if not rate_hz > 0.0:
         raise ConfigError(f"IMU rate must be > 0 Hz, got {rate_hz}")
@@ -312,15 +363,19 @@ def synthesize_imu(traj, rate_hz, errors=None, rng=None, duration_s=None, with_t
     if n < 1:
         raise ConfigError(f"IMU run of {duration} s at {rate_hz} Hz has no samples")
     edges = np.arange(n + 1) / rate_hz
-    dth, dv = ideal_increments(traj, edges)
+    dth, dv = ideal_increments(traj, edges, lever)
     if errors is not None and not errors.is_ideal():
         dth, dv = apply_errors(dth, dv, errors, rng, 1.0 / rate_hz)
     truth = None
     if with_truth:
         k = traj.kinematics(edges)
         truth = {"t": edges, "llh": k["llh"], "vel_l": k["vel_l"], "q_lb": k["q_lb"]}
+        if lever is not None:
+            truth["llh_antenna"], truth["vel_l_antenna"] = truth["llh"], truth["vel_l"]
+            truth["llh"], truth["vel_l"], truth["q_lb"] = lever_arm_truth(k, lever)
     meta = {"errors": (errors or ImuErrors(preset="ideal")).to_dict()}
-    return ImuData(t=edges[1:].copy(), dtheta_b=dth, dv_b=dv, rate_hz=rate_hz, t0=0.0, truth=truth, meta=meta)
+    return ImuData(t=edges[1:].copy(), dtheta_b=dth, dv_b=dv, rate_hz=rate_hz, t0=0.0, truth=truth, meta=meta,
+                   lever_arm_b=np.zeros(3) if lever is None else lever)
 
 
 # ------------------------------------------------------------------ HDF5 I/O
@@ -341,6 +396,8 @@ def write_imu_h5(path, imu, meta=None):
         f.attrs["t0_s"] = float(imu.t0)
         f.attrs["body_frame"] = "FLU (x forward, y left, z up)"
         f.attrs["meta_json"] = json.dumps(allmeta, default=str)
+        if np.any(imu.lever_arm_b):
+            f.attrs["lever_arm_b_m"] = np.asarray(imu.lever_arm_b, float)
         f.create_dataset("t", data=np.asarray(imu.t, float))
         f["t"].attrs["units"] = "s (end of each increment interval)"
         f.create_dataset("dtheta_b", data=np.asarray(imu.dtheta_b, float))
@@ -351,8 +408,9 @@ def write_imu_h5(path, imu, meta=None):
             g = f.create_group("truth")
             g.attrs["description"] = "true state at t0 and at every t: llh (rad, rad, m), vel_l ENU m/s, " \
                                      "q_lb scalar-first body->ENU"
-            for key in ("t", "llh", "vel_l", "q_lb"):
-                g.create_dataset(key, data=np.asarray(imu.truth[key], float))
+            for key in ("t", "llh", "vel_l", "q_lb", "llh_antenna", "vel_l_antenna"):
+                if key in imu.truth:
+                    g.create_dataset(key, data=np.asarray(imu.truth[key], float))
 
     write_h5_atomic(path, build)
 
@@ -412,6 +470,11 @@ def read_imu_h5(path):
                 meta = None
             if not isinstance(meta, dict):
                 raise InputFileError(f"{path}: attribute meta_json is not a JSON object")
+            lever = np.zeros(3)
+            if "lever_arm_b_m" in f.attrs:
+                lever = np.asarray(f.attrs["lever_arm_b_m"], dtype=float).reshape(-1)
+                if lever.shape != (3,) or not np.all(np.isfinite(lever)):
+                    raise InputFileError(f"{path}: attribute lever_arm_b_m must be 3 finite numbers (m)")
             truth = None
             if "truth" in f:
                 if not isinstance(f["truth"], h5py.Group):
@@ -438,16 +501,17 @@ def read_imu_h5(path):
         if not all(k in truth for k in ("llh", "vel_l", "q_lb")) or min(truth[k].shape[0] for k in
                                                                           ("llh", "vel_l", "q_lb")) < 1:
             raise InputFileError(f"{path}: /truth needs llh, vel_l and q_lb with at least one row")
-    return ImuData(t=t, dtheta_b=dth, dv_b=dv, rate_hz=rate, t0=t0, truth=truth, meta=meta)
+    return ImuData(t=t, dtheta_b=dth, dv_b=dv, rate_hz=rate, t0=t0, truth=truth, meta=meta, lever_arm_b=lever)
 
 
 # ------------------------------------------------------------------ CSV import
-# accepted columns: time, then either rates or increments, each with a unit suffix
+# accepted columns: time, then either rates or increments, with a unit suffix or (units declared in
+# the IMU sidecar / flags, ultratight.ins.imu_decl) without one
 _TIME_COLS = {"t_s": 1.0}
-_RATE_UNITS = {"radps": 1.0, "dps": math.pi / 180.0}
-_ACC_UNITS = {"mps2": 1.0, "g": G0}
-_DTH_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
-_DV_UNITS = {"mps": 1.0}
+_RATE_UNITS = {"radps": "rad/s", "dps": "deg/s"}
+_ACC_UNITS = {"mps2": "m/s^2", "g": "g"}
+_DTH_UNITS = {"rad": "rad", "deg": "deg"}
+_DV_UNITS = {"mps": "m/s"}
 GAP_FACTOR = 1.5        # an interval longer than 1.5 x the median is a gap
 
 
@@ -475,17 +539,25 @@ def _check_stamps(t, path, first_row, what="row"):
     return med
 
 
-def read_imu_csv(path):
-    """Read a user IMU CSV file (layout in docs/ins.md) -> :class:`ImuData`.
+def read_imu_csv(path, declaration=None):
+    """Read a user IMU CSV file (layout in docs/ins.md, docs/imu-declaration.md) -> :class:`ImuData`.
 
     First non-comment line: header ``t_s`` plus either rates ``gx_<u>, gy_<u>, gz_<u>`` (u: radps,
     dps) and ``ax_<u>, ay_<u>, az_<u>`` (u: mps2, g) -- averages over the interval ending at t -- or
-    increments ``dthx_<u>, dthy_<u>, dthz_<u>`` (u: rad, deg) and ``dvx_mps, dvy_mps, dvz_mps``.
-    Lines starting with ``#`` are comments.  Problems raise InputFileError naming the line.
+    increments ``dthx_<u>, dthy_<u>, dthz_<u>`` (u: rad, deg) and ``dvx_mps, dvy_mps, dvz_mps``;
+    without the ``_<u>`` suffix the units come from ``declaration``.  Lines starting with ``#`` are
+    comments.  ``declaration`` (:class:`ultratight.ins.imu_decl.ImuDeclaration`; default: the
+    sidecar ``PATH.json`` when present, else the internal convention) gives axes, units, rate,
+    time reference, lever arm; it is applied here and checked by the stationary sanity check.
+    Problems raise InputFileError naming the line or the likely mistake.
     """
+    from ultratight.ins import imu_decl
+
     path = Path(path)
     if not path.is_file():
         raise InputFileError(f"{path}: IMU CSV file not found")
+    if declaration is None:
+        declaration = imu_decl.resolve_declaration(path)
     try:
         with open(path, newline="", encoding="utf-8-sig") as fh:
             text = fh.read()
@@ -509,32 +581,43 @@ def read_imu_csv(path):
         raise InputFileError(f"{path}: line {hdr_line}: header needs a 't_s' column (seconds); got {cols}")
 
     def find(prefixes, units, kind):
-        out_i, out_s = [], []
+        """(column indices, unit names or None per axis) of the three columns, or None."""
+        out_i, out_u = [], []
         for p in prefixes:
-            hits = [c for c in cols if c.startswith(p + "_")]
+            hits = [c for c in cols if c == p or c.startswith(p + "_")]
             if not hits:
                 return None
             c = hits[0]
-            u = c[len(p) + 1:]
-            if u not in units:
+            u = c[len(p) + 1:] if c != p else None
+            if u is not None and u not in units:
                 raise InputFileError(f"{path}: line {hdr_line}: column {c!r} has unknown unit {u!r} for "
-                                     f"{kind}; allowed: {', '.join(p + '_' + k for k in units)}")
+                                     f"{kind}; allowed: {', '.join(p + '_' + k for k in units)} (or {p!r} with "
+                                     f"the unit declared in the IMU sidecar)")
             out_i.append(idx[c])
-            out_s.append(units[u])
-        return out_i, np.array(out_s)
+            out_u.append(units[u] if u is not None else None)
+        return out_i, out_u
 
     g = find(("gx", "gy", "gz"), _RATE_UNITS, "angular rate")
     a = find(("ax", "ay", "az"), _ACC_UNITS, "specific force")
     dth = find(("dthx", "dthy", "dthz"), _DTH_UNITS, "angle increment")
     dvv = find(("dvx", "dvy", "dvz"), _DV_UNITS, "velocity increment")
     if g and a:
-        mode, ci, cs = "rate", g[0] + a[0], np.concatenate([g[1], a[1]])
+        mode, gcols, acols = "rates", g, a
     elif dth and dvv:
-        mode, ci, cs = "increment", dth[0] + dvv[0], np.concatenate([dth[1], dvv[1]])
+        mode, gcols, acols = "increments", dth, dvv
     else:
         raise InputFileError(f"{path}: line {hdr_line}: header must have t_s and either gx_/gy_/gz_ + "
                              f"ax_/ay_/az_ rate columns or dthx_/dthy_/dthz_ + dvx_/dvy_/dvz_ increment "
-                             f"columns (with unit suffixes); got {cols}")
+                             f"columns (with unit suffixes, or without and the units declared); got {cols}")
+    hdr_units = []
+    for what, (_, us) in (("gyro", gcols), ("accelerometer", acols)):
+        if len(set(us)) > 1 and None in us:
+            raise InputFileError(f"{path}: line {hdr_line}: {what} columns mix unit suffixes and bare names")
+        hdr_units.append(us)
+    gyro_unit, accel_unit, kind = imu_decl.units_for(declaration, mode, hdr_units[0][0], hdr_units[1][0], path)
+    gsc = np.array([imu_decl.GYRO_UNITS[u or gyro_unit][0] for u in hdr_units[0]])
+    asc = np.array([imu_decl.ACCEL_UNITS[u or accel_unit][0] for u in hdr_units[1]])
+    ci = gcols[0] + acols[0]
     rows = lines[1:]
     if len(rows) < 2:
         raise InputFileError(f"{path}: need at least 2 data lines, got {len(rows)}")
@@ -560,7 +643,7 @@ def read_imu_csv(path):
                 raise InputFileError(f"{path}: line {ln}: column {cols[c]!r} is {fields[c].strip()} "
                                      f"(NaN/inf not allowed)")
             data[r, j] = v
-    t = data[:, 0]
+    t = data[:, 0] + declaration.time_offset_s
     try:
         med = _check_stamps(t, path, 0, what="row")
     except InputFileError as exc:
@@ -570,23 +653,77 @@ def read_imu_csv(path):
         if m:
             msg = msg.replace(f"row {m.group(1)}:", f"line {line_no[int(m.group(1))]}:")
         raise InputFileError(msg) from None
-    vals = data[:, 1:] * cs
+    if declaration.rate_hz is not None and abs(declaration.rate_hz * med - 1.0) > 0.01:
+        raise InputFileError(f"{path}: declared rate {declaration.rate_hz:g} Hz ({declaration.source}) but the "
+                             f"stamps are {1.0 / med:.6g} Hz apart")
+    report = {"checked": False, "reason": "check disabled in the declaration"}
+    if declaration.check:
+        report = imu_decl.stationary_check(data[:, 4:7], data[:, 1:4], med, declaration, accel_unit, gyro_unit,
+                                           kind, path)
+    vals = data[:, 1:] * np.concatenate([gsc, asc])
     dts = np.diff(t, prepend=t[0] - med)
-    if mode == "rate":
+    if mode == "rates":
         vals = vals * dts[:, None]
-    return ImuData(t=t.copy(), dtheta_b=vals[:, :3].copy(), dv_b=vals[:, 3:].copy(), rate_hz=1.0 / med,
-                   t0=float(t[0] - med), truth=None, meta={"source": str(path), "csv_mode": mode})
+    M = declaration.M
+    meta = {"source": str(path), "csv_mode": "rate" if mode == "rates" else "increment",
+            "declaration": declaration.to_dict(), "declaration_source": declaration.source,
+            "sanity_check": report}
+    t0 = float(t[0] - med)
+    if declaration.time_ref == "gps_tow":
+        meta["start_tow_s"] = t0
+        if declaration.gps_week is not None:
+            meta["start_week"] = int(declaration.gps_week)
+        t = t - t0
+        t0 = 0.0
+    return ImuData(t=t.copy(), dtheta_b=vals[:, :3] @ M.T, dv_b=vals[:, 3:] @ M.T, rate_hz=1.0 / med,
+                   t0=t0, truth=None, meta=meta, lever_arm_b=declaration.lever_arm_b())
 
 
-def write_imu_csv(path, imu):
-    """Write increments as CSV (t_s, dthx_rad, ..., dvz_mps) -- the format read_imu_csv reads."""
+def write_imu_csv(path, imu, declaration=None):
+    """Write increments as CSV (t_s, dthx_rad, ..., dvz_mps) -- the format read_imu_csv reads.
+
+    With ``declaration`` (:class:`ultratight.ins.imu_decl.ImuDeclaration`: kind, axes, units, time
+    reference and offset) the data are written in that convention under bare column names, the
+    lever arm of ``imu`` in the declared axes, and the declaration as the sidecar ``PATH.json``."""
+    from ultratight.ins import imu_decl
+
+    if declaration is None:
+        with atomic_path(path) as tmp:
+            with open(tmp, "w") as fh:
+                fh.write("# ultratight IMU increments, body frame FLU; t_s = end of interval\n")
+                fh.write("t_s,dthx_rad,dthy_rad,dthz_rad,dvx_mps,dvy_mps,dvz_mps\n")
+                for k in range(imu.n):
+                    fh.write(f"{imu.t[k]:.9f}," + ",".join(f"{x:.17g}" for x in imu.dtheta_b[k]) + "," +
+                             ",".join(f"{x:.17g}" for x in imu.dv_b[k]) + "\n")
+        return None
+    dec = declaration
+    kind = dec.kind or "increments"
+    gu = dec.gyro_unit or ("rad/s" if kind == "rates" else "rad")
+    au = dec.accel_unit or ("m/s^2" if kind == "rates" else "m/s")
+    M = dec.M
+    dth = imu.dtheta_b @ M / imu_decl.GYRO_UNITS[gu][0]       # v_file = M^T v_FLU
+    dv = imu.dv_b @ M / imu_decl.ACCEL_UNITS[au][0]
+    t = np.asarray(imu.t, float)
+    if kind == "rates":
+        dts = np.diff(t, prepend=float(imu.t0))
+        dth, dv = dth / dts[:, None], dv / dts[:, None]
+    if dec.time_ref == "gps_tow":
+        t = t + float(imu.meta.get("start_tow_s", 0.0))
+    t = t - dec.time_offset_s
+    names = ("gx,gy,gz,ax,ay,az" if kind == "rates" else "dthx,dthy,dthz,dvx,dvy,dvz")
     with atomic_path(path) as tmp:
         with open(tmp, "w") as fh:
-            fh.write("# ultratight IMU increments, body frame FLU; t_s = end of interval\n")
-            fh.write("t_s,dthx_rad,dthy_rad,dthz_rad,dvx_mps,dvy_mps,dvz_mps\n")
-            for k in range(imu.n):
-                fh.write(f"{imu.t[k]:.9f}," + ",".join(f"{x:.17g}" for x in imu.dtheta_b[k]) + "," +
-                         ",".join(f"{x:.17g}" for x in imu.dv_b[k]) + "\n")
+            fh.write(f"# ultratight IMU {kind}, axes {dec.axes if isinstance(dec.axes, str) else 'matrix'}, "
+                     f"units in the sidecar {imu_decl.sidecar_path(path).name}\n")
+            fh.write("t_s," + names + "\n")
+            for k in range(t.shape[0]):
+                fh.write(f"{t[k]:.9f}," + ",".join(f"{x:.17g}" for x in dth[k]) + "," +
+                         ",".join(f"{x:.17g}" for x in dv[k]) + "\n")
+    out = imu_decl.ImuDeclaration(kind=kind, axes=dec.axes, gyro_unit=gu, accel_unit=au,
+                                  rate_hz=float(imu.rate_hz), time_ref=dec.time_ref, gps_week=dec.gps_week,
+                                  time_offset_s=dec.time_offset_s, lever_arm_m=M.T @ np.asarray(imu.lever_arm_b),
+                                  check=dec.check)
+    return imu_decl.write_sidecar(path, out)
 
 
 # ------------------------------------------------------------------ Allan deviation (for tests/benchmarks)

@@ -28,6 +28,13 @@ Trajectory kinds (``[trajectory]`` table of a scenario, see docs/ins.md):
   ±8° / 6 s, ±5° / 10 s, phases 0).  The body rate is the exact Euler-rate map,
   so the IMU increments (Gauss–Legendre integrals of the rate and specific force)
   are exact, coning and sculling included.
+* ``"file"``: positions from a file (``path``, relative to the scenario TOML; ``frame = "ecef" |
+  "llh"``; a ``t,x,y,z`` / ``t,lat,lon,h`` CSV at >= 1 Hz or an NMEA GGA log, optionally with
+  ``roll, pitch, yaw`` columns), smoothed by a C2 cubic smoothing spline with cut-off
+  ``smoothing_hz`` (default 1 Hz; 0 = interpolating); see :mod:`ultratight.ins.trajfile` and
+  docs/trajectory-files.md.  The start point is the file's first position (``[receiver]``
+  lat/lon/h are not used); attitude ``"file"`` (the file's Euler angles, the default when it
+  has them) or ``"velocity"`` (the default otherwise) or ``"fixed"``.
 * ``"turns"``: horizontal ground/air vehicle.  ``speed0_mps``, ``heading0_deg``
   (clockwise from north); ``segments = [{t0, turn_rate_dps, acc_mps2 | speed_mps}]``:
   constant turn rate (positive = turning right, heading increasing) and
@@ -57,15 +64,17 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from ultratight.constants import OMEGA_E
+from ultratight.constants import OMEGA_E, WGS84_A, WGS84_E2
 from ultratight.errors import ConfigError
 from ultratight.ins.attitude import (dcm_to_quat_vec, euler_to_dcm, euler_to_dcm_vec,
                                      rotvec_to_dcm, rotvec_to_dcm_vec)
 from ultratight.ins.earth import (dcm_ecef_from_enu, dcm_ecef_from_enu_vec, ecef_to_llh_batch,
                                   llh_to_ecef)
 
-KINDS = ("static", "segments", "turns", "swing")
-ATTITUDE_MODES = ("velocity", "fixed", "rates", "swing")
+KINDS = ("static", "segments", "turns", "swing", "file")
+ATTITUDE_MODES = ("velocity", "fixed", "rates", "swing", "file")
+# keys of the [trajectory] table beyond the scenario schema's own list (kind = "file")
+CONFIG_KEYS = ("path", "frame", "smoothing_hz")
 # swinging-base defaults (a choice of this project; Sun et al. 2012 give none): [roll, pitch, yaw]
 SWING_AMP_DEG = (10.0, 8.0, 5.0)
 SWING_PERIOD_S = (8.0, 6.0, 10.0)
@@ -133,6 +142,8 @@ class Trajectory:
         self.swing_amp = np.zeros(3)
         self.swing_w = np.zeros(3)
         self.swing_phase = np.zeros(3)
+        # file kind: the smoothed position log (ultratight.ins.trajfile.FileMotion)
+        self.file_motion = None
 
     # ------------------------------------------------------------------ local-frame motion
     def _seg_index(self, t, t0s):
@@ -144,6 +155,8 @@ class Trajectory:
         t = np.atleast_1d(np.asarray(t, dtype=float))
         if self.kind == "turns":
             return self._turn_motion(t)
+        if self.kind == "file":
+            return self.file_motion.motion(t)
         i = self._seg_index(t, self.seg_t0)
         dt = (t - self.seg_t0[i])[:, None]
         p0, v0, a0, j0 = self.seg_p0[i], self.seg_v0[i], self.seg_a0[i], self.seg_j0[i]
@@ -201,6 +214,8 @@ class Trajectory:
             return np.broadcast_to(self.C_l0b0, (n, 3, 3)).copy(), np.zeros((n, 3))
         if self.attitude_mode == "swing":
             return self._swing_attitude(t)
+        if self.attitude_mode == "file":
+            return self._file_attitude(t, motion)
         if self.attitude_mode == "rates":
             i = self._seg_index(t, self.rate_t0)
             dt = (t - self.rate_t0[i])[:, None]
@@ -217,17 +232,26 @@ class Trajectory:
         return self.att0[None, :] + self.swing_amp * np.sin(arg), self.swing_amp * self.swing_w * np.cos(arg)
 
     def _swing_attitude(self, t):
-        e, de = self.swing_euler(t)
-        roll, pitch = e[:, 0], e[:, 1]
-        sr, cr, sp, cp = np.sin(roll), np.cos(roll), np.sin(pitch), np.cos(pitch)
-        dr, dp, dy = de[:, 0], de[:, 1], de[:, 2]
-        # C_lb = Rz(pi/2 - yaw) Ry(-pitch) Rx(roll) (FLU body, ENU): the Euler-rate map of the
-        # equivalent NED/FRD yaw-pitch-roll sequence, FRD -> FLU flips the y and z components
-        w = np.empty((t.shape[0], 3))
-        w[:, 0] = dr - dy * sp
-        w[:, 1] = -(dp * cr + dy * sr * cp)
-        w[:, 2] = dp * sr - dy * cr * cp
-        return euler_to_dcm_vec(roll, pitch, e[:, 2]), w
+        return _euler_attitude(*self.swing_euler(t))
+
+    def _file_attitude(self, t, motion):
+        """The file's Euler angles (w.r.t. the local ENU frame at the current position) -> C_l0b and
+        omega_l0b_b = omega_lb_b + C_bl omega_el_l (l0 is Earth-fixed, so omega_l0l = omega_el)."""
+        C_lb, w_lb = _euler_attitude(*self.file_motion.euler(t))
+        p, v, _, _ = motion if motion is not None else self.local_motion(t)
+        pos_e = self.r0_e + p @ self.C_el0.T
+        llh = ecef_to_llh_batch(pos_e)
+        C_el = dcm_ecef_from_enu_vec(llh[:, 0], llh[:, 1])
+        C_l0l = np.einsum("ji,njk->nik", self.C_el0, C_el)
+        vel_l = np.einsum("nji,nj->ni", C_el, v @ self.C_el0.T)
+        lat, h = llh[:, 0], llh[:, 2]
+        w2 = 1.0 - WGS84_E2 * np.sin(lat) ** 2
+        rn = WGS84_A / np.sqrt(w2)
+        rm = WGS84_A * (1.0 - WGS84_E2) / (w2 * np.sqrt(w2))
+        # transport rate omega_el_l (as ultratight.ins.earth.transport_rate_l, vectorised)
+        w_el = np.stack([-vel_l[:, 1] / (rm + h), vel_l[:, 0] / (rn + h), vel_l[:, 0] * np.tan(lat) / (rn + h)],
+                        axis=1)
+        return C_l0l @ C_lb, w_lb + np.einsum("nji,nj->ni", C_lb, w_el)
 
     def _velocity_attitude(self, v, a, j):
         v = v.copy()
@@ -306,6 +330,10 @@ class Trajectory:
 
     def breakpoints(self):
         """Times (s) where acceleration or angular rate may be discontinuous."""
+        if self.kind == "file":
+            # C2 spline: acceleration continuous, jerk steps at the knots
+            k = self.file_motion.knots
+            return k[(k > 0.0) & (k < self.duration_s)].copy()
         tb = list(self.seg_t0[1:])
         if self.attitude_mode == "rates":
             tb += list(self.rate_t0[1:])
@@ -348,6 +376,21 @@ class Trajectory:
             _write(path_or_group)
 
 
+def _euler_attitude(e, de):
+    """C_lb (n, 3, 3) and body rate omega_lb_b (n, 3) from Euler angles [roll, pitch, yaw] (n, 3)
+    and their time derivatives (the exact Euler-rate map)."""
+    roll, pitch = e[:, 0], e[:, 1]
+    sr, cr, sp, cp = np.sin(roll), np.cos(roll), np.sin(pitch), np.cos(pitch)
+    dr, dp, dy = de[:, 0], de[:, 1], de[:, 2]
+    # C_lb = Rz(pi/2 - yaw) Ry(-pitch) Rx(roll) (FLU body, ENU): the Euler-rate map of the
+    # equivalent NED/FRD yaw-pitch-roll sequence, FRD -> FLU flips the y and z components
+    w = np.empty((e.shape[0], 3))
+    w[:, 0] = dr - dy * sp
+    w[:, 1] = -(dp * cr + dy * sr * cp)
+    w[:, 2] = dp * sr - dy * cr * cp
+    return euler_to_dcm_vec(roll, pitch, e[:, 2]), w
+
+
 def _euler_vec(C):
     roll = np.arctan2(C[:, 2, 1], C[:, 2, 2])
     pitch = np.arcsin(np.clip(C[:, 2, 0], -1.0, 1.0))
@@ -379,21 +422,38 @@ def build_trajectory(traj_cfg, receiver_cfg, duration_s):
     duration_s = _num(duration_s, "duration_s")
     if duration_s <= 0.0:
         raise ConfigError(f"duration_s must be > 0, got {duration_s}")
-    try:
-        lat_deg = _num(receiver_cfg["lat_deg"], "receiver.lat_deg")
-        lon_deg = _num(receiver_cfg["lon_deg"], "receiver.lon_deg")
-        h_m = _num(receiver_cfg.get("h_m", 0.0), "receiver.h_m")
-    except KeyError as exc:
-        raise ConfigError(f"receiver: missing field {exc.args[0]!r} (need lat_deg, lon_deg, h_m)") from None
-    if not -90.0 <= lat_deg <= 90.0:
-        raise ConfigError(f"receiver.lat_deg must be in [-90, 90], got {lat_deg}")
     kind = traj_cfg.get("kind", "static")
     if kind not in KINDS:
         raise ConfigError(f"trajectory.kind must be one of {', '.join(KINDS)}; got {kind!r}")
-    mode = traj_cfg.get("attitude", {"static": "fixed", "swing": "swing"}.get(kind, "velocity"))
+    fmotion = None
+    if kind == "file":
+        fmotion = load_file_motion(traj_cfg)
+        if duration_s > fmotion.duration_s + 1e-6:
+            raise ConfigError(f"trajectory file {traj_cfg['path']}: covers {fmotion.duration_s:.6g} s, shorter than "
+                              f"duration_s = {duration_s:g} s")
+        lat_deg, lon_deg, h_m = math.degrees(fmotion.lat0), math.degrees(fmotion.lon0), fmotion.h0
+    else:
+        try:
+            lat_deg = _num(receiver_cfg["lat_deg"], "receiver.lat_deg")
+            lon_deg = _num(receiver_cfg["lon_deg"], "receiver.lon_deg")
+            h_m = _num(receiver_cfg.get("h_m", 0.0), "receiver.h_m")
+        except KeyError as exc:
+            raise ConfigError(f"receiver: missing field {exc.args[0]!r} (need lat_deg, lon_deg, h_m)") from None
+    if not -90.0 <= lat_deg <= 90.0:
+        raise ConfigError(f"receiver.lat_deg must be in [-90, 90], got {lat_deg}")
+    default_mode = {"static": "fixed", "swing": "swing"}.get(kind, "velocity")
+    if fmotion is not None and fmotion.att is not None:
+        default_mode = "file"
+    mode = traj_cfg.get("attitude", default_mode)
     if (kind == "swing") != (mode == "swing"):
         raise ConfigError(f"trajectory.attitude = {mode!r} does not go with kind = {kind!r} "
                           "(the swing attitude belongs to kind = \"swing\" only)")
+    if mode == "file" and (fmotion is None or fmotion.att is None):
+        raise ConfigError("trajectory.attitude = \"file\" needs kind = \"file\" and a file with roll, pitch, yaw "
+                          "columns")
+    if mode == "rates" and kind == "file":
+        raise ConfigError("trajectory.attitude = \"rates\" does not go with kind = \"file\" (use \"velocity\", "
+                          "\"fixed\" or the file's own attitude columns)")
     if mode not in ATTITUDE_MODES:
         raise ConfigError(f"trajectory.attitude must be one of {', '.join(ATTITUDE_MODES)}; got {mode!r}")
     att0 = np.radians(_vec3(traj_cfg.get("att0_deg", [0.0, 0.0, 0.0]), "att0_deg"))
@@ -403,7 +463,10 @@ def build_trajectory(traj_cfg, receiver_cfg, duration_s):
               "duration_s": duration_s, "trajectory": _jsonable(traj_cfg)}
     tr = Trajectory(kind, math.radians(lat_deg), math.radians(lon_deg), h_m, duration_s, mode, att0, config)
 
-    if kind == "static":
+    if kind == "file":
+        tr.file_motion = fmotion
+        tr.seg_t0 = np.zeros(1)
+    elif kind == "static":
         if mode == "velocity":
             tr.attitude_mode = "fixed"
     elif kind == "swing":
@@ -486,6 +549,23 @@ def build_trajectory(traj_cfg, receiver_cfg, duration_s):
             C0[i] = C0[i - 1] @ rotvec_to_dcm(W[i - 1] * (rt0[i] - rt0[i - 1]))
         tr.rate_t0, tr.rate_w, tr.rate_C0 = rt0, W, C0
     return tr
+
+
+def load_file_motion(traj_cfg):
+    """:class:`ultratight.ins.trajfile.FileMotion` of a ``kind = "file"`` table (``path``, ``frame``,
+    ``smoothing_hz``); ConfigError for bad keys, InputFileError (naming file and line) for bad files."""
+    from ultratight.ins.trajfile import DEFAULT_SMOOTHING_HZ, FRAMES, FileMotion, read_position_log
+
+    path = traj_cfg.get("path")
+    if not isinstance(path, str) or not path:
+        raise ConfigError("trajectory: kind = \"file\" needs path = \"...\" (CSV or NMEA GGA log)")
+    frame = traj_cfg.get("frame", "ecef")
+    if frame not in FRAMES:
+        raise ConfigError(f"trajectory.frame must be one of {', '.join(FRAMES)}; got {frame!r}")
+    sm = _num(traj_cfg.get("smoothing_hz", DEFAULT_SMOOTHING_HZ), "smoothing_hz")
+    if sm < 0.0:
+        raise ConfigError(f"trajectory.smoothing_hz must be >= 0 (0 = interpolating spline), got {sm}")
+    return FileMotion(read_position_log(path, frame), sm)
 
 
 def _jsonable(obj):

@@ -63,7 +63,7 @@ from ultratight.fusion.innerloop import InnerLoop
 from ultratight.fusion.prefilter import IF as PREFILTER_IF
 from ultratight.fusion.rateconv import ResidualDecimator
 from ultratight.ins.earth import radii
-from ultratight.ins.imu import read_imu_csv, read_imu_h5
+from ultratight.ins import imu_decl
 from ultratight.io_guard import write_h5_atomic
 from ultratight.receiver import epochs
 from ultratight.receiver.blockstream import BlockStream, NoiseFloor
@@ -305,8 +305,12 @@ class UltratightEngine:
         self.imu_dv = np.asarray(self.imu.dv_b, dtype=float)
         self.k_imu = 0                                  # next IMU sample to apply
         t_sins = float(getattr(self.imu, "t0", 0.0))
+        lever = np.asarray(getattr(self.imu, "lever_arm_b", np.zeros(3)), dtype=float)
+        if np.any(lever):          # antenna away from the IMU: predictions and H at the antenna
+            self.ins.lever_b = lever
+            self.ins.w_b = self.imu_dth[0] / float(self.imu_t[0] - t_sins)
         # hot start predictions (from the perturbed state, not truth)
-        pos_e, vel_e, C_el = self.ins.pos_vel_e()
+        pos_e, vel_e, C_el = self.ins.antenna_pos_vel_e()
         pred0 = predict_channels(self.ephs, self.prns, self.week, self.tow0, pos_e, vel_e,
                                  self.ins.clk_b, self.ins.clk_d, signal=sgl)
         self.corr = CorrelatorBank(self.prns, self.fs, self.if_hz, self.src.is_complex, signal=sgl)
@@ -450,7 +454,8 @@ class UltratightEngine:
         los_l = self.follow.los_e() @ C_el
         Phi, Qd = tightmod.phi_q(ins, self.dec.step_s, self.imu_noise, opt.clock_q_drift)
         self.tf.predict(Phi, Qd)
-        dx = self.tf.update(m["dz_pr"], m["dz_prr"], los_l, M_pos, m["var_pr"], m["var_prr"], valid)
+        dx = self.tf.update(m["dz_pr"], m["dz_prr"], los_l, M_pos, m["var_pr"], m["var_prr"], valid,
+                            lever=ins.lever_terms())
         dfp_all = np.zeros(len(self.prns))
         if np.any(dx != 0.0):
             ins.feedback(dx)
@@ -706,7 +711,8 @@ def check_imu_if_alignment(src, imu, if_path="IF file", imu_path="IMU file", tol
 
 
 def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None, nav_path=None, prns=None,
-                            init_state=None, options=None, duration_s=None, seed=0, startup_errors=None):
+                            init_state=None, options=None, duration_s=None, seed=0, startup_errors=None,
+                            imu_declaration=None):
     """Run the ultra-tight engine on a recorded IF file and an IMU file (HDF5 or CSV).
 
     * ``meta``: sidecar/ION metadata for the IF file (default ``IFFILE.json``); the IF start time
@@ -716,6 +722,8 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
     * Initial INS state: ``init_state`` dict (``llh``, ``vel_l``, ``q_lb``, ``clk_bias_m``,
       ``clk_drift_mps``) or, for generator files, the IMU file's truth at t0 perturbed by
       ``startup_errors`` (seeded by ``seed``) — the hot start never uses the truth itself.
+    * IMU conventions: ``imu_declaration`` (sidecar keys, :mod:`ultratight.ins.imu_decl`) over the
+      IMU file's sidecar; a GPS-stamped IMU starting before the IF is cut to the IF start.
     * Time alignment is checked by :func:`check_imu_if_alignment` (gaps, out-of-order stamps,
       IMU/IF offset -> InputFileError).
     Returns an :class:`EngineResult`.
@@ -728,7 +736,9 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
         raise InputFileError(f"{if_path}: the IF start time (start_week, start_tow_s) is unknown; "
                              "give it in the sidecar/metadata")
     imu_path = Path(imu_path)
-    imu = read_imu_csv(imu_path) if imu_path.suffix.lower() == ".csv" else read_imu_h5(imu_path)
+    # the IMU's declared conventions (sidecar IMU.csv.json + ``imu_declaration`` overrides, ins.imu_decl)
+    imu = imu_decl.read_imu_file(imu_path, imu_declaration)
+    imu = imu_decl.align_to_gps_start(imu, src.start_week, src.start_tow_s, imu_path)
     usable = check_imu_if_alignment(src, imu, if_path, imu_path)
     dur = usable if duration_s is None else min(float(duration_s), usable)
     side = src.meta or {}

@@ -378,7 +378,8 @@ class PredictionRing:
 class SinsFollower:
     """Feeds an :class:`OuterLoop` from the corrected SINS (:class:`ultratight.receiver.sins_clock.InsClock`):
     exact predictions at every SINS epoch into its :class:`PredictionRing`, and the kinematics
-    (velocity, finite-difference acceleration and jerk) for the CIC-interpolated aiding."""
+    (velocity, finite-difference acceleration and jerk) for the CIC-interpolated aiding.  Predictions
+    are made at the antenna (``InsClock.antenna_pos_vel_e``: the IMU point plus the lever arm)."""
 
     def __init__(self, outer, ins, t_sins, dtheta0, dv0, dt0, code_period_s):
         """Start the outer loop at the SINS epoch ``t_sins``: the acceleration from a trial step over
@@ -388,9 +389,9 @@ class SinsFollower:
         self.ins = ins
         self.t = float(t_sins)
         self.ring = PredictionRing(len(outer.prns))
-        pos_e, vel_e, _ = ins.pos_vel_e()
+        pos_e, vel_e, _ = ins.antenna_pos_vel_e()
         self.first = outer.predict(self.t, pos_e, vel_e, ins.clk_b, ins.clk_d)
-        acc0_e = (ins.trial_velocity_e(dtheta0, dv0, dt0) - vel_e) / dt0
+        acc0_e = (ins.trial_velocity_e(dtheta0, dv0, dt0) - ins.pos_vel_e()[1]) / dt0
         outer.prime(self.t, pos_e, vel_e, acc0_e, ins.clk_b, ins.clk_d)
         for j in range(outer.ratio + 1):
             tj = j * 1e-3
@@ -407,7 +408,7 @@ class SinsFollower:
         """After the SINS stepped to ``t_sins`` (interval ``dt``): ring entry and aiding samples."""
         ins = self.ins
         self.t = t_sins
-        pos_e, vel_e, _ = ins.pos_vel_e()
+        pos_e, vel_e, _ = ins.antenna_pos_vel_e()
         acc_e = (vel_e - self.vel_prev) / dt
         jerk_e = (acc_e - self.acc_prev) / dt
         self.acc_prev = acc_e
@@ -419,7 +420,7 @@ class SinsFollower:
 
     def los_e(self):
         """Unit lines of sight (ECEF) at the current SINS state."""
-        pos_e, vel_e, _ = self.ins.pos_vel_e()
+        pos_e, vel_e, _ = self.ins.antenna_pos_vel_e()
         return self.outer.predict(self.t, pos_e, vel_e, self.ins.clk_b, self.ins.clk_d)["los_e"]
 
     def apply_correction(self, code_length, book_offset):
@@ -429,7 +430,7 @@ class SinsFollower:
         change per channel (Hz)."""
         ins = self.ins
         ring = self.ring
-        pos_e, vel_e, _ = ins.pos_vel_e()
+        pos_e, vel_e, _ = ins.antenna_pos_vel_e()
         pr_fix = self.outer.predict(self.t, pos_e, vel_e, ins.clk_b, ins.clk_d)
         i1 = ring.latest
         half = 0.5 * code_length

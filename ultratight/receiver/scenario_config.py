@@ -138,8 +138,40 @@ def load_scenario(name_or_path, overrides=None):
     if "imu" in cfg and isinstance(cfg["imu"], dict):
         cfg["imu"] = {**IMU_DEFAULTS, **cfg["imu"]}
     cfg["source_file"] = str(path)
+    _resolve_trajectory_file(cfg, path)
     validate(cfg)
     return cfg
+
+
+def _resolve_trajectory_file(cfg, toml_path):
+    """``[trajectory] kind = "file"``: the path resolved against the TOML's directory, the file read
+    and checked (one-line errors naming its line), its SHA-256 recorded (so caches see a changed
+    file) and ``[receiver]`` lat/lon/h set to its first position."""
+    import hashlib
+
+    from ultratight.errors import InputFileError
+    from ultratight.ins.trajectory import load_file_motion
+
+    tr = cfg.get("trajectory")
+    if not isinstance(tr, dict) or tr.get("kind") != "file":
+        return
+    p = tr.get("path")
+    if not isinstance(p, str) or not p:
+        raise ConfigError(f"{toml_path}: trajectory: kind = \"file\" needs path = \"...\"")
+    fp = Path(p)
+    if not fp.is_absolute():
+        fp = (Path(toml_path).parent / fp).resolve()
+    tr["path"] = str(fp)
+    try:
+        fm = load_file_motion(tr)
+        tr["file_sha256"] = hashlib.sha256(fp.read_bytes()).hexdigest()
+    except InputFileError as exc:
+        raise ConfigError(str(exc)) from None
+    dur = cfg.get("duration_s")
+    if isinstance(dur, (int, float)) and not isinstance(dur, bool) and dur > fm.duration_s + 1e-6:
+        raise ConfigError(f"trajectory file {fp}: covers {fm.duration_s:.6g} s, shorter than duration_s = {dur:g} s")
+    rcv = cfg.setdefault("receiver", {})
+    rcv["lat_deg"], rcv["lon_deg"], rcv["h_m"] = math.degrees(fm.lat0), math.degrees(fm.lon0), float(fm.h0)
 
 
 # ------------------------------------------------------------------------------------------
@@ -206,6 +238,12 @@ def validate(cfg):
     if "imu" in cfg:
         _table(cfg, "imu")
         _num(cfg, "imu.rate_hz", lo=0, lo_open=True, hi=MAX_IMU_RATE_HZ)
+        la = cfg["imu"].get("lever_arm_m")
+        if la is not None and (not isinstance(la, list) or len(la) != 3 or
+                               any(isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x)
+                                   or abs(x) > 1e3 for x in la)):
+            raise ConfigError(f"imu.lever_arm_m must be a list of 3 numbers (m, FLU body, IMU -> antenna, "
+                              f"|x| <= 1000), got {la!r}")
     if "atmosphere" in cfg:
         _validate_atmosphere(_table(cfg, "atmosphere"))
     if "engine" in cfg:

@@ -4,9 +4,11 @@ and the receiver-clock bias/drift estimates propagated between updates."""
 
 import numpy as np
 
+from ultratight.constants import OMEGA_E
 from ultratight.fusion import tight
+from ultratight.ins.attitude import quat_to_dcm
 from ultratight.ins import error_model, sins
-from ultratight.ins.earth import dcm_ecef_from_enu, llh_to_ecef
+from ultratight.ins.earth import dcm_ecef_from_enu, earth_rate_l, llh_to_ecef
 
 
 class InsClock:
@@ -21,6 +23,7 @@ class InsClock:
         self.ba = np.zeros(3)        # estimated accelerometer bias (m/s^2)
         self.f_b = np.zeros(3)       # last specific force (body), for the error model
         self.w_b = np.zeros(3)
+        self.lever_b = None          # lever arm IMU -> antenna (FLU, m); None = antenna at the IMU
 
     def step(self, dtheta, dv, dt):
         dth = dtheta - self.bg * dt
@@ -52,6 +55,26 @@ class InsClock:
         lat, lon, h = self.x[7], self.x[8], self.x[9]
         C_el = dcm_ecef_from_enu(lat, lon)
         return np.asarray(llh_to_ecef(lat, lon, h)), C_el @ self.x[4:7], C_el
+
+    def antenna_pos_vel_e(self):
+        """ECEF position and velocity of the antenna (and C_el): ``pos + C_eb l`` and
+        ``vel + C_eb (omega_eb_b x l)`` with the last corrected gyro rate; the IMU's own
+        :meth:`pos_vel_e` when there is no lever arm."""
+        pos_e, vel_e, C_el = self.pos_vel_e()
+        if self.lever_b is None:
+            return pos_e, vel_e, C_el
+        C_eb = C_el @ quat_to_dcm(self.x[0:4])
+        w_eb = self.w_b - C_eb.T @ np.array([0.0, 0.0, OMEGA_E])
+        return pos_e + C_eb @ self.lever_b, vel_e + C_eb @ np.cross(w_eb, self.lever_b), C_el
+
+    def lever_terms(self):
+        """(C_lb, l_l = C_lb l, a_l = C_lb (omega_ib_b x l), omega_ie_l) for the tight filter's
+        measurement model (:func:`ultratight.fusion.tight.measurement_matrix`), or None without a
+        lever arm."""
+        if self.lever_b is None:
+            return None
+        C_lb = quat_to_dcm(self.x[0:4])
+        return C_lb, C_lb @ self.lever_b, C_lb @ np.cross(self.w_b, self.lever_b), earth_rate_l(self.x[7])
 
     def feedback(self, dx):
         """Apply the tight filter's error state (estimate minus truth) and clear it."""

@@ -669,7 +669,9 @@ def _write_imu_traj(imu_cfg, trajectory, paths, ss_imu, resolved):
 
     rate = float(imu_cfg.get("rate_hz", 100.0))
     errors = imu_mod.imu_errors_from_config(imu_cfg)
-    data = imu_mod.synthesize_imu(trajectory, rate, errors, np.random.default_rng(ss_imu))
+    lever = imu_cfg.get("lever_arm_m")
+    data = imu_mod.synthesize_imu(trajectory, rate, errors, np.random.default_rng(ss_imu),
+                                  lever_arm_b=None if lever is None else np.asarray(lever, float))
     out = []
     t_imu = _tmp(paths["imu"])
     imu_mod.write_imu_h5(t_imu, data, {"config_json": json.dumps(resolved), "version": __version__})

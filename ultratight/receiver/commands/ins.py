@@ -23,6 +23,8 @@ def add_arguments(parser):
     parser.add_argument("--init-att", type=float, nargs=3, default=(0.0, 0.0, 0.0),
                         metavar=("ROLL", "PITCH", "YAW"),
                         help="initial attitude (deg; yaw clockwise from north) for an IMU file without truth")
+    from ultratight.receiver.commands import imu_flags
+    imu_flags.add_arguments(parser)
 
 
 def _load_scenario(name):
@@ -101,7 +103,9 @@ def _synthesize(args, src):
         io_guard.check_disk(Path(args.save_imu).parent, duration * rate * 8 * 20, f"--save-imu {args.save_imu}")
     errors = imu_mod.imu_errors_from_config(imu_cfg)
     seed = int(args.seed if args.seed is not None else cfg.get("seed", 1))
-    imu = imu_mod.synthesize_imu(traj, rate, errors, np.random.default_rng(seed), duration_s=duration)
+    lever = imu_cfg.get("lever_arm_m")
+    imu = imu_mod.synthesize_imu(traj, rate, errors, np.random.default_rng(seed), duration_s=duration,
+                                 lever_arm_b=None if lever is None else np.asarray(lever, float))
     if args.save_imu:
         imu_mod.write_imu_h5(args.save_imu, imu, {"scenario": cfg.get("name", src), "seed": seed})
     return imu, cfg.get("name", src), errors.preset
@@ -174,8 +178,9 @@ def run(args):
 
     from ultratight import io_guard
     from ultratight.errors import ConfigError
-    from ultratight.ins import imu as imu_mod
+    from ultratight.ins import imu_decl
     from ultratight.ins.sins import sins_run
+    from ultratight.receiver.commands import imu_flags
 
     src = args.source
     path = Path(src)
@@ -185,9 +190,11 @@ def run(args):
     if is_file:
         if args.errors is not None or args.rate is not None:
             raise ConfigError("--errors/--rate apply to scenario synthesis, not to an IMU file")
-        imu = imu_mod.read_imu_csv(path) if path.suffix.lower() == ".csv" else imu_mod.read_imu_h5(path)
+        imu = imu_decl.read_imu_file(path, imu_flags.overrides(args))
         label = str(path)
     else:
+        if imu_flags.overrides(args):
+            raise ConfigError("the --imu-*/--lever-arm flags declare an IMU file, not a scenario's synthetic IMU")
         imu, label, preset = _synthesize(args, src)
     n = imu.n
     if args.duration is not None and is_file:
@@ -209,6 +216,9 @@ def run(args):
         "final_llh_deg_m": [math.degrees(p[-1, 0]), math.degrees(p[-1, 1]), float(p[-1, 2])],
         "final_vel_enu_mps": v[-1].tolist(),
     }
+    if is_file and "declaration" in (imu.meta or {}):
+        out["imu_declaration"] = imu.meta["declaration"]
+        out["sanity_check"] = imu.meta.get("sanity_check")
     table = _errors_vs_truth(out, q, v, p, truth, n, dt) if truth is not None else []
     if args.json:
         print(io_guard.json_dumps(out, indent=2))

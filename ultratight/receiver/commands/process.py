@@ -165,6 +165,8 @@ def add_arguments(p):
     p.add_argument("--kml", metavar="OUT.kml", help="also write the track as KML")
     p.add_argument("--json", action="store_true", help="print one JSON summary object on stdout")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    from ultratight.receiver.commands import imu_flags
+    imu_flags.add_arguments(p)
 
 
 def _clean(o):
@@ -186,6 +188,9 @@ def run(args):
         return _run_ultratight(args)
     if getattr(args, "imu", None):
         raise ConfigError("--imu is only used with --mode ultratight")
+    from ultratight.receiver.commands import imu_flags
+    if imu_flags.overrides(args):
+        raise ConfigError("the --imu-*/--lever-arm flags declare the IMU file of --mode ultratight")
     args.iono = args.iono or "klobuchar"           # defaults of the scalar receiver (recorded resolved)
     args.tropo = args.tropo or "saastamoinen"
     from ultratight.signals.iffile import open_if
@@ -281,8 +286,10 @@ def _run_ultratight(args):
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise ConfigError(f"--duration must be > 0 s, got {args.duration}")
     prns = _prn_list(args.prn) if args.prn else None
+    from ultratight.receiver.commands import imu_flags
     res = run_ultratight_on_files(args.iffile, args.imu, method=args.method or DEFAULT_METHOD, meta=args.meta,
-                                  nav_path=args.ephemeris, prns=prns, duration_s=args.duration)
+                                  nav_path=args.ephemeris, prns=prns, duration_s=args.duration,
+                                  imu_declaration=imu_flags.overrides(args))
     if args.out:
         write_result_h5(args.out, res)
     info = res.info or {}
