@@ -46,6 +46,7 @@ from ultratight.errors import ConfigError, InputFileError
 from ultratight.ins.attitude import dcm_to_euler, dcm_to_quat, euler_to_dcm, quat_to_dcm
 from ultratight.ins.earth import dcm_ecef_from_enu, earth_rate_l, ecef_to_llh, gravity_l, transport_rate_l
 from ultratight.ins.imu import ImuData
+from ultratight.receiver.tracking import MODE_TRACK
 from ultratight.signals.signal import GPS_L1CA
 
 STARTUP_SCALAR = "scalar-fix"
@@ -341,9 +342,10 @@ def channel_code_phases(res, n0, fs, signal=GPS_L1CA, max_gap_s=0.05):
         if s.size == 0:
             continue
         k = int(np.searchsorted(s, n0, side="right")) - 1
-        if k < 0 or (n0 - s[k]) / fs > max_gap_s or int(e["mode"][k]) != 2:
+        if k < 0 or (n0 - s[k]) / fs > max_gap_s or int(e["mode"][k]) != MODE_TRACK:
             continue
-        out[int(prn)] = float((e["code_phase_chips"][k] + (n0 - s[k]) / fs * signal.code_rate_cps(e["doppler_hz"][k])) % code_length)
+        rate = signal.code_rate_cps(e["doppler_hz"][k])
+        out[int(prn)] = float((e["code_phase_chips"][k] + (n0 - s[k]) / fs * rate) % code_length)
     return out
 
 

@@ -171,7 +171,8 @@ def add_arguments(p):
                    help="--mode ultratight: initial state from the scalar receiver's first fixes on the same file "
                         "(scalar-fix), from the IMU file's truth perturbed (truth-perturbed, generated files) or "
                         "auto (default: --init-* flags when all three are given, else the truth when the IMU file "
-                        "has it, else scalar-fix); --start S starts the scalar pass at S")
+                        "has it, else scalar-fix); --start S starts the scalar pass at S. Values starting with "
+                        "a minus sign go after '=': --init-llh=-33.87,151.21,40")
     p.add_argument("--init-llh", metavar="LAT,LON,H", help="--mode ultratight: initial position (deg, deg, m)")
     p.add_argument("--init-vel", metavar="VE,VN,VU", help="--mode ultratight: initial ENU velocity (m/s)")
     p.add_argument("--init-att", metavar="ROLL,PITCH,YAW", help="--mode ultratight: initial attitude (deg; yaw "
@@ -199,6 +200,12 @@ def run(args):
         return _run_ultratight(args)
     if getattr(args, "imu", None):
         raise ConfigError("--imu is only used with --mode ultratight")
+    ut_only = [f for f, on in (("--init-llh", getattr(args, "init_llh", None)),
+                               ("--init-vel", getattr(args, "init_vel", None)),
+                               ("--init-att", getattr(args, "init_att", None)),
+                               ("--startup", getattr(args, "startup", "auto") != "auto")) if on]
+    if ut_only:
+        raise ConfigError(f"{', '.join(ut_only)} only used with --mode ultratight")
     args.iono = args.iono or "klobuchar"           # defaults of the scalar receiver (recorded resolved)
     args.tropo = args.tropo or "saastamoinen"
     from ultratight.signals.iffile import open_if
