@@ -52,6 +52,7 @@ def test_ultratight_mode_json_and_output_against_truth(cut, tmp_path, capsys):
     assert summ["runtime_s"] > 0
     assert summ["realtime_factor"] == pytest.approx(summ["runtime_s"] / summ["duration_s"])
     assert summ["lock_losses"] == 0           # 20 dB-Hz, no noise event in the first 3 s
+    assert summ["startup"] == "truth-perturbed" and summ["lock_lost_channels"] == []   # generated file: as before
     assert summ["n_tight_updates"] >= 20
     assert summ["out"] == str(out)
     # the result file: navigation solution against the generator's trajectory truth

@@ -300,13 +300,17 @@ def phi_q(ins, dt, imu_errors, clock_q_drift=1e-4, clock_q_bias=1e-4, bias_floor
 
 def initial_covariance(llh, sigmas, imu_errors):
     """P0 (17x17) of the hot start: ``sigmas`` dict (StartupErrors fields: pos_m, vel_mps,
-    att_deg, clk_bias_m, clk_drift_mps); bias sigmas from the IMU error model (at least
+    att_deg, clk_bias_m, clk_drift_mps; optional ``att_cov_rad2``, a 3x3 attitude covariance that
+    replaces att_deg); bias sigmas from the IMU error model (at least
     a small floor)."""
     lat, h = float(llh[0]), float(llh[2])
     rm, rn = radii(lat)
     s_pos = float(sigmas.get("pos_m", 1.0))
     P = np.zeros((NX, NX))
     P[ATT, ATT] = np.eye(3) * np.deg2rad(float(sigmas.get("att_deg", 0.01))) ** 2
+    if sigmas.get("att_cov_rad2") is not None:
+        # a full attitude covariance (rad^2, ENU error angles), e.g. of a Wahba alignment
+        P[ATT, ATT] = 0.5 * (np.asarray(sigmas["att_cov_rad2"], float) + np.asarray(sigmas["att_cov_rad2"], float).T)
     P[VEL, VEL] = np.eye(3) * float(sigmas.get("vel_mps", 0.05)) ** 2
     P[6, 6] = (s_pos / (rm + h)) ** 2
     P[7, 7] = (s_pos / ((rn + h) * np.cos(lat))) ** 2

@@ -83,6 +83,7 @@ from ultratight.receiver.tracking_banks import bank_view, make_tracking_bank, re
 from ultratight.receiver.wipeoff import DataWipeoff
 from ultratight.receiver.workers import stage_threads
 from ultratight.signals.constellation import nominal_ephemerides
+from ultratight.signals.ephemeris import sat_state
 from ultratight.signals.iffile import open_if
 from ultratight.signals.rinex import read_rinex_nav
 from ultratight.signals.signal import GPS_L1CA
@@ -313,14 +314,21 @@ class UltratightEngine:
         pos_e, vel_e, C_el = self.ins.antenna_pos_vel_e()
         pred0 = predict_channels(self.ephs, self.prns, self.week, self.tow0, pos_e, vel_e,
                                  self.ins.clk_b, self.ins.clk_d, signal=sgl)
+        # a hand-over from tracking channels (ultratight.receiver.handover) gives their code phases
+        # at sample 0: the NCOs start there instead of the prediction (no re-acquisition either way)
+        cp_given = st.get("code_phase_chips") or {}
+        self.cp_given = np.array([int(p) in cp_given for p in self.prns])
+        for ch, prn in enumerate(self.prns):
+            if int(prn) in cp_given:
+                pred0["code_phase_chips"][ch] = float(cp_given[int(prn)])
         self.corr = CorrelatorBank(self.prns, self.fs, self.if_hz, self.src.is_complex, signal=sgl)
         for ch, prn in enumerate(self.prns):
             self.corr.init_channel(ch, prn, pred0["code_phase_chips"][ch], pred0["doppler_hz"][ch], 0,
                                    carr_phase_cycles=0.0, align=True)
+        self.ms0 = first_period_ms(pred0["t_tx_tow"], pred0["code_phase_chips"], signal=sgl)
         self.wipe = DataWipeoff(BitWipeoff(self.ephs, self.prns, self.week, self.tow0, self.duration_s + 1.0,
                                            signal=sgl),
-                                first_period_ms(pred0["t_tx_tow"], pred0["code_phase_chips"], signal=sgl),
-                                sgl.codes_per_bit)
+                                self.ms0.copy(), sgl.codes_per_bit)
         P0 = tightmod.initial_covariance(self.ins.llh, st.get("sigmas", {}), self.imu_noise)
         self.tf = tightmod.TightFilter(P0, core=opt.tight_core, gate_sigma=opt.gate_sigma)
         self.outer = OuterLoop(self.ephs, self.prns, self.week, self.tow0, self.duration_s + 0.5, signal=sgl,
@@ -332,6 +340,8 @@ class UltratightEngine:
         es.sig_dopp = tightmod.doppler_sigma_hz(self.tf.P, los_l, sgl.wavelength_m)
         self._build_tracking(es, los_l)
         self._build_records(es)
+        self.rec.set_sigma(self.tf.P, self.ins.llh)
+        self.rec.log_sins(t_sins, self.ins.x, self.ins.clk_b, self.ins.clk_d)
         return es
 
     def _build_tracking(self, es, los_l):
@@ -342,6 +352,9 @@ class UltratightEngine:
         rm, rn = radii(lat)
         M_pos = tightmod.pos_error_to_enu(lat, h, rm, rn)
         sig_code_chips = tightmod.code_sigma_m(self.tf.P, los_l, M_pos) / sgl.chip_m
+        if self.cp_given.any():
+            sig_code_chips = np.where(self.cp_given, float(self.init_state.get("code_sigma_m", 3.0)) / sgl.chip_m,
+                                      sig_code_chips)
         self.pref = make_tracking_bank(self.spec, n_ch, opt, (sig_code_chips, es.sig_dopp), sgl)
         self.inner = InnerLoop(n_ch, T=sgl.code_period_s, if_hz=self.if_hz, signal=sgl)
         # NCO Doppler at the middle of each channel's first interval, aiding history consistent
@@ -436,6 +449,7 @@ class UltratightEngine:
             self.ins.step(self.imu_dth[k], self.imu_dv[k], dt)
             self.k_imu += 1
             self.follow.step(self.imu_t[k], dt)
+            self.rec.log_sins(self.imu_t[k], self.ins.x, self.ins.clk_b, self.ins.clk_d)
         st.timing["sins_outer"] += time.perf_counter() - tw
 
     # ------------------------------------------------------------------ 10 Hz: tight filter
@@ -463,6 +477,8 @@ class UltratightEngine:
             st.counts["n_feedback"] += 1
             dfp_all = self.follow.apply_correction(sgl.code_length, self.spec.double_loop)
         st.sig_dopp = tightmod.doppler_sigma_hz(self.tf.P, los_l, sgl.wavelength_m)
+        self.rec.set_sigma(self.tf.P, ins.llh)
+        self.rec.log_sins(self.follow.t, ins.x, ins.clk_b, ins.clk_d, replace=True)   # the step the feedback landed on
         if self.spec.double_loop:
             st.use_aid[:] = st.sig_dopp < opt.arbitration_sigma_hz
         if opt.outer_freq_update and self.spec.double_loop:
@@ -614,6 +630,8 @@ class UltratightEngine:
         return {
             "options": opt.as_dict(),
             "wipeoff_mode": self.wipe.mode,
+            # transmit-time count of code periods of each channel's first epoch (epoch k: + k)
+            "first_period_count": np.asarray(self.ms0).tolist(),
             "n_epochs": st.k_ep,
             "n_tight_updates": self.tf.n_updates,
             "n_tight_rejected": self.tf.n_rejected,
@@ -712,25 +730,48 @@ def check_imu_if_alignment(src, imu, if_path="IF file", imu_path="IMU file", tol
 
 def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None, nav_path=None, prns=None,
                             init_state=None, options=None, duration_s=None, seed=0, startup_errors=None,
-                            imu_declaration=None):
+                            imu_declaration=None, startup="auto", init_overrides=None, start_s=0.0,
+                            handover=None):
     """Run the ultra-tight engine on a recorded IF file and an IMU file (HDF5 or CSV).
 
     * ``meta``: sidecar/ION metadata for the IF file (default ``IFFILE.json``); the IF start time
       (``start_week``/``start_tow_s``) is required.
     * Ephemerides: ``nav_path`` (RINEX) or, for generator files, the sidecar's scenario
-      (nominal constellation).  PRNs: ``prns`` or the sidecar's list.
-    * Initial INS state: ``init_state`` dict (``llh``, ``vel_l``, ``q_lb``, ``clk_bias_m``,
-      ``clk_drift_mps``) or, for generator files, the IMU file's truth at t0 perturbed by
-      ``startup_errors`` (seeded by ``seed``) — the hot start never uses the truth itself.
+      (nominal constellation).  PRNs: ``prns``, the sidecar's list or, after a scalar start-up,
+      the satellites of the hand-over fix.
+    * Initial state (``startup``: ``auto`` | ``scalar-fix`` | ``truth-perturbed``; the source used
+      is ``result.info["startup_source"]``):
+
+      - ``init_state`` dict (``llh``, ``vel_l``, ``q_lb``, ``clk_bias_m``, ``clk_drift_mps``) given
+        by the caller: used as it is, at ``start_s`` (``init-state``);
+      - ``init_overrides`` with all of ``llh``, ``vel_l``, ``q_lb`` (the ``--init-*`` flags,
+        :func:`ultratight.receiver.handover.parse_init_flags`): those at ``start_s``, clock zero
+        (``init-flags``);
+      - the IMU file's truth at t0 perturbed by ``startup_errors`` (seeded by ``seed``; the hot
+        start never uses the truth itself) — the default (``auto``) for generator files with
+        truth and ``start_s`` = 0 (``truth-perturbed``);
+      - otherwise the scalar receiver's first fixes from ``start_s`` on (``scalar-fix``,
+        :func:`ultratight.receiver.handover.scalar_handover`, configured by ``handover``), the
+        flags in ``init_overrides`` replacing their part.
+
+      The engine starts at the hand-over time (an IMU stamp): the IF source and the IMU data are
+      seen from there on (:class:`~ultratight.receiver.handover.SourceWindow`,
+      :func:`~ultratight.receiver.handover.imu_window`), the channels from predicted code phase
+      and Doppler (no acquisition); the result's times are shifted back to seconds since the first
+      sample of the file.
     * IMU conventions: ``imu_declaration`` (sidecar keys, :mod:`ultratight.ins.imu_decl`) over the
       IMU file's sidecar; a GPS-stamped IMU starting before the IF is cut to the IF start.
     * Time alignment is checked by :func:`check_imu_if_alignment` (gaps, out-of-order stamps,
       IMU/IF offset -> InputFileError).
     Returns an :class:`EngineResult`.
     """
+    from ultratight.receiver import handover as ho
+
     if not method_spec(method).needs_imu:
         raise ConfigError(f"method {method!r} is the scalar receiver: use `ultratight process` without "
                           f"--mode ultratight")
+    if startup not in ("auto", ho.STARTUP_SCALAR, ho.STARTUP_TRUTH):
+        raise ConfigError(f"unknown start-up {startup!r}; expected auto, {ho.STARTUP_SCALAR} or {ho.STARTUP_TRUTH}")
     src = open_if(if_path, meta=meta)
     if src.start_tow_s is None or src.start_week is None:
         raise InputFileError(f"{if_path}: the IF start time (start_week, start_tow_s) is unknown; "
@@ -744,6 +785,7 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
     side = src.meta or {}
     gen_cfg = side.get("generator") if isinstance(side.get("generator"), dict) else None
     week, tow0 = int(src.start_week), float(src.start_tow_s)
+    nav = None
     if nav_path is not None:
         nav = read_rinex_nav(nav_path)
         ephs = {}
@@ -760,24 +802,74 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
         raise ConfigError(f"{if_path}: no ephemerides: give a RINEX navigation file (--ephemeris)")
     if prns is None:
         prns = side.get("prn")
+    overrides = dict(init_overrides or {})
+    start_s = float(start_s or 0.0)
+    if not 0.0 <= start_s < dur:
+        raise ConfigError(f"--start {start_s:g} s is outside the usable record (0 .. {dur:.3f} s)")
+    tr = getattr(imu, "truth", None)
+    has_truth = bool(tr) and "llh" in tr
+    t_h = 0.0
+    source = "init-state"
+    hand = None
+    if init_state is not None:
+        t_h = start_s
+    elif all(k in overrides for k in ("llh", "vel_l", "q_lb")):
+        hand = ho.flags_state(overrides, start_s)
+        source = ho.STARTUP_FLAGS
+    elif startup == ho.STARTUP_TRUTH or (startup == "auto" and has_truth and start_s == 0.0 and not overrides):
+        if not has_truth:
+            raise ConfigError(f"{imu_path}: start-up {ho.STARTUP_TRUTH} needs the truth in the IMU file (none here)")
+        if start_s != 0.0:
+            raise ConfigError(f"start-up {ho.STARTUP_TRUTH} starts at the first sample: --start not supported")
+        source = ho.STARTUP_TRUTH
+    else:
+        hand = ho.scalar_handover(src, imu, tightmod.imu_errors_from_meta(imu), nav if nav is not None else ephs,
+                                  prns, start_s=start_s, cfg=handover, overrides=overrides)
+        source = ho.STARTUP_SCALAR
+        if not prns:
+            # every satellite the scalar pass kept tracking (not only the hand-over fix's)
+            prns = [p for p in hand["startup"]["scalar_pass"]["tracked"] if p in ephs]
+    if hand is not None:
+        t_h = hand["t_s"]
+        init_state = {k: hand[k] for k in ("llh", "vel_l", "q_lb", "clk_bias_m", "clk_drift_mps", "sigmas",
+                                           "code_phase_chips") if k in hand}
     if not prns:
         raise ConfigError(f"{if_path}: no PRN list in the sidecar: give the PRNs to track (--prn)")
     missing = [p for p in prns if p not in ephs]
     if missing:
         raise ConfigError(f"no ephemeris for PRN {missing}")
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7]))
-    if init_state is None:
-        tr = getattr(imu, "truth", None)
-        if not tr or "llh" not in tr:
-            raise ConfigError(f"{imu_path}: no initial INS state: give init_state (position, velocity, attitude)")
+    if source == ho.STARTUP_TRUTH:
         rcv = (gen_cfg or {}).get("receiver", {})
         truth0 = {"llh": np.asarray(tr["llh"][0]), "vel_l": np.asarray(tr["vel_l"][0]),
                   "q_lb": np.asarray(tr["q_lb"][0]), "clk_bias_m": float(rcv.get("clock_bias_m", 0.0)),
                   "clk_drift_mps": float(rcv.get("clock_drift_mps", 0.0))}
         init_state = perturb_state(truth0, startup_errors or StartupErrors(), rng)
+    file_start = {"week": int(week), "tow_s": float(tow0)}
+    if t_h > 0.0:
+        dt_imu = 1.0 / float(imu.rate_hz)
+        t_h = float(getattr(imu, "t0", 0.0)) + round((t_h - float(getattr(imu, "t0", 0.0))) / dt_imu) * dt_imu
+        if t_h >= dur - 2 * dt_imu:
+            raise ConfigError(f"start-up at t = {t_h:.3f} s leaves no record to process (usable {dur:.3f} s)")
+        n0 = int(round(t_h * src.fs_hz))
+        src = ho.SourceWindow(src, n0)
+        imu = ho.imu_window(imu, t_h)
+        tow0, week = float(src.start_tow_s), int(src.start_week)
     eng = UltratightEngine(src, imu, ephs, [int(p) for p in prns], week, tow0, method=method,
-                           options=options, init_state=init_state, rng=rng, duration_s=dur)
-    return eng.run()
+                           options=options, init_state=init_state, rng=rng, duration_s=dur - t_h)
+    res = eng.run()
+    if t_h > 0.0:
+        res.t_start = res.t_start + t_h
+        res.nav_t = res.nav_t + t_h
+        if res.sins:
+            res.sins["t_s"] = res.sins["t_s"] + t_h
+    res.info["startup_source"] = source
+    res.info["t_offset_s"] = float(t_h)
+    res.info["handover"] = (hand or {}).get("startup", {"source": source, "handover_t_s": float(t_h)})
+    res.info["if_file_start"] = file_start          # the result's times count from this receiver time
+    t_mid = file_start["tow_s"] + t_h + 0.5 * res.duration_s
+    res.info["sat_pos_e"] = [np.asarray(sat_state(ephs[int(p)], np.array([t_mid]))[0][0]).tolist() for p in prns]
+    return res
 
 
 def write_result_h5(path, res, extra_attrs=None):
@@ -794,6 +886,8 @@ def write_result_h5(path, res, extra_attrs=None):
         f.attrs["info_json"] = json.dumps(res.info, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
         for k, v in (extra_attrs or {}).items():
             f.attrs[k] = v
+        for k, v in (res.sins or {}).items():
+            f.create_dataset(f"sins/{k}", data=np.asarray(v), compression="gzip", compression_opts=1, shuffle=True)
         for k, v in (("t_start_s", res.t_start), ("doppler_hz", res.doppler_hz),
                      ("code_phase_chips", res.code_phase_chips), ("amplitude", res.amp), ("mode", res.mode),
                      ("nav_t_s", res.nav_t), ("nav_pos_e", res.nav_pos_e), ("nav_vel_e", res.nav_vel_e),

@@ -577,6 +577,8 @@ class PvtStage:
                 "excluded_prn": [self.prns[j] for j in sol.excluded],
                 "used_prn": [self.prns[j] for j in np.flatnonzero(sol.used)],
                 "sigma_pos_m": float(np.sqrt(np.trace(sol.cov_pos_clk[:3, :3]))),
+                "sigma_vel_mps": (float(np.sqrt(np.trace(sol.cov_vel_drift[:3, :3])))
+                                  if sol.cov_vel_drift is not None else float("nan")),
                 "iono": "klobuchar" if model.iono_active else "off", "tropo": self.cfg.tropo, "sv": sv_list}
 
 

@@ -1,9 +1,15 @@
-"""Recorder of the ultra-tight engine: per-epoch tracking estimates and the navigation solution
-at every tight-filter update, and the :class:`EngineResult` built from them."""
+"""Recorder of the ultra-tight engine: per-epoch tracking estimates, the navigation solution
+at every tight-filter update and at every SINS step (the SINS-rate solution with the 1-sigma of
+the integration filter's covariance), and the :class:`EngineResult` built from them."""
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
+
+from ultratight.fusion.tight import ATT, CLK_B, CLK_D, POS, VEL
+from ultratight.ins.attitude import quat_to_euler
+from ultratight.ins.earth import radii
+
 
 
 @dataclass
@@ -23,6 +29,9 @@ class EngineResult:
     runtime_s: float
     duration_s: float
     info: dict
+    # the SINS-rate navigation solution (EpochRecorder.sins_arrays): t_s, llh, vel_l, q_lb, euler,
+    # clk and the 1-sigma of the integration filter (pos ENU m, vel ENU m/s, att ENU rad, clk m, m/s)
+    sins: dict = field(default_factory=dict)
 
 
 class EpochRecorder:
@@ -38,6 +47,39 @@ class EpochRecorder:
         self.a = np.full((n_ep_max, n_ch), np.nan)
         self.mode = np.zeros((n_ep_max, n_ch), dtype=np.int8)
         self.nav = {"t": [], "pos_e": [], "vel_e": [], "clk": [], "sig": []}
+        self.sins = []                     # rows: t, llh (3), vel_l (3), q_lb (4), clk b, d
+        self.sins_sig = []                 # rows: sigma pos ENU (3), vel (3), att (3), clk b, d
+        self.sigma_now = np.full(11, np.nan)
+
+    def set_sigma(self, P, llh):
+        """The 1-sigma of the integration filter's covariance ``P`` (tight.NX states) that the SINS
+        rows carry until the next update: position ENU (m), velocity ENU (m/s), attitude (rad,
+        ENU error angles), clock bias (m) and drift (m/s)."""
+        lat, _, h = (float(v) for v in llh)
+        rm, rn = radii(lat)
+        d = np.sqrt(np.maximum(np.diag(P), 0.0))
+        p = d[POS]
+        self.sigma_now = np.r_[p[1] * (rn + h) * np.cos(lat), p[0] * (rm + h), p[2], d[VEL], d[ATT], d[CLK_B], d[CLK_D]]
+
+    def log_sins(self, t, x, clk_b, clk_d, replace=False):
+        """The SINS state vector ``x`` (ultratight.ins.sins layout: q_lb, vel_l, llh) at time ``t``;
+        ``replace``: overwrite the last row (the same step after a feedback)."""
+        row = np.r_[t, x[7:10], x[4:7], x[0:4], clk_b, clk_d]
+        if replace and self.sins:
+            self.sins[-1] = row
+            self.sins_sig[-1] = self.sigma_now.copy()
+        else:
+            self.sins.append(row)
+            self.sins_sig.append(self.sigma_now.copy())
+
+    def sins_arrays(self):
+        """The SINS-rate solution as arrays (see EngineResult.sins)."""
+        a = np.asarray(self.sins, float).reshape(-1, 13)
+        s = np.asarray(self.sins_sig, float).reshape(-1, 11)
+        eul = np.array([quat_to_euler(q) for q in a[:, 7:11]]).reshape(-1, 3)
+        return {"t_s": a[:, 0], "llh": a[:, 1:4], "vel_l": a[:, 4:7], "q_lb": a[:, 7:11], "euler": eul,
+                "clk": a[:, 11:13], "sigma_pos_l_m": s[:, 0:3], "sigma_vel_l_mps": s[:, 3:6],
+                "sigma_att_rad": s[:, 6:9], "sigma_clk": s[:, 9:11]}
 
     def log_nav(self, t, pos_e, vel_e, clk_b, clk_d, sig_dopp):
         """The navigation state after a tight update (SINS time ``t``)."""
@@ -57,4 +99,4 @@ class EpochRecorder:
             nav_t=np.asarray(nav["t"]), nav_pos_e=np.asarray(nav["pos_e"]).reshape(-1, 3),
             nav_vel_e=np.asarray(nav["vel_e"]).reshape(-1, 3), nav_clk=np.asarray(nav["clk"]).reshape(-1, 2),
             nav_sigma_doppler_hz=np.asarray(nav["sig"]).reshape(-1, self.n_ch), runtime_s=runtime_s,
-            duration_s=n * code_period_s, info=info)
+            duration_s=n * code_period_s, info=info, sins=self.sins_arrays())

@@ -3,7 +3,11 @@
 ``--mode scalar`` (default): the scalar receiver (acquisition -> tracking -> LNAV -> PVT).
 ``--mode ultratight --imu IMU.h5 [--method M]``: the ultra-tight GPS/INS engine
 (:func:`ultratight.receiver.engine.run_ultratight_on_files`) on the IF file and a recorded IMU
-file (HDF5 or CSV) whose time axis starts at the first IF sample.
+file (HDF5 or CSV) whose time axis starts at the first IF sample; it starts from the scalar
+receiver's first fixes on the same file, the ``--init-*`` flags or (generated files) the
+perturbed truth (``--startup``, :mod:`ultratight.receiver.handover`), and writes the SINS-rate
+solution as CSV / KML / NMEA and RINEX observations of its channels
+(:mod:`ultratight.receiver.ut_outputs`).
 """
 
 import math
@@ -163,6 +167,18 @@ def add_arguments(p):
     p.add_argument("--rinex-nav", metavar="OUT.nav", help="also write the ephemerides used as RINEX 3.04 navigation")
     p.add_argument("--nmea", metavar="OUT.nmea", help="also write NMEA 0183 GGA/RMC/GSA/GSV per fix")
     p.add_argument("--kml", metavar="OUT.kml", help="also write the track as KML")
+    p.add_argument("--startup", choices=("auto", "scalar-fix", "truth-perturbed"), default="auto",
+                   help="--mode ultratight: initial state from the scalar receiver's first fixes on the same file "
+                        "(scalar-fix), from the IMU file's truth perturbed (truth-perturbed, generated files) or "
+                        "auto (default: --init-* flags when all three are given, else the truth when the IMU file "
+                        "has it, else scalar-fix); --start S starts the scalar pass at S. The --init-* flags take "
+                        "three numbers: --init-llh -33.87 151.21 40 (or -33.87,151.21,40)")
+    # three numbers, as `ultratight ins` takes them (LAT LON H) or comma-separated (LAT,LON,H)
+    p.add_argument("--init-llh", nargs="+", metavar="LAT LON H",
+                   help="--mode ultratight: initial position (deg, deg, m)")
+    p.add_argument("--init-vel", nargs="+", metavar="VE VN VU", help="--mode ultratight: initial ENU velocity (m/s)")
+    p.add_argument("--init-att", nargs="+", metavar="ROLL PITCH YAW",
+                   help="--mode ultratight: initial attitude (deg; yaw from north, FLU body)")
     p.add_argument("--json", action="store_true", help="print one JSON summary object on stdout")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     from ultratight.receiver.commands import imu_flags
@@ -191,6 +207,12 @@ def run(args):
     from ultratight.receiver.commands import imu_flags
     if imu_flags.overrides(args):
         raise ConfigError("the --imu-*/--lever-arm flags declare the IMU file of --mode ultratight")
+    ut_only = [f for f, on in (("--init-llh", getattr(args, "init_llh", None)),
+                               ("--init-vel", getattr(args, "init_vel", None)),
+                               ("--init-att", getattr(args, "init_att", None)),
+                               ("--startup", getattr(args, "startup", "auto") != "auto")) if on]
+    if ut_only:
+        raise ConfigError(f"{', '.join(ut_only)} only used with --mode ultratight")
     args.iono = args.iono or "klobuchar"           # defaults of the scalar receiver (recorded resolved)
     args.tropo = args.tropo or "saastamoinen"
     from ultratight.signals.iffile import open_if
@@ -269,11 +291,12 @@ def _run_ultratight(args):
 
     if not args.imu:
         raise ConfigError("--mode ultratight needs --imu IMU.h5")
+    from ultratight.receiver.handover import HandoverConfig, parse_init_flags
+
+    overrides = parse_init_flags(args.init_llh, args.init_vel, args.init_att)
     ignored = [flag for flag, on in (("--fs", args.fs is not None), ("--if", args.if_hz is not None),
                                      ("--format", args.fmt is not None), ("--iq-conj", args.iq_conj),
-                                     ("--start", args.start != 0.0), ("--csv", args.csv), ("--kml", args.kml),
-                                     ("--rinex-obs", args.rinex_obs), ("--rinex-nav", args.rinex_nav),
-                                     ("--nmea", args.nmea), ("--packing", args.packing),
+                                     ("--rinex-nav", args.rinex_nav), ("--packing", args.packing),
                                      ("--encoding", args.encoding), ("--word-size", args.word_size),
                                      ("--endian", args.endian))
                if on]
@@ -286,12 +309,24 @@ def _run_ultratight(args):
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise ConfigError(f"--duration must be > 0 s, got {args.duration}")
     prns = _prn_list(args.prn) if args.prn else None
+    hcfg = HandoverConfig(acq_min_cn0_dbhz=args.acq_min_cn0, acq_noncoherent=args.acq_noncoherent,
+                          acq_coherent_ms=args.acq_coherent, doppler_range_hz=args.doppler_range)
     from ultratight.receiver.commands import imu_flags
+    imu_decl = imu_flags.overrides(args)
+    if args.out:
+        note_partial(args.out)
     res = run_ultratight_on_files(args.iffile, args.imu, method=args.method or DEFAULT_METHOD, meta=args.meta,
                                   nav_path=args.ephemeris, prns=prns, duration_s=args.duration,
-                                  imu_declaration=imu_flags.overrides(args))
-    if args.out:
-        write_result_h5(args.out, res)
+                                  startup=args.startup, init_overrides=overrides, start_s=args.start, handover=hcfg,
+                                  imu_declaration=imu_decl)
+    from ultratight.receiver import ut_outputs
+    try:
+        if args.out:
+            write_result_h5(args.out, res)
+        ut_outputs.write_files(res, csv_path=args.csv, kml_path=args.kml, nmea_path=args.nmea,
+                               rinex_obs_path=args.rinex_obs)
+    except OSError as exc:
+        _raise_output_error(exc, args)
     info = res.info or {}
     mode = np.asarray(res.mode)
     summ = {
@@ -306,7 +341,14 @@ def _run_ultratight(args):
         "n_tight_updates": info.get("n_tight_updates"),
         "lock_losses": info.get("n_lock_lost_events"),
         "prefilter_restarts": info.get("n_prefilter_restarts"),
+        "lock_lost_channels": ut_outputs.lock_lost_channels(res),
+        "bits": ut_outputs.bit_strategy(res),
+        "startup": info.get("handover", {}).get("source"),
+        "handover": info.get("handover"),
+        "nav": ut_outputs.nav_summary(res),
         "out": args.out,
+        "files": {k: v for k, v in (("csv", args.csv), ("kml", args.kml), ("nmea", args.nmea),
+                                    ("rinex_obs", args.rinex_obs)) if v},
     }
     if args.json:
         print(json_dumps(summ))
@@ -318,6 +360,9 @@ def _run_ultratight(args):
               f"signal {summ['duration_s']:.2f} s")
         print(f"tight updates: {summ['n_tight_updates']}, lock losses: {summ['lock_losses']}, "
               f"prefilter restarts: {summ['prefilter_restarts']}")
+        ho = summ["handover"] or {}
+        print(f"start-up: {summ['startup']} at t = {ho.get('handover_t_s', 0.0):.2f} s; channels lost: "
+              f"{summ['lock_lost_channels'] or 'none'}")
         if args.out:
             print(f"output: {args.out}")
     return 0
