@@ -178,3 +178,16 @@ def test_hdf5_takes_only_a_lever_arm(imu, tmp_path):
     assert np.array_equal(imu_decl.read_imu_file(p, {"lever_arm_m": [0, 0, 2]}).lever_arm_b, [0, 0, 2])
     with pytest.raises(ConfigError, match="axes can only be declared for a CSV file"):
         imu_decl.read_imu_file(p, {"axes": "FRD"})
+
+
+def test_ten_g_from_the_first_sample_is_not_mistaken_for_rates_in_g(tmp_path):
+    """paper-highdyn accelerates at 100 m/s^2 from t = 0: its 100 Hz velocity increments (1.005 m/s)
+    read as rates in g are 9.86 m/s^2 — gravity. The gyro (the Earth rate as increments, 1/100 of it
+    as rates) says the declaration is right: the check steps aside instead of refusing it."""
+    tr = build_trajectory({"kind": "segments", "segments": [{"t0": 0.0, "acc_enu": [100.0, 4.0, 0.0]}]},
+                          {"lat_deg": 28.246, "lon_deg": 102.0266, "h_m": 50000.0}, 3.0)
+    d = synthesize_imu(tr, 100.0)
+    p = tmp_path / "tenG.csv"
+    write_imu_csv(p, d, ImuDeclaration(kind="increments", axes="FLU", gyro_unit="rad", accel_unit="m/s"))
+    rep = read_imu_csv(p).meta["sanity_check"]
+    assert rep["checked"] is False and "not at rest" in rep["reason"]

@@ -313,6 +313,11 @@ def stationary_check(f_raw, w_raw, dt, dec, accel_unit, gyro_unit, kind, path):
     if decl not in fits:
         if fits:
             k2, u2, _ = fits[0]
+            if k2 != kind and _earth_rate_fits(wm, dt, gyro_unit, kind) and not _earth_rate_fits(wm, dt, gyro_unit, k2):
+                # the gyro reads the Earth rate as declared and not as the other kind: this is a steady
+                # specific force of a moving vehicle that happens to read 1 g as the other kind
+                return {"checked": False, "reason": f"steady specific force |f| = {mraw * decl[2]:.4g} m/s^2 "
+                        f"with no rotation ({t_txt}): not at rest, sanity check skipped"}
             if k2 != kind:
                 raise InputFileError(f"{path}: values look like {k2}, declared {kind} ({t_txt}: |f| = "
                                      f"{mraw * decl[2]:.4g} m/s^2 as declared, {mraw * fits[0][2]:.4g} as {k2})")
@@ -348,6 +353,13 @@ def stationary_check(f_raw, w_raw, dt, dec, accel_unit, gyro_unit, kind, path):
                              f"{ratio:.3g} x Earth rate as declared, {oratio:.3g} x as {other})")
     return {"checked": True, "window": [int(a), int(b)], "f_mps2": float(mraw * decl[2]),
             "omega_earth_rates": ratio, "gyro_in_range": bool(gyro_ok)}
+
+
+def _earth_rate_fits(wm, dt, gyro_unit, kind):
+    """Whether the mean raw gyro column ``wm`` reads the Earth rate (within [W_LO, W_HI] of it) in
+    ``gyro_unit`` as ``kind``."""
+    fac = GYRO_UNITS[gyro_unit][0] / (dt if kind == "increments" else 1.0)
+    return W_LO <= float(np.linalg.norm(wm)) * fac / OMEGA_E <= W_HI
 
 
 def _proper_axes():
