@@ -23,6 +23,7 @@ class EngineResult:
     runtime_s: float
     duration_s: float
     info: dict
+    bit_source: np.ndarray = None   # (n_ep, n_ch) int8 source of each epoch's data bit (receiver.wipeoff BIT_*)
 
 
 class EpochRecorder:

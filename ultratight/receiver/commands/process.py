@@ -112,6 +112,11 @@ def add_arguments(p):
     p.add_argument("--mode", choices=MODES, default="scalar",
                    help="scalar receiver (default) or ultratight GPS/INS engine (needs --imu)")
     p.add_argument("--imu", metavar="IMU", help="IMU file (HDF5 or .csv) for --mode ultratight")
+    p.add_argument("--bits", metavar="STRATEGY", default=None,
+                   help="--mode ultratight: navigation-data bits: assisted (default; re-encoded from the ephemeris, "
+                        "valid for the project's own generated LNAV only), decoded (LNAV words decoded from a blind "
+                        "pass over the same file, blind elsewhere), decoded-scalar (words from a scalar-receiver "
+                        "pass), blind (per-bit decisions) or a bit file (CSV, docs/process.md)")
     p.add_argument("--method", choices=_EngineMethods(), default=None, metavar="METHOD",
                    help="ultra-tight method (--mode ultratight): %(choices)s (default: the engine's DEFAULT_METHOD, "
                         "dlb-rackf)")
@@ -186,6 +191,8 @@ def run(args):
         return _run_ultratight(args)
     if getattr(args, "imu", None):
         raise ConfigError("--imu is only used with --mode ultratight")
+    if getattr(args, "bits", None):
+        raise ConfigError("--bits is only used with --mode ultratight")
     args.iono = args.iono or "klobuchar"           # defaults of the scalar receiver (recorded resolved)
     args.tropo = args.tropo or "saastamoinen"
     from ultratight.signals.iffile import open_if
@@ -260,7 +267,8 @@ def _run_ultratight(args):
     import numpy as np
 
     from ultratight.errors import ConfigError
-    from ultratight.receiver.engine import DEFAULT_METHOD, run_ultratight_on_files, write_result_h5
+    from ultratight.receiver.bitsources import check_strategy
+    from ultratight.receiver.engine import DEFAULT_METHOD, EngineOptions, run_ultratight_on_files, write_result_h5
 
     if not args.imu:
         raise ConfigError("--mode ultratight needs --imu IMU.h5")
@@ -281,8 +289,11 @@ def _run_ultratight(args):
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise ConfigError(f"--duration must be > 0 s, got {args.duration}")
     prns = _prn_list(args.prn) if args.prn else None
+    bits = args.bits or "assisted"
+    check_strategy(bits)
     res = run_ultratight_on_files(args.iffile, args.imu, method=args.method or DEFAULT_METHOD, meta=args.meta,
-                                  nav_path=args.ephemeris, prns=prns, duration_s=args.duration)
+                                  nav_path=args.ephemeris, prns=prns, duration_s=args.duration,
+                                  options=EngineOptions(bits=bits))
     if args.out:
         write_result_h5(args.out, res)
     info = res.info or {}
@@ -299,6 +310,9 @@ def _run_ultratight(args):
         "n_tight_updates": info.get("n_tight_updates"),
         "lock_losses": info.get("n_lock_lost_events"),
         "prefilter_restarts": info.get("n_prefilter_restarts"),
+        "bits": (info.get("bits") or {}).get("strategy"),
+        "bit_strategy": (info.get("bits") or {}).get("channel_strategy"),
+        "blind_fraction": _blind_fraction(res),
         "out": args.out,
     }
     if args.json:
@@ -311,9 +325,21 @@ def _run_ultratight(args):
               f"signal {summ['duration_s']:.2f} s")
         print(f"tight updates: {summ['n_tight_updates']}, lock losses: {summ['lock_losses']}, "
               f"prefilter restarts: {summ['prefilter_restarts']}")
+        print(f"data bits: {summ['bits']}; blind fraction per channel: {summ['blind_fraction']}")
         if args.out:
             print(f"output: {args.out}")
     return 0
+
+
+def _blind_fraction(res):
+    """Per channel, the fraction of epochs whose data bit was a blind decision."""
+    import numpy as np
+
+    from ultratight.receiver.wipeoff import BIT_BLIND
+    b = getattr(res, "bit_source", None)
+    if b is None or len(b) == 0:
+        return None
+    return [round(float(v), 4) for v in np.mean(np.asarray(b) == BIT_BLIND, axis=0)]
 
 
 def _print_human(s):
