@@ -273,3 +273,28 @@ def test_cli_process_ultratight_blind(unknown, tmp_path, capsys):
     assert main(["process", str(paths["if"]), "--mode", "ultratight", "--imu", str(paths["imu"]), "--bits",
                  str(tmp_path / "nope.csv")]) == 2
     assert "neither assisted, decoded, blind nor an existing bit file" in capsys.readouterr().err
+
+
+def test_decoded_scalar_pass_on_a_static_receiver(tmp_path):
+    """``decoded-scalar``: the scalar receiver, started on predictions, decodes the words of a static
+    receiver's signal; every known bit is a sent bit."""
+    from ultratight.receiver.bitsources import decoded_source
+    from ultratight.receiver.scenario_runner import ephemerides_for, load_truth
+    from ultratight.receiver.startup import predict_channels
+    from ultratight.signals.iffile import open_if
+    cfg = load_scenario("static-open-sky", {"duration_s": 13.0, "satellites.max_count": 2, "frontend.fs_hz": FS_HZ,
+                                            "nav.data": "lnav-random-sf45"})
+    res = generate(cfg, tmp_path, "s", progress=False)
+    tr = load_truth(res["truth"])
+    with h5py.File(res["truth"]) as f:
+        sent, b0 = f["nav_bits"][()], int(f.attrs["nav_bit0"])
+        pos, vel = f["pos_e"][0], f["vel_e"][0]
+    ephs = ephemerides_for(cfg)
+    pred = predict_channels(ephs, tr["prn"], tr["week"], tr["tow0_s"], pos, vel, 0.0, 0.0)
+    rows = decoded_source(open_if(res["if"]), tr["prn"], ephs, tr["week"], tr["tow0_s"], 13.0, pred)
+    assert rows.strategy == "decoded-scalar"
+    for c in range(2):
+        k = np.flatnonzero(rows.bits[c])
+        assert k.size >= 300                                     # subframe 1 at least, whole
+        assert np.array_equal(rows.bits[c, k], sent[c, rows.bit0 + k - b0])
+        assert 1 in set(_sf_of(rows.bit0 + k))
