@@ -10,11 +10,14 @@ channel and ``mode`` (a name for the records):
   that encoding — the project's own generated data with ``nav.data = "lnav"``; a real satellite's
   subframes 4-5, TLM and reserved fields are not in the ephemeris, so about half the bits of such
   a frame would be wrong.
-* ``decoded`` (:func:`decoded_source`): a scalar pass over the same IF file (the project's scalar
+* ``decoded`` (:func:`decoded_from_pass`): a blind pass of the engine over the same IF file; the
+  LNAV decoder reads that pass's per-bit soft decisions; the bits of every word whose parity
+  checks — with the polarity of its subframe's preamble — are known, all others unknown (the
+  engine decides those blind).
+* ``decoded-scalar`` (:func:`decoded_source`): the same from a scalar pass (the project's scalar
   receiver, :class:`ultratight.receiver.process.ScalarReceiver`, started on the hot-start
-  predictions instead of an acquisition) decodes the LNAV words where the C/N0 allows; the bits of
-  every word whose parity checks — with the polarity of its subframe's preamble — are known, all
-  others unknown (the engine decides those blind).
+  predictions instead of an acquisition). It decodes only while the scalar receiver keeps lock
+  (on paper-highdyn at 30 dB-Hz it lost every channel in the noise burst and decoded nothing).
 * ``blind``: every bit unknown.
 * a file path (:func:`file_source`): external bits in the CSV format of :func:`write_bits_csv`
   (docs/process.md, "Data bits"): one row per bit ``prn,week,tow_s,bit`` with ``tow_s`` the bit's
@@ -226,7 +229,8 @@ def _stream_runs(log, per_bit):
 
 
 def decoded_source(src, prns, ephs, week, tow_start_s, duration_s, pred0, cn0_dbhz=30.0, signal=GPS_L1CA):
-    """The ``decoded`` bit source: the scalar receiver over the same IF source ``src`` (first
+    """The ``decoded-scalar`` bit source (``week``: of the IF start, unused: the decoded TOWs are
+    placed relative to ``tow_start_s``): the scalar receiver over the same IF source ``src`` (first
     ``duration_s``), started on the hot-start predictions ``pred0`` (code phase, Doppler at sample 0;
     :func:`ultratight.receiver.startup.predict_channels`), its navigation decoders' soft bits turned
     into known words (:func:`known_words`)."""
