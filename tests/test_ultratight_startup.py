@@ -27,7 +27,7 @@ FS_HZ = 2.046e6
 DURATION_S = 20.0
 CN0_DBHZ = 45.0
 BITS_FLAGS = []                      # e.g. ["--bits", "decoded"] once the strategies exist
-EXPECTED_BITS = {"assisted-bits"}
+EXPECTED_BITS = {"assisted"}
 
 
 def _cli(*args, cwd=None):

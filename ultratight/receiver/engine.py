@@ -50,7 +50,7 @@ References: docs/references.md.
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numba
@@ -77,10 +77,10 @@ from ultratight.receiver.outer_loop import OuterLoop, SinsFollower
 from ultratight.receiver.recorder import EngineResult, EpochRecorder  # noqa: F401 (EngineResult: public here)
 from ultratight.receiver.scalar_reference import run_scalar
 from ultratight.receiver.sins_clock import InsClock  # noqa: F401 (public here too)
-from ultratight.receiver.startup import (BitWipeoff, StartupErrors, first_period_ms, perturb_state,
-                                         predict_channels)
+from ultratight.receiver.bitsources import bit_source, check_strategy, decoded_from_pass
+from ultratight.receiver.startup import StartupErrors, first_period_ms, perturb_state, predict_channels
 from ultratight.receiver.tracking_banks import bank_view, make_tracking_bank, restart_covariance
-from ultratight.receiver.wipeoff import DataWipeoff
+from ultratight.receiver.wipeoff import BIT_SOURCE_NAMES, DataWipeoff
 from ultratight.receiver.workers import stage_threads
 from ultratight.signals.constellation import nominal_ephemerides
 from ultratight.signals.ephemeris import sat_state
@@ -192,6 +192,8 @@ class EngineOptions:
     noise_seed: int = 0
     startup: dict = field(default_factory=dict)   # StartupErrors overrides
     threads: int = 0                     # epoch-stage threads: 0 = auto (epoch_threads), 1 = one, k = k
+    # navigation-data bits (receiver.bitsources): assisted | decoded | blind | path of a bit file
+    bits: str = "assisted"
 
     def as_dict(self):
         return asdict(self)
@@ -220,6 +222,11 @@ class EpochState:
         self.coast_any = False
         self.init_left = int(opt.phase_init_ms)            # start-up phase-initialisation epochs left
         self.init_acc = np.zeros(n_ch, dtype=np.complex128)
+        self.init_bit = np.zeros(n_ch, dtype=np.complex128)   # ... per bit (channels with unknown bits)
+        self.init_sq = np.zeros(n_ch, dtype=np.complex128)    # sum of the squared per-bit sums
+        self.init_nb = np.zeros(n_ch, dtype=np.int64)
+        self.init_n2 = np.zeros(n_ch, dtype=np.int64)
+        self.init_kb = np.full(n_ch, -1, dtype=np.int64)
         self.rollback = np.zeros(n_ch)
         self.off_ring = np.zeros((int(opt.lock_window_ms), n_ch))   # carrier NCO minus aiding history
         self.xp_view = np.zeros((n_ch, 5))
@@ -282,7 +289,9 @@ class UltratightEngine:
             if progress and status == TIGHT and st.k_ep // 5000 != (st.k_ep - 100) // 5000:
                 print(f"  {self.method}: {st.k_ep / 1000.0:6.1f} s", flush=True)
         runtime = time.perf_counter() - t_wall0
-        return self.rec.result(self.method, self.prns, st.k_ep, runtime, self.signal.code_period_s, self._info(st))
+        res = self.rec.result(self.method, self.prns, st.k_ep, runtime, self.signal.code_period_s, self._info(st))
+        res.bit_source = self.wipe.rec_src[:st.k_ep]
+        return res
 
     def _check_status(self, status, info):
         if status == ERR_CORR:
@@ -326,9 +335,15 @@ class UltratightEngine:
             self.corr.init_channel(ch, prn, pred0["code_phase_chips"][ch], pred0["doppler_hz"][ch], 0,
                                    carr_phase_cycles=0.0, align=True)
         self.ms0 = first_period_ms(pred0["t_tx_tow"], pred0["code_phase_chips"], signal=sgl)
-        self.wipe = DataWipeoff(BitWipeoff(self.ephs, self.prns, self.week, self.tow0, self.duration_s + 1.0,
-                                           signal=sgl),
-                                self.ms0.copy(), sgl.codes_per_bit)
+        strategy, bits_path = check_strategy(opt.bits)
+        if strategy == "decoded":
+            source = self._decoding_pass()
+        else:
+            source = bit_source(strategy, bits_path, src=self.src, ephs=self.ephs, prns=self.prns, week=self.week,
+                                tow_start_s=self.tow0, duration_s=self.duration_s + 1.0, pred0=pred0,
+                                cn0_dbhz=opt.cn0_init_dbhz, signal=sgl)
+        self.wipe = DataWipeoff(source, self.ms0.copy(), sgl.codes_per_bit, n_ep_max=self._n_ep_max(),
+                                half_t=0.5 * sgl.code_period_s)
         P0 = tightmod.initial_covariance(self.ins.llh, st.get("sigmas", {}), self.imu_noise)
         self.tf = tightmod.TightFilter(P0, core=opt.tight_core, gate_sigma=opt.gate_sigma)
         self.outer = OuterLoop(self.ephs, self.prns, self.week, self.tow0, self.duration_s + 0.5, signal=sgl,
@@ -371,7 +386,7 @@ class UltratightEngine:
         """Recorder, decimator, lock monitor, IF block stream and the stage views."""
         opt, sgl = self.opt, self.signal
         n_ch = len(self.prns)
-        self.rec = EpochRecorder(int(self.duration_s * 1000.0 * 1.001) + 8, n_ch)
+        self.rec = EpochRecorder(self._n_ep_max(), n_ch)
         self.dec = ResidualDecimator(n_ch, opt.tight_rate_hz)
         self.pend = np.zeros((PEND_EPOCHS, n_ch, 6))          # residual inputs of epochs run, not yet summed
         self.pend_ts = np.zeros((PEND_EPOCHS, n_ch), dtype=np.int64)
@@ -391,7 +406,7 @@ class UltratightEngine:
             c.tap_offsets_chips, per_max, self.threads > 1, z, np.zeros(n_ch, np.int64), np.zeros(n_ch, np.int64),
             np.zeros(n_ch), np.zeros(n_ch), np.zeros(n_ch))
         w = self.wipe
-        self.wipe_view = epochs.Wipe(w.bits, w.t0_ms, w.ms, w.per_bit, w.D)
+        self.wipe_view = epochs.Wipe(*w.view_args(), w.half_t)
         self.bank_view = bank_view(self.pref)
         r = self.rec
         self.rec_view = epochs.Rec(r.t, r.f, r.cp, r.a, r.mode, es.mode_now, r.n_ep_max)
@@ -400,6 +415,22 @@ class UltratightEngine:
                                    es.aid_prev_ff)
         self.sig_view = epochs.Sig(self.if_hz, 0.5 * sgl.code_period_s, float(sgl.code_length))
         self.burst = make_burst(opt.noise_events, n_ch, c.tap_offsets_chips[:3], sgl.code_period_s, opt.noise_seed)
+
+    def _decoding_pass(self):
+        """``decoded`` bits: the same method with blind bits over the same data first; its per-bit soft
+        decisions go through the LNAV decoder (receiver.bitsources.decoded_from_pass)."""
+        t0 = time.perf_counter()
+        first = UltratightEngine(self.src, self.imu, self.ephs, self.prns, self.week, self.tow0, method=self.method,
+                                 options=replace(self.opt, bits="blind"), init_state=self.init_state, rng=self.rng,
+                                 duration_s=self.duration_s, signal=self.signal)
+        first.run()
+        source = decoded_from_pass(first.wipe, self.prns, self.tow0, self.duration_s + 1.0, self.signal)
+        source.info["decoding_pass_s"] = round(time.perf_counter() - t0, 3)
+        return source
+
+    def _n_ep_max(self):
+        """Rows of the per-epoch records."""
+        return int(self.duration_s * 1000.0 * 1.001) + 8
 
     def _stage_views(self, st):
         """The arguments of the compiled epoch stages after :attr:`corr_view` etc.: the views whose
@@ -511,7 +542,7 @@ class UltratightEngine:
         for c in range(len(self.prns)):
             burst_one(c, st.k_ep, corr.t_start[c] / corr.fs, burst, corr.out)
         init_now = st.init_left > 0
-        D = self.wipe.step()
+        D = self.wipe.step(corr.out, self.pref.x, st.k_ep)
         restart = self._measure(st, corr.out, D, init_now)
         ff = None               # channels whose NCO follows the outer-loop aiding alone this epoch
         xp_rec = self.pref.x_post
@@ -537,11 +568,32 @@ class UltratightEngine:
         opt = self.opt
         if init_now:
             # carrier-phase initialisation: NCOs on the aiding only, coherent sum of wiped prompts
-            st.init_acc += (out[:, 0] + 1j * out[:, 3]) * D
+            zc = out[:, 0] + 1j * out[:, 3]
+            st.init_acc += zc * D
+            w = self.wipe
+            if w.adaptive:
+                # channels with unknown bits: coherent sums per bit, squared (two-quadrant: the
+                # 180 degree ambiguity is the wipe stage's polarity to resolve)
+                a = w.adapt
+                new = a & (w.kb != st.init_kb)
+                st.init_sq[new] += st.init_bit[new] ** 2
+                st.init_n2[new] += st.init_nb[new] ** 2
+                st.init_bit[new] = 0.0
+                st.init_nb[new] = 0
+                st.init_kb[new] = w.kb[new]
+                st.init_bit[a] += zc[a]
+                st.init_nb[a] += 1
             st.init_left -= 1
             if st.init_left == 0:
                 st.counts["n_phase_inits"] += 1
-                return np.arange(len(self.prns)), np.angle(st.init_acc), np.abs(st.init_acc) / opt.phase_init_ms
+                phase, amp = np.angle(st.init_acc), np.abs(st.init_acc) / opt.phase_init_ms
+                if w.adaptive:
+                    a = w.adapt
+                    sq = st.init_sq + st.init_bit ** 2
+                    n2 = st.init_n2 + st.init_nb ** 2
+                    phase[a] = 0.5 * np.angle(sq[a])
+                    amp[a] = np.sqrt(np.abs(sq[a]) / np.maximum(n2[a], 1))
+                return np.arange(len(self.prns)), phase, amp
             return None
         self.pref.step(out, bits=D, rscale=self.burst.rscale)
         if not (opt.lock_monitor or opt.monitor_gates_tight):
@@ -625,6 +677,15 @@ class UltratightEngine:
             self.pref.reset(chans, x0=x0, P0=P0)
         self.inner.prime_aiding(self.pref, aid - rate * t_code, rate, channels=chans)
 
+    def _bits_info(self, st):
+        """The bit strategy, per channel its code and epochs by bit source, the source's own record."""
+        w = self.wipe
+        src = getattr(w.source, "info", {}) or {}
+        return {"strategy": getattr(w.source, "strategy", w.mode),
+                "channel_strategy": [BIT_SOURCE_NAMES[int(c)] for c in w.code],
+                "epochs_by_source": w.counts(st.k_ep), "polarity": w.pol.astype(int).tolist(),
+                "source": src}
+
     def _info(self, st):
         opt = self.opt
         return {
@@ -632,6 +693,7 @@ class UltratightEngine:
             "wipeoff_mode": self.wipe.mode,
             # transmit-time count of code periods of each channel's first epoch (epoch k: + k)
             "first_period_count": np.asarray(self.ms0).tolist(),
+            "bits": self._bits_info(st),
             "n_epochs": st.k_ep,
             "n_tight_updates": self.tf.n_updates,
             "n_tight_rejected": self.tf.n_rejected,
@@ -893,5 +955,7 @@ def write_result_h5(path, res, extra_attrs=None):
                      ("nav_t_s", res.nav_t), ("nav_pos_e", res.nav_pos_e), ("nav_vel_e", res.nav_vel_e),
                      ("nav_clk", res.nav_clk), ("nav_sigma_doppler_hz", res.nav_sigma_doppler_hz)):
             f.create_dataset(k, data=np.asarray(v), compression="gzip", compression_opts=1, shuffle=True)
+        if getattr(res, "bit_source", None) is not None:
+            f.create_dataset("bit_source", data=np.asarray(res.bit_source), compression="gzip", compression_opts=1)
 
     return write_h5_atomic(path, build)

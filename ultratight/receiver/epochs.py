@@ -33,7 +33,7 @@ from ultratight.fusion.pbkf import pbkf_channel_epoch, pbkf_note_correction_one
 from ultratight.fusion.prefilter import N_W1, N_W2, NZ, bank_channel_epoch
 from ultratight.receiver.burst import burst_one
 from ultratight.receiver.correlator import _correlate_one, _step_bank, tap_fixed_point
-from ultratight.receiver.wipeoff import wipe_one
+from ultratight.receiver.wipeoff import wipe_channel
 
 # status of run_epochs
 CONTINUE = 0       # (internal) the next epoch can run
@@ -50,7 +50,7 @@ BANK_PBKF = 1          # fusion.pbkf.PbKfBank
 If = namedtuple("If", "buf is_complex buf_start n_buf n_total block_len sigma")
 Corr = namedtuple("Corr", "code_ext pad active sample_ptr code_phase code_rate carr_phase carr_freq fs "
                           "tap_off per_max parallel out t_start n_s cp0 f0 sig")
-Wipe = namedtuple("Wipe", "bits t0_ms ms per_bit D")
+Wipe = namedtuple("Wipe", "bits t0_ms ms D per_bit code adapt kb acc pol ps pss pn src rec_src soft half_t")
 Bank = namedtuple("Bank", "bank_type kind fbuf ibuf n_prm n_tab x x_post P i_ptau i_pf active")
 Outer = namedtuple("Outer", "ring_t ring_cp ring_r ring_f ring_nf ring_k imu_dt aid_grid n_filled aid_dt sins_more")
 Window = namedtuple("Window", "t_next_upd acc pend pend_ts")
@@ -217,7 +217,9 @@ def epoch_channel(c, k_ep, e_row, epoch, src, corr, wipe, bank, outer, window, r
     if corr.n_s[c] <= 0:
         return ERR_CORR
     burst_one(c, k_ep, corr.t_start[c] / corr.fs, burst, corr.out)
-    wipe_one(c, wipe.bits, wipe.t0_ms, wipe.ms, wipe.D, wipe.per_bit)
+    wipe_channel(c, k_ep, wipe.bits, wipe.t0_ms, wipe.ms, wipe.D, wipe.per_bit, wipe.code, wipe.adapt, wipe.kb,
+                 wipe.acc, wipe.pol, wipe.ps, wipe.pss, wipe.pn, wipe.src, wipe.rec_src, wipe.soft,
+                 corr.out, bank.x, wipe.half_t)
     if bank.bank_type == BANK_PBKF:
         sb = pbkf_channel_epoch(bank.fbuf, bank.ibuf, c, corr.out, wipe.D, burst.rscale, bank.n_prm, bank.n_tab)
     else:

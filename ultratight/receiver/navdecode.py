@@ -26,6 +26,7 @@ class ChannelNav:
         self.prn = int(prn)
         self.ref_week = ref_week
         self.signal = signal
+        self.log = None               # a list to keep every (soft bits, start epochs) fed, or None
         self.reset()
 
     def reset(self):
@@ -47,6 +48,8 @@ class ChannelNav:
         if len(bits_soft) == 0:
             return []
         e = np.asarray(bit_start_epochs, dtype=np.int64)
+        if self.log is not None:
+            self.log.append((np.array(bits_soft, dtype=float), e.copy()))
         if self.bit_epochs and e[0] != self.bit_epochs[-1] + self.signal.codes_per_bit:
             # a gap in the bit stream: the decoder's stream indices would be wrong -> restart
             eph = self.ephemeris

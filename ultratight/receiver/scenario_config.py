@@ -30,6 +30,7 @@ from ultratight.receiver.burst import validate_place
 from ultratight.signals.atmosphere import IONO_MODELS, MAPPINGS, TROPO_MODELS
 from ultratight.signals.frontend import FrontEnd
 from ultratight.signals.iffile import FORMATS, check_bits_for_format
+from ultratight.signals.lnav import NAV_DATA_MODES
 
 # limits (docs/reliability.md); the declared key schema is in ultratight.receiver.scenario_schema
 MIN_FS_HZ = 1.023e6            # the receiver needs at least the C/A chipping rate
@@ -235,6 +236,8 @@ def validate(cfg):
     nav = _table(cfg, "nav")
     if not isinstance(nav.get("data_bits"), bool):
         raise ConfigError(f"nav.data_bits must be true or false, got {nav.get('data_bits')!r}")
+    if "data" in nav and nav["data"] not in NAV_DATA_MODES:
+        raise ConfigError(f"nav.data must be one of {', '.join(NAV_DATA_MODES)}, got {nav['data']!r}")
     if "imu" in cfg:
         _table(cfg, "imu")
         _num(cfg, "imu.rate_hz", lo=0, lo_open=True, hi=MAX_IMU_RATE_HZ)
@@ -324,6 +327,8 @@ def _validate_engine(eng):
     for k in ("lock_monitor", "monitor_gates_tight"):
         if k in eng and not isinstance(eng[k], bool):
             raise ConfigError(f"engine.{k} must be true or false, got {eng[k]!r}")
+    if "bits" in eng and not (isinstance(eng["bits"], str) and eng["bits"]):
+        raise ConfigError(f"engine.bits must be assisted, decoded, blind or a bit file path, got {eng['bits']!r}")
 
 
 # [atmosphere] (opt-in): delays the generator applies (ultratight.signals.atmosphere); the default

@@ -468,6 +468,9 @@ def write_results_h5(path, cfg, raw, methods, runs, base_seed):
                          ("nav_t_s", res.nav_t), ("nav_pos_e", res.nav_pos_e), ("nav_vel_e", res.nav_vel_e),
                          ("nav_clk", res.nav_clk), ("nav_sigma_doppler_hz", res.nav_sigma_doppler_hz)):
                 g.create_dataset(k, data=np.asarray(v), compression="gzip", compression_opts=1, shuffle=True)
+            if getattr(res, "bit_source", None) is not None:
+                g.create_dataset("bit_source", data=np.asarray(res.bit_source), compression="gzip",
+                                 compression_opts=1)
 
     write_h5_atomic(path, build)
 

@@ -18,7 +18,7 @@ from ultratight.ins.imu import _KNOWN_KEYS as _IMU_KNOWN_KEYS
 
 # receiver settings a scenario may fix (the ultra-tight engine's EngineOptions fields); they do not
 # change the generated data, only how the scenario is processed
-ENGINE_KEYS = ("noise_tau_s", "lock_monitor", "monitor_gates_tight")
+ENGINE_KEYS = ("noise_tau_s", "lock_monitor", "monitor_gates_tight", "bits")
 
 TOP_LEVEL_KEYS = ("name", "description", "duration_s", "seed", "experiment")
 TABLES = {
@@ -29,7 +29,7 @@ TABLES = {
     "satellites": ("source", "rinex", "prns", "max_count", "mask_deg", "cn0_dbhz"),
     "frontend": ("fs_hz", "if_hz", "sampling", "format", "bits", "inversion", "filter_bw_hz", "filter_order",
                  "gain", "headroom"),
-    "nav": ("data_bits",),
+    "nav": ("data_bits", "data"),
     "engine": ENGINE_KEYS,
     "imu": None,          # the known keys of ultratight.ins.imu
 }

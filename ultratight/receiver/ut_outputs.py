@@ -123,8 +123,11 @@ def lock_lost_channels(res, amp_min=None, window_ms=None):
 
 
 def bit_strategy(res):
-    """{PRN: data-bit strategy} read from the engine's wipe-off source mode (one mode for all
-    channels, or one per channel)."""
+    """{PRN: data-bit strategy}: the engine's per-channel strategy (``info["bits"]``), else its
+    wipe-off source mode."""
+    per_ch = ((res.info or {}).get("bits") or {}).get("channel_strategy")
+    if per_ch:
+        return {str(int(p)): str(m) for p, m in zip(res.prns, per_ch)}
     mode = (res.info or {}).get("wipeoff_mode")
     if isinstance(mode, (list, tuple)):
         return {str(int(p)): str(m) for p, m in zip(res.prns, mode)}

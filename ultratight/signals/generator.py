@@ -76,7 +76,7 @@ from ultratight.signals.constellation import nominal_ephemerides
 from ultratight.signals.frontend import FrontEnd
 from ultratight.signals.geometry import geodetic_llh, light_time, visible_prns
 from ultratight.signals.iffile import FORMATS, IfWriter, check_bits_for_format, get_format
-from ultratight.signals.lnav import IonoUtc, nav_bits, quantise_iono
+from ultratight.signals.lnav import IonoUtc, nav_bits, nav_bits_mode, quantise_iono
 from ultratight.signals.rinex import read_rinex_nav
 
 LUT_BITS = 11
@@ -283,8 +283,9 @@ class SignalPlan:
         return coefs, epoch0, starts, rx0
 
     # --- navigation data
-    def set_nav_bits(self, duration_s, enabled):
-        """Fetch LNAV bits covering the run for every satellite (None: all +1)."""
+    def set_nav_bits(self, duration_s, enabled, mode="lnav", seed=0):
+        """Fetch the data bits covering the run for every satellite (None: all +1); ``mode``: the
+        content (:data:`ultratight.signals.lnav.NAV_DATA_MODES`), random parts drawn from ``seed``."""
         self.bits = {}
         if not enabled:
             return
@@ -293,8 +294,18 @@ class SignalPlan:
         n_bits = int(math.ceil((duration_s + 0.5) / 0.02)) + 2
         for eph in self.ephs:
             kw = {"iono": self.iono_broadcast} if self.iono_broadcast is not None else {}
-            b = np.asarray(nav_bits(eph, self.week, first * 0.02, n_bits, **kw), dtype=np.int8)
+            if mode == "lnav":
+                b = np.asarray(nav_bits(eph, self.week, first * 0.02, n_bits, **kw), dtype=np.int8)
+            else:
+                b = np.asarray(nav_bits_mode(eph, self.week, first * 0.02, n_bits, mode, seed, **kw), dtype=np.int8)
             self.bits[int(eph.prn)] = (first, b)
+
+    def sent_bits(self):
+        """(first bit index of week ``self.week``, (nsat, n_bits) int8 ±1) of the bits sent, or None."""
+        if not self.bits:
+            return None
+        first = next(iter(self.bits.values()))[0]
+        return first, np.stack([self.bits[int(p)][1] for p in self.prns])
 
     def bit_values(self, epoch0):
         """(n_int, nsat, 3) float32 data bits of epochs epoch0, +1, +2."""
@@ -541,7 +552,8 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
     plan = SignalPlan(ephs, cn0, trajectory, week, tow0, fe.fs_hz, fe.if_hz, fe.is_complex, fe.inversion,
                       rcv.get("clock_bias_m", 0.0), rcv.get("clock_drift_mps", 0.0),
                       atmosphere=atmosphere, iono_broadcast=iono_broadcast)
-    plan.set_nav_bits(duration, bool(cfg.get("nav", {}).get("data_bits", True)))
+    nav_data = cfg.get("nav", {}).get("data", "lnav")
+    plan.set_nav_bits(duration, bool(cfg.get("nav", {}).get("data_bits", True)), nav_data, int(seed))
     events = cfg.get("noise_events", [])
     horizon = cfg.get("satellites", {}).get("horizon_deg")
 
@@ -629,6 +641,13 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
             truth.append(rows)
             if bar is not None:
                 bar.update(n_valid / fe.fs_hz)
+        sent = plan.sent_bits()
+        if sent is not None:
+            # every data bit sent (docs/generator.md): bit k of row s starts at GPS week ``week``,
+            # TOW (nav_bit0 + k) * 20 ms of satellite time
+            truth.f.attrs["nav_data"] = nav_data
+            truth.f.attrs["nav_bit0"] = int(sent[0])
+            truth.f.create_dataset("nav_bits", data=sent[1], compression="gzip", compression_opts=1)
         truth.f.attrs["elapsed_s"] = time.perf_counter() - t_start
         truth.finish()
         result = {"if": paths["if"], "meta": paths["meta"], "truth": paths["truth"]}

@@ -370,6 +370,12 @@ def encode_subframe(sf_id, eph, tow_s, week=None, almanac=None, alert=0, anti_sp
     if week is None:
         week = eph.week
     words = _subframe_words(int(sf_id), eph, tow_s, int(week), almanac, alert, anti_spoof, tlm_message, iono)
+    return encode_words(words)
+
+
+def encode_words(words):
+    """300 transmitted bits (uint8 0/1) of a subframe from its ten 24-bit source words (the t bits of
+    words 2 and 10, their two low bits, are solved so that D29 = D30 = 0)."""
     bits = np.empty(SUBFRAME_BITS, dtype=np.uint8)
     d29s = d30s = 0
     for k, d24 in enumerate(words):
@@ -419,6 +425,74 @@ def nav_bits(eph, week, tow_start_s, n_bits, almanac=None, iono=None):
     :func:`nav_bits_at` to look bits up for arbitrary satellite-clock times."""
     k0 = int(bit_index(tow_start_s))
     return nav_bits_at(eph, week, k0 + np.arange(int(n_bits)), almanac, iono)
+
+
+# ------------------------------------------------------- navigation data a receiver cannot know
+NAV_DATA_MODES = ("lnav", "lnav-random-sf45", "random")
+"""Content of the broadcast data (:func:`nav_bits_mode`):
+
+* ``lnav``: the LNAV message of this module (subframes 1-3 from the ephemeris, structured
+  subframes 4-5), all of it reproducible from the ephemeris;
+* ``lnav-random-sf45``: as a real satellite sends it, content a receiver cannot re-encode from the
+  ephemeris: subframes 4 and 5 carry random source bits in words 3-10 (22 of word 10), and the
+  reserved fields of subframes 1-3 are random (TLM message and the TLM's integrity/reserved bit of
+  every subframe; subframe 1: the 23 reserved bits of word 4, words 5-6 and the 16 reserved bits
+  of word 7); every word keeps valid parity, so a decoder reads all of it and the ephemeris of
+  subframes 1-3 is unchanged;
+* ``random``: every bit random (no preamble, no parity).
+
+Random content is a function of ``(seed, prn, subframe)`` only (one ``numpy.random.Generator`` per
+subframe from ``SeedSequence([seed, NAV_SEED_TAG, prn, week * 100800 + subframe of week])``), so any
+stretch of the stream can be reproduced alone."""
+NAV_SEED_TAG = 0x6E6176
+
+
+def _subframe_rng(seed, prn, week, sf_of_week):
+    return np.random.default_rng(np.random.SeedSequence(
+        [int(seed), NAV_SEED_TAG, int(prn), int(week) * (BITS_PER_WEEK // SUBFRAME_BITS) + int(sf_of_week)]))
+
+
+def randomise_words(words, sf_id, rng):
+    """Source words of one subframe with the fields of ``lnav-random-sf45`` (:data:`NAV_DATA_MODES`)
+    replaced by random bits from ``rng``; returns a new list."""
+    w = list(words)
+    tlm_msg = int(rng.integers(0, 1 << 14))
+    isf = int(rng.integers(0, 2))
+    w[0] = (w[0] & 0xFF0000) | (tlm_msg << 2) | (isf << 1)
+    if sf_id == 1:
+        w[3] = (w[3] & 0x800000) | int(rng.integers(0, 1 << 23))
+        w[4] = int(rng.integers(0, 1 << 24))
+        w[5] = int(rng.integers(0, 1 << 24))
+        w[6] = (int(rng.integers(0, 1 << 16)) << 8) | (w[6] & 0xFF)
+    elif sf_id in (4, 5):
+        for k in range(2, 9):
+            w[k] = int(rng.integers(0, 1 << 24))
+        w[9] = int(rng.integers(0, 1 << 22)) << 2
+    return w
+
+
+def nav_bits_mode(eph, week, tow_start_s, n_bits, mode="lnav", seed=0, almanac=None, iono=None):
+    """:func:`nav_bits` with the data content ``mode`` (:data:`NAV_DATA_MODES`) and its seed."""
+    if mode not in NAV_DATA_MODES:
+        raise NavDataError(f"navigation data mode {mode!r} unknown; expected one of {', '.join(NAV_DATA_MODES)}")
+    if mode == "lnav":
+        return nav_bits(eph, week, tow_start_s, n_bits, almanac, iono)
+    k0 = int(bit_index(tow_start_s))
+    idx = k0 + np.arange(int(n_bits), dtype=np.int64)
+    out = np.empty(idx.shape, dtype=np.int8)
+    sf_idx = np.floor_divide(idx, SUBFRAME_BITS)
+    for s in np.unique(sf_idx):
+        w, tow = normalize(week, float(s) * SUBFRAME_S)
+        rng = _subframe_rng(seed, eph.prn, w, int(round(tow / SUBFRAME_S)))
+        if mode == "random":
+            bits = rng.integers(0, 2, SUBFRAME_BITS).astype(np.uint8)
+        else:
+            sf_id = subframe_id_at(tow)
+            words = _subframe_words(sf_id, eph, tow, w, almanac, iono=iono)
+            bits = encode_words(randomise_words(words, sf_id, rng))
+        sel = sf_idx == s
+        out[sel] = 1 - 2 * bits[idx[sel] - s * SUBFRAME_BITS].astype(np.int8)
+    return out
 
 
 # ------------------------------------------------------------------------------- decoding

@@ -116,6 +116,11 @@ def add_arguments(p):
     p.add_argument("--mode", choices=MODES, default="scalar",
                    help="scalar receiver (default) or ultratight GPS/INS engine (needs --imu)")
     p.add_argument("--imu", metavar="IMU", help="IMU file (HDF5 or .csv) for --mode ultratight")
+    p.add_argument("--bits", metavar="STRATEGY", default=None,
+                   help="--mode ultratight: navigation-data bits: assisted (default; re-encoded from the ephemeris, "
+                        "valid for the project's own generated LNAV only), decoded (LNAV words decoded from a blind "
+                        "pass over the same file, blind elsewhere), decoded-scalar (words from a scalar-receiver "
+                        "pass), blind (per-bit decisions) or a bit file (CSV, docs/process.md)")
     p.add_argument("--method", choices=_EngineMethods(), default=None, metavar="METHOD",
                    help="ultra-tight method (--mode ultratight): %(choices)s (default: the engine's DEFAULT_METHOD, "
                         "dlb-rackf)")
@@ -213,6 +218,8 @@ def run(args):
                                ("--startup", getattr(args, "startup", "auto") != "auto")) if on]
     if ut_only:
         raise ConfigError(f"{', '.join(ut_only)} only used with --mode ultratight")
+    if getattr(args, "bits", None):
+        raise ConfigError("--bits is only used with --mode ultratight")
     args.iono = args.iono or "klobuchar"           # defaults of the scalar receiver (recorded resolved)
     args.tropo = args.tropo or "saastamoinen"
     from ultratight.signals.iffile import open_if
@@ -287,7 +294,8 @@ def _run_ultratight(args):
     import numpy as np
 
     from ultratight.errors import ConfigError
-    from ultratight.receiver.engine import DEFAULT_METHOD, run_ultratight_on_files, write_result_h5
+    from ultratight.receiver.bitsources import check_strategy
+    from ultratight.receiver.engine import DEFAULT_METHOD, EngineOptions, run_ultratight_on_files, write_result_h5
 
     if not args.imu:
         raise ConfigError("--mode ultratight needs --imu IMU.h5")
@@ -313,12 +321,14 @@ def _run_ultratight(args):
                           acq_coherent_ms=args.acq_coherent, doppler_range_hz=args.doppler_range)
     from ultratight.receiver.commands import imu_flags
     imu_decl = imu_flags.overrides(args)
+    bits = args.bits or "assisted"
+    check_strategy(bits)
     if args.out:
         note_partial(args.out)
     res = run_ultratight_on_files(args.iffile, args.imu, method=args.method or DEFAULT_METHOD, meta=args.meta,
                                   nav_path=args.ephemeris, prns=prns, duration_s=args.duration,
                                   startup=args.startup, init_overrides=overrides, start_s=args.start, handover=hcfg,
-                                  imu_declaration=imu_decl)
+                                  imu_declaration=imu_decl, options=EngineOptions(bits=bits))
     from ultratight.receiver import ut_outputs
     try:
         if args.out:
@@ -346,6 +356,8 @@ def _run_ultratight(args):
         "startup": info.get("handover", {}).get("source"),
         "handover": info.get("handover"),
         "nav": ut_outputs.nav_summary(res),
+        "bit_strategy": (info.get("bits") or {}).get("strategy"),
+        "blind_fraction": _blind_fraction(res),
         "out": args.out,
         "files": {k: v for k, v in (("csv", args.csv), ("kml", args.kml), ("nmea", args.nmea),
                                     ("rinex_obs", args.rinex_obs)) if v},
@@ -363,9 +375,21 @@ def _run_ultratight(args):
         ho = summ["handover"] or {}
         print(f"start-up: {summ['startup']} at t = {ho.get('handover_t_s', 0.0):.2f} s; channels lost: "
               f"{summ['lock_lost_channels'] or 'none'}")
+        print(f"data bits: {summ['bit_strategy']}; blind fraction per channel: {summ['blind_fraction']}")
         if args.out:
             print(f"output: {args.out}")
     return 0
+
+
+def _blind_fraction(res):
+    """Per channel, the fraction of epochs whose data bit was a blind decision."""
+    import numpy as np
+
+    from ultratight.receiver.wipeoff import BIT_BLIND
+    b = getattr(res, "bit_source", None)
+    if b is None or len(b) == 0:
+        return None
+    return [round(float(v), 4) for v in np.mean(np.asarray(b) == BIT_BLIND, axis=0)]
 
 
 def _print_human(s):

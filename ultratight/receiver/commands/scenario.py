@@ -36,6 +36,9 @@ def add_arguments(parser):
                         help="double loop: channels whose rows are out of the tight filter (faded) take the "
                              "outer loop's Doppler as a frequency pseudo-measurement (not in the paper; off "
                              "by default, see docs/ultratight.md)")
+    parser.add_argument("--bits", default=None, metavar="STRATEGY",
+                        help="navigation-data bits of the ultra-tight methods: assisted, decoded, decoded-scalar, "
+                             "blind or a bit file (default: the scenario's [engine] bits, else assisted)")
     parser.add_argument("--workers", type=int, default=None, metavar="K",
                         help="worker processes for the methods and runs (default: one per free core; 1: all in "
                              "this process)")
@@ -91,7 +94,7 @@ def run(args):
 
 # flags only the IF-level experiment understands (argparse dest names)
 IF_ONLY = ("fs_hz", "channel", "monitor", "noise_tau", "frontend_gain", "format", "outer_freq_update", "workers",
-           "threads")
+           "threads", "bits")
 
 
 def _run_if(args, path, module):
@@ -115,6 +118,10 @@ def _run_if(args, path, module):
         overrides["engine.noise_tau_s"] = float(args.noise_tau)
     if args.frontend_gain is not None:
         overrides["frontend.gain"] = args.frontend_gain
+    if args.bits is not None:
+        from ultratight.receiver.bitsources import check_strategy
+        check_strategy(args.bits)
+        overrides["engine.bits"] = args.bits
     if args.format is not None:
         overrides.update(format_overrides(args.format))
     summary = module.run_scenario(
