@@ -6,8 +6,8 @@ any truth file. The engine starts from the scalar receiver's own fix on the same
 The recording: paper-highdyn (10 g from t = 0, no still interval: the attitude comes from the
 specific force and the velocity direction) without its noise burst, 45 dB-Hz: the scalar
 receiver must fix under 10 g before the hand-over (it does not at 30 dB-Hz, see docs/ultratight.md).
-Data bits: the engine's wipe-off source (BITS_FLAGS empty = its assisted bits); a bit-strategy
-flag goes into BITS_FLAGS and EXPECTED_BITS, nothing else changes.
+Data bits the receiver cannot know: the generator puts random bits in subframes 4-5 and the reserved
+fields (``[nav] data = "lnav-random-sf45"``), so the engine runs with ``--bits blind``.
 """
 
 import json
@@ -26,8 +26,9 @@ from ultratight.receiver.cli import main
 FS_HZ = 2.046e6
 DURATION_S = 20.0
 CN0_DBHZ = 45.0
-BITS_FLAGS = []                      # e.g. ["--bits", "decoded"] once the strategies exist
-EXPECTED_BITS = {"assisted"}
+NAV_DATA = "lnav-random-sf45"        # subframes 4-5 and reserved bits unknowable from the ephemeris
+BITS_FLAGS = ["--bits", "blind"]
+EXPECTED_BITS = {"blind"}
 
 
 def _cli(*args, cwd=None):
@@ -52,6 +53,8 @@ def rec(tmp_path_factory):
     d = tmp_path_factory.mktemp("user_rec")
     txt = locate_scenario("paper-highdyn").read_text()
     txt, n = re.subn(r"\[\[noise_events\]\][^\[]*", "", txt)
+    assert n == 1
+    txt, n = re.subn(r"\[nav\]\n", f'[nav]\ndata = "{NAV_DATA}"\n', txt)
     assert n == 1
     (d / "hd.toml").write_text(txt)
     gen = d / "gen"
@@ -221,7 +224,7 @@ def test_init_flags_start(rec, capsys, tmp_path):
                str(u / "nav.rnx"), "--prn", ",".join(str(p_) for p_ in rec["sidecar"]["prn"]), "--start", "2",
                "--duration", "4", "--json", "--out", str(out), "--init-llh",
                f"{math.degrees(lat)!r},{math.degrees(lon)!r},{h!r}", "--init-vel", f"{ve!r},{vn!r},{vu!r}",
-               "--init-att", f"{r!r},{p!r},{y!r}"])
+               "--init-att", f"{r!r},{p!r},{y!r}", *BITS_FLAGS])
     assert rc == 0
     s = json.loads(capsys.readouterr().out)
     assert s["startup"] == "init-flags" and s["handover"]["handover_t_s"] == pytest.approx(2.0)
