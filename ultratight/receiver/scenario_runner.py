@@ -1,10 +1,17 @@
-"""``ultratight scenario``: generate (or reuse) IF + IMU + truth, run each method, paper metrics.
+"""``ultratight scenario``: generate (or reuse) IMU + truth, stream (or cache) the IF, run each method,
+paper metrics.
 
 Cache: the generated files live in ``OUT/cache/<key>/`` where ``key`` is a hash of the
 resolved scenario configuration (including the seed and any overrides) and the package
 version, so a rerun with the same configuration reuses the data and any change regenerates it.
 
-Per run (seed ``seed + r``) and method the engine runs on the *same* files; the tracking
+IF samples: by default (``cache=False``) the cache entry holds the truth, IMU and trajectory only,
+and every method reads the IF from its own generator in memory
+(:class:`ultratight.signals.ifstream.GeneratedIf`: the samples of the IF file, bit for bit,
+produced block by block on a worker thread while the method tracks); ``cache=True`` (``--cache``)
+writes the IF file into the entry as well and the methods read it from disk.
+
+Per run (seed ``seed + r``) and method the engine runs on the *same* samples; the tracking
 errors are estimate minus the generator's truth (``<stem>.truth.h5``, docs/generator.md)
 interpolated at each channel's integration start (see :mod:`ultratight.receiver.metrics`).
 The engine's own randomness (hot-start errors) is seeded by the run seed, so every method of
@@ -41,6 +48,7 @@ from ultratight.receiver.workers import WorkerPool, check_workers, default_worke
 from ultratight.signals.constellation import nominal_ephemerides
 from ultratight.signals.generator import generate
 from ultratight.signals.iffile import open_if
+from ultratight.signals.ifstream import GeneratedIf
 from ultratight.signals.rinex import read_rinex_nav
 
 try:
@@ -59,8 +67,9 @@ def _cfg_key(cfg):
 CACHE_VERSION = 2       # done.json layout: {"version", "files": {kind: {"name", "size"}}}
 
 
-def _cache_entry_ok(d, done):
-    """Paths of a verified cache entry, or None (missing, unparsable, wrong sizes, bad sidecar)."""
+def _cache_entry_ok(d, done, need_if=True):
+    """Paths of a verified cache entry, or None (missing, unparsable, wrong sizes, bad sidecar; without
+    the IF file when ``need_if``)."""
     try:
         entry = json.loads(done.read_text(encoding="utf-8"))
     except (OSError, ValueError):
@@ -78,12 +87,13 @@ def _cache_entry_ok(d, done):
         except OSError:
             return None
         paths[kind] = p
-    if "if" not in paths or "truth" not in paths:
+    if "truth" not in paths or (need_if and "if" not in paths):
         return None
-    try:
-        open_if(paths["if"]).close()
-    except (OSError, ValueError):
-        return None
+    if "if" in paths:
+        try:
+            open_if(paths["if"]).close()
+        except (OSError, ValueError):
+            return None
     return paths
 
 
@@ -101,11 +111,13 @@ def _cache_lock(d):
         fh.close()               # releases the lock
 
 
-def prepare_data(cfg, seed, out_dir, progress=False):
+def prepare_data(cfg, seed, out_dir, progress=False, cache_if=True):
     """Generate the scenario's files under OUT/cache/<key>/ unless a verified entry is already there.
 
     The entry is guarded by a per-key lock; ``done.json`` records every file's name and size and is
-    written last (atomically); an entry that does not verify is regenerated."""
+    written last (atomically); an entry that does not verify is regenerated. ``cache_if=False``: the
+    entry needs no IF file (one without is generated without it) and the paths returned have no
+    ``if``/``meta`` but ``if_seed``, the seed :func:`run_method` streams the IF of."""
     c = dict(cfg)
     c["seed"] = int(seed)
     c.pop("source_file", None)
@@ -118,9 +130,9 @@ def prepare_data(cfg, seed, out_dir, progress=False):
     except OSError as exc:
         raise output_error(d.parent, exc, "cannot create cache directory") from None
     with _cache_lock(d):
-        paths = _cache_entry_ok(d, done) if done.is_file() else None
+        paths = _cache_entry_ok(d, done, need_if=cache_if) if done.is_file() else None
         if paths is not None:
-            return paths, True
+            return _data_paths(paths, cache_if, seed), True
         try:
             done.unlink()
         except FileNotFoundError:
@@ -132,7 +144,7 @@ def prepare_data(cfg, seed, out_dir, progress=False):
         except OSError as exc:
             raise output_error(d, exc, "cannot create cache directory") from None
         try:
-            res = generate(c, d, "data", seed=int(seed), progress=progress)
+            res = generate(c, d, "data", seed=int(seed), progress=progress, write_if=cache_if)
         except BaseException as exc:
             try:
                 d.rmdir()                # only when empty: the generator removed its temporary files
@@ -143,7 +155,27 @@ def prepare_data(cfg, seed, out_dir, progress=False):
             raise
         files = {k: {"name": Path(v).name, "size": Path(v).stat().st_size} for k, v in res.items() if k != "summary"}
         write_text_atomic(done, json.dumps({"version": CACHE_VERSION, "files": files}))
-        return {k: d / v["name"] for k, v in files.items()}, False
+        return _data_paths({k: d / v["name"] for k, v in files.items()}, cache_if, seed), False
+
+
+def _data_paths(paths, cache_if, seed):
+    """The paths a method reads: with the cached IF file, or (streamed) without it and with ``if_seed``."""
+    if cache_if:
+        return paths
+    out = {k: v for k, v in paths.items() if k not in ("if", "meta")}
+    out["if_seed"] = int(seed)
+    return out
+
+
+def open_source(paths, cfg):
+    """The IF source of a run's data: the cached file (``paths["if"]``) or, without one, the generator of
+    ``cfg`` and ``paths["if_seed"]`` in memory (:class:`ultratight.signals.ifstream.GeneratedIf`)."""
+    if "if" in paths:
+        return open_if(paths["if"])
+    if "if_seed" not in paths:
+        raise ConfigError("scenario data: neither an IF file nor the seed of a streamed IF")
+    c = {k: v for k, v in cfg.items() if k not in ("source_file", "engine")}
+    return GeneratedIf(c, int(paths["if_seed"]))
 
 
 def load_truth(path):
@@ -197,25 +229,32 @@ def engine_options_for(cfg, options=None):
 
 
 def run_method(paths, cfg, method, seed, options=None, startup_errors=None, duration_s=None):
-    """Run one method on generated files; returns (EngineResult, truth dict)."""
+    """Run one method on a run's data (:func:`prepare_data`: the IF file, or the IF streamed from the
+    generator); returns (EngineResult, truth dict)."""
     spec = method_spec(method)
     options = engine_options_for(cfg, options)
     truth = load_truth(paths["truth"])
-    src = open_if(paths["if"])
-    ephs = ephemerides_for(cfg)
-    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7]))
-    errs = startup_errors or StartupErrors()
-    init = perturb_state(truth_initial_state(cfg), errs, rng)
-    if spec.scalar:
-        res = run_scalar(src, truth["prn"], ephs, truth["week"], truth["tow0_s"], init, duration_s)
-    else:
-        if "imu" not in paths:
-            raise ConfigError(f"method {method!r} needs the scenario's IMU data; the scenario has no [imu] table")
-        imu = read_imu_h5(paths["imu"])
-        eng = UltratightEngine(src, imu, ephs, truth["prn"], truth["week"], truth["tow0_s"], method=method,
-                               options=options or EngineOptions(), init_state=init, rng=rng,
-                               duration_s=duration_s)
-        res = eng.run()
+    if not spec.scalar and "imu" not in paths:
+        raise ConfigError(f"method {method!r} needs the scenario's IMU data; the scenario has no [imu] table")
+    src = open_source(paths, cfg)
+    try:
+        if list(getattr(src, "prns", truth["prn"])) != list(truth["prn"]):
+            raise ConfigError(f"{src.path}: satellites {src.prns} differ from the truth file's {truth['prn']} "
+                              f"({paths['truth']})")
+        ephs = ephemerides_for(cfg)
+        rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7]))
+        errs = startup_errors or StartupErrors()
+        init = perturb_state(truth_initial_state(cfg), errs, rng)
+        if spec.scalar:
+            res = run_scalar(src, truth["prn"], ephs, truth["week"], truth["tow0_s"], init, duration_s)
+        else:
+            imu = read_imu_h5(paths["imu"])
+            eng = UltratightEngine(src, imu, ephs, truth["prn"], truth["week"], truth["tow0_s"], method=method,
+                                   options=options or EngineOptions(), init_state=init, rng=rng,
+                                   duration_s=duration_s)
+            res = eng.run()
+    finally:
+        src.close()
     return res, truth
 
 
@@ -246,7 +285,10 @@ def scenario_config(name, methods, runs=1, duration_s=None, fs_hz=None, override
 
 
 def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scenario_out", duration_s=None,
-                 fs_hz=None, channel=0, plots=True, progress=True, options=None, overrides=None, workers=None):
+                 fs_hz=None, channel=0, plots=True, progress=True, options=None, overrides=None, workers=None,
+                 cache=False):
+    """Every method on every run's data, the paper's tables, ``metrics.json``, ``results.h5`` and figures
+    (module docstring); ``cache``: write the IF files into the cache and read them (else streamed)."""
     cfg = scenario_config(name, methods, runs, duration_s, fs_hz, overrides)
     workers = check_workers(workers)
     base_seed = int(cfg.get("seed", 0) if seed is None else seed)
@@ -255,12 +297,12 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
     if isinstance(channel, bool) or not isinstance(channel, int) or channel < 0:
         raise ConfigError(f"--channel must be an integer >= 0, got {channel}")
     out = Path(out_dir)
-    _check_out_dir(out, cfg, int(runs))
+    _check_out_dir(out, cfg, int(runs), bool(cache))
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise output_error(out, exc, "cannot create output directory") from None
-    per, raw = _run_all(cfg, methods, int(runs), base_seed, out, channel, progress, options, workers)
+    per, raw = _run_all(cfg, methods, int(runs), base_seed, out, channel, progress, options, workers, bool(cache))
     return _report(name, cfg, methods, int(runs), base_seed, out, channel, plots, options, per, raw)
 
 
@@ -270,10 +312,11 @@ def _method_job(paths, cfg, method, seed, options):
     return run_method(paths, cfg, method, seed, options=opt)
 
 
-def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, workers=None):
+def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, workers=None, cache=False):
     """Every method on every run's data: per-run summaries and raw (result, errors) per (run, method).
 
-    The data of every run are prepared first; then the (run, method) jobs run in worker processes
+    The data of every run are prepared first (``cache``: with the IF files); then the (run, method) jobs
+    run in worker processes
     when cores are free (:mod:`ultratight.receiver.workers`; ``workers`` = 1 runs them here, one
     after the other). The results do not depend on where a job ran."""
     n_jobs = runs * len(methods)
@@ -294,7 +337,7 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
 
     # the workers start (and import the engine) while this process generates the data
     with WorkerPool(n_workers, preload=(__name__,)) as pool:
-        all_paths = [_prepare_run(cfg, r, runs, base_seed + r, out, channel, progress) for r in range(runs)]
+        all_paths = [_prepare_run(cfg, r, runs, base_seed + r, out, channel, progress, cache) for r in range(runs)]
         jobs = [(all_paths[r], cfg, m, base_seed + r, options) for r, m in keys]
         if progress and n_workers > 1:
             print(f"{len(jobs)} method run(s) in {n_workers} worker processes", flush=True)
@@ -312,16 +355,17 @@ def _method_here(paths, cfg, method, seed, options):
     return run_method(paths, cfg, method, seed, options=options)
 
 
-def _prepare_run(cfg, r, runs, seed, out, channel, progress):
+def _prepare_run(cfg, r, runs, seed, out, channel, progress, cache=False):
     """The data of run ``r`` (generated or reused), its channel count checked against ``channel``."""
     t0 = time.perf_counter()
-    paths, cached = prepare_data(cfg, seed, out, progress=progress)
+    paths, cached = prepare_data(cfg, seed, out, progress=progress, cache_if=cache)
     n_ch = len(load_truth(paths["truth"])["prn"])
     if channel >= n_ch:
         raise ConfigError(f"--channel {channel}: the scenario has {n_ch} channel(s) (0..{n_ch - 1})")
     if progress:
+        what = "" if cache else ", truth and IMU: the IF is generated in memory for each method"
         print(f"run {r + 1}/{runs} seed {seed}: data {'reused' if cached else 'generated'} "
-              f"({time.perf_counter() - t0:.1f} s)", flush=True)
+              f"({time.perf_counter() - t0:.1f} s{what})", flush=True)
     return paths
 
 
@@ -427,14 +471,16 @@ def aggregate(summaries, raw, method, segs, channel):
     }
 
 
-def _check_out_dir(out, cfg, runs):
-    """--out: a directory (existing or creatable) with room for the runs' data (estimate)."""
+def _check_out_dir(out, cfg, runs, cache=True):
+    """--out: a directory (existing or creatable) with room for the runs' data (estimate; the IF files
+    only with ``cache``)."""
     io_guard.check_path_length(out, "--out")
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out} exists and is not a directory")
     io_guard.check_output_path(out / "metrics.json", "--out", create_parent=True)
     est = estimate(cfg)
-    io_guard.check_disk(out, runs * (est["if_bytes"] + est["truth_bytes"] + 2 * est["imu_bytes"]),
+    if_bytes = est["if_bytes"] if cache else 0.0
+    io_guard.check_disk(out, runs * (if_bytes + est["truth_bytes"] + 2 * est["imu_bytes"]),
                         f"the data of {runs} run(s) of {cfg['duration_s']:g} s")
     io_guard.check_memory(est["memory_bytes"], f"a run of {cfg['duration_s']:g} s")
 
