@@ -28,6 +28,7 @@ import json
 import time
 from contextlib import contextmanager
 from pathlib import Path
+from types import SimpleNamespace
 
 import h5py
 import numpy as np
@@ -44,7 +45,7 @@ from ultratight.receiver.methods import method_spec
 from ultratight.receiver.scalar_reference import run_scalar  # noqa: F401 (public here too)
 from ultratight.receiver.scenario_config import IMU_DEFAULTS, load_scenario
 from ultratight.receiver.startup import StartupErrors, perturb_state
-from ultratight.receiver.workers import WorkerPool, check_workers, default_workers
+from ultratight.receiver.workers import WorkerPool, check_workers, default_workers, release_heap
 from ultratight.signals.constellation import nominal_ephemerides
 from ultratight.signals.generator import generate
 from ultratight.signals.iffile import open_if
@@ -309,25 +310,31 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
 def _method_job(paths, cfg, method, seed, options):
     """One method on one run's data in a worker process (one numba thread: the workers share the cores)."""
     opt = dataclasses.replace(engine_options_for(cfg, options), threads=1)
-    return run_method(paths, cfg, method, seed, options=opt)
+    res, _truth = run_method(paths, cfg, method, seed, options=opt)
+    release_heap()
+    return res
 
 
 def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, workers=None, cache=False):
     """Every method on every run's data: per-run summaries and raw (result, errors) per (run, method).
 
-    The data of every run are prepared first (``cache``: with the IF files); then the (run, method) jobs
-    run in worker processes
-    when cores are free (:mod:`ultratight.receiver.workers`; ``workers`` = 1 runs them here, one
-    after the other). The results do not depend on where a job ran."""
+    The data of every run are prepared first, here (``cache``: with the IF files); then the (run, method)
+    jobs run in worker processes (:mod:`ultratight.receiver.workers`), one per free core and one when
+    no core is free, so this process, which collects every method's results and writes the outputs,
+    never holds an engine's working memory as well; ``workers`` = 1 runs them here, one after the
+    other. The results do not depend on where a job ran."""
     n_jobs = runs * len(methods)
     n_workers = default_workers(n_jobs) if workers is None else min(int(workers), n_jobs)
+    here = workers is not None and int(workers) == 1
     per_job = {}
     keys = [(r, m) for r in range(runs) for m in methods]
+    truths = {}
 
-    def done(i, result):
+    def done(i, res):
         r, m = keys[i]
-        res, truth = result
-        per_job[i] = _summarize_method(res, truth, channel, base_seed + r)
+        if r not in truths:                  # one truth per run, shared by its methods
+            truths[r] = load_truth(all_paths[r]["truth"])
+        per_job[i] = _summarize_method(res, truths[r], channel, base_seed + r)
         if progress:
             summ = per_job[i][0]
             print(f"  {m:10s} {'' if runs == 1 else f'(seed {base_seed + r}) '}Doppler RMS "
@@ -336,12 +343,12 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
                   f"{res.runtime_s:.1f} s (real-time factor {summ['realtime_factor']:.3f})", flush=True)
 
     # the workers start (and import the engine) while this process generates the data
-    with WorkerPool(n_workers, preload=(__name__,)) as pool:
+    with WorkerPool(n_workers, preload=(__name__,), processes=not here) as pool:
         all_paths = [_prepare_run(cfg, r, runs, base_seed + r, out, channel, progress, cache) for r in range(runs)]
         jobs = [(all_paths[r], cfg, m, base_seed + r, options) for r, m in keys]
-        if progress and n_workers > 1:
-            print(f"{len(jobs)} method run(s) in {n_workers} worker processes", flush=True)
-        pool.map(_method_job if n_workers > 1 else _method_here, jobs, on_done=done)
+        if progress and not here:
+            print(f"{len(jobs)} method run(s) in {n_workers} worker process(es)", flush=True)
+        pool.map(_method_here if here else _method_job, jobs, on_done=done)
     per = {m: [] for m in methods}
     raw = {}
     for i, (r, m) in enumerate(keys):
@@ -352,13 +359,16 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
 
 
 def _method_here(paths, cfg, method, seed, options):
-    return run_method(paths, cfg, method, seed, options=options)
+    res, _truth = run_method(paths, cfg, method, seed, options=options)
+    release_heap()              # the engine's working memory, before the next method runs here
+    return res
 
 
 def _prepare_run(cfg, r, runs, seed, out, channel, progress, cache=False):
     """The data of run ``r`` (generated or reused), its channel count checked against ``channel``."""
     t0 = time.perf_counter()
     paths, cached = prepare_data(cfg, seed, out, progress=progress, cache_if=cache)
+    release_heap()              # the generator's working memory (this process keeps the results)
     n_ch = len(load_truth(paths["truth"])["prn"])
     if channel >= n_ch:
         raise ConfigError(f"--channel {channel}: the scenario has {n_ch} channel(s) (0..{n_ch - 1})")
@@ -400,7 +410,9 @@ def _report(name, cfg, methods, runs, base_seed, out, channel, plots, options, p
     mpath = out / "metrics.json"
     write_text_atomic(mpath, json.dumps(M.json_clean(js), indent=2))
     hpath = out / "results.h5"
-    write_results_h5(hpath, cfg, raw, methods, runs, base_seed)
+    # each (run, method) is dropped once in the file's image, but for what the figures draw (run 0)
+    write_results_h5(hpath, cfg, raw, methods, runs, base_seed, consume=True,
+                     keep={(0, m) for m in methods} if plots else ())
     note_complete(mpath)
     note_complete(hpath)
     figs = make_plots(out, raw, methods, channel) if plots else []
@@ -482,10 +494,16 @@ def _check_out_dir(out, cfg, runs, cache=True):
     if_bytes = est["if_bytes"] if cache else 0.0
     io_guard.check_disk(out, runs * (if_bytes + est["truth_bytes"] + 2 * est["imu_bytes"]),
                         f"the data of {runs} run(s) of {cfg['duration_s']:g} s")
+    # the truth (HDF5 written as it is generated) must fit the file-size limit
+    io_guard.check_file_size(est["truth_bytes"], f"the truth file of a run of {cfg['duration_s']:g} s")
     io_guard.check_memory(est["memory_bytes"], f"a run of {cfg['duration_s']:g} s")
 
 
-def write_results_h5(path, cfg, raw, methods, runs, base_seed):
+def write_results_h5(path, cfg, raw, methods, runs, base_seed, consume=False, keep=()):
+    """``results.h5`` of the (run, method) results ``raw`` (docs/ultratight.md). ``consume``: remove each
+    entry from ``raw`` once it is in the file's image (the image and all the results are then never
+    held at once) — but for the keys in ``keep``, which keep what :func:`make_plots` draws (times,
+    PRNs, errors)."""
 
     def build(f):
         f.attrs["schema"] = SCHEMA
@@ -494,7 +512,10 @@ def write_results_h5(path, cfg, raw, methods, runs, base_seed):
         f.attrs["methods"] = ",".join(methods)
         f.attrs["runs"] = int(runs)
         f.attrs["seed"] = int(base_seed)
-        for (r, m), (res, d_err, c_err) in raw.items():
+        for r, m in list(raw):
+            res, d_err, c_err = raw.pop((r, m)) if consume else raw[(r, m)]
+            if consume and (r, m) in keep:
+                raw[(r, m)] = (SimpleNamespace(t_start=res.t_start, prns=res.prns), d_err, c_err)
             g = f.create_group(f"run{r:03d}/{m}")
             g.attrs["seed"] = int(base_seed + r)
             g.attrs["prn"] = np.asarray(res.prns, dtype=np.int64)

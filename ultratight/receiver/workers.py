@@ -7,6 +7,7 @@ workers use two cores without competing for them. The results come back in the o
 the first failure cancels the jobs not yet started and is raised in the parent.
 """
 
+import ctypes
 import importlib
 import math
 import multiprocessing
@@ -83,6 +84,23 @@ def stage_threads(requested):
     return pool if pool > 1 and free_cores() >= 1.25 else 1
 
 
+def release_heap():
+    """Hand the C heap's free pages back to the operating system (glibc ``malloc_trim``; nothing
+    elsewhere). Between the stages of a long run (data preparation, one method after another) the
+    many small arrays of a finished stage leave the heap fragmented, and its free pages would
+    otherwise stay in the resident set for the rest of the run. True when memory was returned."""
+    global _TRIM
+    if _TRIM is None:
+        try:
+            _TRIM = ctypes.CDLL(None).malloc_trim
+        except (OSError, AttributeError):
+            _TRIM = False
+    return bool(_TRIM(0)) if _TRIM else False
+
+
+_TRIM = None
+
+
 def _init_worker(preload):
     os.environ["NUMBA_NUM_THREADS"] = "1"
     for name in preload:              # import the job's modules now, while the parent still works
@@ -95,16 +113,18 @@ def _ready():
 
 class WorkerPool:
     """``workers`` spawned worker processes (none when ``workers`` <= 1: jobs then run in this
-    process). Started on entering the ``with`` block, with the modules of ``preload`` imported by
-    every worker at once — so their start-up overlaps what the parent does before :meth:`map`."""
+    process; ``processes=True`` spawns one then too). Started on entering the ``with`` block, with the
+    modules of ``preload`` imported by every worker at once — so their start-up overlaps what the
+    parent does before :meth:`map`."""
 
-    def __init__(self, workers, preload=()):
-        self.workers = int(workers)
+    def __init__(self, workers, preload=(), processes=None):
+        self.workers = max(1, int(workers))
         self.preload = tuple(preload)
+        self.processes = self.workers > 1 if processes is None else bool(processes)
         self._pool = None
 
     def __enter__(self):
-        if self.workers > 1:
+        if self.processes:
             ctx = multiprocessing.get_context("spawn")
             self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx, initializer=_init_worker,
                                              initargs=(self.preload,))

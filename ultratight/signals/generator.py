@@ -50,6 +50,7 @@ Outputs (see docs/generator.md for the schema): ``<stem>.<format>`` IF file and 
 renamed at the end; a failure removes the temporaries.
 """
 
+import errno
 import json
 import math
 import os
@@ -68,7 +69,7 @@ from ultratight.constants import C, CA_LEN, F_CA, LAMBDA_L1, T_CA
 from ultratight.errors import ConfigError
 from ultratight.ins import imu as imu_mod
 from ultratight.ins.trajectory import build_trajectory
-from ultratight.io_guard import tmp_name
+from ultratight.io_guard import describe_os_error, os_errno, tmp_name
 from ultratight.signals.atmosphere import AtmosphereModel
 from ultratight.signals.ca_code import ca_code
 from ultratight.signals.corr_model import signal_amplitude
@@ -460,13 +461,27 @@ class _TruthWriter:
 
     def append(self, rows):
         m = len(rows["t_s"])
-        for k, d in self.ds.items():
-            d.resize(self.n + m, axis=0)
-            d[self.n:self.n + m] = rows[k]
+        try:
+            for k, d in self.ds.items():
+                d.resize(self.n + m, axis=0)
+                d[self.n:self.n + m] = rows[k]
+        except (RuntimeError, OSError) as exc:
+            raise self._write_error(exc) from None
         self.n += m
 
     def finish(self):
-        self.f.close()
+        try:
+            self.f.close()
+        except (RuntimeError, OSError) as exc:
+            raise self._write_error(exc) from None
+
+    def _write_error(self, exc):
+        """An HDF5 write failure (full disk, file-size limit) as the OSError it is, errno included (HDF5
+        reports it as a RuntimeError quoting ``errno = N``)."""
+        if isinstance(exc, OSError) and exc.errno:
+            return exc
+        code = os_errno(exc)
+        return OSError(code or errno.EIO, describe_os_error(exc), str(self.tmp))
 
     def abort(self):
         try:
