@@ -45,7 +45,7 @@ from ultratight.receiver.methods import method_spec
 from ultratight.receiver.scalar_reference import run_scalar  # noqa: F401 (public here too)
 from ultratight.receiver.scenario_config import IMU_DEFAULTS, load_scenario
 from ultratight.receiver.startup import StartupErrors, perturb_state
-from ultratight.receiver.workers import WorkerPool, check_workers, default_workers, release_heap
+from ultratight.receiver.workers import WorkerPool, check_workers, default_workers, fix_mmap_threshold, release_heap
 from ultratight.signals.constellation import nominal_ephemerides
 from ultratight.signals.generator import generate
 from ultratight.signals.iffile import open_if
@@ -303,6 +303,7 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise output_error(out, exc, "cannot create output directory") from None
+    fix_mmap_threshold()        # per-epoch result arrays return to the system when freed
     per, raw = _run_all(cfg, methods, int(runs), base_seed, out, channel, progress, options, workers, bool(cache))
     return _report(name, cfg, methods, int(runs), base_seed, out, channel, plots, options, per, raw)
 
