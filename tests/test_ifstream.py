@@ -148,3 +148,28 @@ def test_scenario_command_streams_by_default_and_caches_on_request(tmp_path, cap
         figures[bool(flag)] = js
     assert figures[False] == figures[True]
     assert np.isfinite(figures[False]["dlb-ckf"]["doppler_rms_hz"][0])
+
+
+def test_campaign_run_streams_unless_cached(tmp_path):
+    """The campaign's IF-level run (``if_double_loop.run_one``) streams by default and writes the IF
+    file with ``cache=True``, with the same metrics; ``--cache`` is refused for other experiments."""
+    from ultratight.errors import ConfigError
+    from ultratight.receiver.campaign import run_campaign
+    from ultratight.receiver.experiments import if_double_loop as X
+    cfg = X.load("paper-highdyn", {}, {"duration_s": 0.8, "frontend.fs_hz": 2.046e6, "satellites.max_count": 3})
+    got = {}
+    for cache in (False, True):
+        out = tmp_path / str(cache)
+        res = X.run_one(X.with_data_dir(cfg, out, cache=cache), ["scalar", "dlb-rackf"], 6)
+        assert len(list(out.glob("cache/*/*.ci16"))) == (1 if cache else 0)
+        for m in res["methods"].values():
+            m.pop("runtime_s"), m.pop("realtime_factor")
+        got[cache] = res
+    import json
+    same = json.dumps(got[False]["methods"], sort_keys=True, default=repr)     # NaN (no segment) included
+    assert same == json.dumps(got[True]["methods"], sort_keys=True, default=repr)
+    for m in ("scalar", "dlb-rackf"):
+        assert np.array_equal(got[False]["series"][m]["doppler_err_hz"], got[True]["series"][m]["doppler_err_hz"],
+                              equal_nan=True)
+    with pytest.raises(ConfigError, match="--cache"):
+        run_campaign("paper-afm-jump", runs=1, out_dir=tmp_path / "afm", cache=True, progress=False)

@@ -43,6 +43,10 @@ configured value.
 Random numbers: one ``numpy.random.Generator`` from the seed
 (``SeedSequence(seed).spawn(2)``: noise, IMU); noise is drawn block by block with
 ``standard_normal(dtype=float32)`` in a fixed block size, so a seed always gives the same file.
+:class:`Generation` holds one generation's fixed part; every pass over its blocks
+(:meth:`Generation.blocks`) starts a new noise generator from the noise sequence and the front-end
+filter from rest, so :func:`generate` and :class:`ultratight.signals.ifstream.GeneratedIf` (the same
+samples handed to a receiver in memory, without a file) agree bit for bit.
 
 Outputs (see docs/generator.md for the schema): ``<stem>.<format>`` IF file and its
 ``.json`` sidecar, ``<stem>.truth.h5``, and when the scenario has ``[imu]``,

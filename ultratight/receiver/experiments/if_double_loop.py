@@ -3,13 +3,13 @@
 The scenario schema, data cache and metrics are those of :mod:`ultratight.receiver.scenario_runner`
 and :mod:`ultratight.receiver.scenario_config` (docs/ultratight.md); this module is the
 :mod:`ultratight.receiver.experiments` entry for them. ``ultratight scenario`` calls its driver
-``run_scenario`` whole (it manages the on-disk cache of generated IF). ``load`` / ``run_one`` /
+``run_scenario`` whole (it manages the on-disk cache of generated data). ``load`` / ``run_one`` /
 ``summarize`` are the same steps one run at a time, for a campaign (:mod:`ultratight.receiver.campaign`):
 ``run_one`` generates (or reuses) the run's data with ``prepare_data`` (the cache under the
 directory :func:`with_data_dir` names, guarded by its per-key lock; truth and IMU only, the IF
 streamed from the generator into each method, unless :func:`with_data_dir` was asked to cache the
-IF files), runs each method with ``run_method`` and returns the per-run metrics of ``metrics.summarize`` plus the tracking-error
-series; ``summarize`` combines them with ``scenario_runner.aggregate`` / ``event_rms`` exactly as
+IF files), runs each method with ``run_method`` and returns the per-run metrics of
+``metrics.summarize`` plus the tracking-error series; ``summarize`` combines them with ``scenario_runner.aggregate`` / ``event_rms`` exactly as
 ``run_scenario`` does (RMS over all channels and runs, Tables 3 and 4), on channel 0 and with the
 default engine options plus the scenario's ``[engine]`` table.
 """
