@@ -405,8 +405,10 @@ def test_sighup_and_sigterm_during_ultratight_process(long_rec, tmp_path):
 
 def test_sigterm_during_scenario(tmp_path):
     out = tmp_path / "out"
+    # --cache: the run is stopped while the IF file is being written into the data cache
     rc, err = _run_and_signal(["scenario", "vehicle-turns", "--duration", "20", "--methods", "scalar", "--quiet",
-                               "--out", str(out)], tmp_path, signal.SIGTERM, _tmp_appears(out, ".data.ci8.tmp-*"))
+                               "--cache", "--out", str(out)], tmp_path, signal.SIGTERM,
+                              _tmp_appears(out, ".data.ci8.tmp-*"))
     assert rc == 128 + signal.SIGTERM, err
     assert len(err.strip().splitlines()) == 1 and "interrupted by SIGTERM" in err, err
     assert not leftovers(tmp_path)

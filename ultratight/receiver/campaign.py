@@ -316,10 +316,12 @@ def check_workers(workers):
 
 def run_campaign(scenario, *, runs, methods=None, seed=None, workers=None, scheduler=None, out_dir="campaign_out",
                  resume=False, overrides=None, progress=True, client=None, log=None,
-                 connect_timeout_s=SCHEDULER_TIMEOUT_S):
+                 connect_timeout_s=SCHEDULER_TIMEOUT_S, cache=False):
     """Run a campaign (module doc); returns ``{"json", "text", "campaign_path", "runs_dir", ...}``.
 
-    ``client``: an existing ``distributed.Client`` to use (then ``workers``/``scheduler`` are ignored)."""
+    ``client``: an existing ``distributed.Client`` to use (then ``workers``/``scheduler`` are ignored).
+    ``cache``: IF-level experiments write each run's IF file into ``OUT/cache`` (else it is generated in
+    memory for each method; same results)."""
     log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
     if isinstance(runs, bool) or int(runs) != runs or int(runs) < 1:
         raise ConfigError(f"--runs must be an integer >= 1, got {runs}")
@@ -330,12 +332,15 @@ def run_campaign(scenario, *, runs, methods=None, seed=None, workers=None, sched
     if workers is not None and scheduler is not None:
         raise ConfigError("--workers and --scheduler exclude each other (the scheduler's workers run the campaign)")
     module, name, cfg, methods, base_seed = _resolve(scenario, methods, seed, overrides)
+    if cache and not getattr(module, "USES_DATA_DIR", False):
+        raise ConfigError(f"--cache: only for IF-level scenarios (this one runs experiment {name!r})")
     out = Path(out_dir)
     _check_out(out)
     seeds = run_seeds(base_seed, runs)
     keys = [run_key(cfg, methods, s) for s in seeds]
     if getattr(module, "USES_DATA_DIR", False):
-        cfg = module.with_data_dir(cfg, out)     # where the runs keep generated data (not part of a run's key)
+        # where the runs keep generated data, and whether the IF files too (not part of a run's key)
+        cfg = module.with_data_dir(cfg, out, cache=bool(cache))
     try:
         (out / "runs").mkdir(parents=True, exist_ok=True)
     except OSError as exc:

@@ -1,10 +1,17 @@
-"""``ultratight scenario``: generate (or reuse) IF + IMU + truth, run each method, paper metrics.
+"""``ultratight scenario``: generate (or reuse) IMU + truth, stream (or cache) the IF, run each method,
+paper metrics.
 
 Cache: the generated files live in ``OUT/cache/<key>/`` where ``key`` is a hash of the
 resolved scenario configuration (including the seed and any overrides) and the package
 version, so a rerun with the same configuration reuses the data and any change regenerates it.
 
-Per run (seed ``seed + r``) and method the engine runs on the *same* files; the tracking
+IF samples: by default (``cache=False``) the cache entry holds the truth, IMU and trajectory only,
+and every method reads the IF from its own generator in memory
+(:class:`ultratight.signals.ifstream.GeneratedIf`: the samples of the IF file, bit for bit,
+produced block by block on a worker thread while the method tracks); ``cache=True`` (``--cache``)
+writes the IF file into the entry as well and the methods read it from disk.
+
+Per run (seed ``seed + r``) and method the engine runs on the *same* samples; the tracking
 errors are estimate minus the generator's truth (``<stem>.truth.h5``, docs/generator.md)
 interpolated at each channel's integration start (see :mod:`ultratight.receiver.metrics`).
 The engine's own randomness (hot-start errors) is seeded by the run seed, so every method of
@@ -21,6 +28,7 @@ import json
 import time
 from contextlib import contextmanager
 from pathlib import Path
+from types import SimpleNamespace
 
 import h5py
 import numpy as np
@@ -38,10 +46,11 @@ from ultratight.receiver.methods import method_spec
 from ultratight.receiver.scalar_reference import run_scalar  # noqa: F401 (public here too)
 from ultratight.receiver.scenario_config import IMU_DEFAULTS, load_scenario
 from ultratight.receiver.startup import StartupErrors, perturb_state
-from ultratight.receiver.workers import WorkerPool, check_workers, default_workers
+from ultratight.receiver.workers import WorkerPool, check_workers, default_workers, fix_mmap_threshold, release_heap
 from ultratight.signals.constellation import nominal_ephemerides
 from ultratight.signals.generator import generate
 from ultratight.signals.iffile import open_if
+from ultratight.signals.ifstream import GeneratedIf
 from ultratight.signals.rinex import read_rinex_nav
 
 try:
@@ -64,8 +73,9 @@ def _cfg_key(cfg):
 CACHE_VERSION = 2       # done.json layout: {"version", "files": {kind: {"name", "size"}}}
 
 
-def _cache_entry_ok(d, done):
-    """Paths of a verified cache entry, or None (missing, unparsable, wrong sizes, bad sidecar)."""
+def _cache_entry_ok(d, done, need_if=True):
+    """Paths of a verified cache entry, or None (missing, unparsable, wrong sizes, bad sidecar; without
+    the IF file when ``need_if``)."""
     try:
         entry = json.loads(done.read_text(encoding="utf-8"))
     except (OSError, ValueError):
@@ -83,12 +93,13 @@ def _cache_entry_ok(d, done):
         except OSError:
             return None
         paths[kind] = p
-    if "if" not in paths or "truth" not in paths:
+    if "truth" not in paths or (need_if and "if" not in paths):
         return None
-    try:
-        open_if(paths["if"]).close()
-    except (OSError, ValueError):
-        return None
+    if "if" in paths:
+        try:
+            open_if(paths["if"]).close()
+        except (OSError, ValueError):
+            return None
     return paths
 
 
@@ -106,11 +117,13 @@ def _cache_lock(d):
         fh.close()               # releases the lock
 
 
-def prepare_data(cfg, seed, out_dir, progress=False):
+def prepare_data(cfg, seed, out_dir, progress=False, cache_if=True):
     """Generate the scenario's files under OUT/cache/<key>/ unless a verified entry is already there.
 
     The entry is guarded by a per-key lock; ``done.json`` records every file's name and size and is
-    written last (atomically); an entry that does not verify is regenerated."""
+    written last (atomically); an entry that does not verify is regenerated. ``cache_if=False``: the
+    entry needs no IF file (one without is generated without it) and the paths returned have no
+    ``if``/``meta`` but ``if_seed``, the seed :func:`run_method` streams the IF of."""
     c = dict(cfg)
     c["seed"] = int(seed)
     c.pop("source_file", None)
@@ -123,9 +136,9 @@ def prepare_data(cfg, seed, out_dir, progress=False):
     except OSError as exc:
         raise output_error(d.parent, exc, "cannot create cache directory") from None
     with _cache_lock(d):
-        paths = _cache_entry_ok(d, done) if done.is_file() else None
+        paths = _cache_entry_ok(d, done, need_if=cache_if) if done.is_file() else None
         if paths is not None:
-            return paths, True
+            return _data_paths(paths, cache_if, seed), True
         try:
             done.unlink()
         except FileNotFoundError:
@@ -137,7 +150,7 @@ def prepare_data(cfg, seed, out_dir, progress=False):
         except OSError as exc:
             raise output_error(d, exc, "cannot create cache directory") from None
         try:
-            res = generate(c, d, "data", seed=int(seed), progress=progress)
+            res = generate(c, d, "data", seed=int(seed), progress=progress, write_if=cache_if)
         except BaseException as exc:
             try:
                 d.rmdir()                # only when empty: the generator removed its temporary files
@@ -148,7 +161,27 @@ def prepare_data(cfg, seed, out_dir, progress=False):
             raise
         files = {k: {"name": Path(v).name, "size": Path(v).stat().st_size} for k, v in res.items() if k != "summary"}
         write_text_atomic(done, json.dumps({"version": CACHE_VERSION, "files": files}))
-        return {k: d / v["name"] for k, v in files.items()}, False
+        return _data_paths({k: d / v["name"] for k, v in files.items()}, cache_if, seed), False
+
+
+def _data_paths(paths, cache_if, seed):
+    """The paths a method reads: with the cached IF file, or (streamed) without it and with ``if_seed``."""
+    if cache_if:
+        return paths
+    out = {k: v for k, v in paths.items() if k not in ("if", "meta")}
+    out["if_seed"] = int(seed)
+    return out
+
+
+def open_source(paths, cfg):
+    """The IF source of a run's data: the cached file (``paths["if"]``) or, without one, the generator of
+    ``cfg`` and ``paths["if_seed"]`` in memory (:class:`ultratight.signals.ifstream.GeneratedIf`)."""
+    if "if" in paths:
+        return open_if(paths["if"])
+    if "if_seed" not in paths:
+        raise ConfigError("scenario data: neither an IF file nor the seed of a streamed IF")
+    c = {k: v for k, v in cfg.items() if k not in ("source_file", "engine")}
+    return GeneratedIf(c, int(paths["if_seed"]))
 
 
 def load_truth(path):
@@ -205,25 +238,32 @@ def engine_options_for(cfg, options=None, seed=0):
 
 
 def run_method(paths, cfg, method, seed, options=None, startup_errors=None, duration_s=None):
-    """Run one method on generated files; returns (EngineResult, truth dict)."""
+    """Run one method on a run's data (:func:`prepare_data`: the IF file, or the IF streamed from the
+    generator); returns (EngineResult, truth dict)."""
     spec = method_spec(method)
     options = engine_options_for(cfg, options, seed)
     truth = load_truth(paths["truth"])
-    src = open_if(paths["if"])
-    ephs = ephemerides_for(cfg)
-    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7]))
-    errs = startup_errors or StartupErrors()
-    init = perturb_state(truth_initial_state(cfg), errs, rng)
-    if spec.scalar:
-        res = run_scalar(src, truth["prn"], ephs, truth["week"], truth["tow0_s"], init, duration_s)
-    else:
-        if "imu" not in paths:
-            raise ConfigError(f"method {method!r} needs the scenario's IMU data; the scenario has no [imu] table")
-        imu = read_imu_h5(paths["imu"])
-        eng = UltratightEngine(src, imu, ephs, truth["prn"], truth["week"], truth["tow0_s"], method=method,
-                               options=options or EngineOptions(), init_state=init, rng=rng,
-                               duration_s=duration_s)
-        res = eng.run()
+    if not spec.scalar and "imu" not in paths:
+        raise ConfigError(f"method {method!r} needs the scenario's IMU data; the scenario has no [imu] table")
+    src = open_source(paths, cfg)
+    try:
+        if list(getattr(src, "prns", truth["prn"])) != list(truth["prn"]):
+            raise ConfigError(f"{src.path}: satellites {src.prns} differ from the truth file's {truth['prn']} "
+                              f"({paths['truth']})")
+        ephs = ephemerides_for(cfg)
+        rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7]))
+        errs = startup_errors or StartupErrors()
+        init = perturb_state(truth_initial_state(cfg), errs, rng)
+        if spec.scalar:
+            res = run_scalar(src, truth["prn"], ephs, truth["week"], truth["tow0_s"], init, duration_s)
+        else:
+            imu = read_imu_h5(paths["imu"])
+            eng = UltratightEngine(src, imu, ephs, truth["prn"], truth["week"], truth["tow0_s"], method=method,
+                                   options=options or EngineOptions(), init_state=init, rng=rng,
+                                   duration_s=duration_s)
+            res = eng.run()
+    finally:
+        src.close()
     return res, truth
 
 
@@ -254,7 +294,10 @@ def scenario_config(name, methods, runs=1, duration_s=None, fs_hz=None, override
 
 
 def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scenario_out", duration_s=None,
-                 fs_hz=None, channel=0, plots=True, progress=True, options=None, overrides=None, workers=None):
+                 fs_hz=None, channel=0, plots=True, progress=True, options=None, overrides=None, workers=None,
+                 cache=False):
+    """Every method on every run's data, the paper's tables, ``metrics.json``, ``results.h5`` and figures
+    (module docstring); ``cache``: write the IF files into the cache and read them (else streamed)."""
     cfg = scenario_config(name, methods, runs, duration_s, fs_hz, overrides)
     workers = check_workers(workers)
     base_seed = int(cfg.get("seed", 0) if seed is None else seed)
@@ -263,36 +306,44 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
     if isinstance(channel, bool) or not isinstance(channel, int) or channel < 0:
         raise ConfigError(f"--channel must be an integer >= 0, got {channel}")
     out = Path(out_dir)
-    _check_out_dir(out, cfg, int(runs))
+    _check_out_dir(out, cfg, int(runs), bool(cache))
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise output_error(out, exc, "cannot create output directory") from None
-    per, raw = _run_all(cfg, methods, int(runs), base_seed, out, channel, progress, options, workers)
+    fix_mmap_threshold()        # per-epoch result arrays return to the system when freed
+    per, raw = _run_all(cfg, methods, int(runs), base_seed, out, channel, progress, options, workers, bool(cache))
     return _report(name, cfg, methods, int(runs), base_seed, out, channel, plots, options, per, raw)
 
 
 def _method_job(paths, cfg, method, seed, options):
     """One method on one run's data in a worker process (one numba thread: the workers share the cores)."""
     opt = dataclasses.replace(engine_options_for(cfg, options), threads=1)
-    return run_method(paths, cfg, method, seed, options=opt)
+    res, _truth = run_method(paths, cfg, method, seed, options=opt)
+    release_heap()
+    return res
 
 
-def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, workers=None):
+def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, workers=None, cache=False):
     """Every method on every run's data: per-run summaries and raw (result, errors) per (run, method).
 
-    The data of every run are prepared first; then the (run, method) jobs run in worker processes
-    when cores are free (:mod:`ultratight.receiver.workers`; ``workers`` = 1 runs them here, one
-    after the other). The results do not depend on where a job ran."""
+    The data of every run are prepared first, here (``cache``: with the IF files); then the (run, method)
+    jobs run in worker processes (:mod:`ultratight.receiver.workers`), one per free core and one when
+    no core is free, so this process, which collects every method's results and writes the outputs,
+    never holds an engine's working memory as well; ``workers`` = 1 runs them here, one after the
+    other. The results do not depend on where a job ran."""
     n_jobs = runs * len(methods)
     n_workers = default_workers(n_jobs) if workers is None else min(int(workers), n_jobs)
+    here = workers is not None and int(workers) == 1
     per_job = {}
     keys = [(r, m) for r in range(runs) for m in methods]
+    truths = {}
 
-    def done(i, result):
+    def done(i, res):
         r, m = keys[i]
-        res, truth = result
-        per_job[i] = _summarize_method(res, truth, channel, base_seed + r)
+        if r not in truths:                  # one truth per run, shared by its methods
+            truths[r] = load_truth(all_paths[r]["truth"])
+        per_job[i] = _summarize_method(res, truths[r], channel, base_seed + r)
         if progress:
             summ = per_job[i][0]
             print(f"  {m:10s} {'' if runs == 1 else f'(seed {base_seed + r}) '}Doppler RMS "
@@ -301,12 +352,12 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
                   f"{res.runtime_s:.1f} s (real-time factor {summ['realtime_factor']:.3f})", flush=True)
 
     # the workers start (and import the engine) while this process generates the data
-    with WorkerPool(n_workers, preload=(__name__,)) as pool:
-        all_paths = [_prepare_run(cfg, r, runs, base_seed + r, out, channel, progress) for r in range(runs)]
+    with WorkerPool(n_workers, preload=(__name__,), processes=not here) as pool:
+        all_paths = [_prepare_run(cfg, r, runs, base_seed + r, out, channel, progress, cache) for r in range(runs)]
         jobs = [(all_paths[r], cfg, m, base_seed + r, options) for r, m in keys]
-        if progress and n_workers > 1:
-            print(f"{len(jobs)} method run(s) in {n_workers} worker processes", flush=True)
-        pool.map(_method_job if n_workers > 1 else _method_here, jobs, on_done=done)
+        if progress and not here:
+            print(f"{len(jobs)} method run(s) in {n_workers} worker process(es)", flush=True)
+        pool.map(_method_here if here else _method_job, jobs, on_done=done)
     per = {m: [] for m in methods}
     raw = {}
     for i, (r, m) in enumerate(keys):
@@ -317,19 +368,23 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
 
 
 def _method_here(paths, cfg, method, seed, options):
-    return run_method(paths, cfg, method, seed, options=options)
+    res, _truth = run_method(paths, cfg, method, seed, options=options)
+    release_heap()              # the engine's working memory, before the next method runs here
+    return res
 
 
-def _prepare_run(cfg, r, runs, seed, out, channel, progress):
+def _prepare_run(cfg, r, runs, seed, out, channel, progress, cache=False):
     """The data of run ``r`` (generated or reused), its channel count checked against ``channel``."""
     t0 = time.perf_counter()
-    paths, cached = prepare_data(cfg, seed, out, progress=progress)
+    paths, cached = prepare_data(cfg, seed, out, progress=progress, cache_if=cache)
+    release_heap()              # the generator's working memory (this process keeps the results)
     n_ch = len(load_truth(paths["truth"])["prn"])
     if channel >= n_ch:
         raise ConfigError(f"--channel {channel}: the scenario has {n_ch} channel(s) (0..{n_ch - 1})")
     if progress:
+        what = "" if cache else ", truth and IMU: the IF is generated in memory for each method"
         print(f"run {r + 1}/{runs} seed {seed}: data {'reused' if cached else 'generated'} "
-              f"({time.perf_counter() - t0:.1f} s)", flush=True)
+              f"({time.perf_counter() - t0:.1f} s{what})", flush=True)
     return paths
 
 
@@ -364,7 +419,9 @@ def _report(name, cfg, methods, runs, base_seed, out, channel, plots, options, p
     mpath = out / "metrics.json"
     write_text_atomic(mpath, json.dumps(M.json_clean(js), indent=2))
     hpath = out / "results.h5"
-    write_results_h5(hpath, cfg, raw, methods, runs, base_seed)
+    # each (run, method) is dropped once in the file's image, but for what the figures draw (run 0)
+    write_results_h5(hpath, cfg, raw, methods, runs, base_seed, consume=True,
+                     keep={(0, m) for m in methods} if plots else ())
     note_complete(mpath)
     note_complete(hpath)
     figs = make_plots(out, raw, methods, channel) if plots else []
@@ -435,19 +492,27 @@ def aggregate(summaries, raw, method, segs, channel):
     }
 
 
-def _check_out_dir(out, cfg, runs):
-    """--out: a directory (existing or creatable) with room for the runs' data (estimate)."""
+def _check_out_dir(out, cfg, runs, cache=True):
+    """--out: a directory (existing or creatable) with room for the runs' data (estimate; the IF files
+    only with ``cache``)."""
     io_guard.check_path_length(out, "--out")
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out} exists and is not a directory")
     io_guard.check_output_path(out / "metrics.json", "--out", create_parent=True)
     est = estimate(cfg)
-    io_guard.check_disk(out, runs * (est["if_bytes"] + est["truth_bytes"] + 2 * est["imu_bytes"]),
+    if_bytes = est["if_bytes"] if cache else 0.0
+    io_guard.check_disk(out, runs * (if_bytes + est["truth_bytes"] + 2 * est["imu_bytes"]),
                         f"the data of {runs} run(s) of {cfg['duration_s']:g} s")
+    # the truth (HDF5 written as it is generated) must fit the file-size limit
+    io_guard.check_file_size(est["truth_bytes"], f"the truth file of a run of {cfg['duration_s']:g} s")
     io_guard.check_memory(est["memory_bytes"], f"a run of {cfg['duration_s']:g} s")
 
 
-def write_results_h5(path, cfg, raw, methods, runs, base_seed):
+def write_results_h5(path, cfg, raw, methods, runs, base_seed, consume=False, keep=()):
+    """``results.h5`` of the (run, method) results ``raw`` (docs/ultratight.md). ``consume``: remove each
+    entry from ``raw`` once it is in the file's image (the image and all the results are then never
+    held at once) — but for the keys in ``keep``, which keep what :func:`make_plots` draws (times,
+    PRNs, errors)."""
 
     def build(f):
         f.attrs["schema"] = SCHEMA
@@ -456,7 +521,10 @@ def write_results_h5(path, cfg, raw, methods, runs, base_seed):
         f.attrs["methods"] = ",".join(methods)
         f.attrs["runs"] = int(runs)
         f.attrs["seed"] = int(base_seed)
-        for (r, m), (res, d_err, c_err) in raw.items():
+        for r, m in list(raw):
+            res, d_err, c_err = raw.pop((r, m)) if consume else raw[(r, m)]
+            if consume and (r, m) in keep:
+                raw[(r, m)] = (SimpleNamespace(t_start=res.t_start, prns=res.prns), d_err, c_err)
             g = f.create_group(f"run{r:03d}/{m}")
             g.attrs["seed"] = int(base_seed + r)
             g.attrs["prn"] = np.asarray(res.prns, dtype=np.int64)

@@ -7,6 +7,7 @@ workers use two cores without competing for them. The results come back in the o
 the first failure cancels the jobs not yet started and is raised in the parent.
 """
 
+import ctypes
 import importlib
 import math
 import multiprocessing
@@ -83,8 +84,45 @@ def stage_threads(requested):
     return pool if pool > 1 and free_cores() >= 1.25 else 1
 
 
+M_MMAP_THRESHOLD = -3          # glibc mallopt parameter
+MMAP_THRESHOLD = 1 << 20       # bytes: larger blocks are mapped on their own and unmapped when freed
+
+
+def _libc():
+    global _LIBC
+    if _LIBC is None:
+        try:
+            lib = ctypes.CDLL(None)
+            _LIBC = lib if hasattr(lib, "malloc_trim") and hasattr(lib, "mallopt") else False
+        except OSError:
+            _LIBC = False
+    return _LIBC
+
+
+_LIBC = None
+
+
+def fix_mmap_threshold():
+    """Keep glibc's mmap threshold at :data:`MMAP_THRESHOLD` (``mallopt``; nothing elsewhere). By default
+    glibc raises the threshold to the size of every mapped block freed (up to 32 MB), after which
+    the per-epoch result arrays of a run (6 MB each) come from the heap and, once freed, stay in the
+    resident set; with a fixed threshold they are unmapped when freed. True when set."""
+    lib = _libc()
+    return bool(lib.mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD)) if lib else False
+
+
+def release_heap():
+    """Hand the C heap's free pages back to the operating system (glibc ``malloc_trim``; nothing
+    elsewhere). Between the stages of a long run (data preparation, one method after another) the
+    many small arrays of a finished stage leave the heap fragmented, and its free pages would
+    otherwise stay in the resident set for the rest of the run. True when memory was returned."""
+    lib = _libc()
+    return bool(lib.malloc_trim(0)) if lib else False
+
+
 def _init_worker(preload):
     os.environ["NUMBA_NUM_THREADS"] = "1"
+    fix_mmap_threshold()
     for name in preload:              # import the job's modules now, while the parent still works
         importlib.import_module(name)
 
@@ -95,16 +133,18 @@ def _ready():
 
 class WorkerPool:
     """``workers`` spawned worker processes (none when ``workers`` <= 1: jobs then run in this
-    process). Started on entering the ``with`` block, with the modules of ``preload`` imported by
-    every worker at once — so their start-up overlaps what the parent does before :meth:`map`."""
+    process; ``processes=True`` spawns one then too). Started on entering the ``with`` block, with the
+    modules of ``preload`` imported by every worker at once — so their start-up overlaps what the
+    parent does before :meth:`map`."""
 
-    def __init__(self, workers, preload=()):
-        self.workers = int(workers)
+    def __init__(self, workers, preload=(), processes=None):
+        self.workers = max(1, int(workers))
         self.preload = tuple(preload)
+        self.processes = self.workers > 1 if processes is None else bool(processes)
         self._pool = None
 
     def __enter__(self):
-        if self.workers > 1:
+        if self.processes:
             ctx = multiprocessing.get_context("spawn")
             self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx, initializer=_init_worker,
                                              initargs=(self.preload,))

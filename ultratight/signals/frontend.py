@@ -51,6 +51,15 @@ from scipy import signal as sps
 from ultratight.errors import ConfigError
 
 SUPPORTED_BITS = (0, 1, 2, 4, 8, 16)
+MAX_IMPULSE = 1 << 24      # samples of the impulse response that measures the filter's noise gain
+
+
+def _number(fe, key, default):
+    """``fe[key]`` (or ``default``) as a float; ConfigError naming the field when it is not a number."""
+    v = fe.get(key, default)
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise ConfigError(f"frontend.{key} must be a number, got {v!r}")
+    return float(v)
 GAIN_MODES = ("agc", "fixed")
 
 
@@ -160,11 +169,11 @@ class FrontEnd:
         sampling = fe.get("sampling", "complex")
         if sampling not in ("complex", "real"):
             raise ConfigError(f"frontend.sampling must be 'complex' or 'real', got {sampling!r}")
-        return cls(fs_hz=fe["fs_hz"], if_hz=fe.get("if_hz", 0.0), is_complex=(sampling == "complex"),
-                   inversion=fe.get("inversion", False), bits=int(fe.get("bits", 8)),
-                   filter_bw_hz=float(fe.get("filter_bw_hz", 0.0)),
-                   filter_order=int(fe.get("filter_order", 4)),
-                   gain_mode=fe.get("gain", "agc"), headroom=fe.get("headroom", 1.0))
+        return cls(fs_hz=_number(fe, "fs_hz", fe["fs_hz"]), if_hz=_number(fe, "if_hz", 0.0),
+                   is_complex=(sampling == "complex"), inversion=fe.get("inversion", False),
+                   bits=int(_number(fe, "bits", 8)), filter_bw_hz=_number(fe, "filter_bw_hz", 0.0),
+                   filter_order=int(_number(fe, "filter_order", 4)),
+                   gain_mode=fe.get("gain", "agc"), headroom=_number(fe, "headroom", 1.0))
 
     # -- filter -------------------------------------------------------------------------
     def _design(self):
@@ -186,7 +195,11 @@ class FrontEnd:
             sos = sps.butter(self.filter_order, [lo, hi], btype="band", fs=self.fs_hz, output="sos")
         self._sos = sos
         # white-noise power gain = sum h^2 (impulse response long enough to converge)
-        n = int(max(4096, 50 * self.fs_hz / bw))
+        n = max(4096, 50 * self.fs_hz / bw)
+        if n > MAX_IMPULSE:
+            raise ConfigError(f"frontend.filter_bw_hz = {bw} Hz is too narrow for fs = {self.fs_hz} Hz (at least "
+                              f"{50 * self.fs_hz / MAX_IMPULSE:.3g} Hz)")
+        n = int(n)
         imp = np.zeros(n)
         imp[0] = 1.0
         h = sps.sosfilt(sos, imp)

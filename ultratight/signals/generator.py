@@ -43,6 +43,10 @@ configured value.
 Random numbers: one ``numpy.random.Generator`` from the seed
 (``SeedSequence(seed).spawn(2)``: noise, IMU); noise is drawn block by block with
 ``standard_normal(dtype=float32)`` in a fixed block size, so a seed always gives the same file.
+:class:`Generation` holds one generation's fixed part; every pass over its blocks
+(:meth:`Generation.blocks`) starts a new noise generator from the noise sequence and the front-end
+filter from rest, so :func:`generate` and :class:`ultratight.signals.ifstream.GeneratedIf` (the same
+samples handed to a receiver in memory, without a file) agree bit for bit.
 
 Outputs (see docs/generator.md for the schema): ``<stem>.<format>`` IF file and its
 ``.json`` sidecar, ``<stem>.truth.h5``, and when the scenario has ``[imu]``,
@@ -50,6 +54,7 @@ Outputs (see docs/generator.md for the schema): ``<stem>.<format>`` IF file and 
 renamed at the end; a failure removes the temporaries.
 """
 
+import errno
 import json
 import math
 import os
@@ -68,7 +73,7 @@ from ultratight.constants import C, CA_LEN, F_CA, LAMBDA_L1, T_CA
 from ultratight.errors import ConfigError
 from ultratight.ins import imu as imu_mod
 from ultratight.ins.trajectory import build_trajectory
-from ultratight.io_guard import tmp_name
+from ultratight.io_guard import describe_os_error, os_errno, tmp_name
 from ultratight.signals.atmosphere import AtmosphereModel
 from ultratight.signals.ca_code import ca_code
 from ultratight.signals.corr_model import signal_amplitude
@@ -474,13 +479,27 @@ class _TruthWriter:
 
     def append(self, rows):
         m = len(rows["t_s"])
-        for k, d in self.ds.items():
-            d.resize(self.n + m, axis=0)
-            d[self.n:self.n + m] = rows[k]
+        try:
+            for k, d in self.ds.items():
+                d.resize(self.n + m, axis=0)
+                d[self.n:self.n + m] = rows[k]
+        except (RuntimeError, OSError) as exc:
+            raise self._write_error(exc) from None
         self.n += m
 
     def finish(self):
-        self.f.close()
+        try:
+            self.f.close()
+        except (RuntimeError, OSError) as exc:
+            raise self._write_error(exc) from None
+
+    def _write_error(self, exc):
+        """An HDF5 write failure (full disk, file-size limit) as the OSError it is, errno included (HDF5
+        reports it as a RuntimeError quoting ``errno = N``)."""
+        if isinstance(exc, OSError) and exc.errno:
+            return exc
+        code = os_errno(exc)
+        return OSError(code or errno.EIO, describe_os_error(exc), str(self.tmp))
 
     def abort(self):
         try:
@@ -508,136 +527,193 @@ def _progress(total, enabled, desc):
                 bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} s [{elapsed}<{remaining}]")
 
 
-def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, trajectory=None):
+class Generation:
+    """The fixed parts of one generation of a resolved scenario ``cfg`` and seed (front end, sample
+    format, signal plan, noise events, sizes, the seed's noise and IMU sequences), and its blocks.
+
+    :func:`generate` writes them to files; :class:`ultratight.signals.ifstream.GeneratedIf` hands the
+    samples to a receiver without a file. Both run :meth:`blocks`, which starts from the first
+    block with a fresh noise generator and front-end state on every call, so every pass over a
+    generation yields the same samples."""
+
+    def __init__(self, cfg, seed=None, ephemerides=None, trajectory=None):
+        fe_cfg = cfg.get("frontend", {})
+        fe = FrontEnd.from_config(fe_cfg)
+        if fe.gain_mode == "fixed" and "headroom" not in fe_cfg:
+            # fixed gain without an explicit headroom: the loudest noise event must fit the clip level
+            fe.headroom = max([1.0] + [float(ev["noise_factor"]) for ev in cfg.get("noise_events", []) or []
+                                       if ev.get("place", "if") == "if"])
+        fmt = fe_cfg.get("format", "ci8" if fe.is_complex else "i8")
+        spec = get_format(fmt)
+        if spec.is_complex != fe.is_complex:
+            raise ConfigError(f"frontend.format {fmt!r} is {'complex' if spec.is_complex else 'real'} but "
+                              f"frontend.sampling is {'complex' if fe.is_complex else 'real'}")
+        check_bits_for_format(spec.name, fe.bits)
+        duration = float(cfg.get("duration_s", 0))
+        if not duration > 0:
+            raise ConfigError(f"duration_s must be > 0, got {cfg.get('duration_s')}")
+        seed = cfg.get("seed", 0) if seed is None else seed
+        self.seed = int(seed)
+        self.ss_noise, self.ss_imu = np.random.SeedSequence(self.seed).spawn(2)
+        week, tow0 = int(cfg["time"]["week"]), float(cfg["time"]["tow_s"])
+        rcv = cfg.get("receiver", {})
+        if trajectory is None:
+
+            trajectory = build_trajectory(cfg.get("trajectory", {"kind": "static"}), rcv, duration)
+        if ephemerides is None:
+            p0, _ = trajectory.pos_vel_e(np.zeros(1))
+            ephs, cn0 = _ephemerides(cfg, p0[0])
+        else:
+            ephs = list(ephemerides)
+            cn0 = np.broadcast_to(np.asarray(cfg.get("satellites", {}).get("cn0_dbhz", 45.0), float),
+                                  (len(ephs),)).copy()
+        atmosphere, iono_broadcast = atmosphere_from_config(cfg.get("atmosphere"))
+        plan = SignalPlan(ephs, cn0, trajectory, week, tow0, fe.fs_hz, fe.if_hz, fe.is_complex, fe.inversion,
+                          rcv.get("clock_bias_m", 0.0), rcv.get("clock_drift_mps", 0.0),
+                          atmosphere=atmosphere, iono_broadcast=iono_broadcast)
+        self.nav_data = cfg.get("nav", {}).get("data", "lnav")
+        plan.set_nav_bits(duration, bool(cfg.get("nav", {}).get("data_bits", True)), self.nav_data, self.seed)
+        self.cfg, self.fe, self.spec, self.plan, self.trajectory = cfg, fe, spec, plan, trajectory
+        self.week, self.tow0, self.duration = week, tow0, duration
+        self.events = cfg.get("noise_events", [])
+        self.horizon = cfg.get("satellites", {}).get("horizon_deg")
+        self.n_total = int(round(duration * fe.fs_hz))
+        self.n_int_total = -(-self.n_total // plan.L)
+        self.resolved = json.loads(json.dumps(cfg, default=str))
+        self.resolved["seed"] = self.seed
+
+    def sidecar_extra(self):
+        """The generator's entries of the IF sidecar (beside the format fields)."""
+        return {"generator": self.resolved, "prn": self.plan.prns.tolist(),
+                "cn0_dbhz": self.plan.cn0_dbhz.tolist(), "frontend": self.fe.to_dict()}
+
+    def block_starts(self):
+        """First interval of every block (blocks of :data:`BLOCK_INTERVALS` intervals)."""
+        return range(0, self.n_int_total, BLOCK_INTERVALS)
+
+    def blocks(self, samples=True, truth=True, synth=None):
+        """Yield ``(j0, n_valid, y, rows)`` per block of :data:`BLOCK_INTERVALS` intervals from the first:
+        ``j0`` the block's first interval, ``n_valid`` its samples, ``y`` the quantised samples
+        (complex64 / float32 on the quantiser's integer levels, or None without ``samples``; valid
+        until the next block is asked for) and ``rows`` the truth rows of its intervals (or None
+        without ``truth``). ``synth``: the (complex, real) synthesis kernels (default the module's)."""
+        plan, fe, events, horizon = self.plan, self.fe, self.events, self.horizon
+        L, n_total, n_int_total = plan.L, self.n_total, self.n_int_total
+        synth_c, synth_r = synth or (_synth_complex, _synth_real)
+        nsat = len(plan.ephs)
+        comps = 2 if fe.is_complex else 1
+        fe.reset()                       # the front-end filter starts from rest on every pass
+        noise = None
+        if samples:
+            noise = _NoiseAhead(np.random.default_rng(self.ss_noise), BLOCK_INTERVALS * L * comps,
+                                [min(BLOCK_INTERVALS, n_int_total - j) * L * comps for j in self.block_starts()])
+        try:
+            for j0 in self.block_starts():
+                n_int = min(BLOCK_INTERVALS, n_int_total - j0)
+                ns = n_int * L
+                n_valid = min(ns, n_total - j0 * L)
+                coefs, epoch0, starts, rx0 = plan.coefficients(j0, n_int)
+                bits = plan.bit_values(epoch0)
+                y = None
+                if samples:
+                    amps = np.broadcast_to(plan.amp, (n_int, nsat)).astype(np.float32)
+                    if horizon is not None and nsat:
+                        # terrain / obstructions block the satellites below the horizon elevation
+                        el = np.stack([g["elev_rad"] for g in starts], 1)
+                        amps = amps * (el > math.radians(float(horizon))).astype(np.float32)
+                    x = noise.next()      # this block's unit noise (drawn while the last block was processed)
+                    t_b0, t_b1 = j0 * L / fe.fs_hz, (j0 * L + ns) / fe.fs_hz
+                    fac = None
+                    if any(ev["t0_s"] < t_b1 and ev["t1_s"] > t_b0 for ev in events):
+                        fac = noise_factor(events, (j0 * L + np.arange(ns)) / fe.fs_hz)
+                    if fac is not None and np.any(fac != 1.0):
+                        if comps == 2:
+                            x.reshape(-1, 2)[...] *= fac[:, None]
+                        else:
+                            x *= fac
+                    if nsat:
+                        if fe.is_complex:
+                            synth_c(x.reshape(-1, 2), L, n_int, plan.codes, coefs, amps, bits, COS_LUT, SIN_LUT)
+                        else:
+                            synth_r(x, L, n_int, plan.codes, coefs, amps, bits, COS_LUT)
+                    y = x.view(np.complex64) if fe.is_complex else x
+                    y = y[:n_valid]
+                    y = fe.filter(y)
+                    sig_now = 1.0 if fac is None else fac[:n_valid]
+                    if fac is not None and np.all(fac[:n_valid] == fac[0]):
+                        sig_now = float(fac[0])
+                    y = fe.quantize_block(y, sig_now)
+                rows = self._truth_rows(j0, n_int, starts, rx0, bits) if truth else None
+                yield j0, n_valid, y, rows
+        finally:
+            if noise is not None:
+                noise.close()
+
+    def _truth_rows(self, j0, n_int, starts, rx0, bits):
+        """Truth rows of the intervals ``j0 .. j0 + n_int - 1`` (at the interval starts)."""
+        plan, fe, L = self.plan, self.fe, self.plan.L
+        nsat = len(plan.ephs)
+        e0 = (j0 + np.arange(n_int)) * L / fe.fs_hz
+        nf = noise_factor(self.events, e0)
+        rows = {"t_s": e0, "sample_index": (j0 + np.arange(n_int)) * L, "tow_s": self.tow0 + e0,
+                "t_true_tow_s": rx0["t_true"], "pos_e": rx0["pos_e"], "vel_e": rx0["vel_e"],
+                "clk_bias_m": rx0["clk_bias_m"], "clk_drift_mps": np.full(n_int, plan.drift),
+                "noise_factor": nf}
+        none = np.zeros((n_int, 0))
+        rows["code_phase_chips"] = np.stack([g["code_phase_chips"] for g in starts], 1) if nsat else none
+        rows["carrier_phase_cycles"] = np.stack([g["carrier_phase_cycles"] for g in starts], 1) if nsat else none
+        rows["doppler_hz"] = np.stack([g["doppler_hz"] for g in starts], 1) if nsat else none
+        rows["pseudorange_m"] = np.stack([g["pseudorange_m"] for g in starts], 1) if nsat else none
+        rows["elev_deg"] = np.degrees(np.stack([g["elev_rad"] for g in starts], 1)) if nsat else none
+        rows["azim_deg"] = np.degrees(np.stack([g["azim_rad"] for g in starts], 1)) if nsat else none
+        rows["t_tx_tow_s"] = np.stack([g["t_tx_tow"] for g in starts], 1) if nsat else none
+        for k in ("iono_m", "tropo_m"):
+            rows[k] = (np.stack([g[k] for g in starts], 1) if nsat and k in starts[0]
+                       else np.zeros((n_int, nsat)))
+        rows["cn0_dbhz"] = plan.cn0_dbhz[None, :] - 20.0 * np.log10(nf.astype(float))[:, None]
+        rows["nav_bit"] = bits[:, :, 0].astype(np.int8)
+        return rows
+
+
+def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, trajectory=None, write_if=True):
     """Generate the IF file, sidecar, truth (and IMU/trajectory) for a resolved scenario ``cfg``.
 
     ``seed`` overrides ``cfg['seed']``. ``ephemerides`` (list of Ephemeris, with
     ``cfg['satellites']['cn0_dbhz']`` scalar or per-satellite) and ``trajectory`` (an object
     with ``pos_vel_e(t)``) may be given to bypass the scenario's own sources. Returns a dict of
     the written paths (keys ``if, meta, truth`` and, with ``[imu]``, ``imu, trajectory``) plus
-    ``summary`` (dict).
+    ``summary`` (dict). ``write_if=False`` writes everything but the IF file and its sidecar (no
+    samples are synthesised: the truth does not depend on them) — for a receiver fed by
+    :class:`ultratight.signals.ifstream.GeneratedIf` of the same configuration and seed.
     """
     t_start = time.perf_counter()
-    fe_cfg = cfg.get("frontend", {})
-    fe = FrontEnd.from_config(fe_cfg)
-    if fe.gain_mode == "fixed" and "headroom" not in fe_cfg:
-        # fixed gain without an explicit headroom: the loudest noise event must fit the clip level
-        fe.headroom = max([1.0] + [float(ev["noise_factor"]) for ev in cfg.get("noise_events", []) or []
-                                   if ev.get("place", "if") == "if"])
-    fmt = fe_cfg.get("format", "ci8" if fe.is_complex else "i8")
-    spec = get_format(fmt)
-    if spec.is_complex != fe.is_complex:
-        raise ConfigError(f"frontend.format {fmt!r} is {'complex' if spec.is_complex else 'real'} but "
-                          f"frontend.sampling is {'complex' if fe.is_complex else 'real'}")
-    check_bits_for_format(spec.name, fe.bits)
-    duration = float(cfg.get("duration_s", 0))
-    if not duration > 0:
-        raise ConfigError(f"duration_s must be > 0, got {cfg.get('duration_s')}")
-    seed = cfg.get("seed", 0) if seed is None else seed
-    ss_noise, ss_imu = np.random.SeedSequence(int(seed)).spawn(2)
-    rng = np.random.default_rng(ss_noise)
-    week, tow0 = int(cfg["time"]["week"]), float(cfg["time"]["tow_s"])
-    rcv = cfg.get("receiver", {})
-    if trajectory is None:
-
-        trajectory = build_trajectory(cfg.get("trajectory", {"kind": "static"}), rcv, duration)
-    if ephemerides is None:
-        p0, _ = trajectory.pos_vel_e(np.zeros(1))
-        ephs, cn0 = _ephemerides(cfg, p0[0])
-    else:
-        ephs = list(ephemerides)
-        cn0 = np.broadcast_to(np.asarray(cfg.get("satellites", {}).get("cn0_dbhz", 45.0), float),
-                              (len(ephs),)).copy()
-    atmosphere, iono_broadcast = atmosphere_from_config(cfg.get("atmosphere"))
-    plan = SignalPlan(ephs, cn0, trajectory, week, tow0, fe.fs_hz, fe.if_hz, fe.is_complex, fe.inversion,
-                      rcv.get("clock_bias_m", 0.0), rcv.get("clock_drift_mps", 0.0),
-                      atmosphere=atmosphere, iono_broadcast=iono_broadcast)
-    nav_data = cfg.get("nav", {}).get("data", "lnav")
-    plan.set_nav_bits(duration, bool(cfg.get("nav", {}).get("data_bits", True)), nav_data, int(seed))
-    events = cfg.get("noise_events", [])
-    horizon = cfg.get("satellites", {}).get("horizon_deg")
+    gen = Generation(cfg, seed, ephemerides, trajectory)
+    fe, spec, plan = gen.fe, gen.spec, gen.plan
+    seed = gen.seed
+    nav_data = gen.nav_data
 
     out_dir = Path(out_dir)
     if not out_dir.is_dir():
         raise ConfigError(f"output directory does not exist: {out_dir}")
     paths = output_paths(out_dir, stem, spec.name)
-    n_total = int(round(duration * fe.fs_hz))
-    L = plan.L
-    n_int_total = -(-n_total // L)
-    resolved = json.loads(json.dumps(cfg, default=str))
-    resolved["seed"] = int(seed)
-    attrs = {"config_json": json.dumps(resolved), "version": __version__, "fs_hz": fe.fs_hz,
+    n_total = gen.n_total
+    attrs = {"config_json": json.dumps(gen.resolved), "version": __version__, "fs_hz": fe.fs_hz,
              "if_hz": fe.if_hz, "is_complex": fe.is_complex, "inversion": fe.inversion,
-             "format": spec.name, "week": week, "tow0_s": tow0, "samples_per_row": L,
-             "prn": plan.prns, "cn0_dbhz_config": plan.cn0_dbhz, "seed": int(seed),
+             "format": spec.name, "week": gen.week, "tow0_s": gen.tow0, "samples_per_row": plan.L,
+             "prn": plan.prns, "cn0_dbhz_config": plan.cn0_dbhz, "seed": seed,
              "n_samples": n_total, "schema": "ultratight generator truth v1 (docs/generator.md)"}
-    writer = truth = noise = None
+    writer = truth = blocks = None
     extra_tmps = []
-    bar = _progress(duration, progress, f"generate {stem}")
+    bar = _progress(gen.duration, progress, f"generate {stem}")
     try:
-        writer = IfWriter(paths["if"], spec.name, fe.fs_hz, fe.if_hz, inversion=fe.inversion,
-                          start_week=week, start_tow_s=tow0, bits=fe.bits,
-                          extra={"generator": resolved, "prn": plan.prns.tolist(),
-                                 "cn0_dbhz": plan.cn0_dbhz.tolist(), "frontend": fe.to_dict()})
-        truth = _TruthWriter(paths["truth"], len(ephs), attrs)
-        nsat = len(ephs)
-        comps = 2 if fe.is_complex else 1
-        noise = _NoiseAhead(rng, BLOCK_INTERVALS * L * comps,
-                            [min(BLOCK_INTERVALS, n_int_total - j) * L * comps
-                             for j in range(0, n_int_total, BLOCK_INTERVALS)])
-        for j0 in range(0, n_int_total, BLOCK_INTERVALS):
-            n_int = min(BLOCK_INTERVALS, n_int_total - j0)
-            ns = n_int * L
-            coefs, epoch0, starts, rx0 = plan.coefficients(j0, n_int)
-            bits = plan.bit_values(epoch0)
-            amps = np.broadcast_to(plan.amp, (n_int, nsat)).astype(np.float32)
-            if horizon is not None and nsat:
-                # terrain / obstructions block the satellites below the horizon elevation
-                el = np.stack([g["elev_rad"] for g in starts], 1)
-                amps = amps * (el > math.radians(float(horizon))).astype(np.float32)
-            x = noise.next()          # this block's unit noise (drawn while the last block was processed)
-            t_b0, t_b1 = j0 * L / fe.fs_hz, (j0 * L + ns) / fe.fs_hz
-            fac = None
-            if any(ev["t0_s"] < t_b1 and ev["t1_s"] > t_b0 for ev in events):
-                fac = noise_factor(events, (j0 * L + np.arange(ns)) / fe.fs_hz)
-            if fac is not None and np.any(fac != 1.0):
-                if comps == 2:
-                    x.reshape(-1, 2)[...] *= fac[:, None]
-                else:
-                    x *= fac
-            if nsat:
-                if fe.is_complex:
-                    _synth_complex(x.reshape(-1, 2), L, n_int, plan.codes, coefs, amps, bits, COS_LUT, SIN_LUT)
-                else:
-                    _synth_real(x, L, n_int, plan.codes, coefs, amps, bits, COS_LUT)
-            n_valid = min(ns, n_total - j0 * L)
-            y = x.view(np.complex64) if fe.is_complex else x
-            y = y[:n_valid]
-            y = fe.filter(y)
-            sig_now = 1.0 if fac is None else fac[:n_valid]
-            if fac is not None and np.all(fac[:n_valid] == fac[0]):
-                sig_now = float(fac[0])
-            y = fe.quantize_block(y, sig_now)
-            writer.write(y, exact=fe.bits != 0)   # quantiser levels fit every integer format allowed
-            # truth rows (interval starts)
-            e0 = (j0 + np.arange(n_int)) * L / fe.fs_hz
-            nf = noise_factor(events, e0)
-            rows = {"t_s": e0, "sample_index": (j0 + np.arange(n_int)) * L, "tow_s": tow0 + e0,
-                    "t_true_tow_s": rx0["t_true"], "pos_e": rx0["pos_e"], "vel_e": rx0["vel_e"],
-                    "clk_bias_m": rx0["clk_bias_m"], "clk_drift_mps": np.full(n_int, plan.drift),
-                    "noise_factor": nf}
-            rows["code_phase_chips"] = np.stack([g["code_phase_chips"] for g in starts], 1) if nsat else np.zeros((n_int, 0))
-            rows["carrier_phase_cycles"] = np.stack([g["carrier_phase_cycles"] for g in starts], 1) if nsat else np.zeros((n_int, 0))
-            rows["doppler_hz"] = np.stack([g["doppler_hz"] for g in starts], 1) if nsat else np.zeros((n_int, 0))
-            rows["pseudorange_m"] = np.stack([g["pseudorange_m"] for g in starts], 1) if nsat else np.zeros((n_int, 0))
-            rows["elev_deg"] = np.degrees(np.stack([g["elev_rad"] for g in starts], 1)) if nsat else np.zeros((n_int, 0))
-            rows["azim_deg"] = np.degrees(np.stack([g["azim_rad"] for g in starts], 1)) if nsat else np.zeros((n_int, 0))
-            rows["t_tx_tow_s"] = np.stack([g["t_tx_tow"] for g in starts], 1) if nsat else np.zeros((n_int, 0))
-            for k in ("iono_m", "tropo_m"):
-                rows[k] = (np.stack([g[k] for g in starts], 1) if nsat and k in starts[0]
-                           else np.zeros((n_int, nsat)))
-            rows["cn0_dbhz"] = plan.cn0_dbhz[None, :] - 20.0 * np.log10(nf.astype(float))[:, None]
-            rows["nav_bit"] = bits[:, :, 0].astype(np.int8)
+        if write_if:
+            writer = IfWriter(paths["if"], spec.name, fe.fs_hz, fe.if_hz, inversion=fe.inversion,
+                              start_week=gen.week, start_tow_s=gen.tow0, bits=fe.bits, extra=gen.sidecar_extra())
+        truth = _TruthWriter(paths["truth"], len(plan.ephs), attrs)
+        blocks = gen.blocks(samples=write_if)
+        for _j0, n_valid, y, rows in blocks:
+            if writer is not None:
+                writer.write(y, exact=fe.bits != 0)   # quantiser levels fit every integer format allowed
             truth.append(rows)
             if bar is not None:
                 bar.update(n_valid / fe.fs_hz)
@@ -650,13 +726,15 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
             truth.f.create_dataset("nav_bits", data=sent[1], compression="gzip", compression_opts=1)
         truth.f.attrs["elapsed_s"] = time.perf_counter() - t_start
         truth.finish()
-        result = {"if": paths["if"], "meta": paths["meta"], "truth": paths["truth"]}
+        result = {"if": paths["if"], "meta": paths["meta"]} if write_if else {}
+        result["truth"] = paths["truth"]
         imu_cfg = cfg.get("imu")
-        if imu_cfg and hasattr(trajectory, "save_h5"):
-            extra_tmps += _write_imu_traj(imu_cfg, trajectory, paths, ss_imu, resolved)
+        if imu_cfg and hasattr(gen.trajectory, "save_h5"):
+            extra_tmps += _write_imu_traj(imu_cfg, gen.trajectory, paths, gen.ss_imu, gen.resolved)
             result["imu"] = paths["imu"]
             result["trajectory"] = paths["trajectory"]
-        writer.close()
+        if writer is not None:
+            writer.close()
         os.replace(truth.tmp, paths["truth"])
         for tmp, final in extra_tmps:
             os.replace(tmp, final)
@@ -672,13 +750,13 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
                 pass
         raise
     finally:
-        if noise is not None:
-            noise.close()
+        if blocks is not None:
+            blocks.close()
         if bar is not None:
             bar.close()
     result["summary"] = {"prns": plan.prns.tolist(), "cn0_dbhz": plan.cn0_dbhz.tolist(),
                          "n_samples": n_total, "duration_s": n_total / fe.fs_hz, "fs_hz": fe.fs_hz,
-                         "if_hz": fe.if_hz, "format": spec.name, "seed": int(seed),
+                         "if_hz": fe.if_hz, "format": spec.name, "seed": seed, "if_written": bool(write_if),
                          "elapsed_s": time.perf_counter() - t_start}
     return result
 
@@ -701,4 +779,4 @@ def _write_imu_traj(imu_cfg, trajectory, paths, ss_imu, resolved):
     return out
 
 
-__all__ = ["generate", "SignalPlan", "eval_poly", "noise_factor", "output_paths", "FORMATS"]
+__all__ = ["generate", "Generation", "SignalPlan", "eval_poly", "noise_factor", "output_paths", "FORMATS"]

@@ -202,6 +202,23 @@ def _parse_ion_metadata(xml_path):
 # ------------------------------------------------------------------------------------------
 # reader
 # ------------------------------------------------------------------------------------------
+def orient(raw, start, is_complex, iq_swap=False, conj=False, alt_sign=False):
+    """Decoded float32 components ``raw`` of the samples from ``start`` as the readers return them:
+    complex64 (complex formats; I/Q swapped back, conjugated) or float32 (real formats; sample ``n``
+    times ``(-1)**n`` for a mirrored spectrum). Works in place on ``raw``."""
+    if is_complex:
+        if iq_swap:
+            raw = raw.reshape(-1, 2)[:, ::-1].copy().reshape(-1)
+        x = raw.view(np.complex64)
+        if conj:
+            raw[1::2] *= -1.0
+        return x
+    if alt_sign:
+        first = start & 1
+        raw[(1 - first)::2] *= -1.0
+    return raw
+
+
 class IfSource:
     """A sampled-IF file opened for streaming reads (memory-mapped; nothing is loaded whole).
 
@@ -299,17 +316,7 @@ class IfSource:
             raise ValueError("start must be >= 0")
         count = max(0, min(int(count), self.n_samples - start))
         raw = self.spec.decode(self._mm, start, count, self.packing)
-        if self.is_complex:
-            if self._iq_swap:
-                raw = raw.reshape(-1, 2)[:, ::-1].copy().reshape(-1)
-            x = raw.view(np.complex64)
-            if self._conj:
-                raw[1::2] *= -1.0
-            return x
-        if self._alt_sign:
-            first = start & 1
-            raw[(1 - first)::2] *= -1.0
-        return raw
+        return orient(raw, start, self.is_complex, self._iq_swap, self._conj, self._alt_sign)
 
     def blocks(self, block_len, start=0, stop=None):
         """Iterate ``(start_index, samples)`` over consecutive blocks of ``block_len`` samples."""

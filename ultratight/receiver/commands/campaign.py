@@ -20,6 +20,9 @@ def add_arguments(parser):
     parser.add_argument("--resume", action="store_true", help="keep the complete run files of this campaign in "
                                                                "OUT/runs and run only the missing ones")
     parser.add_argument("--duration", type=float, default=None, help="cut the scenario to this many seconds")
+    parser.add_argument("--cache", action="store_true",
+                        help="IF-level scenarios: write each run's IF file into OUT/cache (default: generated in "
+                             "memory for each method; same results)")
     parser.add_argument("--json", action="store_true", help="print the campaign summary as JSON")
     parser.add_argument("--quiet", action="store_true", help="no progress bar or cluster messages")
 
@@ -38,7 +41,7 @@ def run(args):
         overrides["duration_s"] = float(args.duration)
     res = run_campaign(args.scenario, runs=args.runs, methods=methods, seed=args.seed, workers=args.workers,
                        scheduler=args.scheduler, out_dir=args.out, resume=args.resume, overrides=overrides,
-                       progress=not args.quiet, connect_timeout_s=args.connect_timeout)
+                       progress=not args.quiet, connect_timeout_s=args.connect_timeout, cache=args.cache)
     if args.json:
         print(json_dumps(res["json"], indent=2))
     else:

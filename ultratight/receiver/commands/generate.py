@@ -78,7 +78,9 @@ def estimate(cfg):
     """Up-front estimate of a generation: ``{"if_bytes", "truth_bytes", "imu_bytes", "memory_bytes"}``.
 
     IF bytes = duration x fs x sample size; truth: one row (~40 numbers + 12 per satellite) per
-    1 ms interval; IMU + trajectory: ~40 numbers per IMU sample (written from memory)."""
+    1 ms interval, in whole chunks of 1000 rows; IMU + trajectory: ~40 numbers per IMU sample (written from memory)."""
+    import math
+
     from ultratight.signals.iffile import get_format
     fe = cfg["frontend"]
     spec = get_format(fe["format"])
@@ -86,6 +88,8 @@ def estimate(cfg):
     if_bytes = spec.nbytes(n, spec.layout())
     n_sat = max(len(cfg["satellites"].get("prns") or []), int(cfg["satellites"].get("max_count", 12)))
     rows = float(cfg["duration_s"]) * 1000.0
+    if math.isfinite(rows):
+        rows = math.ceil(rows / 1000.0) * 1000.0            # the truth datasets hold whole 1000-row chunks
     truth_bytes = rows * 8 * (12 + 12 * n_sat)
     imu_rows = float(cfg["duration_s"]) * float((cfg.get("imu") or {}).get("rate_hz", 0.0)) if cfg.get("imu") else 0.0
     imu_bytes = imu_rows * 8 * 40

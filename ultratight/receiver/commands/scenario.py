@@ -17,6 +17,9 @@ def add_arguments(parser):
     parser.add_argument("--runs", type=int, default=1, help="Monte-Carlo runs (seeds seed..seed+runs-1)")
     parser.add_argument("--seed", type=int, default=None, help="base seed (default: the scenario's)")
     parser.add_argument("--out", default="scenario_out", help="output directory (also holds the data cache)")
+    parser.add_argument("--cache", action="store_true",
+                        help="IF-level scenarios: write the generated IF files into OUT/cache and read them from "
+                             "disk (default: each method reads the IF from the generator in memory; same results)")
     parser.add_argument("--duration", type=float, default=None, help="cut the scenario to this many seconds")
     parser.add_argument("--fs-hz", type=float, default=None, help="override the front-end sampling rate")
     parser.add_argument("--channel", type=int, default=None, help="channel index for the one-channel table (default 0)")
@@ -94,7 +97,7 @@ def run(args):
 
 # flags only the IF-level experiment understands (argparse dest names)
 IF_ONLY = ("fs_hz", "channel", "monitor", "noise_tau", "frontend_gain", "format", "outer_freq_update", "workers",
-           "threads", "bits")
+           "threads", "bits", "cache")
 
 
 def _run_if(args, path, module):
@@ -129,7 +132,7 @@ def _run_if(args, path, module):
         runs=args.runs, seed=args.seed, out_dir=args.out, duration_s=args.duration,
         fs_hz=args.fs_hz, channel=0 if args.channel is None else args.channel, plots=not args.no_plots,
         progress=not (args.quiet or args.json), options=EngineOptions(**mon), overrides=overrides,
-        workers=args.workers,
+        workers=args.workers, cache=args.cache,
     )
     _print_summary(args, summary)
     return 0

@@ -3,12 +3,13 @@
 The scenario schema, data cache and metrics are those of :mod:`ultratight.receiver.scenario_runner`
 and :mod:`ultratight.receiver.scenario_config` (docs/ultratight.md); this module is the
 :mod:`ultratight.receiver.experiments` entry for them. ``ultratight scenario`` calls its driver
-``run_scenario`` whole (it manages the on-disk cache of generated IF). ``load`` / ``run_one`` /
+``run_scenario`` whole (it manages the on-disk cache of generated data). ``load`` / ``run_one`` /
 ``summarize`` are the same steps one run at a time, for a campaign (:mod:`ultratight.receiver.campaign`):
 ``run_one`` generates (or reuses) the run's data with ``prepare_data`` (the cache under the
-directory :func:`with_data_dir` names, guarded by its per-key lock), runs each method with
-``run_method`` and returns the per-run metrics of ``metrics.summarize`` plus the tracking-error
-series; ``summarize`` combines them with ``scenario_runner.aggregate`` / ``event_rms`` exactly as
+directory :func:`with_data_dir` names, guarded by its per-key lock; truth and IMU only, the IF
+streamed from the generator into each method, unless :func:`with_data_dir` was asked to cache the
+IF files), runs each method with ``run_method`` and returns the per-run metrics of
+``metrics.summarize`` plus the tracking-error series; ``summarize`` combines them with ``scenario_runner.aggregate`` / ``event_rms`` exactly as
 ``run_scenario`` does (RMS over all channels and runs, Tables 3 and 4), on channel 0 and with the
 default engine options plus the scenario's ``[engine]`` table.
 """
@@ -29,6 +30,7 @@ DEFAULT_METHODS = ("pb-kf-utc", "dlb-ukf", "dlb-ckf", "dlb-rackf")
 # run_one finds the data cache's parent directory under this key of cfg (set by with_data_dir)
 USES_DATA_DIR = True
 DATA_DIR_KEY = "_data_dir"
+CACHE_KEY = "_if_cache"          # True: the runs write their IF files into the cache (else streamed)
 
 
 def run_scenario(scenario, **kwargs):
@@ -43,10 +45,12 @@ def load(path, raw, overrides):
     return load_scenario(path, ov)
 
 
-def with_data_dir(cfg, out_dir):
-    """``cfg`` whose runs keep their generated data under ``OUT/cache/<key>/`` (absolute path)."""
+def with_data_dir(cfg, out_dir, cache=False):
+    """``cfg`` whose runs keep their generated data under ``OUT/cache/<key>/`` (absolute path), the IF
+    files too when ``cache`` (else each method reads the IF from the generator in memory)."""
     c = dict(cfg)
     c[DATA_DIR_KEY] = str(Path(out_dir).resolve())
+    c[CACHE_KEY] = bool(cache)
     return c
 
 
@@ -54,10 +58,11 @@ def run_one(cfg, methods, seed, progress=False):
     """One run: data of ``seed`` (generated or reused), every method on it, metrics vs truth."""
     c = dict(cfg)
     data_dir = c.pop(DATA_DIR_KEY, "scenario_out")
+    cache = bool(c.pop(CACHE_KEY, False))
     if any(m != "scalar" for m in methods) and "imu" not in c:
         # the ultra-tight methods run on an IMU: the default one, as run_scenario adds it
         c["imu"] = dict(IMU_DEFAULTS)
-    paths, _cached = prepare_data(c, int(seed), data_dir, progress=progress)
+    paths, _cached = prepare_data(c, int(seed), data_dir, progress=progress, cache_if=cache)
     out = {"seed": int(seed), "methods": {}, "series": {}}
     for m in methods:
         res, truth = run_method(paths, c, m, int(seed))
