@@ -130,6 +130,13 @@ class TrackingConfig:
     weak_pll_bw_hz: float = 5.0     # ... and at most this PLL bandwidth
     fast_el: bool = True            # 1-chip spacing: prompt + (E-L) kernel and dot-product DLL
 
+    @classmethod
+    def for_dynamics(cls, dynamics="normal", **overrides):
+        """The loop parameters of a dynamics profile (:data:`DYNAMICS_PROFILES`) with ``overrides``."""
+        if dynamics not in DYNAMICS_PROFILES:
+            raise ConfigError(f"--dynamics must be one of {', '.join(DYNAMICS_PROFILES)}, got {dynamics!r}")
+        return cls(**{**DYNAMICS_PROFILES[dynamics], **overrides})
+
     def validate(self):
         if self.coh_ms not in (1, 2, 4, 5, 10, 20) or self.weak_long_coh_ms not in (1, 2, 4, 5, 10, 20):
             raise ConfigError(f"tracking coh_ms must be one of 1, 2, 4, 5, 10, 20 (divides a 20 ms bit), "
@@ -176,6 +183,26 @@ class TrackingConfig:
         p[P_CHIP_RATE] = signal.chip_rate_hz
         p[P_CARRIER] = signal.carrier_hz
         return p
+
+
+# Loop profiles by receiver dynamics (``process --dynamics``). ``high``: a start under a constant
+# line-of-sight acceleration (paper-highdyn: 10 g, up to ~525 Hz/s Doppler rate) at 30 dB-Hz. The
+# channels start from a Doppler-rate search (receiver.acquisition.doppler_rate_search: Doppler
+# within ~1 Hz, rate within ~10 Hz/s), so the third-order PLL's rate integrator holds the rate from
+# the first epoch and its zero steady-state error under constant acceleration does the rest
+# (Kaplan & Hegarty ch. 5). What the profile changes against ``normal``:
+# * FLL assist in pull-in 2 Hz instead of 10 Hz: the frequency is already within ~1 Hz; a 10 Hz
+#   cross-product FLL on 30 dB-Hz sums adds Hz-level noise that walks the PLL out of lock;
+# * a 1 Hz FLL assist kept in track mode: it pulls a slipping PLL back before the C/N0 test drops
+#   the channel;
+# * weak signals (< weak_dbhz) use 10 ms coherent sums before bit sync (a bit edge spoils at most one
+#   of two) and a PLL bandwidth cap of 12 Hz instead of 5 Hz: 5 Hz (w0 = 6.4 rad/s) leaves a rate
+#   error of 10 Hz/s as a 0.25-cycle transient and no margin for the rate changes of the geometry,
+#   12 Hz at 10 ms keeps B_n T = 0.12 (stable) and the thermal jitter at 30 dB-Hz near 7 deg.
+DYNAMICS_PROFILES = {
+    "normal": {},
+    "high": {"pull_fll_bw_hz": 2.0, "track_fll_bw_hz": 1.0, "weak_coh_ms": 10, "weak_pll_bw_hz": 12.0},
+}
 
 
 # ------------------------------------------------------------------------------ discriminators
@@ -742,13 +769,16 @@ class TrackingState:
         self.rec_i = np.zeros((n_ch, max_rows, N_RI), dtype=np.int64)
         self.n_rec = np.zeros(n_ch, dtype=np.int64)
 
-    def reset_channel(self, ch, doppler_hz, cn0_dbhz=None):
-        """(Re)start a channel in pull-in mode with the acquisition Doppler (and C/N0 when known)."""
+    def reset_channel(self, ch, doppler_hz, cn0_dbhz=None, rate_hz_s=None):
+        """(Re)start a channel in pull-in mode with the acquisition Doppler (and C/N0 when known);
+        ``rate_hz_s`` (a Doppler-rate search) presets the third-order loop's rate integrator."""
         self.sf[ch] = 0.0
         self.si[ch] = 0
         self.hist[ch] = 0
         self.sf[ch, F_DOPP] = doppler_hz
         self.sf[ch, F_PLL_X] = doppler_hz
+        if rate_hz_s is not None and np.isfinite(rate_hz_s):
+            self.sf[ch, F_PLL_Y] = rate_hz_s
         if cn0_dbhz is not None and np.isfinite(cn0_dbhz):
             self.sf[ch, F_CN0_DB] = cn0_dbhz
             self.si[ch, S_CN0_VALID] = 1
@@ -834,11 +864,12 @@ class ScalarTracker:
         self.state.sf[:, F_PLL_X] += dx[:, 0]
         self.nco.code_phase += dx[:, 1]
 
-    def start_channel(self, ch, prn, code_phase_chips, doppler_hz, sample_index, cn0_dbhz=None):
-        """Start (or restart) channel ``ch`` from an acquisition result valid at ``sample_index``."""
+    def start_channel(self, ch, prn, code_phase_chips, doppler_hz, sample_index, cn0_dbhz=None, rate_hz_s=None):
+        """Start (or restart) channel ``ch`` from an acquisition result valid at ``sample_index``
+        (``rate_hz_s``: the Doppler rate there, when searched)."""
         self.nco.init_channel(ch, int(prn), code_phase_chips, doppler_hz, int(sample_index))
         self.half_tab[ch] = half_chip_tables(prn, self.nco.pad, self.signal)
-        self.state.reset_channel(ch, float(doppler_hz), cn0_dbhz)
+        self.state.reset_channel(ch, float(doppler_hz), cn0_dbhz, rate_hz_s)
 
     def stop_channel(self, ch):
         self.nco.active[ch] = False
