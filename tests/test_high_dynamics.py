@@ -4,7 +4,7 @@
   random data bits and noise at 30 dB-Hz, against the Doppler and rate it was made with;
 * on paper-highdyn (100 m/s^2 East from t = 0) at 30 dB-Hz: acquisition + rate search of all 13
   satellites against the generator's truth;
-* (slow) the scalar hand-over pass of the ultra-tight start-up (receiver.handover.scalar_pass) on
+* the scalar hand-over pass of the ultra-tight start-up (receiver.handover.scalar_pass) on
   the same recording: every satellite acquired and tracked to 12 s, a hand-over fix inside the
   window, fixes within their stated sigmas of the true trajectory.
 """
@@ -119,7 +119,6 @@ def test_highdyn_acquisition_and_rate_against_truth(short_rec):
     assert max(np.abs(rates)) > 450.0          # the scenario does stress the loops
 
 
-@pytest.mark.slow
 def test_highdyn_30dbhz_scalar_handover(tmp_path_factory):
     """The scalar pass of the ultra-tight start-up at 30 dB-Hz under 10 g (--dynamics high): all 13
     satellites acquired and tracked to the end of the 12 s window (Doppler within 5 Hz RMS of the
