@@ -3,7 +3,9 @@
 :class:`ScalarReceiver` is built from stages with array interfaces, each usable alone:
 
 1. acquisition / assistance (:func:`acquire_signals`: :func:`ultratight.receiver.acquisition.acquire`
-   in two stages, or assistance records) and channel allocation (:func:`allocate_channels`);
+   in two stages, or assistance records) and channel allocation (:func:`allocate_channels`); with
+   ``dynamics = "high"`` every channel then starts from a Doppler-rate search (:func:`search_rate`:
+   :func:`ultratight.receiver.acquisition.doppler_rate_search`) that presets the PLL's rate;
 2. the IF block stream (:class:`ultratight.receiver.blockstream.BlockStream`, with the per-arm
    noise estimate);
 3. the scalar tracking bank (:class:`ultratight.receiver.tracking.ScalarTracker`: FLL-assisted PLL,
