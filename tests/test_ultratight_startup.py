@@ -5,7 +5,8 @@ any truth file. The engine starts from the scalar receiver's own fix on the same
 
 The recording: paper-highdyn (10 g from t = 0, no still interval: the attitude comes from the
 specific force and the velocity direction) without its noise burst, 45 dB-Hz: the scalar
-receiver must fix under 10 g before the hand-over (it does not at 30 dB-Hz, see docs/ultratight.md).
+receiver must fix under 10 g before the hand-over (at 30 dB-Hz it needs --dynamics high:
+tests/test_high_dynamics.py, docs/process.md "High dynamics").
 Data bits the receiver cannot know: the generator puts random bits in subframes 4-5 and the reserved
 fields (``[nav] data = "lnav-random-sf45"``), so the engine runs with ``--bits blind``.
 """

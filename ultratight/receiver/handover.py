@@ -77,6 +77,7 @@ class HandoverConfig:
     acq_noncoherent: int = 1
     acq_coherent_ms: int = 10
     doppler_range_hz: float = 10e3
+    dynamics: str = "normal"        # scalar pass loop profile and Doppler-rate search (process --dynamics)
 
     def as_dict(self):
         return asdict(self)
@@ -233,12 +234,14 @@ def attitude_at(imu, imu_errors, t_h, llh, vel_l, acc_l, sig_acc, cfg):
 def scalar_pass(source, ephemerides, prns, start_s, cfg):
     """Run the scalar receiver over ``window_s`` from ``start_s``: its :class:`ProcessResult`."""
     from ultratight.receiver.process import NoSignalError, ProcessConfig, process
+    from ultratight.receiver.tracking import TrackingConfig
 
     avail = source.n_samples / source.fs_hz - start_s
     pc = ProcessConfig(prns=list(prns) if prns else None, start_s=float(start_s), record_epochs=True,
                        duration_s=max(min(cfg.window_s, avail), 1e-3), iono="off", tropo="off",
                        acq_min_cn0_dbhz=cfg.acq_min_cn0_dbhz, acq_noncoherent=cfg.acq_noncoherent,
-                       acq_coherent_ms=cfg.acq_coherent_ms, doppler_range_hz=cfg.doppler_range_hz)
+                       acq_coherent_ms=cfg.acq_coherent_ms, doppler_range_hz=cfg.doppler_range_hz,
+                       dynamics=cfg.dynamics, tracking=TrackingConfig.for_dynamics(cfg.dynamics))
     try:
         return process(source, pc, ephemerides=ephemerides)
     except NoSignalError as exc:

@@ -3,7 +3,9 @@
 :class:`ScalarReceiver` is built from stages with array interfaces, each usable alone:
 
 1. acquisition / assistance (:func:`acquire_signals`: :func:`ultratight.receiver.acquisition.acquire`
-   in two stages, or assistance records) and channel allocation (:func:`allocate_channels`);
+   in two stages, or assistance records) and channel allocation (:func:`allocate_channels`); with
+   ``dynamics = "high"`` every channel then starts from a Doppler-rate search (:func:`search_rate`:
+   :func:`ultratight.receiver.acquisition.doppler_rate_search`) that presets the PLL's rate;
 2. the IF block stream (:class:`ultratight.receiver.blockstream.BlockStream`, with the per-arm
    noise estimate);
 3. the scalar tracking bank (:class:`ultratight.receiver.tracking.ScalarTracker`: FLL-assisted PLL,
@@ -53,7 +55,7 @@ from ultratight import __version__
 from ultratight.constants import C
 from ultratight.errors import ConfigError, InputFileError, UltratightError
 from ultratight.ins.earth import ecef_to_llh
-from ultratight.receiver.acquisition import AcqResult, acquire
+from ultratight.receiver.acquisition import AcqResult, acquire, doppler_rate_search
 from ultratight.receiver.blockstream import BlockStream
 from ultratight.receiver.navdecode import channel_nav
 from ultratight.receiver.nmea import DEFAULT_LEAP_S, write_nmea
@@ -73,6 +75,7 @@ from ultratight.signals.signal import GPS_L1CA
 RX_T0_OFFSET_S = 0.075       # initial guess of the signal travel time
 CLOCK_STEER_S = 1e-3         # re-steer the receiver time when |bias| exceeds this
 SIGMA_SAMPLES = 65536        # samples used per block for the noise-power estimate
+DYNAMICS = ("normal", "high")
 STAGE2_HZ = 400.0            # half-width of the declared (long coherent) search around stage 1
 RELEASE_EVERY = 20           # blocks between releases of the processed part of the file mapping
 MIRROR_RATIO = 0.1           # see _spectrum_check
@@ -112,8 +115,12 @@ class ProcessConfig:
     record_epochs: bool = False
     parallel: bool = False              # spread channels over numba threads (None: when >= 1.25 cores are available)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    dynamics: str = "normal"            # normal | high: Doppler-rate search after every acquisition (docs/process.md)
+    rate_span_s: float = 0.4            # high dynamics: span of the Doppler-rate search
 
     def validate(self, source):
+        if self.dynamics not in DYNAMICS:
+            raise ConfigError(f"--dynamics must be one of {', '.join(DYNAMICS)}, got {self.dynamics!r}")
         if self.n_channels is not None and not 1 <= int(self.n_channels) <= 32:
             raise ConfigError(f"--channels must be in 1..32, got {self.n_channels}")
         if not self.search_every_s > 0:
@@ -316,6 +323,25 @@ def _assisted(a, start_sample):
     r.coherent_ms = 0
     r.noncoherent = 0
     return r
+
+
+def search_rate(source, a, cfg, stop_sample, signal=GPS_L1CA):
+    """High dynamics: the Doppler and Doppler rate of the detected acquisition ``a`` by
+    :func:`ultratight.receiver.acquisition.doppler_rate_search` over ``cfg.rate_span_s`` (shorter
+    before ``stop_sample``); sets ``a.doppler_hz`` and ``a.rate_hz_s``. Normal dynamics, assisted
+    records, or too few samples left: ``a.rate_hz_s`` = None (the loop starts without a rate)."""
+    a.rate_hz_s = None
+    if cfg.dynamics != "high" or not a.detected or not math.isfinite(a.metric):
+        return a
+    span = min(cfg.rate_span_s, (stop_sample - a.sample_index) / source.fs_hz)
+    if span < 0.05:
+        return a
+    r = doppler_rate_search(source, a.prn, a.doppler_hz, a.code_phase_chips, a.sample_index, span_s=span,
+                            signal=signal)
+    a.doppler_acq_hz = a.doppler_hz
+    a.doppler_hz = r.doppler_hz
+    a.rate_hz_s = r.rate_hz_s
+    return a
 
 
 # ------------------------------------------------------------------------------ stages
@@ -738,7 +764,9 @@ class ScalarReceiver:
                                      max_rows=int(cfg.block_ms * 1.1) + 8, parallel=parallel, signal=sig)
         self.chinfo = []
         for ch, a in enumerate(found):
-            self.tracker.start_channel(ch, a.prn, a.code_phase_chips, a.doppler_hz, a.sample_index, a.cn0_dbhz)
+            search_rate(src, a, cfg, self.stop, sig)
+            self.tracker.start_channel(ch, a.prn, a.code_phase_chips, a.doppler_hz, a.sample_index, a.cn0_dbhz,
+                                       a.rate_hz_s)
             self.chinfo.append(_channel_info(a.prn, a, self.start_sample, fs))
         self.chinfo += [_channel_info(p) for p in idle_prns]
         prns = [c["prn"] for c in self.chinfo]
@@ -830,8 +858,9 @@ class ScalarReceiver:
                       doppler_range_hz=min(1000.0, 0.45 * self.fs - abs(last_d)), noncoherent=10,
                       pfa=self.cfg.acq_pfa, start_sample=int(now_sample), signal=self.signal)[0]
         if res.detected:
+            search_rate(self.source, res, self.cfg, self.stop, self.signal)
             self.tracker.start_channel(ch, info["prn"], res.code_phase_chips, res.doppler_hz, res.sample_index,
-                                       res.cn0_dbhz)
+                                       res.cn0_dbhz, res.rate_hz_s)
             self.navbits.restart(ch)
             info["bit_sync"] = False
             info["reacquisitions"] += 1
@@ -855,7 +884,9 @@ class ScalarReceiver:
             if not (a.detected and a.peak_cn0_dbhz >= self.cfg.acq_min_cn0_dbhz):
                 continue
             ch = by_prn[a.prn]
-            self.tracker.start_channel(ch, a.prn, a.code_phase_chips, a.doppler_hz, a.sample_index, a.cn0_dbhz)
+            search_rate(self.source, a, self.cfg, self.stop, self.signal)
+            self.tracker.start_channel(ch, a.prn, a.code_phase_chips, a.doppler_hz, a.sample_index, a.cn0_dbhz,
+                                       a.rate_hz_s)
             self.chinfo[ch]["started"] = True
             self.chinfo[ch]["acquired_s"] = (a.sample_index - self.start_sample) / self.fs
             self.acq.append(a)

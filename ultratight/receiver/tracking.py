@@ -80,8 +80,8 @@ N_SI = 10
 (P_PULL_PLL_BW, P_PULL_FLL_BW, P_PULL_DLL_BW, P_TRK_PLL_BW, P_TRK_FLL_BW, P_TRK_DLL_BW, P_PLL_ORDER,
  P_DLL_ORDER, P_COH_MS, P_SPACING, P_CN0_WIN, P_CN0_LOST, P_LOST_S, P_PLI_LOCK, P_LOCK_S, P_UNLOCK_S,
  P_BS_MARGIN, P_PLI_TAU, P_MAX_BNT, P_CN0_ALPHA, P_WEAK_DBHZ, P_PULL_COH_MS, P_WEAK_LONG_COH_MS,
- P_WEAK_PLL_BW, P_PEL, P_CODE_LEN, P_CHIP_RATE, P_CARRIER) = range(28)
-N_PRM = 28          # the last three: the signal's code length (chips), chip rate and carrier (Hz)
+ P_WEAK_PLL_BW, P_PEL, P_BS_ENERGY, P_CODE_LEN, P_CHIP_RATE, P_CARRIER) = range(29)
+N_PRM = 29          # the last three: the signal's code length (chips), chip rate and carrier (Hz)
 
 # record columns: float (rf) and int (ri)
 (R_CODE_PHASE, R_CODE_RATE, R_CARR_ACC, R_DOPP, R_IP, R_QP, R_IE, R_QE, R_IL, R_QL, R_CN0, R_PLI,
@@ -129,6 +129,14 @@ class TrackingConfig:
     weak_long_coh_ms: int = 20      # ... bit-synchronised sums of this length after bit sync,
     weak_pll_bw_hz: float = 5.0     # ... and at most this PLL bandwidth
     fast_el: bool = True            # 1-chip spacing: prompt + (E-L) kernel and dot-product DLL
+    bs_energy: bool = False         # also the bit-energy bit sync (max sum of |bit sums|, 6-sigma test)
+
+    @classmethod
+    def for_dynamics(cls, dynamics="normal", **overrides):
+        """The loop parameters of a dynamics profile (:data:`DYNAMICS_PROFILES`) with ``overrides``."""
+        if dynamics not in DYNAMICS_PROFILES:
+            raise ConfigError(f"--dynamics must be one of {', '.join(DYNAMICS_PROFILES)}, got {dynamics!r}")
+        return cls(**{**DYNAMICS_PROFILES[dynamics], **overrides})
 
     def validate(self):
         if self.coh_ms not in (1, 2, 4, 5, 10, 20) or self.weak_long_coh_ms not in (1, 2, 4, 5, 10, 20):
@@ -172,10 +180,35 @@ class TrackingConfig:
         p[P_WEAK_LONG_COH_MS] = self.weak_long_coh_ms
         p[P_WEAK_PLL_BW] = self.weak_pll_bw_hz
         p[P_PEL] = 1.0 if (self.fast_el and self.spacing_chips == 1.0) else 0.0
+        p[P_BS_ENERGY] = 1.0 if self.bs_energy else 0.0
         p[P_CODE_LEN] = signal.code_length
         p[P_CHIP_RATE] = signal.chip_rate_hz
         p[P_CARRIER] = signal.carrier_hz
         return p
+
+
+# Loop profiles by receiver dynamics (``process --dynamics``). ``high``: a start under a constant
+# line-of-sight acceleration (paper-highdyn: 10 g, up to ~525 Hz/s Doppler rate) at 30 dB-Hz. The
+# channels start from a Doppler-rate search (receiver.acquisition.doppler_rate_search: Doppler
+# within ~1 Hz, rate within ~10 Hz/s), so the third-order PLL's rate integrator holds the rate from
+# the first epoch and its zero steady-state error under constant acceleration does the rest
+# (Kaplan & Hegarty ch. 5). What the profile changes against ``normal``:
+# * FLL assist in pull-in 2 Hz instead of 10 Hz: the frequency is already within ~1 Hz; a 10 Hz
+#   cross-product FLL on 30 dB-Hz sums adds Hz-level noise that walks the PLL out of lock;
+# * a 1 Hz FLL assist kept in track mode: it pulls a slipping PLL back before the C/N0 test drops
+#   the channel;
+# * bit sync also by bit energy (_bit_sync_energy): at 30 dB-Hz the sign-change histogram needs
+#   5-7 s of phase lock for its 6-sigma test, the energy test ~1-2 s (the 1 ms amplitudes, not only
+#   their signs), so the first subframe of the file is decoded;
+# * weak signals (< weak_dbhz) use 10 ms coherent sums before bit sync (a bit edge spoils at most one
+#   of two) and a PLL bandwidth cap of 12 Hz instead of 5 Hz: 5 Hz (w0 = 6.4 rad/s) leaves a rate
+#   error of 10 Hz/s as a 0.25-cycle transient and no margin for the rate changes of the geometry,
+#   12 Hz at 10 ms keeps B_n T = 0.12 (stable) and the thermal jitter at 30 dB-Hz near 7 deg.
+DYNAMICS_PROFILES = {
+    "normal": {},
+    "high": {"pull_fll_bw_hz": 2.0, "track_fll_bw_hz": 1.0, "weak_coh_ms": 10, "weak_pll_bw_hz": 12.0,
+             "bs_energy": True},
+}
 
 
 # ------------------------------------------------------------------------------ discriminators
@@ -299,7 +332,47 @@ def _mode_update(ch, mode, t_ep, sf, si, prm):
 
 
 @njit(cache=True)
-def _bit_sync(ch, ip, epoch, mode, sf, si, hist, prm):
+def _bit_sync_energy(ch, ip, epoch, bse, cpb):
+    """Bit-energy bit synchronisation: the bit-edge phase k maximising ``E_k = sum |S_k|`` over the
+    sums ``S_k`` of the 1 ms prompts I_P of every bit-long window starting at an epoch = k (mod cpb)
+    (the maximum-likelihood edge of a phase-locked BPSK signal, Kaplan & Hegarty ch. 5 / van Dierendonck).
+    Two phases k1, k2 that are m epochs apart differ by m epochs in and m out of each window: the
+    noise of ``|S_k1| - |S_k2|`` is at most ``sqrt(2 m)`` per window (unit noise per arm), so k1 is
+    declared when, after N >= 25 windows, ``E_k1 - E_k2 >= 6 sqrt(2 m N)`` for every other k2.
+
+    ``bse[ch]``: running sums (cpb), energies (cpb), epochs seen. Returns the edge phase or -1."""
+    n_e = bse[ch, 2 * cpb]
+    k = epoch % cpb
+    found = -1
+    if n_e >= cpb:
+        bse[ch, cpb + k] += abs(bse[ch, k])
+        nb = n_e // cpb
+        if nb >= 25:
+            k1 = 0
+            for j in range(cpb):
+                if bse[ch, cpb + j] > bse[ch, cpb + k1]:
+                    k1 = j
+            ok = True
+            for j in range(cpb):
+                if j == k1:
+                    continue
+                m = abs(j - k1)
+                if cpb - m < m:
+                    m = cpb - m
+                if bse[ch, cpb + k1] - bse[ch, cpb + j] < 6.0 * math.sqrt(2.0 * m * nb):
+                    ok = False
+                    break
+            if ok:
+                found = k1
+    bse[ch, k] = 0.0
+    for j in range(cpb):
+        bse[ch, j] += ip
+    bse[ch, 2 * cpb] = n_e + 1.0
+    return found
+
+
+@njit(cache=True)
+def _bit_sync(ch, ip, epoch, mode, sf, si, hist, prm, bse):
     """Bit synchronisation (sign-change histogram over the ``hist.shape[1]`` code periods of a data
     bit) and the bit sums after it; returns (bit phase or -1, flags, soft bit)."""
     cpb = hist.shape[1]
@@ -329,6 +402,12 @@ def _bit_sync(ch, ip, epoch, mode, sf, si, hist, prm):
                 bph = kbest
                 si[ch, S_BIT_PHASE] = bph
                 si[ch, S_BIT_N] = -1      # wait for the next bit edge
+    if bph < 0 and mode != MODE_LOST and prm[P_BS_ENERGY] > 0.0:
+        kb = _bit_sync_energy(ch, ip, epoch, bse, cpb)
+        if kb >= 0:
+            bph = kb
+            si[ch, S_BIT_PHASE] = bph
+            si[ch, S_BIT_N] = -1
     sf[ch, F_LAST_I] = ip
     if bph >= 0:
         flags |= FL_BIT_SYNC
@@ -476,7 +555,7 @@ def _loop_update(ch, mode, weak, n_acc, acc7, sf, si, prm, tmp2):
 
 
 @njit(cache=True)
-def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2, acc7):
+def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2, acc7, bse):
     """Bookkeeping + loops for one channel after one code-period epoch with outputs o[0:6]
     (C/N0, mode, bit sync, coherent sums, then the loops when a sum is complete).
 
@@ -485,7 +564,7 @@ def _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2, acc7):
     epoch = si[ch, S_EPOCH]
     _cn0_update(ch, ip * ip + qp * qp, t_ep, sf, si, prm)
     mode, flags = _mode_update(ch, si[ch, S_MODE], t_ep, sf, si, prm)
-    bph, fl_bit, bit_soft = _bit_sync(ch, ip, epoch, mode, sf, si, hist, prm)
+    bph, fl_bit, bit_soft = _bit_sync(ch, ip, epoch, mode, sf, si, hist, prm, bse)
     flags |= fl_bit
     weak = si[ch, S_CN0_VALID] == 1 and sf[ch, F_CN0_DB] < prm[P_WEAK_DBHZ]
     coh, ref = _coherent_length(ch, bph, weak, si, prm)
@@ -598,7 +677,7 @@ def half_chip_tables(prn, pad, signal=GPS_L1CA):
 @njit(cache=True)
 def _track_channel(ch, buf, is_complex, buf_start, n_buf, stop_sample, code_ext, pad, active, sample_ptr,
                    code_phase, code_rate, carr_phase, carr_freq, fs, if_hz, tap_off, sigma_arm,
-                   sf, si, hist, prm, rec_f, rec_i, n_rec, half_tab):
+                   sf, si, hist, prm, rec_f, rec_i, n_rec, half_tab, bse):
     """Closed-loop tracking of channel ``ch`` through the buffer (see :func:`_track_block`)."""
     n_taps = tap_off.shape[0]
     tap_fix = tap_fixed_point(tap_off)
@@ -641,7 +720,7 @@ def _track_channel(ch, buf, is_complex, buf_start, n_buf, stop_sample, code_ext,
         sf[ch, F_CARR_ACC] += n * ((carr_freq[ch] - if_hz) / fs)
         sample_ptr[ch] = sample_ptr[ch] + n
         t_ep = n / fs
-        dopp, u, flags, bit_soft = _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2, acc7)
+        dopp, u, flags, bit_soft = _epoch_update(ch, o, t_ep, sf, si, hist, prm, tmp2, acc7, bse)
         carr_freq[ch] = if_hz + dopp
         code_rate[ch] = chip_rate * (1.0 + dopp / carrier) + u
         rec_f[ch, r, R_IP] = o[0]
@@ -666,7 +745,7 @@ def _track_channel(ch, buf, is_complex, buf_start, n_buf, stop_sample, code_ext,
 @njit(cache=True)
 def _track_block(buf, is_complex, buf_start, n_buf, stop_sample, code_ext, pad, active, sample_ptr,
                  code_phase, code_rate, carr_phase, carr_freq, fs, if_hz, tap_off, sigma_arm,
-                 sf, si, hist, prm, rec_f, rec_i, n_rec, half_tab):
+                 sf, si, hist, prm, rec_f, rec_i, n_rec, half_tab, bse):
     """Closed-loop tracking of every active channel over the buffer (see module docstring).
 
     A channel stops when its next period would pass the buffer end or ``stop_sample``, or when its
@@ -674,18 +753,18 @@ def _track_block(buf, is_complex, buf_start, n_buf, stop_sample, code_ext, pad, 
     for ch in range(code_phase.shape[0]):
         _track_channel(ch, buf, is_complex, buf_start, n_buf, stop_sample, code_ext, pad, active, sample_ptr,
                        code_phase, code_rate, carr_phase, carr_freq, fs, if_hz, tap_off, sigma_arm,
-                       sf, si, hist, prm, rec_f, rec_i, n_rec, half_tab)
+                       sf, si, hist, prm, rec_f, rec_i, n_rec, half_tab, bse)
 
 
 @njit(cache=True, parallel=True)
 def _track_block_par(buf, is_complex, buf_start, n_buf, stop_sample, code_ext, pad, active, sample_ptr,
                      code_phase, code_rate, carr_phase, carr_freq, fs, if_hz, tap_off, sigma_arm,
-                     sf, si, hist, prm, rec_f, rec_i, n_rec, half_tab):
+                     sf, si, hist, prm, rec_f, rec_i, n_rec, half_tab, bse):
     """:func:`_track_block` with channels spread over threads (channels are independent)."""
     for ch in prange(code_phase.shape[0]):
         _track_channel(ch, buf, is_complex, buf_start, n_buf, stop_sample, code_ext, pad, active, sample_ptr,
                        code_phase, code_rate, carr_phase, carr_freq, fs, if_hz, tap_off, sigma_arm,
-                       sf, si, hist, prm, rec_f, rec_i, n_rec, half_tab)
+                       sf, si, hist, prm, rec_f, rec_i, n_rec, half_tab, bse)
 
 
 # ------------------------------------------------------------------------------ estimators (numpy)
@@ -738,17 +817,23 @@ class TrackingState:
         self.sf = np.zeros((n_ch, N_SF))
         self.si = np.zeros((n_ch, N_SI), dtype=np.int64)
         self.hist = np.zeros((n_ch, int(signal.codes_per_bit)), dtype=np.int64)
+        # bit-energy sync: running window sums, energies, epochs seen (see _bit_sync_energy)
+        self.bse = np.zeros((n_ch, 2 * int(signal.codes_per_bit) + 1))
         self.rec_f = np.zeros((n_ch, max_rows, N_RF))
         self.rec_i = np.zeros((n_ch, max_rows, N_RI), dtype=np.int64)
         self.n_rec = np.zeros(n_ch, dtype=np.int64)
 
-    def reset_channel(self, ch, doppler_hz, cn0_dbhz=None):
-        """(Re)start a channel in pull-in mode with the acquisition Doppler (and C/N0 when known)."""
+    def reset_channel(self, ch, doppler_hz, cn0_dbhz=None, rate_hz_s=None):
+        """(Re)start a channel in pull-in mode with the acquisition Doppler (and C/N0 when known);
+        ``rate_hz_s`` (a Doppler-rate search) presets the third-order loop's rate integrator."""
         self.sf[ch] = 0.0
         self.si[ch] = 0
         self.hist[ch] = 0
+        self.bse[ch] = 0.0
         self.sf[ch, F_DOPP] = doppler_hz
         self.sf[ch, F_PLL_X] = doppler_hz
+        if rate_hz_s is not None and np.isfinite(rate_hz_s):
+            self.sf[ch, F_PLL_Y] = rate_hz_s
         if cn0_dbhz is not None and np.isfinite(cn0_dbhz):
             self.sf[ch, F_CN0_DB] = cn0_dbhz
             self.si[ch, S_CN0_VALID] = 1
@@ -834,11 +919,12 @@ class ScalarTracker:
         self.state.sf[:, F_PLL_X] += dx[:, 0]
         self.nco.code_phase += dx[:, 1]
 
-    def start_channel(self, ch, prn, code_phase_chips, doppler_hz, sample_index, cn0_dbhz=None):
-        """Start (or restart) channel ``ch`` from an acquisition result valid at ``sample_index``."""
+    def start_channel(self, ch, prn, code_phase_chips, doppler_hz, sample_index, cn0_dbhz=None, rate_hz_s=None):
+        """Start (or restart) channel ``ch`` from an acquisition result valid at ``sample_index``
+        (``rate_hz_s``: the Doppler rate there, when searched)."""
         self.nco.init_channel(ch, int(prn), code_phase_chips, doppler_hz, int(sample_index))
         self.half_tab[ch] = half_chip_tables(prn, self.nco.pad, self.signal)
-        self.state.reset_channel(ch, float(doppler_hz), cn0_dbhz)
+        self.state.reset_channel(ch, float(doppler_hz), cn0_dbhz, rate_hz_s)
 
     def stop_channel(self, ch):
         self.nco.active[ch] = False
@@ -865,7 +951,7 @@ class ScalarTracker:
         fn(raw, self.is_complex, np.int64(buf_start), np.int64(n_buf), stop, b.code_ext,
            b.pad, b.active, b.sample_ptr, b.code_phase, b.code_rate, b.carr_phase, b.carr_freq,
            self.fs_hz, self.if_hz, b.tap_offsets_chips, sig, st.sf, st.si, st.hist, st.prm,
-           st.rec_f, st.rec_i, st.n_rec, self.half_tab)
+           st.rec_f, st.rec_i, st.n_rec, self.half_tab, st.bse)
         m = int(st.n_rec.max()) if st.n_rec.size else 0
         return st.rec_f[:, :m].copy(), st.rec_i[:, :m].copy(), st.n_rec.copy()
 

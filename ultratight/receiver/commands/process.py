@@ -19,6 +19,20 @@ HELP = ("run the GPS receiver on an IF file: scalar (acquisition, tracking, LNAV
         "--imu, the ultra-tight GPS/INS engine")
 
 MODES = ("scalar", "ultratight")
+DYNAMICS = ("normal", "high")
+# acquisition defaults per --dynamics: (--acq-min-cn0 dB-Hz, --acq-coherent ms, --acq-noncoherent)
+ACQ_DEFAULTS = {"normal": (37.0, 10, 1), "high": (25.0, 5, 16)}
+
+
+def _acq_defaults(args):
+    """Fill the acquisition flags left out with the defaults of ``--dynamics``."""
+    cn0, coh, nc = ACQ_DEFAULTS[getattr(args, "dynamics", "normal") or "normal"]
+    if args.acq_min_cn0 is None:
+        args.acq_min_cn0 = cn0
+    if args.acq_coherent is None:
+        args.acq_coherent = coh
+    if args.acq_noncoherent is None:
+        args.acq_noncoherent = nc
 
 
 class _EngineMethods:
@@ -73,6 +87,7 @@ def _prn_list(text):
 def _check_numbers(args):
     """Finite, in-range numeric flags (before any file is opened)."""
     from ultratight.errors import ConfigError
+    _acq_defaults(args)
     for flag, v in (("--fs", args.fs), ("--if", args.if_hz), ("--start", args.start),
                     ("--duration", args.duration), ("--obs-rate", args.obs_rate), ("--pll-bw", args.pll_bw),
                     ("--acq-min-cn0", args.acq_min_cn0), ("--doppler-range", args.doppler_range),
@@ -151,13 +166,21 @@ def add_arguments(p):
     p.add_argument("--coh-ms", type=int, default=1, metavar="MS",
                    help="coherent integration after bit sync: 1, 2, 4, 5, 10 or 20 ms (default 1)")
     p.add_argument("--pll-bw", type=float, default=None, metavar="HZ", help="PLL noise bandwidth in track mode")
-    p.add_argument("--acq-min-cn0", type=float, default=37.0, metavar="DBHZ",
+    p.add_argument("--dynamics", choices=DYNAMICS, default="normal",
+                   help="receiver dynamics: normal (default) or high - a Doppler-rate search after every "
+                        "acquisition starts the third-order PLL with the rate, the high-dynamic loop profile "
+                        "(tracking.DYNAMICS_PROFILES) and weak-signal acquisition defaults (5 ms x 16, floor "
+                        "25 dB-Hz); for starts under acceleration at low C/N0 (docs/process.md)")
+    p.add_argument("--acq-min-cn0", type=float, default=None, metavar="DBHZ",
                    help="declare an acquisition only when its peak C/N0, 10 log10((metric-1)/T_coh), reaches "
-                        "this (default 37 dB-Hz; 0 keeps every detection passing the false-alarm test)")
-    p.add_argument("--acq-coherent", type=int, default=10, metavar="MS",
-                   help="acquisition coherent integration, 1-10 ms (default 10, cut to the file length)")
-    p.add_argument("--acq-noncoherent", type=int, default=1, metavar="K",
-                   help="acquisition non-coherent sums (default 1; raise for weak signals)")
+                        "this (default 37 dB-Hz, 25 with --dynamics high; 0 keeps every detection passing the "
+                        "false-alarm test)")
+    p.add_argument("--acq-coherent", type=int, default=None, metavar="MS",
+                   help="acquisition coherent integration, 1-10 ms (default 10, 5 with --dynamics high; cut to "
+                        "the file length)")
+    p.add_argument("--acq-noncoherent", type=int, default=None, metavar="K",
+                   help="acquisition non-coherent sums (default 1, 16 with --dynamics high; raise for weak "
+                        "signals)")
     p.add_argument("--doppler-range", type=float, default=10e3, metavar="HZ",
                    help="acquisition Doppler search half-width (default 10 kHz)")
     p.add_argument("--mask", type=float, default=5.0, metavar="DEG", help="elevation mask (default 5 deg)")
@@ -242,14 +265,15 @@ def run(args):
         raise InputFileError(f"{args.iffile}: the file holds no samples")
     if not source.is_complex and source.if_hz == 0.0:
         raise ConfigError(f"{args.iffile}: real samples need a non-zero --if (the IF of the front end)")
-    tcfg = TrackingConfig(coh_ms=args.coh_ms)
+    tcfg = TrackingConfig.for_dynamics(args.dynamics, coh_ms=args.coh_ms)
     if args.pll_bw is not None:
         tcfg.track_pll_bw_hz = args.pll_bw
     cfg = ProcessConfig(n_channels=args.channels, prns=_prn_list(args.prn) if args.prn else None,
                         duration_s=args.duration, start_s=args.start, obs_rate_hz=args.obs_rate,
                         mask_deg=args.mask, acq_min_cn0_dbhz=args.acq_min_cn0,
                         acq_coherent_ms=args.acq_coherent, acq_noncoherent=args.acq_noncoherent,
-                        doppler_range_hz=args.doppler_range, tracking=tcfg, iono=args.iono, tropo=args.tropo)
+                        doppler_range_hz=args.doppler_range, tracking=tcfg, iono=args.iono, tropo=args.tropo,
+                        dynamics=args.dynamics)
     eph = None
     if args.ephemeris:
         from ultratight.signals.rinex import read_rinex_nav
@@ -318,7 +342,8 @@ def _run_ultratight(args):
         raise ConfigError(f"--duration must be > 0 s, got {args.duration}")
     prns = _prn_list(args.prn) if args.prn else None
     hcfg = HandoverConfig(acq_min_cn0_dbhz=args.acq_min_cn0, acq_noncoherent=args.acq_noncoherent,
-                          acq_coherent_ms=args.acq_coherent, doppler_range_hz=args.doppler_range)
+                          acq_coherent_ms=args.acq_coherent, doppler_range_hz=args.doppler_range,
+                          dynamics=args.dynamics)
     from ultratight.receiver.commands import imu_flags
     imu_decl = imu_flags.overrides(args)
     bits = args.bits or "assisted"
