@@ -93,7 +93,8 @@ def test_starts_from_own_scalar_fix_and_keeps_every_channel(rec):
     ho = s["handover"]
     # LNAV time of week needs a subframe (6 s) after bit sync: the hand-over comes after it
     assert 6.0 < ho["handover_t_s"] < 12.0
-    assert ho["attitude_method"] == "specific-force+velocity-heading"      # no still interval at 10 g
+    # no still interval at 10 g: specific force, velocity direction and the coordinated-flight bank
+    assert ho["attitude_method"] == "specific-force+velocity-heading+coordinated-bank"
     assert sorted(s["prns"]) == sorted(rec["sidecar"]["prn"])              # every satellite in view, no list given
     assert s["lock_lost_channels"] == []
     assert set(s["bits"]) == {str(p) for p in s["prns"]} and set(s["bits"].values()) == EXPECTED_BITS
@@ -341,3 +342,15 @@ def test_still_alignment_levelling_and_gyro_compass(grade):
     assert np.allclose(quat_to_dcm(q), C, atol=1e-9)             # noise-free increments: exact
     sig = np.degrees(np.sqrt(np.diag(P)))
     assert sig[2] < 1.0 and sig[0] < 0.01 and sig[1] < 0.01     # heading from the Earth rate, tilt from gravity
+
+
+def test_coordinated_bank_left_axis():
+    """The body's left axis in coordinated flight: horizontal in straight flight; a right turn with a
+    centripetal acceleration of g banks 45 deg right wing down (the left axis tilts up)."""
+    from ultratight.receiver.handover import coordinated_left
+    g = 9.81
+    np.testing.assert_allclose(coordinated_left([200.0, 0.0, 0.0], [50.0, 0.0, 0.0], g), [0.0, 1.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(coordinated_left([0.0, 100.0, 5.0], [0.0, 3.0, 0.0], g)[2], 0.0, atol=1e-12)
+    h = math.sqrt(0.5)
+    np.testing.assert_allclose(coordinated_left([100.0, 0.0, 0.0], [0.0, -g, 0.0], g), [0.0, h, h], atol=1e-12)
+    np.testing.assert_allclose(coordinated_left([100.0, 0.0, 0.0], [0.0, g, 0.0], g), [0.0, h, -h], atol=1e-12)

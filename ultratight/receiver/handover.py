@@ -26,7 +26,14 @@ initial state. This module builds one (docs/ultratight.md, "Start-up without tru
   - *moving* (GNSS speed above ``move_speed_mps``): the specific force ``f_l = dv/dt + (2 w_ie +
     w_en) x v - g_l`` (GNSS acceleration from the fixes one obs interval either side) against the
     IMU's mean specific force over the same interval, and the velocity direction against the body
-    x axis (nose), with an assumed sideslip / angle-of-attack sigma ``sideslip_deg``.
+    x axis (nose), with an assumed sideslip / angle-of-attack sigma ``sideslip_deg``, and the body
+    y axis (left wing) against the horizontal left of the velocity banked by the coordinated-turn
+    angle ``atan(v_h psi_dot / g)`` (0 in straight flight; psi_dot the turn rate of the GNSS
+    velocity), sigma ``bank_sigma_deg``. Without the bank pair the rotation about the specific
+    force is fixed only to ``sideslip_deg / angle(f, v)``: 37 deg on paper-highdyn at 10 g, where f
+    and v are 5.6 deg apart, beyond what the tight filter's small-angle error model can correct
+    (measured: its roll went to -64 deg within a second of a hand-over at 19.6 s). A vehicle that
+    flies rolled (a spinning missile) needs ``--init-att``.
 * Stated covariances: position from the fix covariance (3-D sigma per axis), velocity from the
   fix velocity covariance, clock from the fix, attitude from Wahba's covariance; they set the
   tight filter's initial covariance (:func:`ultratight.fusion.tight.initial_covariance`).
@@ -73,6 +80,7 @@ class HandoverConfig:
     accel_half_s: float = 0.1       # GNSS acceleration / IMU mean: +- this around the hand-over
     sideslip_deg: float = 3.0       # body x axis vs velocity direction, 1 sigma
     max_heading_sigma_deg: float = 5.0
+    bank_sigma_deg: float = 5.0     # moving: bank vs the coordinated-turn bank, 1 sigma
     acq_min_cn0_dbhz: float = 37.0  # scalar pass acquisition (the process flags)
     acq_noncoherent: int = 1
     acq_coherent_ms: int = 10
@@ -193,6 +201,22 @@ def _still(imu, t_h, cfg):
     return float(np.ptp(mags)) <= 2.0 * cfg.still_force_mps2
 
 
+def coordinated_left(vel_l, acc_l, g):
+    """Unit vector (local ENU) of the body's left (y) axis of a vehicle in coordinated flight along
+    ``vel_l`` with acceleration ``acc_l``: the horizontal left of the velocity, banked about the
+    velocity by ``atan(v_h psi_dot / g)`` (right turn: right wing down)."""
+    v = np.asarray(vel_l, float)
+    up = np.array([0.0, 0.0, 1.0])
+    left = np.cross(up, v)
+    left /= np.linalg.norm(left)
+    vh2 = v[0] ** 2 + v[1] ** 2
+    psi_dot = (v[0] * acc_l[1] - v[1] * acc_l[0]) / vh2 if vh2 > 0 else 0.0   # left turn positive
+    bank = math.atan2(math.sqrt(vh2) * -psi_dot, g)            # right turn -> positive roll
+    fwd = v / np.linalg.norm(v)
+    # rotate the left vector about the forward axis by the roll (FLU: +roll takes y towards z)
+    return math.cos(bank) * left + math.sin(bank) * np.cross(fwd, left)
+
+
 def attitude_at(imu, imu_errors, t_h, llh, vel_l, acc_l, sig_acc, cfg):
     """``(q_lb, P_att, method, note)`` at the hand-over time ``t_h`` (module docstring)."""
     lat, _, h = (float(v) for v in llh)
@@ -223,8 +247,10 @@ def attitude_at(imu, imu_errors, t_h, llh, vel_l, acc_l, sig_acc, cfg):
         T = 2.0 * cfg.accel_half_s
         s_f = math.hypot(sig_acc, _accel_sigma(imu_errors, T)) / np.linalg.norm(f_l)
         s_v = math.radians(cfg.sideslip_deg)
-        C_lb, P = wahba([(f_l, f_b, s_f), (vel_l, np.array([1.0, 0.0, 0.0]), s_v)])
-        return np.asarray(dcm_to_quat(C_lb)), P, "specific-force+velocity-heading", ""
+        left_l = coordinated_left(vel_l, acc_l, float(np.linalg.norm(g_l)))
+        C_lb, P = wahba([(f_l, f_b, s_f), (vel_l, np.array([1.0, 0.0, 0.0]), s_v),
+                         (left_l, np.array([0.0, 1.0, 0.0]), math.radians(cfg.bank_sigma_deg))])
+        return np.asarray(dcm_to_quat(C_lb)), P, "specific-force+velocity-heading+coordinated-bank", ""
     raise ConfigError(f"start-up: at the hand-over (t = {t_h:.2f} s) the speed is {speed:.2f} m/s: neither still "
                       f"(<= {cfg.still_speed_mps} m/s for {cfg.still_s} s, for levelling) nor moving (>= "
                       f"{cfg.move_speed_mps} m/s, for a velocity heading): give --init-att ROLL,PITCH,YAW")
