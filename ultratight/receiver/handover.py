@@ -158,21 +158,23 @@ def wahba(pairs):
     return C_lb, 0.5 * (P + P.T)
 
 
+def _mean_sigma(bias, gm_sigma, white, T):
+    """Effective per-axis 1-sigma of a sensor mean over T s: bias (+ in-run Gauss-Markov) and white
+    noise (its random-walk coefficient over T)."""
+    per_axis = [np.linalg.norm(np.asarray(v, float)) / math.sqrt(3.0) for v in (bias, gm_sigma, white)]
+    return math.sqrt(per_axis[0] ** 2 + per_axis[1] ** 2 + per_axis[2] ** 2 / max(T, 1e-3))
+
+
 def _gyro_sigma(imu_errors, T):
-    """Effective 1-sigma (rad/s) of a gyro mean over T s: bias (+ in-run) and white noise."""
+    """Effective 1-sigma (rad/s) of a gyro mean over T s."""
     e = imu_errors
-    b = np.linalg.norm(np.asarray(e.gyro_bias, float)) / math.sqrt(3.0)
-    gm = np.linalg.norm(np.asarray(e.gyro_gm_sigma, float)) / math.sqrt(3.0)
-    arw = np.linalg.norm(np.asarray(e.gyro_arw, float)) / math.sqrt(3.0)
-    return math.sqrt(b ** 2 + gm ** 2 + arw ** 2 / max(T, 1e-3))
+    return _mean_sigma(e.gyro_bias, e.gyro_gm_sigma, e.gyro_arw, T)
 
 
 def _accel_sigma(imu_errors, T):
+    """Effective 1-sigma (m/s^2) of an accelerometer mean over T s."""
     e = imu_errors
-    b = np.linalg.norm(np.asarray(e.accel_bias, float)) / math.sqrt(3.0)
-    gm = np.linalg.norm(np.asarray(e.accel_gm_sigma, float)) / math.sqrt(3.0)
-    vrw = np.linalg.norm(np.asarray(e.accel_vrw, float)) / math.sqrt(3.0)
-    return math.sqrt(b ** 2 + gm ** 2 + vrw ** 2 / max(T, 1e-3))
+    return _mean_sigma(e.accel_bias, e.accel_gm_sigma, e.accel_vrw, T)
 
 
 def _imu_mean(imu, t0, t1):

@@ -202,6 +202,20 @@ def _parse_ion_metadata(xml_path):
 # ------------------------------------------------------------------------------------------
 # reader
 # ------------------------------------------------------------------------------------------
+def iter_blocks(source, block_len, start=0, stop=None):
+    """``(start_index, samples)`` over consecutive blocks of ``block_len`` samples of ``source`` (an
+    object with ``n_samples`` and ``read(start, count)``), from ``start`` to ``stop`` (default the end)."""
+    block_len = int(block_len)
+    if block_len <= 0:
+        raise ValueError("block_len must be > 0")
+    stop = source.n_samples if stop is None else min(int(stop), source.n_samples)
+    pos = int(start)
+    while pos < stop:
+        n = min(block_len, stop - pos)
+        yield pos, source.read(pos, n)
+        pos += n
+
+
 def orient(raw, start, is_complex, iq_swap=False, conj=False, alt_sign=False):
     """Decoded float32 components ``raw`` of the samples from ``start`` as the readers return them:
     complex64 (complex formats; I/Q swapped back, conjugated) or float32 (real formats; sample ``n``
@@ -320,15 +334,7 @@ class IfSource:
 
     def blocks(self, block_len, start=0, stop=None):
         """Iterate ``(start_index, samples)`` over consecutive blocks of ``block_len`` samples."""
-        block_len = int(block_len)
-        if block_len <= 0:
-            raise ValueError("block_len must be > 0")
-        stop = self.n_samples if stop is None else min(int(stop), self.n_samples)
-        pos = int(start)
-        while pos < stop:
-            n = min(block_len, stop - pos)
-            yield pos, self.read(pos, n)
-            pos += n
+        return iter_blocks(self, block_len, start, stop)
 
 
 def read_sidecar(path):

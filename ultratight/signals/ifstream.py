@@ -33,7 +33,7 @@ import numpy as np
 from ultratight import __version__
 from ultratight.errors import ConfigError
 from ultratight.signals.generator import COS_LUT, N_EXT, Generation, _synth_real
-from ultratight.signals.iffile import orient
+from ultratight.signals.iffile import iter_blocks, orient
 
 _END = object()
 
@@ -239,15 +239,7 @@ class GeneratedIf:
 
     def blocks(self, block_len, start=0, stop=None):
         """Iterate ``(start_index, samples)`` over consecutive blocks of ``block_len`` samples."""
-        block_len = int(block_len)
-        if block_len <= 0:
-            raise ValueError("block_len must be > 0")
-        stop = self.n_samples if stop is None else min(int(stop), self.n_samples)
-        pos = int(start)
-        while pos < stop:
-            n = min(block_len, stop - pos)
-            yield pos, self.read(pos, n)
-            pos += n
+        return iter_blocks(self, block_len, start, stop)
 
     def release(self, upto_sample):
         """Forget the samples before ``upto_sample`` (they stay readable: a later read of them generates
