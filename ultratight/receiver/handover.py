@@ -80,7 +80,7 @@ class HandoverConfig:
     accel_half_s: float = 0.1       # GNSS acceleration / IMU mean: +- this around the hand-over
     sideslip_deg: float = 3.0       # body x axis vs velocity direction, 1 sigma
     max_heading_sigma_deg: float = 5.0
-    bank_sigma_deg: float = 5.0     # moving: bank vs the coordinated-turn bank, 1 sigma
+    bank_sigma_deg: float = 2.0     # moving: bank vs the coordinated-turn bank, 1 sigma (see docs)
     acq_min_cn0_dbhz: float = 37.0  # scalar pass acquisition (the process flags)
     acq_noncoherent: int = 1
     acq_coherent_ms: int = 10
