@@ -226,6 +226,22 @@ def check_input_file(path, what="input file"):
     return p
 
 
+def read_text_input(path, what, kind="text file"):
+    """The text of a UTF-8 input file (a byte-order mark dropped); InputFileError naming ``path``
+    when it cannot be read or is not ``kind`` (invalid UTF-8, NUL bytes). ``what`` names the file
+    in the read error (e.g. ``"IMU CSV"``)."""
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            text = fh.read()
+    except UnicodeDecodeError as exc:
+        raise InputFileError(f"{path}: not a {kind} (byte {exc.start} is not UTF-8)") from None
+    except OSError as exc:
+        raise InputFileError(f"{path}: cannot read {what} ({exc.strerror or exc})") from None
+    if "\x00" in text:
+        raise InputFileError(f"{path}: not a {kind} (contains NUL bytes)")
+    return text
+
+
 def _same(a, b):
     if os.path.realpath(a) == os.path.realpath(b):
         return True

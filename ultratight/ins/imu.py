@@ -38,7 +38,7 @@ from ultratight.constants import OMEGA_E, WGS84_A
 from ultratight.errors import ConfigError, InputFileError
 from ultratight.ins.attitude import dcm_to_quat_vec
 from ultratight.ins.earth import dcm_ecef_from_enu_vec, ecef_to_llh_batch, gravity_l
-from ultratight.io_guard import atomic_path, write_h5_atomic
+from ultratight.io_guard import atomic_path, read_text_input, write_h5_atomic
 
 # ------------------------------------------------------------------ unit conversions
 G0 = 9.80665                                  # standard gravity, m/s^2 (for ug / g units only)
@@ -558,15 +558,7 @@ def read_imu_csv(path, declaration=None):
         raise InputFileError(f"{path}: IMU CSV file not found")
     if declaration is None:
         declaration = imu_decl.resolve_declaration(path)
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as fh:
-            text = fh.read()
-    except UnicodeDecodeError as exc:
-        raise InputFileError(f"{path}: not a text CSV file (byte {exc.start} is not UTF-8)") from None
-    except OSError as exc:
-        raise InputFileError(f"{path}: cannot read IMU CSV ({exc.strerror or exc})") from None
-    if "\x00" in text:
-        raise InputFileError(f"{path}: not a text CSV file (contains NUL bytes)")
+    text = read_text_input(path, "IMU CSV", "text CSV file")
     lines = [(i + 1, ln) for i, ln in enumerate(text.splitlines())]
     lines = [(i, ln) for i, ln in lines if ln.strip() and not ln.lstrip().startswith("#")]
     if not lines:

@@ -34,6 +34,7 @@ import numpy as np
 from scipy.interpolate import BSpline, make_interp_spline, make_smoothing_spline
 
 from ultratight.errors import InputFileError
+from ultratight.io_guard import read_text_input
 from ultratight.ins.earth import dcm_ecef_from_enu, ecef_to_llh_batch, llh_to_ecef, llh_to_ecef_batch
 
 FRAMES = ("ecef", "llh")
@@ -66,15 +67,7 @@ def _err(path, line, msg):
 def _read_text(path):
     if not path.is_file():
         raise InputFileError(f"{path}: trajectory file not found")
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise InputFileError(f"{path}: not a text file (byte {exc.start} is not UTF-8)") from None
-    except OSError as exc:
-        raise InputFileError(f"{path}: cannot read trajectory file ({exc.strerror or exc})") from None
-    if "\x00" in text:
-        raise InputFileError(f"{path}: not a text file (contains NUL bytes)")
-    return text
+    return read_text_input(path, "trajectory file")
 
 
 def _nmea_checksum_ok(s):
