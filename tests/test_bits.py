@@ -246,6 +246,8 @@ def test_bit_file_errors(tmp_path):
     p.write_text("# c\nprn,week,tow_s,bit\n1,2190,0.02,2\n")
     with pytest.raises(InputFileError, match="row 2"):
         read_bits_csv(p)
+    with pytest.raises(InputFileError, match="row 2"):      # refused before any processing
+        check_strategy(str(p))
     with pytest.raises(ConfigError, match="neither assisted, decoded, blind nor an existing bit file"):
         check_strategy(str(tmp_path / "missing.csv"))
     assert check_strategy("decoded") == ("decoded", None)

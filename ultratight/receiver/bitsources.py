@@ -44,7 +44,8 @@ MARGIN_BITS = 10            # bits of the rows before the start (as BitWipeoff)
 
 def check_strategy(value):
     """``(name, path)``: name one of :data:`STRATEGIES` or ``"file"`` (then ``path`` the bit file).
-    Raises ConfigError for an empty value or a missing file."""
+    Raises ConfigError for an empty value or a missing file, InputFileError for a malformed one (read
+    here, before any processing)."""
     if not isinstance(value, str) or not value:
         raise ConfigError(f"--bits: expected assisted, decoded, blind or a bit file, got {value!r}")
     if value in STRATEGIES:
@@ -52,6 +53,7 @@ def check_strategy(value):
     p = Path(value)
     if not p.is_file():
         raise ConfigError(f"--bits: {value!r} is neither assisted, decoded, blind nor an existing bit file")
+    read_bits_csv(p)
     return "file", p
 
 
