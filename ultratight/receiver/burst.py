@@ -104,6 +104,13 @@ def burst_one(c, k_ep, t_s, burst, out):
 
 
 @njit(cache=True)
+def burst_all(k_ep, t_start, fs, burst, out):
+    """:func:`burst_one` for every channel (``t_start``: each channel's first sample, ``fs`` Hz)."""
+    for c in range(out.shape[0]):
+        burst_one(c, k_ep, t_start[c] / fs, burst, out)
+
+
+@njit(cache=True)
 def _sqrt_pos(v):
     """sqrt of ``v``, 0 for ``v`` <= 0."""
     return np.sqrt(v) if v > 0.0 else 0.0

@@ -67,7 +67,7 @@ from ultratight.ins import imu_decl
 from ultratight.io_guard import write_h5_atomic
 from ultratight.receiver import epochs
 from ultratight.receiver.blockstream import BlockStream, NoiseFloor
-from ultratight.receiver.burst import burst_one, make_burst
+from ultratight.receiver.burst import burst_all, make_burst
 from ultratight.receiver.correlator import CorrelatorBank
 from ultratight.receiver.epochs import (CONTINUE, END, ERR_BANK, ERR_CORR, NEED_IF, NEED_SINS, TIGHT,
                                         correlate, epoch_gate, epoch_post, run_epochs)
@@ -539,8 +539,7 @@ class UltratightEngine:
             return status
         if not correlate(src, corr, sig):
             self._check_status(ERR_CORR, 0)
-        for c in range(len(self.prns)):
-            burst_one(c, st.k_ep, corr.t_start[c] / corr.fs, burst, corr.out)
+        burst_all(st.k_ep, corr.t_start, corr.fs, burst, corr.out)
         init_now = st.init_left > 0
         D = self.wipe.step(corr.out, self.pref.x, st.k_ep)
         restart = self._measure(st, corr.out, D, init_now)
