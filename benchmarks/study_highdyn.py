@@ -4,10 +4,12 @@ lock monitor — each reading a Monte-Carlo campaign (``ultratight campaign``, s
 reading), summarised in one Markdown table per reading (docs/ultratight.md, "What the result depends on").
 
     python benchmarks/study_highdyn.py --runs 10 [--workers K] [--out study_out] [--only NAME,...]
-                                       [--duration S] [--fs-hz F] [--list]
+                                       [--duration S] [--fs-hz F] [--cache] [--list]
 
 Each reading's runs land in ``OUT/NAME/`` (one HDF5 per run): an interrupted study continues where
-it stopped when run again (the campaigns' ``--resume``). ``OUT/study.md`` and ``OUT/study.json`` are
+it stopped when run again (the campaigns' ``--resume``). ``--cache``: each run's IF is generated once and read from
+disk by every method (the campaigns' ``--cache``; ≈ 1 GB per 60 s run at 4 MHz) and a reading's IF
+files are deleted when the reading is done (truth and IMU stay). ``OUT/study.md`` and ``OUT/study.json`` are
 written at the end (and after each reading), with the command line, the machine and the wall time.
 """
 
@@ -95,6 +97,18 @@ def table(name, desc, js):
     return "\n".join(lines), {"distance": dist, "ordered": ordered}
 
 
+def _drop_if_files(cache_dir):
+    """Delete the IF files (and their metadata) of a finished reading's cache entries."""
+    for done in Path(cache_dir).glob("*/done.json"):
+        try:
+            files = json.loads(done.read_text())["files"]
+        except (OSError, ValueError, KeyError):
+            continue
+        for k in ("if", "meta"):
+            if k in files:
+                (done.parent / files[k]["name"]).unlink(missing_ok=True)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", type=int, default=10)
@@ -105,6 +119,8 @@ def main(argv=None):
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument("--duration", type=float, default=None, help="cut the scenario (default: its 60 s)")
     ap.add_argument("--fs-hz", type=float, default=None, help="front-end sampling rate (default: the scenario's)")
+    ap.add_argument("--cache", action="store_true",
+                    help="generate each run's IF once onto disk (deleted after the reading) instead of per method")
     ap.add_argument("--list", action="store_true", help="list the readings and exit")
     a = ap.parse_args(argv)
     allr = readings()
@@ -136,7 +152,10 @@ def main(argv=None):
                 ov["frontend.fs_hz"] = a.fs_hz
             tr = time.perf_counter()
             r = run_campaign("paper-highdyn", runs=a.runs, methods=a.methods.split(","), seed=a.seed,
-                             out_dir=out / n, resume=True, overrides=ov, client=client, progress=True)
+                             out_dir=out / n, resume=True, overrides=ov, client=client, progress=True,
+                             cache=a.cache)
+            if a.cache:
+                _drop_if_files(out / n / "cache")
             txt, score = table(n, desc, r["json"])
             md.append(txt)
             summary[n] = {"description": desc, "overrides": ov, "wall_s": time.perf_counter() - tr, **score,
