@@ -5,11 +5,14 @@ reading), summarised in one Markdown table per reading (docs/ultratight.md, "Wha
 
     python benchmarks/study_highdyn.py --runs 10 [--workers K] [--out study_out] [--only NAME,...]
                                        [--duration S] [--fs-hz F] [--cache] [--list]
+    python benchmarks/study_highdyn.py --report [--out study_out] [--only NAME,...]
 
 Each reading's runs land in ``OUT/NAME/`` (one HDF5 per run): an interrupted study continues where
 it stopped when run again (the campaigns' ``--resume``). ``--cache``: each run's IF is generated once and read from
 disk by every method (the campaigns' ``--cache``; ≈ 1 GB per 60 s run at 4 MHz) and a reading's IF
-files are deleted when the reading is done (truth and IMU stay). ``OUT/study.md`` and ``OUT/study.json`` are
+files are deleted when the reading is done (truth and IMU stay). ``--report`` rebuilds ``OUT/study.md`` from the
+readings already in ``OUT`` (their ``campaign.json``) without running anything; readings run with
+different settings (a shorter ``--duration``, say) are reported each with its own. ``OUT/study.md`` and ``OUT/study.json`` are
 written at the end (and after each reading), with the command line, the machine and the wall time.
 """
 
@@ -78,7 +81,7 @@ def table(name, desc, js):
     s = js["summary"]
     meth = s["methods"]
     lines = [f"### `{name}`: {desc}", "",
-             f"{s['runs']} runs; RMS over all 13 channels and runs, then channel {s['channel']} "
+             f"{s['runs']} runs of {s['duration_s']:g} s; RMS over all 13 channels and runs, then channel {s['channel']} "
              "(the paper's one-channel table); '—' = no epochs in that segment.", "",
              "| method | Doppler Hz 0–20 / 20–40 / 40–60 (all) | channel 0 | code chip (all) | burst window Doppler Hz "
              "(before) | channels lost (all runs) |",
@@ -95,6 +98,57 @@ def table(name, desc, js):
                   f"{_fmt(dist, 2)}; paper's order RACKF < CKF < UKF < PB-KF in 0–20 s: {'yes' if ordered else 'no'}.",
               ""]
     return "\n".join(lines), {"distance": dist, "ordered": ordered}
+
+
+OVERVIEW_METHODS = ("dlb-rackf", "dlb-ckf", "dlb-ukf", "pb-kf-utc", "dlb-rackf-paper")
+
+
+def overview(summary):
+    """One line per reading: channel-0 Doppler RMS in 0–20 s and channels lost (all runs) per method, the
+    distance to the paper's Table 3 and whether its 0–20 s order holds."""
+    meths = [m for m in OVERVIEW_METHODS if any(m in v["methods"] for v in summary.values())]
+    head = ("| reading | runs × s | " + " | ".join(f"{m} Hz (lost)" for m in meths)
+            + " | distance | paper's order |")
+    lines = ["### Overview", "",
+             "Channel 0 (the paper's one-channel table) Doppler RMS in 0–20 s, Hz, and in brackets the channels "
+             "that lost lock over all runs (of 13 per run).", "",
+             head, "|" + " --- |" * (len(meths) + 4)]
+    for n, v in summary.items():
+        cells = []
+        for m in meths:
+            x = v["methods"].get(m)
+            cells.append("—" if x is None else f"{_fmt(x['doppler_rms_hz_channel'][0], 3)} ({x['lock_lost_channels']})")
+        lines.append(f"| `{n}` | {v['runs']} × {v['duration_s']:g} | " + " | ".join(cells)
+                     + f" | {_fmt(v['distance'], 2)} | {'yes' if v['ordered'] else 'no'} |")
+    return "\n".join(lines + [""])
+
+
+def _entry(name, desc, ov, js, wall_s):
+    txt, score = table(name, desc, js)
+    s = js["summary"]
+    return txt, {"description": desc, "overrides": ov, "wall_s": wall_s, **score, "runs": s["runs"],
+                 "duration_s": s["duration_s"], "methods": s["methods"]}
+
+
+def report(out, names, allr):
+    """Rebuild OUT/study.md (and study.json) from the readings' campaign.json files."""
+    md, summary = [], {}
+    for n in names:
+        f = out / n / "campaign.json"
+        if not f.is_file():
+            continue
+        js = json.loads(f.read_text())
+        txt, entry = _entry(n, allr[n][0], None, js, None)
+        md.append(txt)
+        summary[n] = entry
+    if not summary:
+        print(f"study_highdyn: no finished reading in {out}", file=sys.stderr)
+        return 1
+    text = overview(summary) + "\n" + "\n".join(md)
+    (out / "study.md").write_text(text)
+    (out / "study.json").write_text(json.dumps(summary, indent=1))
+    print(text)
+    return 0
 
 
 def _drop_if_files(cache_dir):
@@ -122,6 +176,7 @@ def main(argv=None):
     ap.add_argument("--cache", action="store_true",
                     help="generate each run's IF once onto disk (deleted after the reading) instead of per method")
     ap.add_argument("--list", action="store_true", help="list the readings and exit")
+    ap.add_argument("--report", action="store_true", help="rebuild OUT/study.md from the finished readings, run nothing")
     a = ap.parse_args(argv)
     allr = readings()
     if a.list:
@@ -133,8 +188,10 @@ def main(argv=None):
     if unknown:
         print(f"study_highdyn: unknown reading(s) {', '.join(unknown)}; --list shows them", file=sys.stderr)
         return 2
-    from ultratight.receiver.campaign import run_campaign, start_client
     out = Path(a.out)
+    if a.report:
+        return report(out, names, allr)
+    from ultratight.receiver.campaign import run_campaign, start_client
     out.mkdir(parents=True, exist_ok=True)
     client, cluster, where = start_client(a.workers)
     print(f"study_highdyn: {where}; dashboard {client.dashboard_link}", file=sys.stderr)
@@ -156,11 +213,10 @@ def main(argv=None):
                              cache=a.cache)
             if a.cache:
                 _drop_if_files(out / n / "cache")
-            txt, score = table(n, desc, r["json"])
+            txt, summary[n] = _entry(n, desc, ov, r["json"], time.perf_counter() - tr)
             md.append(txt)
-            summary[n] = {"description": desc, "overrides": ov, "wall_s": time.perf_counter() - tr, **score,
-                          "methods": r["json"]["summary"]["methods"]}
-            (out / "study.md").write_text("\n".join(md) + f"\nWall time so far {time.perf_counter() - t0:.0f} s.\n")
+            (out / "study.md").write_text(overview(summary) + "\n" + "\n".join(md)
+                                          + f"\nWall time so far {time.perf_counter() - t0:.0f} s.\n")
             (out / "study.json").write_text(json.dumps(summary, indent=1))
             print(f"study_highdyn: {n} done ({time.perf_counter() - tr:.0f} s)", file=sys.stderr)
     finally:
