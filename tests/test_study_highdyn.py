@@ -32,7 +32,8 @@ def test_readings_cover_the_issue_grid():
 
 def test_paper_values_give_distance_zero_and_the_paper_order():
     _, score = study.table("x", "paper", _campaign({m: v["doppler_rms_hz"] for m, v in PAPER_TABLE3.items()}))
-    assert score["distance"] == 0.0                    # a diverged cell on both sides counts 0
+    # the paper's diverged cells passed as "no epochs" are left out; every other cell matches
+    assert score["distance"] == 0.0
     assert score["ordered"] is True                    # 0.1125 < 0.5345 < 0.9153 < 1.8706
 
 
@@ -41,13 +42,21 @@ def test_distance_is_mean_abs_log10_ratio_and_order_breaks():
     cells["dlb-rackf"] = [1.0, 1.22, 2.455]            # x8.89, x10, x10 of the paper's
     _, score = study.table("x", "ten times", _campaign(cells))
     known = sum(x is not None for v in PAPER_TABLE3.values() for x in v["doppler_rms_hz"])   # 10 of 12 cells
-    total = sum(len(v["doppler_rms_hz"]) for v in PAPER_TABLE3.values())
-    # RACKF: log10(1/0.1125) + 1 + 1; the other known cells 1 each; the two diverged ones (None on both sides) 0
-    expect = (math.log10(1.0 / 0.1125) + 2.0 + (known - 3) * 1.0) / total
+    # RACKF: log10(1/0.1125) + 1 + 1; the other known cells 1 each; the two without epochs left out
+    expect = (math.log10(1.0 / 0.1125) + 2.0 + (known - 3) * 1.0) / known
     assert score["distance"] == pytest.approx(expect, rel=1e-12)
     assert score["ordered"] is True
     cells["dlb-rackf"] = [6.0, 1.22, 2.455]            # RACKF worse than CKF (5.345) in 0-20 s
     assert study.table("x", "", _campaign(cells))[1]["ordered"] is False
+
+
+def test_a_cell_the_paper_marks_diverged_counts_one_and_a_short_cut_only_its_segment():
+    cells = {m: list(v["doppler_rms_hz"]) for m, v in PAPER_TABLE3.items()}
+    cells["pb-kf-utc"][2] = 5.0                       # paper: diverged in 40-60 s; ours in lock
+    known = sum(x is not None for v in PAPER_TABLE3.values() for x in v["doppler_rms_hz"])
+    assert study.table("x", "", _campaign(cells))[1]["distance"] == pytest.approx(1.0 / (known + 1))
+    short = {m: [10 * v["doppler_rms_hz"][0], None, None] for m, v in PAPER_TABLE3.items()}
+    assert study.table("x", "", _campaign(short, duration_s=20.0))[1]["distance"] == pytest.approx(1.0)
 
 
 def test_report_rebuilds_the_overview_from_campaign_files(tmp_path):
