@@ -197,8 +197,9 @@ def main(argv=None):
     out.mkdir(parents=True, exist_ok=True)
     client, cluster, where = start_client(a.workers)
     print(f"study_highdyn: {where}; dashboard {client.dashboard_link}", file=sys.stderr)
-    md = [f"Command: `python benchmarks/study_highdyn.py {' '.join(argv if argv is not None else sys.argv[1:])}`; "
-          f"machine: {platform.machine()} {os.cpu_count()} CPUs, Python {platform.python_version()}; {where}.", ""]
+    header = (f"Command: `python benchmarks/study_highdyn.py {' '.join(argv if argv is not None else sys.argv[1:])}`; "
+              f"machine: {platform.machine()} {os.cpu_count()} CPUs, Python {platform.python_version()}; {where}.\n\n")
+    md = []
     summary = {}
     t0 = time.perf_counter()
     try:
@@ -217,7 +218,7 @@ def main(argv=None):
                 _drop_if_files(out / n / "cache")
             txt, summary[n] = _entry(n, desc, ov, r["json"], time.perf_counter() - tr)
             md.append(txt)
-            (out / "study.md").write_text(overview(summary) + "\n" + "\n".join(md)
+            (out / "study.md").write_text(header + overview(summary) + "\n" + "\n".join(md)
                                           + f"\nWall time so far {time.perf_counter() - t0:.0f} s.\n")
             (out / "study.json").write_text(json.dumps(summary, indent=1))
             print(f"study_highdyn: {n} done ({time.perf_counter() - tr:.0f} s)", file=sys.stderr)
@@ -225,7 +226,7 @@ def main(argv=None):
         client.close()
         if cluster is not None:
             cluster.close()
-    print("\n".join(md))
+    print(header + (overview(summary) if summary else "") + "\n" + "\n".join(md))
     return 0
 
 
