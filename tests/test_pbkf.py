@@ -107,3 +107,15 @@ def test_bad_input():
     bank.P[0] *= 1e15
     bank.step(np.ones((2, 6)), np.ones(2))
     assert bank.diverged[0] and np.all(np.isfinite(bank.x))
+
+
+def test_divergence_after_a_restart_returns_to_amplitude_only():
+    # as the prefilter bank: x0's errors are against the restart epoch's NCOs, applied once
+    bank = PbKfBank(1)
+    x0 = np.array([3.0, 0.1, 0.5, 2.0 * np.pi * 250.0, 40.0])
+    bank.reset([0], x0=x0)
+    np.testing.assert_array_equal(bank.x[0], x0)
+    bank.P[0] *= 1e15
+    bank.step(np.ones((1, 6)), np.ones(1))
+    assert bank.diverged[0]
+    np.testing.assert_array_equal(bank.x[0], [3.0, 0.0, 0.0, 0.0, 0.0])

@@ -290,6 +290,20 @@ def test_divergence_flagged_and_reset_never_nan(kind):
     assert bank.n_resets[0] >= 1 and bank.n_resets[1] >= 1
 
 
+@pytest.mark.parametrize("kind", pf.KINDS)
+def test_divergence_after_a_restart_returns_to_amplitude_only(kind):
+    # a restart far off the aiding gives x0 a frequency error against the NCO of that epoch; the
+    # feedback moves it into the NCO, so a later divergence must not hand it out a second time
+    bank = pf.PrefilterBank(1, kind=kind)
+    x0 = np.array([3.0, 0.1, 0.5, 2.0 * np.pi * 250.0, 40.0])
+    bank.reset([0], x0=x0)
+    np.testing.assert_array_equal(bank.x[0], x0)            # the restart itself starts from x0
+    bank.P[0] *= 1e12
+    bank.step(np.ones((1, 6)), np.ones(1))
+    assert bank.n_resets[0] == 1
+    np.testing.assert_array_equal(bank.x[0], [3.0, 0.0, 0.0, 0.0, 0.0])
+
+
 # ---------------------------------------------------------------- closed loop at 20 dB-Hz
 def _scenario(duration, noise=False, jerk=False, n_ch=4):
     segs = [(0.0, 500.0, 0.0)]

@@ -451,14 +451,20 @@ class PbKfBank(PackedActiveMask):
         self._rscale_one = np.ones(n_ch)
 
     def reset(self, channels, x0=None, P0=None, activate=True):
-        """(Re)initialise channels; P0 is the 4x4 covariance of [dtau, dphi, df, da]."""
+        """(Re)initialise channels; P0 is the 4x4 covariance of [dtau, dphi, df, da]. As for the
+        prefilter bank (:meth:`ultratight.fusion.prefilter.PrefilterBank.reset`), only P0 and the
+        amplitude of x0 are kept as the state a divergence returns to: the errors of x0 are against
+        the reset epoch's NCOs."""
         ch = np.atleast_1d(np.asarray(channels, dtype=np.int64))
+        xa = None
         if x0 is not None:
-            self.x0[ch] = np.broadcast_to(np.asarray(x0, dtype=float), (ch.size, NX))
+            xa = np.broadcast_to(np.asarray(x0, dtype=float), (ch.size, NX))
+            self.x0[ch] = 0.0
+            self.x0[ch, 0] = xa[:, 0]
         if P0 is not None:
             self.P0[ch] = np.broadcast_to(np.asarray(P0, dtype=float), (ch.size, NK, NK))
-        self.x[ch] = self.x0[ch]
-        self.x_post[ch] = self.x0[ch]
+        self.x[ch] = self.x0[ch] if xa is None else xa
+        self.x_post[ch] = self.x[ch]
         self.P[ch] = self.P0[ch]
         self._have_prev[ch] = 0
         self._rot[ch] = 0.0

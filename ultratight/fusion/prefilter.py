@@ -936,16 +936,22 @@ class PrefilterBank(PackedActiveMask):
     def reset(self, channels, x0=None, P0=None, activate=True):
         """(Re)initialise channels: x0 (k,5) or (5,), P0 (k,5,5) or (5,5) (defaults: the stored ones).
 
-        The given x0/P0 also become the state the channel returns to after a divergence.
+        The given P0 and the amplitude of x0 also become the state the channel returns to after a
+        divergence; its code, phase, frequency and acceleration errors return to zero. They are
+        errors against the NCOs of the reset epoch, which the inner-loop feedback moves into the
+        NCOs: returning to them later would apply the same correction twice (a channel restarted
+        far off its aiding then doubles its offset at every divergence).
         """
         ch = np.atleast_1d(np.asarray(channels, dtype=np.int64))
         if ch.size and (ch.min() < 0 or ch.max() >= self.n_ch):
             raise FilterError(f"prefilter reset: channel index out of range 0..{self.n_ch - 1}: {ch}")
+        xa = None
         if x0 is not None:
             xa = np.broadcast_to(np.asarray(x0, dtype=float), (ch.size, NX))
             if not np.all(np.isfinite(xa)):
                 raise FilterError("prefilter reset: x0 must be finite")
-            self.x0[ch] = xa
+            self.x0[ch] = 0.0
+            self.x0[ch, IA] = xa[:, IA]
         if P0 is not None:
             Pa = np.broadcast_to(np.asarray(P0, dtype=float), (ch.size, NX, NX))
             for k in range(ch.size):
@@ -957,9 +963,9 @@ class PrefilterBank(PackedActiveMask):
                 except np.linalg.LinAlgError:
                     raise FilterError("prefilter reset: P0 must be positive definite") from None
             self.P0[ch] = Pa
-        self.x[ch] = self.x0[ch]
+        self.x[ch] = self.x0[ch] if xa is None else xa
         self.P[ch] = self.P0[ch]
-        self.x_post[ch] = self.x0[ch]
+        self.x_post[ch] = self.x[ch]
         self.nis[ch] = np.nan
         self.innov[ch] = np.nan
         self._acc[ch] = 0.0
