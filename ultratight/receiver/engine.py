@@ -57,7 +57,7 @@ import numba
 import numpy as np
 
 from ultratight import __version__
-from ultratight.errors import ConfigError, FilterError, InputFileError
+from ultratight.errors import ConfigError, DivergenceError, FilterError, InputFileError
 from ultratight.fusion import tight as tightmod
 from ultratight.fusion.innerloop import InnerLoop
 from ultratight.fusion.prefilter import IF as PREFILTER_IF
@@ -295,9 +295,12 @@ class UltratightEngine:
 
     def _check_status(self, status, info):
         if status == ERR_CORR:
-            n_s = self.corr_view.n_s
-            raise InputFileError(f"{self.src.path}: correlator could not integrate channels "
-                                 f"{np.flatnonzero(n_s <= 0).tolist()} (buffer management)")
+            c = self.corr_view
+            bad = np.flatnonzero(c.n_s <= 0)
+            off = ", ".join(f"{x:.3g}" for x in c.carr_freq[bad] - self.if_hz)
+            raise DivergenceError(f"{self.src.path}: correlator could not integrate channels {bad.tolist()}: their "
+                              f"NCOs left the IF buffer (carrier {off} Hz; sample pointers "
+                              f"{c.sample_ptr[bad].tolist()} against {int(c.sample_ptr.min())}): tracking ran away")
         if status == ERR_BANK:
             raise FilterError(f"tracking bank step: non-finite measurement or bit on active channel {info}: "
                               f"z={self.corr_view.out[info, :6]}, bit={self.wipe.D[info]}")
