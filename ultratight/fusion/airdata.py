@@ -217,6 +217,33 @@ def fads_velocity_h(C_pred, c_f, wind_n=None):
     return h
 
 
+def inverse_variance(z1, R1, z2, R2):
+    """Minimum-variance combination of two independent estimates of one scalar: ``(z, R)``."""
+    return (R2 * z1 + R1 * z2) / (R1 + R2), R1 * R2 / (R1 + R2)
+
+
+def separate_h(wind_n=None):
+    """Measurement function (rows X (N, 9) → (N, 9)) of the separate-observation FADS/GNSS/INS filter:
+    ``[λ_G, L_G, h, V_G, v_b,F]`` — position (altitude: GNSS and FADS combined per epoch), the GNSS
+    velocity (ESD) and the FADS air velocity in body axes, whose expectation is ``C_nb(X) (V − W)``.
+
+    Unlike eq. 4's pre-fused velocity (a fixed combination of the GNSS velocity and the FADS velocity
+    turned to ESD with the INS attitude), the two velocities stay apart: the pre-fusion compresses
+    six observations into three and mixes the FADS velocity's attitude dependence into the
+    velocity, which the filter can then no longer tell apart — measured, it makes the filter's
+    vertical velocity and altitude worse than GNSS/INS alone (docs/airdata.md)."""
+    w = np.zeros(3) if wind_n is None else np.asarray(wind_n, float)
+
+    def h(X):
+        X = np.atleast_2d(X)
+        C = euler_to_dcm(X[:, I_PITCH], X[:, I_YAW], X[:, I_ROLL])
+        out = np.empty((X.shape[0], N_OBS + 3))
+        out[:, :N_OBS] = X[:, :N_OBS]
+        out[:, N_OBS:] = np.einsum("nji,nj->ni", C, X[:, VEL] - w)            # C_nb(X) (V - W)
+        return out
+    return h
+
+
 def numerical_jacobian(h, x, steps=_JAC_STEP):
     """∂h/∂X (m, 9) by central differences of a row-vectorised h (one batched call)."""
     E = np.diag(steps)
@@ -229,8 +256,8 @@ def run(kind, x0, P0, Q, dtheta, dv, imu_dt, per_epoch, measure):
     """Run the 9-state filter over epochs; ``kind`` 'ckf' (cubature, Zhao et al. 2014 §2.2) or 'ekf' (eqs. 7–8).
 
     ``dtheta``, ``dv``: IMU increments (n_epochs · per_epoch, 3). ``measure(k, x_pred, P_pred)``
-    returns (z (6,), R (6, 6)) or (z, R, h) with a row-vectorised measurement function h (default:
-    the first six states, eq. 3) for epoch k (after the prediction), or None to skip the update.
+    returns (z (m,), R (m, m)) or (z, R, h) with a row-vectorised measurement function h (default:
+    the first six states, eq. 3, m = 6) for epoch k (after the prediction), or None to skip the update.
     Returns (x (n_epochs, 9), P diagonal (n_epochs, 9), NIS (n_epochs,)).
     """
     n_ep = dtheta.shape[0] // per_epoch

@@ -24,8 +24,11 @@ Readings where the paper is silent or ambiguous, each with its alternative, sele
 scenario TOML (:data:`CHOICES`; defaults = this project's choices): ``imu.error_model`` ("white" noise
 per sample, or a per-run constant "bias", or "bias+white"; Q of the bias from
 ``filter.bias_horizon_s``, :func:`process_noise`), ``fads.altitude_shape`` ("log-linear" or
-"linear" 1 → 100 m curve), ``fads.altitude_curve`` (the curve as 1σ, or as a 3σ "envelope") and
-``filter.altitude_row`` ("prefused" h_GF, or the FADS filters' own ĥ).
+"linear" 1 → 100 m curve), ``fads.altitude_curve`` (the curve as 1σ, or as a 3σ "envelope"),
+``filter.altitude_row`` ("prefused" h_GF, or the FADS filters' own ĥ) and ``filter.fusion`` ("eq4":
+the paper's pre-fusion; "separate": GNSS velocity and FADS body air velocity as separate
+observations, altitudes combined per epoch by their variances — :func:`_separate_measurements`,
+the built-in scenario ``paper-fads-separate``).
 """
 
 import json
@@ -80,14 +83,15 @@ SCHEMA = {
              "sigma_h_0km_m", "sigma_h_20km_m"),
     "atmosphere": ("wind_esd_mps",),
     "filter": ("rate_hz", "p0_pos_m", "p0_alt_m", "p0_vel_mps", "p0_att_deg", "q_scale", "bias_horizon_s", "v_min_mps",
-               "altitude_row"),
+               "altitude_row", "fusion"),
 }
 # the string options and their values (the first is the scenario default; docs/airdata.md has the figures of each)
 CHOICES = {("imu", "error_model"): ("white", "bias", "bias+white"),
            ("fads", "altitude_mode"): ("direct", "pressure"),
            ("fads", "altitude_curve"): ("sigma", "envelope"),
            ("fads", "altitude_shape"): ("log-linear", "linear"),
-           ("filter", "altitude_row"): ("prefused", "filter")}
+           ("filter", "altitude_row"): ("prefused", "filter"),
+           ("filter", "fusion"): ("eq4", "separate")}
 POSITIVE = {"imu": ("rate_hz", "accel_sigma_mps2", "gyro_sigma_dps"), "gnss": ("pos_sigma_m", "alt_sigma_m", "vel_sigma_mps"),
             "fads": ("noise_pa", "sigma_h_0km_m", "sigma_h_20km_m"),
             "filter": ("rate_hz", "p0_pos_m", "p0_alt_m", "p0_vel_mps", "p0_att_deg", "q_scale", "bias_horizon_s")}
@@ -173,6 +177,33 @@ def _truth(key, imu_rate, filter_rate, duration_s):
 def _state(tr, i):
     return np.array([tr["lon"][i], tr["lat"][i], tr["h"][i], *tr["vel"][i], tr["pitch"][i], tr["yaw"][i],
                      tr["roll"][i]])
+
+
+def _separate_measurements(cfg, sim, wind):
+    """``filter.fusion = "separate"``: the observation ``[λ_G, L_G, h_GF, V_G, v_b,F]`` of each epoch
+    (:func:`ultratight.fusion.airdata.separate_h`) and the per-epoch altitude h_GF. h_GF combines the GNSS
+    and FADS altitudes by their variances of the epoch (the FADS one from the curve at the GNSS
+    altitude, or the inversion's own in "pressure" mode) with R = the combination's variance (no
+    eq. 10); the FADS air velocity enters in body axes with the inversion's covariance."""
+    zg, sg = sim["z_gnss"], sim["sig_gnss"]
+    R_g = cfg["gnss"]["alt_sigma_m"] ** 2
+    if cfg["fads"]["altitude_mode"] == "direct":
+        R_f = direct_altitude_sigma(cfg, np.maximum(zg[:, 2], 0.0)) ** 2
+    else:
+        R_f = sim["fads"]["var_h"]
+    h_gf, R_h = AF.inverse_variance(zg[:, 2], R_g, sim["h_fads"], R_f)
+    R_v = np.eye(3) * cfg["gnss"]["vel_sigma_mps"] ** 2
+    v_b, cov_b = sim["fads"]["vel_b"], sim["fads"]["cov_vel_b"]
+    h = AF.separate_h(wind)
+
+    def measure(k, x, P):
+        z = np.concatenate([zg[k, :2], [h_gf[k]], zg[k, 3:6], v_b[k]])
+        R = np.zeros((9, 9))
+        R[0, 0], R[1, 1], R[2, 2] = sg[k, 0] ** 2, sg[k, 1] ** 2, R_h[k]
+        R[3:6, 3:6] = R_v
+        R[6:, 6:] = cov_b[k]
+        return z, R, h
+    return measure, h_gf
 
 
 def simulate(cfg, seed):
@@ -328,6 +359,8 @@ def run_method(cfg, sim, method):
         def measure(k, x, P):
             return zg[k], np.diag(sg[k] ** 2)
         h_gf = None
+    elif cfg["filter"]["fusion"] == "separate":
+        measure, h_gf = _separate_measurements(cfg, sim, wind)
     else:
         R_g = cfg["gnss"]["alt_sigma_m"] ** 2
         R_f1, R_f2 = sim["R_f"]
@@ -444,7 +477,8 @@ def summarize(cfg, runs):
     lines.append("  FADS filters' altitudes, main-filter ĥ: " + ", ".join(
         f"{LABEL[m]} max {table[m]['filter_altitude_m']['max']:.2f} std {table[m]['filter_altitude_m']['std']:.2f}"
         for m in methods if m != "gnss-ins"))
-    lines.append("  FADS filters' altitudes, pre-fused h_GF (eq. 4): " + ", ".join(
+    how = "eq. 4" if cfg["filter"]["fusion"] == "eq4" else "per-epoch inverse-variance combination"
+    lines.append(f"  FADS filters' altitudes, pre-fused h_GF ({how}): " + ", ".join(
         f"{LABEL[m]} max {table[m]['prefused_altitude_m']['max']:.2f} std {table[m]['prefused_altitude_m']['std']:.2f}"
         for m in methods if "prefused_altitude_m" in table[m]))
     lines.append("  mean NEES per state (e²/P, 1 = consistent): " + ", ".join(
