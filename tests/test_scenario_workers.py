@@ -1,5 +1,6 @@
 """`ultratight scenario` with its methods in worker processes gives the tables of the same run in
-one process (receiver.workers + scenario_runner)."""
+one process (receiver.workers + scenario_runner), and so does the default: the run's IF generated
+once and read by all its methods at the same time (ultratight.signals.ifring)."""
 
 import json
 
@@ -26,4 +27,15 @@ def test_methods_in_workers_equal_methods_here(tmp_path):
     a = _strip(json.loads((tmp_path / "one" / "metrics.json").read_text()))
     b = _strip(json.loads((tmp_path / "two" / "metrics.json").read_text()))
     assert a["methods"].keys() == b["methods"].keys() == {"dlb-rackf", "pb-kf-utc", "dlb-ckf"}
+    assert a == b
+
+
+def test_shared_if_ring_equals_one_stream_per_method(tmp_path, capsys):
+    kw = dict(methods=("dlb-rackf", "pb-kf-utc", "scalar"), runs=2, seed=4, duration_s=1.0, plots=False,
+              overrides=CUT)
+    run_scenario("paper-highdyn", out_dir=tmp_path / "one", workers=1, progress=False, **kw)
+    run_scenario("paper-highdyn", out_dir=tmp_path / "ring", progress=True, **kw)     # the default workers
+    assert "3 worker process(es), the IF generated once per run and shared" in capsys.readouterr().out
+    a = _strip(json.loads((tmp_path / "one" / "metrics.json").read_text()))
+    b = _strip(json.loads((tmp_path / "ring" / "metrics.json").read_text()))
     assert a == b

@@ -50,6 +50,7 @@ from ultratight.receiver.workers import WorkerPool, check_workers, default_worke
 from ultratight.signals.constellation import nominal_ephemerides
 from ultratight.signals.generator import generate
 from ultratight.signals.iffile import open_if
+from ultratight.signals.ifring import IfRing, RingIf
 from ultratight.signals.ifstream import GeneratedIf
 from ultratight.signals.rinex import read_rinex_nav
 
@@ -175,13 +176,21 @@ def _data_paths(paths, cache_if, seed):
 
 def open_source(paths, cfg):
     """The IF source of a run's data: the cached file (``paths["if"]``) or, without one, the generator of
-    ``cfg`` and ``paths["if_seed"]`` in memory (:class:`ultratight.signals.ifstream.GeneratedIf`)."""
+    ``cfg`` and ``paths["if_seed"]`` in memory (:class:`ultratight.signals.ifstream.GeneratedIf`), or
+    read from the run's shared ring (``paths["if_ring"]``, :class:`ultratight.signals.ifring.RingIf`)."""
     if "if" in paths:
         return open_if(paths["if"])
     if "if_seed" not in paths:
         raise ConfigError("scenario data: neither an IF file nor the seed of a streamed IF")
-    c = {k: v for k, v in cfg.items() if k not in ("source_file", "engine")}
+    c = _generator_cfg(cfg)
+    if "if_ring" in paths:
+        return RingIf(c, int(paths["if_seed"]), paths["if_ring"], int(paths["if_consumer"]))
     return GeneratedIf(c, int(paths["if_seed"]))
+
+
+def _generator_cfg(cfg):
+    """The generator's part of a scenario (processing settings left out)."""
+    return {k: v for k, v in cfg.items() if k not in ("source_file", "engine")}
 
 
 def load_truth(path):
@@ -331,9 +340,16 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
     jobs run in worker processes (:mod:`ultratight.receiver.workers`), one per free core and one when
     no core is free, so this process, which collects every method's results and writes the outputs,
     never holds an engine's working memory as well; ``workers`` = 1 runs them here, one after the
-    other. The results do not depend on where a job ran."""
+    other. Streamed with the default workers and several methods, a run's IF is generated once, here,
+    into a ring the run's methods read at the same time, one worker process each
+    (:mod:`ultratight.signals.ifring`); otherwise every method streams its own copy. The results do
+    not depend on where a job ran nor on where its samples came from."""
     n_jobs = runs * len(methods)
-    n_workers = default_workers(n_jobs) if workers is None else min(int(workers), n_jobs)
+    shared = not cache and workers is None and len(methods) > 1
+    if shared:
+        n_workers = len(methods)
+    else:
+        n_workers = default_workers(n_jobs) if workers is None else min(int(workers), n_jobs)
     here = workers is not None and int(workers) == 1
     per_job = {}
     keys = [(r, m) for r in range(runs) for m in methods]
@@ -353,11 +369,16 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
 
     # the workers start (and import the engine) while this process generates the data
     with WorkerPool(n_workers, preload=(__name__,), processes=not here) as pool:
-        all_paths = [_prepare_run(cfg, r, runs, base_seed + r, out, channel, progress, cache) for r in range(runs)]
+        all_paths = [_prepare_run(cfg, r, runs, base_seed + r, out, channel, progress, cache, shared)
+                     for r in range(runs)]
         jobs = [(all_paths[r], cfg, m, base_seed + r, options) for r, m in keys]
         if progress and not here:
-            print(f"{len(jobs)} method run(s) in {n_workers} worker process(es)", flush=True)
-        pool.map(_method_here if here else _method_job, jobs, on_done=done)
+            how = ", the IF generated once per run and shared" if shared else ""
+            print(f"{len(jobs)} method run(s) in {n_workers} worker process(es){how}", flush=True)
+        if shared:
+            _map_shared(pool, cfg, methods, runs, base_seed, jobs, done)
+        else:
+            pool.map(_method_here if here else _method_job, jobs, on_done=done)
     per = {m: [] for m in methods}
     raw = {}
     for i, (r, m) in enumerate(keys):
@@ -367,13 +388,33 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
     return per, raw
 
 
+def _map_shared(pool, cfg, methods, runs, base_seed, jobs, done):
+    """Run by run: the run's IF ring (produced in this process), its methods' jobs at the same time
+    (each reading the ring as one consumer), results handed to ``done`` with their job index."""
+    n = len(methods)
+    for r in range(runs):
+        ring = IfRing(_generator_cfg(cfg), base_seed + r, n)
+        try:
+            ring.start()
+            run_jobs = []
+            for j in range(n):
+                paths, c, m, seed, options = jobs[r * n + j]
+                run_jobs.append((dict(paths, if_ring=ring.name, if_consumer=j), c, m, seed, options))
+            pool.map(_method_job, run_jobs, on_done=lambda j, res, r=r: done(r * n + j, res))
+        except BaseException:
+            ring.abort()
+            raise
+        finally:
+            ring.close()
+
+
 def _method_here(paths, cfg, method, seed, options):
     res, _truth = run_method(paths, cfg, method, seed, options=options)
     release_heap()              # the engine's working memory, before the next method runs here
     return res
 
 
-def _prepare_run(cfg, r, runs, seed, out, channel, progress, cache=False):
+def _prepare_run(cfg, r, runs, seed, out, channel, progress, cache=False, shared=False):
     """The data of run ``r`` (generated or reused), its channel count checked against ``channel``."""
     t0 = time.perf_counter()
     paths, cached = prepare_data(cfg, seed, out, progress=progress, cache_if=cache)
@@ -382,7 +423,8 @@ def _prepare_run(cfg, r, runs, seed, out, channel, progress, cache=False):
     if channel >= n_ch:
         raise ConfigError(f"--channel {channel}: the scenario has {n_ch} channel(s) (0..{n_ch - 1})")
     if progress:
-        what = "" if cache else ", truth and IMU: the IF is generated in memory for each method"
+        what = "" if cache else (", truth and IMU: the IF is generated in memory, "
+                                 + ("once for all methods" if shared else "for each method"))
         print(f"run {r + 1}/{runs} seed {seed}: data {'reused' if cached else 'generated'} "
               f"({time.perf_counter() - t0:.1f} s{what})", flush=True)
     return paths
