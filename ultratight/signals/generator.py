@@ -466,6 +466,7 @@ class _TruthWriter:
         for k, v in attrs.items():
             self.f.attrs[k] = v
         self.n = 0
+        self._held, self._n_held = [], 0
         self.ds = {}
         spec = {"t_s": (), "sample_index": (), "tow_s": (), "t_true_tow_s": (), "pos_e": (3,),
                 "vel_e": (3,), "clk_bias_m": (), "clk_drift_mps": (), "noise_factor": (),
@@ -477,17 +478,29 @@ class _TruthWriter:
             self.ds[name] = self.f.create_dataset(name, shape=(0,) + shp, maxshape=(None,) + shp,
                                                   chunks=(1000,) + shp, dtype=dt)
 
+    FLUSH_ROWS = 5000     # rows held before they are written (one resize and write per dataset)
+
     def append(self, rows):
-        m = len(rows["t_s"])
+        self._held.append(rows)
+        self._n_held += len(rows["t_s"])
+        if self._n_held >= self.FLUSH_ROWS:
+            self._flush()
+
+    def _flush(self):
+        if not self._held:
+            return
+        m = self._n_held
         try:
             for k, d in self.ds.items():
                 d.resize(self.n + m, axis=0)
-                d[self.n:self.n + m] = rows[k]
+                d[self.n:self.n + m] = np.concatenate([r[k] for r in self._held], axis=0)
         except (RuntimeError, OSError) as exc:
             raise self._write_error(exc) from None
         self.n += m
+        self._held, self._n_held = [], 0
 
     def finish(self):
+        self._flush()
         try:
             self.f.close()
         except (RuntimeError, OSError) as exc:
