@@ -39,3 +39,21 @@ def test_shared_if_ring_equals_one_stream_per_method(tmp_path, capsys):
     a = _strip(json.loads((tmp_path / "one" / "metrics.json").read_text()))
     b = _strip(json.loads((tmp_path / "ring" / "metrics.json").read_text()))
     assert a == b
+
+
+def test_without_shared_memory_each_method_streams_its_own_if(tmp_path, capsys, monkeypatch):
+    from ultratight.receiver import scenario_runner
+
+    class NoShm:
+        def __init__(self, *a, **k):
+            raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(scenario_runner, "IfRing", NoShm)
+    kw = dict(methods=("dlb-rackf", "pb-kf-utc"), runs=1, seed=4, duration_s=1.0, plots=False, overrides=CUT)
+    run_scenario("paper-highdyn", out_dir=tmp_path / "one", workers=1, progress=False, **kw)
+    run_scenario("paper-highdyn", out_dir=tmp_path / "fallback", progress=False, **kw)
+    err = capsys.readouterr().err
+    assert "no shared memory for the IF (No space left on device); each method generates its own copy" in err
+    a = _strip(json.loads((tmp_path / "one" / "metrics.json").read_text()))
+    b = _strip(json.loads((tmp_path / "fallback" / "metrics.json").read_text()))
+    assert a == b

@@ -25,6 +25,7 @@ figures like the paper's Fig. 4–7 when matplotlib is installed.
 import dataclasses
 import hashlib
 import json
+import sys
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -393,7 +394,13 @@ def _map_shared(pool, cfg, methods, runs, base_seed, jobs, done):
     (each reading the ring as one consumer), results handed to ``done`` with their job index."""
     n = len(methods)
     for r in range(runs):
-        ring = IfRing(_generator_cfg(cfg), base_seed + r, n)
+        try:
+            ring = IfRing(_generator_cfg(cfg), base_seed + r, n)
+        except OSError as exc:          # no shared memory here (a full or missing /dev/shm)
+            print(f"ultratight scenario: no shared memory for the IF ({exc.strerror or exc}); each method "
+                  f"generates its own copy", file=sys.stderr, flush=True)
+            pool.map(_method_job, jobs[r * n:(r + 1) * n], on_done=lambda j, res, r=r: done(r * n + j, res))
+            continue
         try:
             ring.start()
             run_jobs = []
