@@ -6,10 +6,12 @@ resolved scenario configuration (including the seed and any overrides) and the p
 version, so a rerun with the same configuration reuses the data and any change regenerates it.
 
 IF samples: by default (``cache=False``) the cache entry holds the truth, IMU and trajectory only,
-and every method reads the IF from its own generator in memory
-(:class:`ultratight.signals.ifstream.GeneratedIf`: the samples of the IF file, bit for bit,
-produced block by block on a worker thread while the method tracks); ``cache=True`` (``--cache``)
-writes the IF file into the entry as well and the methods read it from disk.
+and the IF is generated in memory, the samples of the IF file bit for bit: once per run, here,
+into a shared-memory ring that the run's methods read at the same time, one worker process each
+(:mod:`ultratight.signals.ifring`, with several methods and the default workers), or by each
+method from its own generator (:class:`ultratight.signals.ifstream.GeneratedIf`, produced block by
+block on a worker thread while the method tracks); ``cache=True`` (``--cache``) writes the IF file
+into the entry as well and the methods read it from disk.
 
 Per run (seed ``seed + r``) and method the engine runs on the *same* samples; the tracking
 errors are estimate minus the generator's truth (``<stem>.truth.h5``, docs/generator.md)
