@@ -128,10 +128,8 @@ def prepare_data(cfg, seed, out_dir, progress=False, cache_if=True):
     written last (atomically); an entry that does not verify is regenerated. ``cache_if=False``: the
     entry needs no IF file (one without is generated without it) and the paths returned have no
     ``if``/``meta`` but ``if_seed``, the seed :func:`run_method` streams the IF of."""
-    c = dict(cfg)
+    c = _generator_cfg(cfg)          # processing settings are not part of the generated data
     c["seed"] = int(seed)
-    c.pop("source_file", None)
-    c.pop("engine", None)            # processing settings: not part of the generated data
     key = _cfg_key(c)
     d = Path(out_dir) / "cache" / key
     done = d / "done.json"
@@ -396,25 +394,26 @@ def _map_shared(pool, cfg, methods, runs, base_seed, jobs, done):
     (each reading the ring as one consumer), results handed to ``done`` with their job index."""
     n = len(methods)
     for r in range(runs):
+        run_jobs = jobs[r * n:(r + 1) * n]
         try:
             ring = IfRing(_generator_cfg(cfg), base_seed + r, n)
         except OSError as exc:          # no shared memory here (a full or missing /dev/shm)
             print(f"ultratight scenario: no shared memory for the IF ({exc.strerror or exc}); each method "
                   f"generates its own copy", file=sys.stderr, flush=True)
-            pool.map(_method_job, jobs[r * n:(r + 1) * n], on_done=lambda j, res, r=r: done(r * n + j, res))
-            continue
+            ring = None
         try:
-            ring.start()
-            run_jobs = []
-            for j in range(n):
-                paths, c, m, seed, options = jobs[r * n + j]
-                run_jobs.append((dict(paths, if_ring=ring.name, if_consumer=j), c, m, seed, options))
+            if ring is not None:
+                ring.start()
+                run_jobs = [(dict(paths, if_ring=ring.name, if_consumer=j), *rest)
+                            for j, (paths, *rest) in enumerate(run_jobs)]
             pool.map(_method_job, run_jobs, on_done=lambda j, res, r=r: done(r * n + j, res))
         except BaseException:
-            ring.abort()
+            if ring is not None:
+                ring.abort()
             raise
         finally:
-            ring.close()
+            if ring is not None:
+                ring.close()
 
 
 def _method_here(paths, cfg, method, seed, options):

@@ -38,13 +38,6 @@ def _segment_name(tag):
     return f"ut-{tag}-{uuid.uuid4().hex[:12]}"
 
 
-def _attach(name):
-    """An existing segment. Worker processes spawned by the producer's process share its resource
-    tracker, where the segment is registered once (a set): the producer unlinks it in
-    :meth:`IfRing.close`."""
-    return shared_memory.SharedMemory(name=name)
-
-
 class IfRing:
     """The producer side (module docstring): ``IfRing(cfg, seed, n_consumers)``, then :meth:`start`;
     :attr:`name` identifies the ring to :class:`RingIf`; :meth:`close` stops the producer and frees the
@@ -58,11 +51,11 @@ class IfRing:
         self.slots = int(slots)
         L = self._src._gen.plan.L
         self.slot_bytes = int(self._src.spec.nbytes(BLOCK_INTERVALS * L, self._src.packing)) + 64
-        self.tag = _segment_name("if")
+        self.name = _segment_name("if")
         n_ctl = 4 + self.n_consumers + self.slots
-        self._data = shared_memory.SharedMemory(name=self.tag + "-d", create=True, size=self.slots * self.slot_bytes)
+        self._data = shared_memory.SharedMemory(name=self.name + "-d", create=True, size=self.slots * self.slot_bytes)
         try:
-            self._ctl_shm = shared_memory.SharedMemory(name=self.tag + "-c", create=True, size=8 * n_ctl)
+            self._ctl_shm = shared_memory.SharedMemory(name=self.name + "-c", create=True, size=8 * n_ctl)
         except BaseException:
             self._data.close()
             self._data.unlink()
@@ -74,11 +67,6 @@ class IfRing:
         self._buf = np.ndarray((self.slots, self.slot_bytes), dtype=np.uint8, buffer=self._data.buf)
         self._thread = None
         self.error = None
-        self.blocks = 0
-
-    @property
-    def name(self):
-        return self.tag
 
     def start(self):
         self._thread = threading.Thread(target=self._produce, name="ultratight-if-ring", daemon=True)
@@ -104,7 +92,6 @@ class IfRing:
                 k += 1
                 ctl[_PRODUCED] = k
             ctl[_TOTAL] = k
-            self.blocks = k
         except BaseException as exc:      # the consumers stop on the abort flag; the parent re-raises
             self.error = exc
             ctl[_ABORT] = 1
@@ -166,8 +153,10 @@ class RingIf(GeneratedIf):
         self._done = False
         self._k = 0
         try:
-            self._data = _attach(self._ring_name + "-d")
-            self._ctl_shm = _attach(self._ring_name + "-c")
+            # worker processes spawned by the producer's process share its resource tracker, where
+            # the segments are registered once; the producer unlinks them (IfRing.close)
+            self._data = shared_memory.SharedMemory(name=self._ring_name + "-d")
+            self._ctl_shm = shared_memory.SharedMemory(name=self._ring_name + "-c")
         except FileNotFoundError:
             raise ConfigError(f"{where}: the IF ring is gone (its run stopped)") from None
         n_ctl = self._ctl_shm.size // 8
