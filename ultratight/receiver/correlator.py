@@ -157,30 +157,30 @@ def integrate_channel(buf, is_complex, off, n, code_ext, cp_fix0, cstep, ph0, ph
             kend = min(k + 1024, n)
             if is_complex:
                 for kk in range(k, kend):
-                    j = 2 * (off + kk)
+                    j = np.uint64(2 * (off + kk))
                     xr = buf[j]
-                    xi = buf[j + 1]
-                    li = (ph >> shift) & mask
+                    xi = buf[j + np.uint64(1)]
+                    li = np.uint64((ph >> shift) & mask)
                     c = cos_lut[li]
                     s = sin_lut[li]
                     bi = xr * c + xi * s
                     bq = xi * c - xr * s
-                    cP = code_ext[cp >> 32]
-                    cE = code_ext[(cp + dE) >> 32]
-                    cL = code_ext[(cp + dL) >> 32]
+                    cP = code_ext[np.uint64(cp >> 32)]
+                    cE = code_ext[np.uint64((cp + dE) >> 32)]
+                    cL = code_ext[np.uint64((cp + dL) >> 32)]
                     ip += bi * cP; ie += bi * cE; il += bi * cL
                     qp += bq * cP; qe += bq * cE; ql += bq * cL
                     cp += cstep
                     ph += phstep
             else:
                 for kk in range(k, kend):
-                    xr = buf[off + kk]
-                    li = (ph >> shift) & mask
+                    xr = buf[np.uint64(off + kk)]
+                    li = np.uint64((ph >> shift) & mask)
                     bi = xr * cos_lut[li]
                     bq = -xr * sin_lut[li]
-                    cP = code_ext[cp >> 32]
-                    cE = code_ext[(cp + dE) >> 32]
-                    cL = code_ext[(cp + dL) >> 32]
+                    cP = code_ext[np.uint64(cp >> 32)]
+                    cE = code_ext[np.uint64((cp + dE) >> 32)]
+                    cL = code_ext[np.uint64((cp + dL) >> 32)]
                     ip += bi * cP; ie += bi * cE; il += bi * cL
                     qp += bq * cP; qe += bq * cE; ql += bq * cL
                     cp += cstep
