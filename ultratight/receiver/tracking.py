@@ -592,6 +592,7 @@ def _integrate_pel(buf, is_complex, off, n, tab, cp_fix0, cstep, ph0, phstep, lu
     [I_P, I_EL, 0, Q_P, Q_EL, 0] (raw sums)."""
     shift = 32 - LUT_BITS
     mask = LUT_SIZE - 1
+    one = np.uint64(1)
     cp = cp_fix0
     ph = ph0
     ip64 = 0.0
@@ -607,17 +608,17 @@ def _integrate_pel(buf, is_complex, off, n, tab, cp_fix0, cstep, ph0, phstep, lu
         qd = np.float32(0.0)
         if is_complex:
             for kk in range(k, kend):
-                j = 2 * (off + kk)
+                j = np.uint64(2 * (off + kk))
                 xr = buf[j]
-                xi = buf[j + 1]
-                li = 2 * ((ph >> shift) & mask)
+                xi = buf[j + one]
+                li = np.uint64(2 * ((ph >> shift) & mask))
                 c = lut[li]
-                sn = lut[li + 1]
+                sn = lut[li + one]
                 bi = xr * c + xi * sn
                 bq = xi * c - xr * sn
-                h = 2 * (cp >> 31)
+                h = np.uint64(2 * (cp >> 31))
                 cP = tab[h]
-                cD = tab[h + 1]
+                cD = tab[h + one]
                 ip += bi * cP
                 qp += bq * cP
                 idl += bi * cD
@@ -626,13 +627,13 @@ def _integrate_pel(buf, is_complex, off, n, tab, cp_fix0, cstep, ph0, phstep, lu
                 ph += phstep
         else:
             for kk in range(k, kend):
-                xr = buf[off + kk]
-                li = 2 * ((ph >> shift) & mask)
+                xr = buf[np.uint64(off + kk)]
+                li = np.uint64(2 * ((ph >> shift) & mask))
                 bi = xr * lut[li]
-                bq = -xr * lut[li + 1]
-                h = 2 * (cp >> 31)
+                bq = -xr * lut[li + one]
+                h = np.uint64(2 * (cp >> 31))
                 cP = tab[h]
-                cD = tab[h + 1]
+                cD = tab[h + one]
                 ip += bi * cP
                 qp += bq * cP
                 idl += bi * cD

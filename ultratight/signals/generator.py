@@ -108,6 +108,8 @@ def _synth_complex(out, L, n_int, codes, coefs, amps, bits, cos_lut, sin_lut):
     lutn = cos_lut.shape[0]
     mask = lutn - 1
     flut = float(lutn)
+    zero = np.uint64(0)
+    one = np.uint64(1)
     for k in prange(n_int):          # intervals are independent: spread over numba's threads
         base = k * L
         for s in range(nsat):
@@ -123,6 +125,7 @@ def _synth_complex(out, L, n_int, codes, coefs, amps, bits, cos_lut, sin_lut):
             d0 = a * bits[k, s, 0]
             d1 = a * bits[k, s, 1]
             d2 = a * bits[k, s, 2]
+            us = np.uint64(s)
             for i in range(L):
                 fi = float(i)
                 u = c0 + (c1 + c2 * fi) * fi
@@ -134,10 +137,11 @@ def _synth_complex(out, L, n_int, codes, coefs, amps, bits, cos_lut, sin_lut):
                     g = d1
                 if ci >= 2 * CA_LEN:
                     g = d2
-                v = g * codes[s, ci]
-                li = int(p0 + (p1 + p2 * fi) * fi + 0.5) & mask
-                out[base + i, 0] += v * cos_lut[li]
-                out[base + i, 1] += v * sin_lut[li]
+                v = g * codes[us, np.uint64(ci)]
+                li = np.uint64(int(p0 + (p1 + p2 * fi) * fi + 0.5) & mask)
+                j = np.uint64(base + i)
+                out[j, zero] += v * cos_lut[li]
+                out[j, one] += v * sin_lut[li]
 
 
 @njit(cache=True, fastmath=True, parallel=True, nogil=True)
@@ -162,6 +166,7 @@ def _synth_real(out, L, n_int, codes, coefs, amps, bits, cos_lut):
             d0 = a * bits[k, s, 0]
             d1 = a * bits[k, s, 1]
             d2 = a * bits[k, s, 2]
+            us = np.uint64(s)
             for i in range(L):
                 fi = float(i)
                 u = c0 + (c1 + c2 * fi) * fi
@@ -173,8 +178,8 @@ def _synth_real(out, L, n_int, codes, coefs, amps, bits, cos_lut):
                     g = d1
                 if ci >= 2 * CA_LEN:
                     g = d2
-                li = int(p0 + (p1 + p2 * fi) * fi + 0.5) & mask
-                out[base + i] += g * codes[s, ci] * cos_lut[li]
+                li = np.uint64(int(p0 + (p1 + p2 * fi) * fi + 0.5) & mask)
+                out[np.uint64(base + i)] += g * codes[us, np.uint64(ci)] * cos_lut[li]
 
 
 # ------------------------------------------------------------------------------------------
