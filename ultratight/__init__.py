@@ -11,10 +11,16 @@ second; with OpenMP's default busy waiting a second process on the same cores ma
 against it (measured: five times slower than one thread at a load average of 7), so unless the
 user chose otherwise, waiting threads sleep (``OMP_WAIT_POLICY=PASSIVE``, read when the OpenMP
 runtime starts, i.e. before the first parallel region).
+
+The receiver's matrices are small (the tight filter's are at most a few tens of rows), so BLAS
+threads gain nothing; OpenBLAS's idle threads spin after every call and took 3-6 % of the CPU
+from the engine's own threads (measured on the dlb-rackf benchmark). Unless the user chose
+otherwise, BLAS runs on the calling thread (``OPENBLAS_NUM_THREADS=1``, read when numpy loads).
 """
 
 import os
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 __version__ = "0.1.0"

@@ -22,7 +22,7 @@ for real input: the carrier wipe-off splits the noise over I and Q). The mean is
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from ultratight.errors import ConfigError
 from ultratight.io_guard import check_interrupted
@@ -47,6 +47,15 @@ def _complex_block_sigma(v):
         b = v[2 * k + 1] - mi
         s += a * a + b * b
     return math.sqrt(s / n / 2.0)
+
+
+@njit(cache=True, parallel=True)
+def _complex_block_sigmas(v, block_len, out):
+    """:func:`_complex_block_sigma` of each of the ``out.shape[0]`` consecutive blocks of
+    ``block_len`` complex samples in ``v`` (float32 (re, im) view), the blocks spread over numba's
+    threads; each block's sums run in the same order as the one-block kernel (identical values)."""
+    for b in prange(out.shape[0]):
+        out[b] = _complex_block_sigma(v[2 * b * block_len:2 * (b + 1) * block_len])
 
 
 def input_sigma(x, is_complex, fast=False):
@@ -148,19 +157,37 @@ class BlockStream:
             return True
         check_interrupted()
         keep = self.buf[max(0, int(keep_from) - self.buf_start):]
-        new = []
-        while buf_end < hi:
-            x = self.src.read(buf_end, self.block_len)
-            if x.shape[0] == 0:
-                break
-            if buf_end // self.block_len == self._n_sigma:
-                sg = self._block_sigma(x, buf_end)
+        bl = self.block_len
+        n_blocks = -(-(int(hi) - buf_end) // bl)
+        # one read of the whole span (blocks stay aligned: buf_end is a block boundary until the end)
+        x = self.src.read(buf_end, n_blocks * bl)
+        n_full = x.shape[0] // bl
+        sig = self._full_block_sigmas(x, buf_end, n_full)
+        for b in range(-(-x.shape[0] // bl)):
+            start = buf_end + b * bl
+            if start // bl == self._n_sigma:
+                sg = sig[b] if b < n_full and sig is not None else self._block_sigma(x[b * bl:(b + 1) * bl], start)
                 self._put_sigma(self.floor.update(sg) if self.floor is not None else sg)
-            new.append(x)
-            buf_end += x.shape[0]
-        self.buf = np.concatenate([keep] + new) if new else keep
+        buf_end += x.shape[0]
+        self.buf = np.concatenate([keep, x]) if x.shape[0] else keep
         self.buf_start = buf_end - self.buf.shape[0]
         return hi <= buf_end
+
+    def _full_block_sigmas(self, x, start, n_full):
+        """Per-arm noise std of the ``n_full`` whole blocks at the head of ``x`` (read at sample
+        ``start``) in one threaded call, or None where :meth:`_block_sigma` must do them one by one
+        (real input, fewer than two blocks, or a block reaching ``sigma_stop``)."""
+        bl = self.block_len
+        if (n_full < 2 or not self.is_complex or x.dtype != np.complex64 or not x.flags.c_contiguous
+                or (self.sigma_stop is not None and start + n_full * bl > self.sigma_stop)):
+            return None
+        out = np.empty(n_full)
+        _complex_block_sigmas(x.view(np.float32), bl, out)
+        sig = [noise_sigma_arm(float(s), True) if s > 0.0 else 0.0 for s in out]
+        for b, sg in enumerate(sig):
+            if not sg > 0.0:
+                sig[b] = self._block_sigma(x[b * bl:(b + 1) * bl], start + b * bl)   # raises or on_zero
+        return sig
 
     def _put_sigma(self, sg):
         if self._n_sigma == self._sigma.shape[0]:

@@ -60,12 +60,26 @@ class EpochRecorder:
         rm, rn = radii(lat)
         d = np.sqrt(np.maximum(np.diag(P), 0.0))
         p = d[POS]
-        self.sigma_now = np.r_[p[1] * (rn + h) * np.cos(lat), p[0] * (rm + h), p[2], d[VEL], d[ATT], d[CLK_B], d[CLK_D]]
+        s = np.empty(11)
+        s[0] = p[1] * (rn + h) * np.cos(lat)
+        s[1] = p[0] * (rm + h)
+        s[2] = p[2]
+        s[3:6] = d[VEL]
+        s[6:9] = d[ATT]
+        s[9] = d[CLK_B]
+        s[10] = d[CLK_D]
+        self.sigma_now = s
 
     def log_sins(self, t, x, clk_b, clk_d, replace=False):
         """The SINS state vector ``x`` (ultratight.ins.sins layout: q_lb, vel_l, llh) at time ``t``;
         ``replace``: overwrite the last row (the same step after a feedback)."""
-        row = np.r_[t, x[7:10], x[4:7], x[0:4], clk_b, clk_d]
+        row = np.empty(13)
+        row[0] = t
+        row[1:4] = x[7:10]
+        row[4:7] = x[4:7]
+        row[7:11] = x[0:4]
+        row[11] = clk_b
+        row[12] = clk_d
         if replace and self.sins:
             self.sins[-1] = row
             self.sins_sig[-1] = self.sigma_now.copy()
