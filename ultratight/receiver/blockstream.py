@@ -156,11 +156,13 @@ class BlockStream:
         if hi <= buf_end:
             return True
         check_interrupted()
-        keep = self.buf[max(0, int(keep_from) - self.buf_start):]
+        lo = min(max(self.buf_start, int(keep_from)), buf_end)
         bl = self.block_len
         n_blocks = -(-(int(hi) - buf_end) // bl)
-        # one read of the whole span (blocks stay aligned: buf_end is a block boundary until the end)
-        x = self.src.read(buf_end, n_blocks * bl)
+        # one read from the first kept sample over the whole new span (the kept samples are decoded
+        # again rather than copied; new blocks stay aligned: buf_end is a block boundary until the end)
+        y = self.src.read(lo, buf_end - lo + n_blocks * bl)
+        x = y[buf_end - lo:]
         n_full = x.shape[0] // bl
         sig = self._full_block_sigmas(x, buf_end, n_full)
         for b in range(-(-x.shape[0] // bl)):
@@ -169,8 +171,8 @@ class BlockStream:
                 sg = sig[b] if b < n_full and sig is not None else self._block_sigma(x[b * bl:(b + 1) * bl], start)
                 self._put_sigma(self.floor.update(sg) if self.floor is not None else sg)
         buf_end += x.shape[0]
-        self.buf = np.concatenate([keep, x]) if x.shape[0] else keep
-        self.buf_start = buf_end - self.buf.shape[0]
+        self.buf = y
+        self.buf_start = lo
         return hi <= buf_end
 
     def _full_block_sigmas(self, x, start, n_full):
