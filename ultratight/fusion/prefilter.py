@@ -420,30 +420,31 @@ N_W2 = 8
 
 @njit(cache=True)
 def _layout(n):
-    """Offsets of the packed float buffer: x, P, xpost, x0, P0, innov, nis, theta, acc, Phi, Qd, R, prm, W1, W2."""
-    sizes = (n * NX, n * NX * NX, n * NX, n * NX, n * NX * NX, n * NZ, n, n, n * NACC,
-             NX * NX, NX * NX, NZ * NZ, N_PRM, N_W1 * NZ, N_W2 * NZ * NZ)
-    offs = np.empty(len(sizes) + 1, dtype=np.int64)
-    o = 0
-    for i in range(len(sizes)):
-        offs[i] = o
-        o += sizes[i]
-    offs[len(sizes)] = o
-    return offs
+    """Offsets of the packed float buffer: x, P, xpost, x0, P0, innov, nis, theta, acc, Phi, Qd, R, prm, W1, W2
+    (a tuple: the per-channel epoch asks for it and allocates nothing)."""
+    o1 = n * NX
+    o2 = o1 + n * NX * NX
+    o3 = o2 + n * NX
+    o4 = o3 + n * NX
+    o5 = o4 + n * NX * NX
+    o6 = o5 + n * NZ
+    o7 = o6 + n
+    o8 = o7 + n
+    o9 = o8 + n * NACC
+    o10 = o9 + NX * NX
+    o11 = o10 + NX * NX
+    o12 = o11 + NZ * NZ
+    o13 = o12 + N_PRM
+    o14 = o13 + N_W1 * NZ
+    o15 = o14 + N_W2 * NZ * NZ
+    return (0, o1, o2, o3, o4, o5, o6, o7, o8, o9, o10, o11, o12, o13, o14, o15)
 
 
 @njit(cache=True)
 def _ilayout(n):
     """Offsets of the packed int buffer: flags (n), active (n), iprm (3), n_resets (n), counters
-    (epoch, correction_period)."""
-    offs = np.empty(6, dtype=np.int64)
-    offs[0] = 0
-    offs[1] = n
-    offs[2] = 2 * n
-    offs[3] = 2 * n + 3
-    offs[4] = 3 * n + 3
-    offs[5] = 3 * n + 5
-    return offs
+    (epoch, correction_period); a tuple."""
+    return (0, n, 2 * n, 2 * n + 3, 3 * n + 3, 3 * n + 5)
 
 
 @njit(cache=True)
@@ -518,22 +519,19 @@ def bank_channel_epoch(kind, fbuf, ibuf, c, z, bits, rscale, epoch, W1, W2):
         if not np.isfinite(bits[c]):
             return -1 - c
     io = _ilayout(n)
-    ip = np.empty(3, dtype=np.int64)
-    ip[0] = 1 if epoch % ibuf[io[4] + 1] == 0 else 0
-    ip[1] = iprm[1]
-    ip[2] = iprm[2]
-    _channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, rscale, active, prm, ip,
-                    innov, nis, theta, flags, W1, W2, acc)
+    _channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, rscale, active, prm,
+                    epoch % ibuf[io[4] + 1] == 0, iprm[1] != 0, iprm[2], innov, nis, theta, flags, W1, W2, acc)
     if (flags[c] & FLAG_DIVERGED) != 0:
         ibuf[io[3] + c] += 1
     return 0
 
 
 @njit(cache=True)
-def _channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, rscale, active, prm, iprm,
-                    innov, nis, theta, flags, W1, W2, acc):
+def _channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, rscale, active, prm, do_corr, robust_every,
+                    win_mode, innov, nis, theta, flags, W1, W2, acc):
     """One epoch of channel ``c`` (the loop body of :func:`_bank_step`; touches only row ``c`` and the
-    work arrays ``W1``/``W2``, so channels with work arrays of their own may run concurrently)."""
+    work arrays ``W1``/``W2``, so channels with work arrays of their own may run concurrently).
+    ``do_corr``, ``robust_every``, ``win_mode``: the entries of ``iprm`` (see :func:`_bank_step`)."""
     T = prm[0]
     beta = prm[1]
     dhalf = prm[2]
@@ -541,9 +539,6 @@ def _channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, rscale, a
     theta_min = prm[4]
     ut_w = prm[5:8]
     ut_scale = prm[8]
-    do_corr = iprm[0] != 0
-    robust_every = iprm[1] != 0
-    win_mode = iprm[2]
     windowed = win_mode != 0
     ksig = prm[14]
     min_win = prm[15]
@@ -770,8 +765,8 @@ def _bank_step(kind, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, rscale, active, p
             if not np.isfinite(bits[c]):
                 return -1 - c
     for c in range(n_ch):
-        _channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, rscale, active, prm, iprm,
-                        innov, nis, theta, flags, W1, W2, acc)
+        _channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, rscale, active, prm, iprm[0] != 0,
+                        iprm[1] != 0, iprm[2], innov, nis, theta, flags, W1, W2, acc)
     return 0
 
 

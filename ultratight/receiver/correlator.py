@@ -256,8 +256,9 @@ def nco_fixed_point(code_phase, pad, dp, carr_phase, carr_freq, fs):
 @njit(cache=True)
 def _correlate_one(ch, buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_ptr,
                    code_phase, code_rate, carr_phase, carr_freq, fs, tap_fix, sigma_arm, out, t_start, n_samples,
-                   code_len):
-    """One code period of channel ``ch`` (see :func:`_step_bank`); touches only row ``ch``."""
+                   code_len, acc):
+    """One code period of channel ``ch`` (see :func:`_step_bank`); touches only row ``ch`` and the
+    work array ``acc`` (at least 2 * number of taps; the caller's, so no allocation per period)."""
     n_taps = tap_fix.shape[0]
     t_start[ch] = sample_ptr[ch]
     for c in range(out.shape[1]):
@@ -277,7 +278,6 @@ def _correlate_one(ch, buf, is_complex, buf_start, n_buf, code_ext, pad, active,
         return
     if off + n > n_buf:
         return
-    acc = np.zeros(2 * n_taps)
     cp_fix0, cstep, ph0, phstep = nco_fixed_point(code_phase[ch], pad, dp, carr_phase[ch], carr_freq[ch], fs)
     integrate_channel(buf, is_complex, off, n, code_ext[ch], cp_fix0, cstep, ph0, phstep,
                       tap_fix, COS_LUT, SIN_LUT, acc)
@@ -306,10 +306,11 @@ def _step_bank(buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_
                out, t_start, n_samples, code_len):
     """One code period for every active channel (see module docstring)."""
     tap_fix = tap_fixed_point(tap_off)
+    acc = np.empty(2 * tap_fix.shape[0])
     for ch in range(code_phase.shape[0]):
         _correlate_one(ch, buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_ptr,
                        code_phase, code_rate, carr_phase, carr_freq, fs, tap_fix, sigma_arm, out, t_start, n_samples,
-                       code_len)
+                       code_len, acc)
 
 
 @njit(cache=True)

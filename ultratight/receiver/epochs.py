@@ -203,17 +203,18 @@ def correlate(src, corr, sig):
 
 
 @njit(cache=True)
-def epoch_channel(c, k_ep, e_row, epoch, src, corr, wipe, bank, outer, window, rec, law, sig, burst, tap_fix, W1, W2):
+def epoch_channel(c, k_ep, e_row, epoch, src, corr, wipe, bank, outer, window, rec, law, sig, burst, tap_fix, W1, W2,
+                  WA):
     """One epoch of channel ``c`` through every stage (touches only channel ``c``'s rows): 0, or
     ERR_CORR / ERR_BANK. ``epoch``: the tracking bank's epoch count; ``e_row``: the row of
-    ``window.pend`` for the epoch's residual inputs (:func:`settle` forms them); ``W1``/``W2``: work
-    arrays."""
+    ``window.pend`` for the epoch's residual inputs (:func:`settle` forms them); ``W1``/``W2``: the
+    tracking bank's work arrays, ``WA`` the correlator's (2 * number of taps)."""
     corr.cp0[c] = corr.code_phase[c]
     corr.f0[c] = corr.carr_freq[c]
     corr.sig[c] = src.sigma[corr.sample_ptr[c] // src.block_len]
     _correlate_one(c, src.buf, src.is_complex, src.buf_start, src.n_buf, corr.code_ext, corr.pad, corr.active,
                    corr.sample_ptr, corr.code_phase, corr.code_rate, corr.carr_phase, corr.carr_freq, corr.fs,
-                   tap_fix, corr.sig, corr.out, corr.t_start, corr.n_s, sig.code_len)
+                   tap_fix, corr.sig, corr.out, corr.t_start, corr.n_s, sig.code_len, WA)
     if corr.n_s[c] <= 0:
         return ERR_CORR
     burst_one(c, k_ep, corr.t_start[c] / corr.fs, burst, corr.out)
@@ -275,9 +276,10 @@ def _channels_parallel(E, k_ep, epoch0, src, corr, wipe, bank, outer, window, re
     for c in prange(corr.sample_ptr.shape[0]):
         W1 = np.empty((N_W1, NZ))
         W2 = np.empty((N_W2, NZ, NZ))
+        WA = np.empty(2 * tap_fix.shape[0])
         for e in range(E):
             r = epoch_channel(c, k_ep + e, e, epoch0 + e, src, corr, wipe, bank, outer, window, rec, law, sig,
-                              burst, tap_fix, W1, W2)
+                              burst, tap_fix, W1, W2, WA)
             if r != 0:
                 err[c] = r
                 break
@@ -294,6 +296,7 @@ def run_epochs(k_ep, src, corr, wipe, bank, outer, window, rec, law, sig, burst)
     tap_fix = tap_fixed_point(corr.tap_off)
     W1 = np.empty((N_W1, NZ))
     W2 = np.empty((N_W2, NZ, NZ))
+    WA = np.empty(2 * tap_fix.shape[0])
     err = np.zeros(n, dtype=np.int64)
     while True:
         st = epoch_gate(k_ep, src, corr, outer, rec)
@@ -308,7 +311,7 @@ def run_epochs(k_ep, src, corr, wipe, bank, outer, window, rec, law, sig, burst)
             epoch = _bank_epoch_count(bank, n)
             for c in range(n):
                 r = epoch_channel(c, k_ep, 0, epoch, src, corr, wipe, bank, outer, window, rec, law, sig, burst,
-                                  tap_fix, W1, W2)
+                                  tap_fix, W1, W2, WA)
                 if r != 0:
                     err[c] = r
                     break
