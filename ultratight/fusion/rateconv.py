@@ -46,6 +46,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit
 
 from ultratight.errors import ConfigError, FilterError
 
@@ -211,6 +212,27 @@ def cic_image_rejection_db(f_hz, R, N, M=1, f_lo_hz=1.0):
     return 20.0 * np.log10(cic_response(f_hz, R, N, M, f_hi) / cic_response(f_lo_hz - f_hz, R, N, M, f_hi))
 
 
+@njit(cache=True)
+def _cic_run(comb, integ, j, x, gain, out):
+    """One low-rate sample ``x`` (K,) through the CIC: the combs (delay lines ``comb`` (N, M, K), slot
+    ``j``) at the low rate, then R zero-stuffed high-rate samples through the integrators ``integ``
+    (N, K) into ``out`` (R, K), scaled by ``gain``. Each element sees the operations of the
+    textbook structure in their order (Hogenauer 1981)."""
+    n_st = comb.shape[0]
+    for i in range(x.shape[0]):
+        v = x[i]
+        for s in range(n_st):
+            old = comb[s, j, i]
+            comb[s, j, i] = v
+            v = v - old
+        for k in range(out.shape[0]):
+            u = v if k == 0 else 0.0
+            for s in range(n_st):
+                integ[s, i] = integ[s, i] + u
+                u = integ[s, i]
+            out[k, i] = u * gain
+
+
 class CicInterpolator:
     """Streaming CIC interpolator by R (order N, differential delay M), gain-normalised.
 
@@ -263,21 +285,11 @@ class CicInterpolator:
         self._n_out = 0
 
     def _run(self, x):
-        # combs at the low rate
-        v = x
-        j = self._cptr
-        for s in range(self.N):
-            old = self._comb[s, j].copy()
-            self._comb[s, j] = v
-            v = v - old
-        self._cptr = (j + 1) % self.M
+        k = int(np.prod(self.shape, dtype=np.int64))
         out = np.empty((self.R,) + self.shape)
-        for k in range(self.R):
-            u = v if k == 0 else 0.0
-            for s in range(self.N):
-                self._integ[s] = self._integ[s] + u
-                u = self._integ[s]
-            out[k] = u * self.gain
+        _cic_run(self._comb.reshape(self.N, self.M, k), self._integ.reshape(self.N, k), self._cptr,
+                 np.ascontiguousarray(x, dtype=float).reshape(k), self.gain, out.reshape(self.R, k))
+        self._cptr = (self._cptr + 1) % self.M
         return out
 
     def push(self, t, x):
