@@ -49,6 +49,46 @@ def best(fn, repeat, clock=None):
     return min(ts)
 
 
+# The receiver as it was before it was rebuilt from stages (engine, scalar receiver and scenario
+# runner as single functions, one core): the reference of the speed figures of docs/ultratight.md,
+# "Performance". ``--baseline none`` leaves it out.
+BASELINE = "ac85ff1"
+
+
+def add_baseline_arg(ap):
+    """Add ``--baseline REV`` (default :data:`BASELINE`; ``none``: no baseline run)."""
+    ap.add_argument("--baseline", metavar="REV", default=BASELINE,
+                    help=f"also time this commit of the repository in the same run (default {BASELINE}; 'none': skip)")
+    return ap
+
+
+def baseline_env(rev, tmp):
+    """Environment that runs ``python -m ultratight...`` from commit ``rev`` of this repository: the
+    commit's tree is exported (``git archive``) into ``tmp`` and put first on ``PYTHONPATH``. Returns
+    ``(env, description)``, or ``(None, reason)`` when there is no git checkout or no such commit."""
+    import subprocess
+    import tarfile
+
+    root = Path(__file__).resolve().parents[1]
+    try:
+        full = subprocess.run(["git", "-C", str(root), "rev-parse", "--verify", f"{rev}^{{commit}}"],
+                              capture_output=True, text=True, check=True).stdout.strip()
+        dest = Path(tmp) / f"baseline-{full[:12]}"
+        if not (dest / "ultratight").is_dir():
+            dest.mkdir(parents=True, exist_ok=True)
+            arch = Path(tmp) / f"baseline-{full[:12]}.tar"
+            subprocess.run(["git", "-C", str(root), "archive", "--format=tar", "-o", str(arch), full, "ultratight"],
+                           capture_output=True, check=True)
+            with tarfile.open(arch) as tf:
+                tf.extractall(dest, filter="data")
+            arch.unlink()
+    except (OSError, subprocess.CalledProcessError) as exc:
+        return None, f"baseline {rev} not available ({exc.__class__.__name__})"
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(dest) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    return env, f"commit {full[:12]}"
+
+
 def add_common_args(ap):
     """Add the convention's ``--quick`` and ``--json OUT.json`` options to an argparse parser."""
     ap.add_argument("--quick", action="store_true", help="short run (smoke-level figures, <~30 s)")

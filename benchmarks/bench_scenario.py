@@ -2,12 +2,15 @@
 
     python benchmarks/bench_scenario.py [--quick] [--json OUT.json] [--duration S]
 
-Runs the command twice in fresh processes, each into a fresh output folder (IF generation
-included, as a user's first run): the reference on one core (``--workers 1 --threads 1``: the
-methods one after the other in one process, one thread) and the default (methods in worker
-processes and threads where cores are free), and reports for each the wall time, the CPU time of
-the process and its children and the peak resident set size of the largest process, plus the
-ratio ``default / reference`` of the wall times. ``--quick``: a 10 s cut at 2.046 MHz.
+Runs the command in fresh processes, each into a fresh output folder (IF generation included, as a
+user's first run): the default (methods in worker processes and threads where cores are free), the
+same code on one core (``--workers 1 --threads 1``: the methods one after the other in one process,
+one thread) and the same command on the baseline commit (``--baseline``, default the receiver
+before it was rebuilt from stages, run from an export of that commit). It reports for each the wall
+time, the CPU time of the process and its children and the peak resident set size of the largest
+process, and the ratios of the wall times ``default / baseline`` and ``default / one core``. Every
+code version first runs a 2 s cut (numba compilation or cache loading stays out of the figures).
+``--quick``: a 10 s cut at 2.046 MHz, no baseline.
 """
 
 import argparse
@@ -19,16 +22,16 @@ import tempfile
 import time
 from pathlib import Path
 
-from _common import add_common_args, finish
+from _common import add_baseline_arg, add_common_args, baseline_env, finish
 
 
-def _run(args, cwd):
+def _run(args, cwd, env=None):
     """Wall time, CPU time (user + system of the process and its descendants) and peak RSS (MB) of
     the largest of them, for one command."""
     r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     with tempfile.TemporaryFile() as fo, tempfile.TemporaryFile() as fe:
         t0 = time.perf_counter()
-        p = subprocess.Popen(args, cwd=cwd, stdout=fo, stderr=fe)
+        p = subprocess.Popen(args, cwd=cwd, stdout=fo, stderr=fe, env=env)
         _, status, ru = os.wait4(p.pid, 0)
         r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
         p.returncode = os.waitstatus_to_exitcode(status)
@@ -42,7 +45,7 @@ def _run(args, cwd):
 
 
 def main(argv=None):
-    ap = add_common_args(argparse.ArgumentParser(description=__doc__.splitlines()[0]))
+    ap = add_baseline_arg(add_common_args(argparse.ArgumentParser(description=__doc__.splitlines()[0])))
     ap.add_argument("--duration", type=float, default=None, help="cut length, s (default: the scenario's 60 s)")
     a = ap.parse_args(argv)
     extra = []
@@ -51,17 +54,34 @@ def main(argv=None):
     elif a.duration:
         extra = ["--duration", str(a.duration)]
     base = [sys.executable, "-m", "ultratight.receiver.cli", "scenario", "paper-highdyn", "--no-plots", "--quiet",
-            "--json"] + extra
+            "--json"]
     res = {}
     with tempfile.TemporaryDirectory() as tmp:
-        for name, flags in (("reference_one_core", ["--workers", "1", "--threads", "1"]), ("default", [])):
+        versions = [("default", [], None), ("reference_one_core", ["--workers", "1", "--threads", "1"], None)]
+        baseline = None
+        if not a.quick and a.baseline.lower() != "none":
+            env, baseline = baseline_env(a.baseline, tmp)
+            if env is None:
+                print(f"{baseline}: measuring without it", flush=True)
+                baseline = None
+            else:
+                versions.append(("baseline", [], env))
+        for name, flags, env in versions:
+            # compile (or load the numba cache of) this code version outside the timing
+            _run(base + ["--duration", "2", "--out", str(Path(tmp) / f"warm-{name}")] + flags, tmp, env)
+        for name, flags, env in versions:
             out = Path(tmp) / name
-            res[name] = _run(base + ["--out", str(out)] + flags, tmp)
+            res[name] = _run(base + extra + ["--out", str(out)] + flags, tmp, env)
             print(f"{name:20s} wall {res[name]['wall_s']:6.1f} s, CPU {res[name]['cpu_s']:6.1f} s, "
                   f"peak RSS {res[name]['maxrss_mb']:.0f} MB", flush=True)
-    ratio = res["default"]["wall_s"] / res["reference_one_core"]["wall_s"]
-    print(f"default / one core: {ratio:.2f} of the wall time")
-    finish(a, {"scenario": "paper-highdyn", "args": extra, "runs": res, "wall_ratio": ratio, "quick": a.quick})
+    rep = {"scenario": "paper-highdyn", "args": extra, "runs": res, "quick": a.quick}
+    rep["wall_ratio"] = res["default"]["wall_s"] / res["reference_one_core"]["wall_s"]
+    print(f"default / one core: {rep['wall_ratio']:.2f} of the wall time")
+    if baseline:
+        rep["baseline"] = baseline
+        rep["wall_ratio_baseline"] = res["default"]["wall_s"] / res["baseline"]["wall_s"]
+        print(f"default / baseline ({baseline}): {rep['wall_ratio_baseline']:.2f} of the wall time")
+    finish(a, rep)
     return 0
 
 
