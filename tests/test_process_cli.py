@@ -150,6 +150,23 @@ def test_cli_json_generated_short(gen9, capsys):
     assert 0 < d["realtime_factor"] and d["signal_s"] == pytest.approx(2.0, abs=0.01)
 
 
+def test_threads_give_the_one_thread_result(gen9, tmp_path, capsys):
+    # the channels spread over two threads (the default on an idle machine) track exactly as on one
+    outs = {}
+    for k in ("1", "2"):
+        out = tmp_path / f"t{k}.h5"
+        code, _, err = run_cli([gen9["if"], "--channels", "6", "--duration", "3", "--threads", k, "--out", str(out),
+                                "--no-progress"], capsys)
+        assert code == 0, err
+        data = {}
+        with h5py.File(out, "r") as f:
+            f.visititems(lambda name, o: data.__setitem__(name, o[...]) if isinstance(o, h5py.Dataset) else None)
+        outs[k] = data
+    assert outs["1"].keys() == outs["2"].keys() and any(n.startswith("tracking/prn") for n in outs["1"])
+    for name, a in outs["1"].items():
+        np.testing.assert_array_equal(a, outs["2"][name], err_msg=name)
+
+
 def test_cli_with_rinex_ephemeris(tmp_path, rinex_path, capsys):
     """Satellites from the real broadcast ephemeris; the receiver gets the same RINEX via --ephemeris."""
     import tomllib
@@ -226,6 +243,7 @@ def test_wrong_iq_convention_nonzero_if(tmp_path, capsys):
     (["{short}", "--fs=-4e6", "--format", "ci8"], "--fs"),
     (["{short}", "--fs", "4e6", "--format", "ci8", "--if", "5e6"], "--if"),
     (["{long}", "--fs", "4e6", "--format", "ci8", "--channels", "0"], "--channels"),
+    (["{long}", "--fs", "4e6", "--format", "ci8", "--threads", "0"], "--threads"),
     (["{long}", "--fs", "4e6", "--format", "ci8", "--coh-ms", "3"], "coh_ms"),
     (["{long}", "--fs", "4e6", "--format", "zz"], "zz"),
     (["{long}", "--fs", "4e6", "--format", "ci8", "--prn", "40"], "PRN"),

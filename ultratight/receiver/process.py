@@ -48,6 +48,7 @@ import math
 import time
 from dataclasses import asdict, dataclass, field, replace
 
+import numba
 import numpy as np
 from tqdm import tqdm
 
@@ -113,7 +114,8 @@ class ProcessConfig:
     tropo: str = "saastamoinen"         # saastamoinen | off
     tropo_mapping: str = "cosz"         # mapping function of the Saastamoinen model
     record_epochs: bool = False
-    parallel: bool = False              # spread channels over numba threads (None: when >= 1.25 cores are available)
+    parallel: bool | None = None        # spread channels over numba threads (None: when >= 1.25 cores are available)
+    threads: int | None = None          # threads for that (None: numba's pool); 1 = parallel False
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     dynamics: str = "normal"            # normal | high: Doppler-rate search after every acquisition (docs/process.md)
     rate_span_s: float = 0.4            # high dynamics: span of the Doppler-rate search
@@ -123,6 +125,8 @@ class ProcessConfig:
             raise ConfigError(f"--dynamics must be one of {', '.join(DYNAMICS)}, got {self.dynamics!r}")
         if self.n_channels is not None and not 1 <= int(self.n_channels) <= 32:
             raise ConfigError(f"--channels must be in 1..32, got {self.n_channels}")
+        if self.threads is not None and not (int(self.threads) == self.threads and self.threads >= 1):
+            raise ConfigError(f"--threads must be an integer >= 1, got {self.threads}")
         if not self.search_every_s > 0:
             raise ConfigError(f"search interval must be > 0 s, got {self.search_every_s}")
         if not 0.1 <= self.obs_rate_hz <= 50.0:
@@ -759,7 +763,13 @@ class ScalarReceiver:
         self.block_len = int(round(cfg.block_ms * 1e-3 * fs))
         self.margin = int(math.ceil(2.2e-3 * fs))
         self.stream = BlockStream(src, self.block_len, on_zero=1.0)
-        parallel = (stage_threads(0) > 1) if cfg.parallel is None else bool(cfg.parallel)
+        if cfg.threads is not None:
+            n_thr = stage_threads(cfg.threads)
+            parallel = n_thr > 1
+            if parallel:
+                numba.set_num_threads(n_thr)
+        else:
+            parallel = (stage_threads(0) > 1) if cfg.parallel is None else bool(cfg.parallel)
         self.tracker = ScalarTracker(n_ch, fs, src.if_hz, src.is_complex, cfg.tracking,
                                      max_rows=int(cfg.block_ms * 1.1) + 8, parallel=parallel, signal=sig)
         self.chinfo = []

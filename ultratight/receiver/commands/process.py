@@ -100,6 +100,8 @@ def _check_numbers(args):
         raise ConfigError(f"--duration must be > 0 s, got {args.duration}")
     if args.pll_bw is not None and not args.pll_bw > 0:
         raise ConfigError(f"--pll-bw must be > 0 Hz, got {args.pll_bw}")
+    if getattr(args, "threads", None) is not None and args.threads < 1:
+        raise ConfigError(f"--threads must be an integer >= 1, got {args.threads}")
     if not args.doppler_range > 0:
         raise ConfigError(f"--doppler-range must be > 0 Hz, got {args.doppler_range}")
     if not 1 <= args.acq_coherent <= 10:
@@ -159,6 +161,8 @@ def add_arguments(p):
     p.add_argument("--channels", type=int, default=None, metavar="N",
                    help="tracking channels (default: all in view - every satellite acquired is tracked and the "
                         "others are searched again every 15 s; with N, the N strongest, no periodic search)")
+    p.add_argument("--threads", type=int, default=None, metavar="K",
+                   help="threads of the channel stages (default: all cores when idle, else 1)")
     p.add_argument("--duration", type=float, metavar="S", help="process only the first S seconds")
     p.add_argument("--start", type=float, default=0.0, metavar="S", help="skip the first S seconds")
     p.add_argument("--obs-rate", type=float, default=10.0, metavar="HZ",
@@ -273,7 +277,7 @@ def run(args):
                         mask_deg=args.mask, acq_min_cn0_dbhz=args.acq_min_cn0,
                         acq_coherent_ms=args.acq_coherent, acq_noncoherent=args.acq_noncoherent,
                         doppler_range_hz=args.doppler_range, tracking=tcfg, iono=args.iono, tropo=args.tropo,
-                        dynamics=args.dynamics)
+                        dynamics=args.dynamics, threads=args.threads)
     eph = None
     if args.ephemeris:
         from ultratight.signals.rinex import read_rinex_nav
@@ -353,7 +357,7 @@ def _run_ultratight(args):
     res = run_ultratight_on_files(args.iffile, args.imu, method=args.method or DEFAULT_METHOD, meta=args.meta,
                                   nav_path=args.ephemeris, prns=prns, duration_s=args.duration,
                                   startup=args.startup, init_overrides=overrides, start_s=args.start, handover=hcfg,
-                                  imu_declaration=imu_decl, options=EngineOptions(bits=bits))
+                                  imu_declaration=imu_decl, options=EngineOptions(bits=bits, threads=args.threads or 0))
     from ultratight.receiver import ut_outputs
     try:
         if args.out:
