@@ -849,75 +849,24 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
     side = src.meta or {}
     gen_cfg = side.get("generator") if isinstance(side.get("generator"), dict) else None
     week, tow0 = int(src.start_week), float(src.start_tow_s)
-    nav = None
-    if nav_path is not None:
-        nav = read_rinex_nav(nav_path)
-        ephs = {}
-        for prn in sorted(nav.ephemerides):
-            try:
-                e = nav.select(prn, week, tow0)
-            except Exception:  # noqa: BLE001 - PRN without a usable ephemeris
-                continue
-            if e is not None:
-                ephs[prn] = e
-    elif gen_cfg is not None and gen_cfg.get("satellites", {}).get("source", "nominal") == "nominal":
-        ephs = nominal_ephemerides(week, tow0)
-    else:
-        raise ConfigError(f"{if_path}: no ephemerides: give a RINEX navigation file (--ephemeris)")
+    nav, ephs = _file_ephemerides(if_path, nav_path, gen_cfg, week, tow0)
     if prns is None:
         prns = side.get("prn")
-    overrides = dict(init_overrides or {})
     start_s = float(start_s or 0.0)
     if not 0.0 <= start_s < dur:
         raise ConfigError(f"--start {start_s:g} s is outside the usable record (0 .. {dur:.3f} s)")
-    tr = getattr(imu, "truth", None)
-    has_truth = bool(tr) and "llh" in tr
-    t_h = 0.0
-    source = "init-state"
-    hand = None
-    if init_state is not None:
-        t_h = start_s
-    elif all(k in overrides for k in ("llh", "vel_l", "q_lb")):
-        hand = ho.flags_state(overrides, start_s)
-        source = ho.STARTUP_FLAGS
-    elif startup == ho.STARTUP_TRUTH or (startup == "auto" and has_truth and start_s == 0.0 and not overrides):
-        if not has_truth:
-            raise ConfigError(f"{imu_path}: start-up {ho.STARTUP_TRUTH} needs the truth in the IMU file (none here)")
-        if start_s != 0.0:
-            raise ConfigError(f"start-up {ho.STARTUP_TRUTH} starts at the first sample: --start not supported")
-        source = ho.STARTUP_TRUTH
-    else:
-        hand = ho.scalar_handover(src, imu, tightmod.imu_errors_from_meta(imu), nav if nav is not None else ephs,
-                                  prns, start_s=start_s, cfg=handover, overrides=overrides)
-        source = ho.STARTUP_SCALAR
-        if not prns:
-            # every satellite the scalar pass kept tracking (not only the hand-over fix's)
-            prns = [p for p in hand["startup"]["scalar_pass"]["tracked"] if p in ephs]
-    if hand is not None:
-        t_h = hand["t_s"]
-        init_state = {k: hand[k] for k in ("llh", "vel_l", "q_lb", "clk_bias_m", "clk_drift_mps", "sigmas",
-                                           "code_phase_chips") if k in hand}
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7]))
+    source, hand, t_h, init_state, prns = _startup(
+        src, imu, imu_path, nav if nav is not None else ephs, ephs, prns, startup, init_state,
+        dict(init_overrides or {}), start_s, handover, gen_cfg, startup_errors, rng)
     if not prns:
         raise ConfigError(f"{if_path}: no PRN list in the sidecar: give the PRNs to track (--prn)")
     missing = [p for p in prns if p not in ephs]
     if missing:
         raise ConfigError(f"no ephemeris for PRN {missing}")
-    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7]))
-    if source == ho.STARTUP_TRUTH:
-        rcv = (gen_cfg or {}).get("receiver", {})
-        truth0 = {"llh": np.asarray(tr["llh"][0]), "vel_l": np.asarray(tr["vel_l"][0]),
-                  "q_lb": np.asarray(tr["q_lb"][0]), "clk_bias_m": float(rcv.get("clock_bias_m", 0.0)),
-                  "clk_drift_mps": float(rcv.get("clock_drift_mps", 0.0))}
-        init_state = perturb_state(truth0, startup_errors or StartupErrors(), rng)
     file_start = {"week": int(week), "tow_s": float(tow0)}
     if t_h > 0.0:
-        dt_imu = 1.0 / float(imu.rate_hz)
-        t_h = float(getattr(imu, "t0", 0.0)) + round((t_h - float(getattr(imu, "t0", 0.0))) / dt_imu) * dt_imu
-        if t_h >= dur - 2 * dt_imu:
-            raise ConfigError(f"start-up at t = {t_h:.3f} s leaves no record to process (usable {dur:.3f} s)")
-        n0 = int(round(t_h * src.fs_hz))
-        src = ho.SourceWindow(src, n0)
-        imu = ho.imu_window(imu, t_h)
+        src, imu, t_h = _from_handover(src, imu, t_h, dur)
         tow0, week = float(src.start_tow_s), int(src.start_week)
     eng = UltratightEngine(src, imu, ephs, [int(p) for p in prns], week, tow0, method=method,
                            options=options, init_state=init_state, rng=rng, duration_s=dur - t_h)
@@ -934,6 +883,81 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
     t_mid = file_start["tow_s"] + t_h + 0.5 * res.duration_s
     res.info["sat_pos_e"] = [np.asarray(sat_state(ephs[int(p)], np.array([t_mid]))[0][0]).tolist() for p in prns]
     return res
+
+
+def _file_ephemerides(if_path, nav_path, gen_cfg, week, tow0):
+    """``(nav, ephs)`` of a recording: the RINEX file's ephemerides valid at the start (``nav`` the
+    parsed file) or, for a generator file on the nominal constellation, the nominal ones (``nav``
+    None)."""
+    if nav_path is not None:
+        nav = read_rinex_nav(nav_path)
+        ephs = {}
+        for prn in sorted(nav.ephemerides):
+            try:
+                e = nav.select(prn, week, tow0)
+            except Exception:  # noqa: BLE001 - PRN without a usable ephemeris
+                continue
+            if e is not None:
+                ephs[prn] = e
+        return nav, ephs
+    if gen_cfg is not None and gen_cfg.get("satellites", {}).get("source", "nominal") == "nominal":
+        return None, nominal_ephemerides(week, tow0)
+    raise ConfigError(f"{if_path}: no ephemerides: give a RINEX navigation file (--ephemeris)")
+
+
+def _startup(src, imu, imu_path, nav_or_ephs, ephs, prns, startup, init_state, overrides, start_s, handover,
+             gen_cfg, startup_errors, rng):
+    """The initial state of a recording's run (:func:`run_ultratight_on_files`, "Initial state"):
+    ``(source, hand, t_h, init_state, prns)`` — the start-up source's name, the scalar or flags
+    hand-over (or None), its time (s since the first sample), the state and the PRNs to track."""
+    from ultratight.receiver import handover as ho
+
+    tr = getattr(imu, "truth", None)
+    has_truth = bool(tr) and "llh" in tr
+    t_h = 0.0
+    source = "init-state"
+    hand = None
+    if init_state is not None:
+        t_h = start_s
+    elif all(k in overrides for k in ("llh", "vel_l", "q_lb")):
+        hand = ho.flags_state(overrides, start_s)
+        source = ho.STARTUP_FLAGS
+    elif startup == ho.STARTUP_TRUTH or (startup == "auto" and has_truth and start_s == 0.0 and not overrides):
+        if not has_truth:
+            raise ConfigError(f"{imu_path}: start-up {ho.STARTUP_TRUTH} needs the truth in the IMU file (none here)")
+        if start_s != 0.0:
+            raise ConfigError(f"start-up {ho.STARTUP_TRUTH} starts at the first sample: --start not supported")
+        source = ho.STARTUP_TRUTH
+        rcv = (gen_cfg or {}).get("receiver", {})
+        truth0 = {"llh": np.asarray(tr["llh"][0]), "vel_l": np.asarray(tr["vel_l"][0]),
+                  "q_lb": np.asarray(tr["q_lb"][0]), "clk_bias_m": float(rcv.get("clock_bias_m", 0.0)),
+                  "clk_drift_mps": float(rcv.get("clock_drift_mps", 0.0))}
+        init_state = perturb_state(truth0, startup_errors or StartupErrors(), rng)
+    else:
+        hand = ho.scalar_handover(src, imu, tightmod.imu_errors_from_meta(imu), nav_or_ephs,
+                                  prns, start_s=start_s, cfg=handover, overrides=overrides)
+        source = ho.STARTUP_SCALAR
+        if not prns:
+            # every satellite the scalar pass kept tracking (not only the hand-over fix's)
+            prns = [p for p in hand["startup"]["scalar_pass"]["tracked"] if p in ephs]
+    if hand is not None:
+        t_h = hand["t_s"]
+        init_state = {k: hand[k] for k in ("llh", "vel_l", "q_lb", "clk_bias_m", "clk_drift_mps", "sigmas",
+                                           "code_phase_chips") if k in hand}
+    return source, hand, t_h, init_state, prns
+
+
+def _from_handover(src, imu, t_h, dur):
+    """The IF source and IMU data seen from the hand-over time ``t_h`` on (rounded to an IMU stamp):
+    ``(src, imu, t_h)``."""
+    from ultratight.receiver import handover as ho
+
+    dt_imu = 1.0 / float(imu.rate_hz)
+    t_h = float(getattr(imu, "t0", 0.0)) + round((t_h - float(getattr(imu, "t0", 0.0))) / dt_imu) * dt_imu
+    if t_h >= dur - 2 * dt_imu:
+        raise ConfigError(f"start-up at t = {t_h:.3f} s leaves no record to process (usable {dur:.3f} s)")
+    n0 = int(round(t_h * src.fs_hz))
+    return ho.SourceWindow(src, n0), ho.imu_window(imu, t_h), t_h
 
 
 def write_result_h5(path, res, extra_attrs=None):
