@@ -144,6 +144,18 @@ def add_arguments(p):
     p.add_argument("--meta", metavar="SIDECAR", help="JSON sidecar, ION GNSS SDR metadata XML or SigMF .sigmf-meta "
                                                       "(default: IFFILE.json when present; an IFFILE ending in "
                                                       ".sigmf-meta/.sigmf-data is read as SigMF)")
+    _add_file_arguments(p)
+    _add_receiver_arguments(p)
+    _add_output_arguments(p)
+    _add_startup_arguments(p)
+    p.add_argument("--json", action="store_true", help="print one JSON summary object on stdout")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    from ultratight.receiver.commands import imu_flags
+    imu_flags.add_arguments(p)
+
+
+def _add_file_arguments(p):
+    """The IF file's parameters when no sidecar gives them."""
     p.add_argument("--fs", type=float, metavar="HZ", help="sampling rate (Hz)")
     p.add_argument("--if", dest="if_hz", type=float, metavar="HZ", help="intermediate frequency (Hz), 0 = baseband")
     p.add_argument("--format", dest="fmt", metavar="FMT",
@@ -156,6 +168,10 @@ def add_arguments(p):
                    help="packed formats: word size in bytes, 1, 2, 4 or 8 (default 1)")
     p.add_argument("--endian", choices=("little", "big"), help="packed formats: byte order of a word (default little)")
     p.add_argument("--iq-conj", action="store_true", help="read complex samples as I - jQ (inverted spectrum)")
+
+
+def _add_receiver_arguments(p):
+    """Ephemerides, satellites, channels and threads, time span, tracking, acquisition, PVT."""
     p.add_argument("--ephemeris", metavar="RINEX", help="RINEX navigation file (default: decode from the signal)")
     p.add_argument("--prn", metavar="LIST", help="PRNs to search, e.g. 1,3,7-12 (default: all 32)")
     p.add_argument("--channels", type=int, default=None, metavar="N",
@@ -193,12 +209,20 @@ def add_arguments(p):
                         "are known from subframe 4 page 18 or the --ephemeris RINEX header) or off")
     p.add_argument("--tropo", choices=("saastamoinen", "off"), default=None,
                    help="tropospheric correction: Saastamoinen with a standard atmosphere (default) or off")
+
+
+def _add_output_arguments(p):
+    """Output files."""
     p.add_argument("--out", metavar="OUT.h5", help="HDF5 output (schema in docs/process.md)")
     p.add_argument("--csv", metavar="OUT.csv", help="also write the fixes as CSV")
     p.add_argument("--rinex-obs", metavar="OUT.obs", help="also write RINEX 3.04 observations (C1C L1C D1C S1C)")
     p.add_argument("--rinex-nav", metavar="OUT.nav", help="also write the ephemerides used as RINEX 3.04 navigation")
     p.add_argument("--nmea", metavar="OUT.nmea", help="also write NMEA 0183 GGA/RMC/GSA/GSV per fix")
     p.add_argument("--kml", metavar="OUT.kml", help="also write the track as KML")
+
+
+def _add_startup_arguments(p):
+    """The ultra-tight mode's start-up."""
     p.add_argument("--startup", choices=("auto", "scalar-fix", "truth-perturbed"), default="auto",
                    help="--mode ultratight: initial state from the scalar receiver's first fixes on the same file "
                         "(scalar-fix), from the IMU file's truth perturbed (truth-perturbed, generated files) or "
@@ -211,10 +235,6 @@ def add_arguments(p):
     p.add_argument("--init-vel", nargs="+", metavar="VE VN VU", help="--mode ultratight: initial ENU velocity (m/s)")
     p.add_argument("--init-att", nargs="+", metavar="ROLL PITCH YAW",
                    help="--mode ultratight: initial attitude (deg; yaw from north, FLU body)")
-    p.add_argument("--json", action="store_true", help="print one JSON summary object on stdout")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    from ultratight.receiver.commands import imu_flags
-    imu_flags.add_arguments(p)
 
 
 def _clean(o):
@@ -319,8 +339,6 @@ def _raise_output_error(exc, args):
 
 def _run_ultratight(args):
     """``--mode ultratight``: the engine on IFFILE + IMU; summary on stdout, result HDF5 with --out."""
-    import numpy as np
-
     from ultratight.errors import ConfigError
     from ultratight.receiver.bitsources import check_strategy
     from ultratight.receiver.engine import DEFAULT_METHOD, EngineOptions, run_ultratight_on_files, write_result_h5
@@ -366,9 +384,23 @@ def _run_ultratight(args):
                                rinex_obs_path=args.rinex_obs)
     except OSError as exc:
         _raise_output_error(exc, args)
+    summ = _ultratight_summary(res, args)
+    if args.json:
+        print(json_dumps(summ))
+    else:
+        _print_ultratight_summary(summ, args)
+    return 0
+
+
+def _ultratight_summary(res, args):
+    """The ``--mode ultratight`` run summary (the ``--json`` object)."""
+    import numpy as np
+
+    from ultratight.receiver import ut_outputs
+
     info = res.info or {}
     mode = np.asarray(res.mode)
-    summ = {
+    return {
         "mode": "ultratight",
         "method": res.method,
         "prns": [int(p) for p in res.prns],
@@ -391,23 +423,23 @@ def _run_ultratight(args):
         "files": {k: v for k, v in (("csv", args.csv), ("kml", args.kml), ("nmea", args.nmea),
                                     ("rinex_obs", args.rinex_obs)) if v},
     }
-    if args.json:
-        print(json_dumps(summ))
-    else:
-        print(f"ultratight {summ['method']}: PRN {', '.join(str(p) for p in summ['prns'])}")
-        rtf = summ["realtime_factor"]
-        print(f"signal {summ['duration_s']:.2f} s in {summ['runtime_s']:.2f} s "
-              f"(real-time factor {rtf:.3g})" if rtf is not None else
-              f"signal {summ['duration_s']:.2f} s")
-        print(f"tight updates: {summ['n_tight_updates']}, lock losses: {summ['lock_losses']}, "
-              f"prefilter restarts: {summ['prefilter_restarts']}")
-        ho = summ["handover"] or {}
-        print(f"start-up: {summ['startup']} at t = {ho.get('handover_t_s', 0.0):.2f} s; channels lost: "
-              f"{summ['lock_lost_channels'] or 'none'}")
-        print(f"data bits: {summ['bit_strategy']}; blind fraction per channel: {summ['blind_fraction']}")
-        if args.out:
-            print(f"output: {args.out}")
-    return 0
+
+
+def _print_ultratight_summary(summ, args):
+    """The ``--mode ultratight`` summary as text lines on stdout."""
+    print(f"ultratight {summ['method']}: PRN {', '.join(str(p) for p in summ['prns'])}")
+    rtf = summ["realtime_factor"]
+    print(f"signal {summ['duration_s']:.2f} s in {summ['runtime_s']:.2f} s "
+          f"(real-time factor {rtf:.3g})" if rtf is not None else
+          f"signal {summ['duration_s']:.2f} s")
+    print(f"tight updates: {summ['n_tight_updates']}, lock losses: {summ['lock_losses']}, "
+          f"prefilter restarts: {summ['prefilter_restarts']}")
+    ho = summ["handover"] or {}
+    print(f"start-up: {summ['startup']} at t = {ho.get('handover_t_s', 0.0):.2f} s; channels lost: "
+          f"{summ['lock_lost_channels'] or 'none'}")
+    print(f"data bits: {summ['bit_strategy']}; blind fraction per channel: {summ['blind_fraction']}")
+    if args.out:
+        print(f"output: {args.out}")
 
 
 def _blind_fraction(res):
