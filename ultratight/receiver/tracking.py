@@ -589,7 +589,7 @@ def _integrate_pel(buf, is_complex, off, n, tab, cp_fix0, cstep, ph0, phstep, lu
     ``E - L = c((h + 1) >> 1) - c((h - 1) >> 1)``; both come from one interleaved table
     ``tab[2h], tab[2h+1]`` (one index, four multiply-adds per sample instead of three code look-ups
     and six).  ``lut`` interleaves the correlator's cos/sin tables.  ``acc`` receives
-    [I_P, I_EL, 0, Q_P, Q_EL, 0] (raw sums)."""
+    [I_P, I_EL, 0, Q_P, Q_EL, 0] (raw sums). Unsigned indices, as in ``correlator.integrate_channel``."""
     shift = 32 - LUT_BITS
     mask = LUT_SIZE - 1
     one = np.uint64(1)

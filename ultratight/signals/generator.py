@@ -103,7 +103,9 @@ C0, C1, C2, P0, P1, P2 = range(6)
 # ------------------------------------------------------------------------------------------
 @njit(cache=True, fastmath=True, parallel=True, nogil=True)
 def _synth_complex(out, L, n_int, codes, coefs, amps, bits, cos_lut, sin_lut):
-    """Add the satellites' signals to ``out`` (float32 (n_int*L, 2): I, Q)."""
+    """Add the satellites' signals to ``out`` (float32 (n_int*L, 2): I, Q). Indices are unsigned
+    (``np.uint64``), so numba leaves out the negative-index wraparound of every look-up (the code
+    phase ``u`` and the carrier index are never negative)."""
     nsat = codes.shape[0]
     lutn = cos_lut.shape[0]
     mask = lutn - 1
