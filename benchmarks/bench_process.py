@@ -39,7 +39,7 @@ import numpy as np, h5py
 from ultratight.receiver.process import ProcessConfig, process
 from ultratight.signals.iffile import open_if
 path, truth, dur, out = sys.argv[1], sys.argv[2], float(sys.argv[3]), sys.argv[4]
-opts = {"threads": {"parallel": True}, "one": {"parallel": False}, "default": {}}[sys.argv[5]]
+opts = {"one": {"parallel": False}, "default": {}}[sys.argv[5]]
 t0 = time.perf_counter()
 r0 = resource.getrusage(resource.RUSAGE_SELF)
 # the generated file has no [atmosphere]: no corrections (8 channels: the speed reference)

@@ -256,6 +256,7 @@ class CicInterpolator:
         self.f_lo = float(f_lo_hz)
         self.f_hi = self.R * self.f_lo
         self.shape = tuple(shape)
+        self._k = int(np.prod(self.shape, dtype=np.int64))    # elements per sample
         self.gain = self.R / float(self.R * self.M) ** self.N
         self.delay_samples = self.N * (self.R * self.M - 1) / 2.0
         self.delay_s = self.delay_samples / self.f_hi
@@ -285,7 +286,7 @@ class CicInterpolator:
         self._n_out = 0
 
     def _run(self, x):
-        k = int(np.prod(self.shape, dtype=np.int64))
+        k = self._k
         out = np.empty((self.R,) + self.shape)
         _cic_run(self._comb.reshape(self.N, self.M, k), self._integ.reshape(self.N, k), self._cptr,
                  np.ascontiguousarray(x, dtype=float).reshape(k), self.gain, out.reshape(self.R, k))
