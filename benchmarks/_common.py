@@ -17,7 +17,7 @@ from pathlib import Path
 def machine():
     """The machine description of ``ultratight bench`` (CPU model, cores, platform, Python) plus the
     1-minute load average at the time of the call (the machine may be shared)."""
-    from ultratight.receiver.commands.bench import machine_info
+    from ultratight.receiver.cli.commands.bench import machine_info
 
     info = machine_info()
     try:

@@ -23,9 +23,9 @@ from _common import add_common_args, finish
 def run(tmp, duration_s=600.0, seed=1):
     import h5py
 
-    from ultratight.receiver.process import ProcessConfig, process
-    from ultratight.receiver.scenario_config import load_scenario
-    from ultratight.signals.generator import generate
+    from ultratight.receiver.scalar.receiver import ProcessConfig, process
+    from ultratight.receiver.cli.scenario_config import load_scenario
+    from ultratight.signals.synth.generator import generate
 
     cfg = load_scenario("static-open-sky-atmosphere", {"time.tow_s": 567000.0, "duration_s": duration_s,
                                                        "frontend.fs_hz": 2.0e6, "satellites.horizon_deg": 5.0,

@@ -43,9 +43,9 @@ def errors_enu(fixes, truth_pos):
 def run_case(tmp, name, overrides, settings, seed):
     import h5py
 
-    from ultratight.receiver.process import ProcessConfig, process
-    from ultratight.receiver.scenario_config import load_scenario
-    from ultratight.signals.generator import generate
+    from ultratight.receiver.scalar.receiver import ProcessConfig, process
+    from ultratight.receiver.cli.scenario_config import load_scenario
+    from ultratight.signals.synth.generator import generate
 
     cfg = load_scenario("static-open-sky-atmosphere", {**overrides, "seed": seed})
     t0 = time.perf_counter()

@@ -27,10 +27,10 @@ DOPPLER_LIMIT_HZ = 0.2
 
 
 def one(cfg, seed, strategy, method, data_dir):
-    from ultratight.receiver import metrics as M
-    from ultratight.receiver.engine import EngineOptions
-    from ultratight.receiver.scenario_runner import errors_vs_truth, prepare_data, run_method
-    from ultratight.receiver.wipeoff import BIT_BLIND
+    from ultratight.receiver.cli import metrics as M
+    from ultratight.receiver.deep.engine import EngineOptions
+    from ultratight.receiver.cli.scenario_runner import errors_vs_truth, prepare_data, run_method
+    from ultratight.receiver.dsp.wipeoff import BIT_BLIND
 
     paths, _ = prepare_data(cfg, seed, data_dir, progress=False)
     t0 = time.perf_counter()
@@ -47,7 +47,7 @@ def one(cfg, seed, strategy, method, data_dir):
 
 
 def _cfg(cn0, nav_data):
-    from ultratight.receiver.scenario_config import load_scenario
+    from ultratight.receiver.cli.scenario_config import load_scenario
     return load_scenario("paper-highdyn", {"satellites.cn0_dbhz": float(cn0), "nav.data": nav_data})
 
 

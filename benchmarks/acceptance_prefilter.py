@@ -19,10 +19,10 @@ import time
 
 import numpy as np
 
-from ultratight.fusion import prefilter as pf
-from ultratight.fusion.loopsim import run_closed_loop
-from ultratight.fusion.pbkf import PbKfBank
-from ultratight.signals.corrsim import SimScenario, make_truth, rms
+from ultratight.fusion.channel import prefilter as pf
+from ultratight.fusion.channel.loopsim import run_closed_loop
+from ultratight.fusion.channel.pbkf import PbKfBank
+from ultratight.signals.synth.corrsim import SimScenario, make_truth, rms
 
 
 def scenario(duration, noise=False, jerk=False, n_ch=4):

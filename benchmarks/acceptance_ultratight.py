@@ -35,10 +35,10 @@ MONITORS = {
 
 
 def run(seeds, duration, fs_hz, methods, monitors, data_dir, progress=True, overrides=None, engine_kw=None):
-    from ultratight.receiver import metrics as M
-    from ultratight.receiver.engine import EngineOptions
-    from ultratight.receiver.scenario_config import load_scenario
-    from ultratight.receiver.scenario_runner import errors_vs_truth, prepare_data, run_method
+    from ultratight.receiver.cli import metrics as M
+    from ultratight.receiver.deep.engine import EngineOptions
+    from ultratight.receiver.cli.scenario_config import load_scenario
+    from ultratight.receiver.cli.scenario_runner import errors_vs_truth, prepare_data, run_method
 
     # at the scenario's own sampling rate a shorter run is a cut of the 60 s data (shared cache);
     # another rate generates data of the requested duration
@@ -144,7 +144,7 @@ def main(argv=None):
     if a.frontend_gain:
         ov["frontend.gain"] = a.frontend_gain
     if a.format:
-        from ultratight.receiver.commands.scenario import format_overrides
+        from ultratight.receiver.cli.commands.scenario import format_overrides
         ov.update(format_overrides(a.format))
     ekw = {}
     if a.noise_tau is not None:

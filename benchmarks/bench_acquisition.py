@@ -20,7 +20,7 @@ from _common import add_common_args, finish
 t_imp0 = time.perf_counter()
 import numpy as np  # noqa: E402
 
-from ultratight.receiver.acquisition import acquire  # noqa: E402
+from ultratight.receiver.dsp.acquisition import acquire  # noqa: E402
 t_import = time.perf_counter() - t_imp0
 
 DATA = os.environ.get("ULTRATIGHT_DATA") or os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data")
@@ -95,7 +95,7 @@ def speed(args):
            "reference_best_s": min(ref), "warm_over_reference": min(warm) / min(ref),
            "n_doppler_bins": n_bins, "prns": 32, "fs_hz": fs, "coherent_ms": 1, "noncoherent": 10,
            "repeat": args.repeat}
-    print(f"import ultratight.receiver.acquisition: {t_import:.2f} s")
+    print(f"import ultratight.receiver.dsp.acquisition: {t_import:.2f} s")
     print(f"32 PRNs, +-10 kHz ({n_bins} Doppler bins), 1 ms x 10 non-coherent, 4 MHz complex:")
     print(f"  cold (first call): {t_cold:.2f} s;  warm: best {min(warm):.2f} s, median {np.median(warm):.2f} s")
     print(f"  reference textbook FFT search (same bins): best {min(ref):.2f} s;  "

@@ -21,9 +21,8 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_common_args(ap)
     args = ap.parse_args()
-    from ultratight.receiver import experiments
-    from ultratight.receiver.experiments import paper_afm
-
+    from ultratight.receiver.cli import experiments
+    from ultratight.fusion.experiments import paper_afm
     duration = 60.0 if args.quick else 300.0
     path, raw, _ = experiments.resolve("paper-afm-noise")
     cfg = paper_afm.load(path, raw, {"duration_s": duration})

@@ -18,7 +18,7 @@ def main():
     ap = add_common_args(argparse.ArgumentParser(description=__doc__.splitlines()[0]))
     ap.add_argument("--repeat", type=int, default=2)
     args = ap.parse_args()
-    from ultratight.receiver import experiments
+    from ultratight.receiver.cli import experiments
     path, raw, mod = experiments.resolve("paper-fads")
     duration = 200.0 if args.quick else 1000.0
     cfg = mod.load(path, raw, {"duration_s": duration})

@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit
 
 from ultratight.constants import CA_LEN
-from ultratight.receiver.correlator import CorrelatorBank
+from ultratight.receiver.dsp.correlator import CorrelatorBank
 from ultratight.signals.ca_code import ca_code
 
 from _common import add_common_args, finish

@@ -31,9 +31,9 @@ def main():
     duration = args.duration or (5.0 if args.quick else 60.0)
 
     from ultratight.ins.trajectory import build_trajectory
-    from ultratight.receiver.scenario_config import load_scenario
-    from ultratight.signals import generator as g
-    from ultratight.signals.frontend import FrontEnd
+    from ultratight.receiver.cli.scenario_config import load_scenario
+    from ultratight.signals.synth import generator as g
+    from ultratight.signals.synth.frontend import FrontEnd
 
     cfg = load_scenario("paper-highdyn", {"duration_s": duration})
     traj = build_trajectory(cfg["trajectory"], cfg["receiver"], duration)

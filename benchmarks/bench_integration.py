@@ -30,11 +30,11 @@ def main():
     ap.add_argument("--repeat", type=int, default=3)
     args = ap.parse_args()
     repeat = 1 if args.quick else max(1, args.repeat)
-    from ultratight.receiver import experiments as E
-    from ultratight.receiver.experiments import paper_robust_flight as RF
-    from ultratight.receiver.experiments import paper_static_iakf as SI
+    from ultratight.receiver.cli import experiments as E
+    from ultratight.fusion.experiments import paper_robust_flight as RF
+    from ultratight.fusion.experiments import paper_static_iakf as SI
     from ultratight.signals.constellation import nominal_ephemerides
-    from ultratight.signals.obssim import GrossErrors, simulate_observables
+    from ultratight.signals.synth.obssim import GrossErrors, simulate_observables
 
     res = {}
     path, raw, _ = E.resolve("paper-robust-flight")

@@ -24,11 +24,11 @@ import numpy as np
 
 from _common import add_common_args, finish
 
-from ultratight.fusion import prefilter as pf
-from ultratight.fusion.innerloop import InnerLoop
-from ultratight.fusion.pbkf import PbKfBank
-from ultratight.fusion.prefilter import PrefilterBank
-from ultratight.signals.corrsim import CorrSim, SimNco, SimScenario
+from ultratight.fusion.channel import prefilter as pf
+from ultratight.fusion.channel.innerloop import InnerLoop
+from ultratight.fusion.channel.pbkf import PbKfBank
+from ultratight.fusion.channel.prefilter import PrefilterBank
+from ultratight.signals.synth.corrsim import CorrSim, SimNco, SimScenario
 
 # CPU time of this thread: robust to other processes competing for the 2 cores (wall time
 # is reported separately as *_wall).

@@ -40,9 +40,9 @@ def main(argv=None):
     methods = [m.strip() for m in a.methods.split(",") if m.strip()]
 
     from ultratight.errors import UltratightError
-    from ultratight.receiver.engine import EngineOptions
-    from ultratight.receiver.scenario_config import load_scenario
-    from ultratight.receiver.scenario_runner import prepare_data, run_method
+    from ultratight.receiver.deep.engine import EngineOptions
+    from ultratight.receiver.cli.scenario_config import load_scenario
+    from ultratight.receiver.cli.scenario_runner import prepare_data, run_method
 
     ov = {"duration_s": dur}
     fs = a.fs or (2.046e6 if a.quick else None)

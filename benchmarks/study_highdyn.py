@@ -193,7 +193,7 @@ def main(argv=None):
     out = Path(a.out)
     if a.report:
         return report(out, names, allr)
-    from ultratight.receiver.campaign import run_campaign, start_client
+    from ultratight.receiver.cli.campaign import run_campaign, start_client
     out.mkdir(parents=True, exist_ok=True)
     client, cluster, where = start_client(a.workers)
     print(f"study_highdyn: {where}; dashboard {client.dashboard_link}", file=sys.stderr)

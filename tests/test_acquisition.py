@@ -7,8 +7,8 @@ import pytest
 
 from ultratight.constants import CA_LEN, F_CA, F_L1
 from ultratight.errors import ConfigError
-from ultratight.receiver.acquisition import acquire, cell_threshold
-from ultratight.receiver.correlator import CorrelatorBank, estimate_sigma_arm
+from ultratight.receiver.dsp.acquisition import acquire, cell_threshold
+from ultratight.receiver.dsp.correlator import CorrelatorBank, estimate_sigma_arm
 from ultratight.signals.ca_code import ca_code
 from ultratight.signals.corr_model import amplitude_from_cn0, signal_amplitude
 
@@ -195,7 +195,7 @@ def test_predicted_doppler_matches_range_rate():
     """Assisted-mode centres: Doppler = -d(pseudorange)/dt / lambda (finite difference, nominal constellation)."""
     from ultratight.constants import LAMBDA_L1
     from ultratight.ins.earth import llh_to_ecef
-    from ultratight.receiver.acquisition import predicted_doppler
+    from ultratight.receiver.dsp.acquisition import predicted_doppler
     from ultratight.signals.constellation import nominal_ephemerides
     from ultratight.signals.geometry import light_time, visible_prns
     week, tow = 2190, 518400.0
@@ -239,9 +239,9 @@ def test_generator_scenario_truth(tmp_path, frontend):
     """The project's IF generator (2-bit, all visible satellites at 40 dB-Hz): the detected set is the
     truth set and Doppler / code phase match the logged truth at sample 0."""
     h5py = pytest.importorskip("h5py")
-    scen = pytest.importorskip("ultratight.receiver.scenario_config")
-    gen = pytest.importorskip("ultratight.signals.generator")
-    iffile = pytest.importorskip("ultratight.signals.iffile")
+    scen = pytest.importorskip("ultratight.receiver.cli.scenario_config")
+    gen = pytest.importorskip("ultratight.signals.synth.generator")
+    iffile = pytest.importorskip("ultratight.signals.recording.iffile")
     cfg = scen.load_scenario("static-open-sky", {"duration_s": 0.012, "satellites.cn0_dbhz": 40.0, **frontend})
     paths = gen.generate(cfg, tmp_path, "acq", seed=3, progress=False)
     res = acquire(iffile.open_if(paths["if"]))

@@ -4,9 +4,8 @@ import numpy as np
 import pytest
 
 from ultratight.errors import FilterError
-from ultratight.fusion import adaptive as AD
-from ultratight.fusion import filters as F
-
+from ultratight.fusion.estimators import adaptive as AD
+from ultratight.fusion.estimators import filters as F
 # ----------------------------------------------------------------------------- GDOP
 
 

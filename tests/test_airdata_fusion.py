@@ -6,9 +6,7 @@ import numpy as np
 import pytest
 
 from ultratight.airdata.flight import Flight
-from ultratight.fusion import airdata as AF
-
-
+from ultratight.fusion.coupling import airdata as AF
 @pytest.fixture(scope="module")
 def flight100():
     fl = Flight()

@@ -12,7 +12,7 @@ import pytest
 
 def test_default_is_all_in_view_and_validates():
     from ultratight.errors import ConfigError
-    from ultratight.receiver.process import ProcessConfig
+    from ultratight.receiver.scalar.receiver import ProcessConfig
     cfg = ProcessConfig()
     assert cfg.n_channels is None
     with pytest.raises(ConfigError, match="search interval"):
@@ -23,9 +23,9 @@ def test_satellite_appearing_during_the_run_is_acquired(tmp_path):
     """PRN 16 is 3.11 deg high and rising at TOW 567000; with the generator's horizon at 3.14 deg its
     signal starts ~8 s into the run.  The cold start cannot find it; the periodic search (every 5 s
     here) must, within one interval of its appearance plus the search's own block."""
-    from ultratight.receiver.process import ProcessConfig, process
-    from ultratight.receiver.scenario_config import load_scenario
-    from ultratight.signals.generator import generate
+    from ultratight.receiver.scalar.receiver import ProcessConfig, process
+    from ultratight.receiver.cli.scenario_config import load_scenario
+    from ultratight.signals.synth.generator import generate
     cfg = load_scenario("static-open-sky", {"time.tow_s": 567000.0, "duration_s": 22.0, "frontend.fs_hz": 2.0e6,
                                             "satellites.mask_deg": 3.0, "satellites.horizon_deg": 3.14})
     files = generate(cfg, tmp_path, "rise", progress=False)

@@ -141,7 +141,7 @@ def test_subframe4_page18_round_trip_and_layout():
 
 # ------------------------------------------------------------------------------ scenario table
 def test_atmosphere_table_validation():
-    from ultratight.receiver.scenario_config import load_scenario
+    from ultratight.receiver.cli.scenario_config import load_scenario
     cfg = load_scenario("static-open-sky-atmosphere")
     assert cfg["atmosphere"]["iono"] == "klobuchar" and cfg["atmosphere"]["iono_scale"] == 1.0
     for over, msg in ((({"atmosphere.iono": "nequick"}), "atmosphere.iono"),
@@ -158,8 +158,8 @@ def test_atmosphere_table_validation():
 @pytest.fixture(scope="module")
 def gen_pair(tmp_path_factory):
     """1 s of the atmosphere scenario at 2 MHz, with and without the [atmosphere] delays."""
-    from ultratight.receiver.scenario_config import load_scenario
-    from ultratight.signals.generator import generate
+    from ultratight.receiver.cli.scenario_config import load_scenario
+    from ultratight.signals.synth.generator import generate
     d = tmp_path_factory.mktemp("atm")
     out = {}
     for name, over in (("on", {}), ("off", {"atmosphere.iono": "off", "atmosphere.tropo": "off"})):
@@ -206,7 +206,7 @@ def test_tgd_enters_the_satellite_clock():
 # ------------------------------------------------------------------------------ PVT
 def test_pvt_removes_the_delays():
     from ultratight.ins.earth import llh_to_ecef
-    from ultratight.receiver.pvt import atmosphere_delays, elevations, solve_pvt
+    from ultratight.receiver.scalar.pvt import atmosphere_delays, elevations, solve_pvt
     from ultratight.signals.constellation import nominal_ephemerides
     from ultratight.signals.ephemeris import sat_state
     from ultratight.signals.geometry import visible_prns
@@ -215,7 +215,7 @@ def test_pvt_removes_the_delays():
     ephs = nominal_ephemerides(2190, tow)
     prns = visible_prns(ephs, rx, 2190, tow, 5.0)
     sp = np.array([sat_state(ephs[p], tow - 0.075)[0][0] for p in prns])
-    from ultratight.receiver.pvt import rotate_sagnac
+    from ultratight.receiver.scalar.pvt import rotate_sagnac
     rng = np.linalg.norm(sp - rx, axis=1)
     rng = np.linalg.norm(rotate_sagnac(sp, rng / C) - rx, axis=1)
     model = AtmosphereModel("klobuchar", ALPHA, BETA, "saastamoinen")

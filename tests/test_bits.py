@@ -9,16 +9,16 @@ import numpy as np
 import pytest
 
 from ultratight.errors import ConfigError, InputFileError
-from ultratight.receiver import metrics as M
-from ultratight.receiver.bitsources import check_strategy, known_words, read_bits_csv, write_bits_csv
+from ultratight.receiver.cli import metrics as M
+from ultratight.receiver.deep.bitsources import check_strategy, known_words, read_bits_csv, write_bits_csv
 from ultratight.receiver.cli import main
-from ultratight.receiver.engine import EngineOptions
-from ultratight.receiver.scenario_config import load_scenario
-from ultratight.receiver.scenario_runner import errors_vs_truth, run_method
-from ultratight.receiver.startup import BitWipeoff
-from ultratight.receiver.wipeoff import BIT_ASSISTED, BIT_BLIND, BIT_DECODED, BIT_FILE
+from ultratight.receiver.deep.engine import EngineOptions
+from ultratight.receiver.cli.scenario_config import load_scenario
+from ultratight.receiver.cli.scenario_runner import errors_vs_truth, run_method
+from ultratight.receiver.deep.startup import BitWipeoff
+from ultratight.receiver.dsp.wipeoff import BIT_ASSISTED, BIT_BLIND, BIT_DECODED, BIT_FILE
 from ultratight.signals.constellation import nominal_ephemerides
-from ultratight.signals.generator import generate
+from ultratight.signals.synth.generator import generate
 from ultratight.signals.lnav import decode_bits, nav_bits, nav_bits_mode, quantise
 
 WEEK = 2190
@@ -182,12 +182,13 @@ def test_decoded_recovers_subframes_1_to_3_exactly(unknown):
 
 
 def test_decoded_bits_equal_sent_bits(unknown):
-    from ultratight.receiver.bitsources import decoded_from_pass
-    from ultratight.receiver.engine import UltratightEngine
-    from ultratight.receiver.scenario_runner import ephemerides_for, load_truth, truth_initial_state
-    from ultratight.receiver.startup import StartupErrors, perturb_state
+    from ultratight.receiver.deep.bitsources import decoded_from_pass
+    from ultratight.receiver.deep.engine import UltratightEngine
+    from ultratight.receiver.cli.scenario_runner import load_truth, truth_initial_state
+    from ultratight.signals.constellation import ephemerides_for
+    from ultratight.receiver.deep.startup import StartupErrors, perturb_state
     from ultratight.ins.imu import read_imu_h5
-    from ultratight.signals.iffile import open_if
+    from ultratight.signals.recording.iffile import open_if
     cfg, paths, sent, b0 = unknown
     tr = load_truth(paths["truth"])
     rng = np.random.default_rng(np.random.SeedSequence([1, 7]))
@@ -280,10 +281,11 @@ def test_cli_process_ultratight_blind(unknown, tmp_path, capsys):
 def test_decoded_scalar_pass_on_a_static_receiver(tmp_path):
     """``decoded-scalar``: the scalar receiver, started on predictions, decodes the words of a static
     receiver's signal; every known bit is a sent bit."""
-    from ultratight.receiver.bitsources import decoded_source
-    from ultratight.receiver.scenario_runner import ephemerides_for, load_truth
-    from ultratight.receiver.startup import predict_channels
-    from ultratight.signals.iffile import open_if
+    from ultratight.receiver.deep.bitsources import decoded_source
+    from ultratight.receiver.cli.scenario_runner import load_truth
+    from ultratight.signals.constellation import ephemerides_for
+    from ultratight.receiver.deep.startup import predict_channels
+    from ultratight.signals.recording.iffile import open_if
     cfg = load_scenario("static-open-sky", {"duration_s": 13.0, "satellites.max_count": 2, "frontend.fs_hz": FS_HZ,
                                             "nav.data": "lnav-random-sf45"})
     res = generate(cfg, tmp_path, "s", progress=False)

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from ultratight.errors import ConfigError
-from ultratight.receiver.blockstream import BlockStream, NoiseFloor, block_sigma_arm
-from ultratight.receiver.correlator import estimate_sigma_arm
-from ultratight.signals.iffile import open_if, write_if
+from ultratight.receiver.dsp.blockstream import BlockStream, NoiseFloor, block_sigma_arm
+from ultratight.receiver.dsp.correlator import estimate_sigma_arm
+from ultratight.signals.recording.iffile import open_if, write_if
 
 
 @pytest.fixture(params=["ci8", "i16", "cf32"])

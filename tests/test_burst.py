@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from ultratight.errors import ConfigError
-from ultratight.receiver.burst import burst_one, if_events, make_burst
+from ultratight.receiver.dsp.burst import burst_one, if_events, make_burst
 from ultratight.signals import corr_model
-from ultratight.signals.generator import noise_factor
+from ultratight.signals.synth.generator import noise_factor
 
 T = 1e-3
 
@@ -52,7 +52,7 @@ def test_burst_one_acts_inside_the_events_only():
     ({"place": "correlator", "noise_factor": 0.5}, "can only be added"),
 ])
 def test_bad_places_are_refused(ev, msg):
-    from ultratight.receiver.scenario_config import load_scenario
+    from ultratight.receiver.cli.scenario_config import load_scenario
     e = {"t0_s": 1.0, "t1_s": 2.0, "noise_factor": 2.0}
     e.update(ev)
     with pytest.raises(ConfigError, match=msg):
@@ -63,9 +63,9 @@ def test_bad_places_are_refused(ev, msg):
 def burst_runs(tmp_path_factory):
     """4 s of paper-highdyn (2.046 MHz, dlb-ckf) with noise std x4.47 over 1.5-3 s: at the IF, at the
     correlator outputs, in the filter's R only, and without the event."""
-    from ultratight.receiver import metrics as M
-    from ultratight.receiver.scenario_config import load_scenario
-    from ultratight.receiver.scenario_runner import errors_vs_truth, prepare_data, run_method
+    from ultratight.receiver.cli import metrics as M
+    from ultratight.receiver.cli.scenario_config import load_scenario
+    from ultratight.receiver.cli.scenario_runner import errors_vs_truth, prepare_data, run_method
     out = tmp_path_factory.mktemp("burst")
     rms = {}
     for place in ("none", "if", "correlator", "filter-r"):
@@ -92,8 +92,8 @@ def test_a_burst_at_the_correlators_equals_one_at_the_if(burst_runs):
 
 
 def test_inside_events_share_the_data_and_engine_switches_are_checked():
-    from ultratight.receiver.scenario_config import load_scenario
-    from ultratight.receiver.scenario_runner import _cfg_key
+    from ultratight.receiver.cli.scenario_config import load_scenario
+    from ultratight.receiver.cli.scenario_runner import _cfg_key
     base = load_scenario("paper-highdyn", {"noise_events": []})
     ev = {"t0_s": 5.0, "t1_s": 10.0, "noise_factor": 20.0}
     for place, same in (("correlator", True), ("filter-r", True), ("if", False)):

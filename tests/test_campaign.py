@@ -15,8 +15,8 @@ import pytest
 
 from ultratight.errors import ConfigError
 from ultratight.io_guard import json_clean
-from ultratight.receiver import campaign as C
-from ultratight.receiver import experiments
+from ultratight.receiver.cli import campaign as C
+from ultratight.receiver.cli import experiments
 from ultratight.receiver.cli import main
 
 SCENARIO = "paper-robust-flight"
@@ -226,8 +226,8 @@ def test_user_errors_are_one_line(tmp_path, capsys):
 
 
 def _if_equal_to_run_scenario(tmp_path, methods):
-    from ultratight.receiver.experiments import if_double_loop as X
-    from ultratight.receiver.scenario_runner import run_scenario
+    from ultratight.receiver.cli import if_double_loop as X
+    from ultratight.receiver.cli.scenario_runner import run_scenario
     seed = 11
     ref = run_scenario("static-open-sky", methods=methods, runs=1, seed=seed, out_dir=tmp_path / "s",
                        duration_s=0.5, plots=False, progress=False)

@@ -5,7 +5,7 @@ import pytest
 
 from ultratight.constants import CA_LEN, F_CA, F_L1
 from ultratight.errors import ConfigError
-from ultratight.receiver.correlator import (
+from ultratight.receiver.dsp.correlator import (
     COLUMNS, CorrelatorBank, code_rate_from_doppler, estimate_sigma_arm)
 from ultratight.signals.ca_code import ca_code
 from ultratight.signals.corr_model import (

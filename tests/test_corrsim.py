@@ -7,7 +7,7 @@ import pytest
 
 from ultratight.constants import BETA_CODE_CARRIER, F_CA, F_L1, T_CA
 from ultratight.errors import ConfigError
-from ultratight.signals.corrsim import CorrSim, SimScenario, make_truth
+from ultratight.signals.synth.corrsim import CorrSim, SimScenario, make_truth
 from ultratight.signals import corr_model
 
 T = T_CA

@@ -7,8 +7,7 @@ import pytest
 
 from ultratight.constants import CA_LEN, F_CA
 from ultratight.errors import ConfigError, InputFileError
-from ultratight.receiver import metrics as M
-
+from ultratight.receiver.cli import metrics as M
 WEEK, TOW = 2190, 518400.0
 PRNS = [31, 20, 18, 28, 21, 15, 1, 8, 6, 2, 10, 32, 22]
 
@@ -25,7 +24,7 @@ def _rx():
 
 
 def test_multichannel_light_time_matches_geometry(ephs):
-    from ultratight.receiver.outer_loop import MultiLightTime, SatTable
+    from ultratight.receiver.deep.outer_loop import MultiLightTime, SatTable
     from ultratight.signals.geometry import light_time
     tab = SatTable(ephs, PRNS, TOW - 1.0, TOW + 70.0)
     ml = MultiLightTime(tab)
@@ -44,7 +43,7 @@ def test_multichannel_light_time_matches_geometry(ephs):
 def test_outer_loop_aiding_follows_a_ramp(ephs):
     """Constant-acceleration receiver: the CIC-interpolated 1 kHz aiding equals the direct
     prediction at the same instants (the lead compensates the CIC delay)."""
-    from ultratight.receiver.outer_loop import OuterLoop
+    from ultratight.receiver.deep.outer_loop import OuterLoop
     ol = OuterLoop(ephs, PRNS, WEEK, TOW, 1.0)
     p0, v0, a = _rx(), np.zeros(3), np.array([60.0, -80.0, 20.0])
 
@@ -62,7 +61,7 @@ def test_outer_loop_aiding_follows_a_ramp(ephs):
 
 
 def test_hot_start_predictions_use_the_perturbed_state(ephs):
-    from ultratight.receiver.startup import StartupErrors, perturb_state, predict_channels
+    from ultratight.receiver.deep.startup import StartupErrors, perturb_state, predict_channels
     from ultratight.signals.geometry import light_time
     from ultratight.ins.earth import llh_to_ecef
     truth0 = {"llh": np.array([np.deg2rad(28.246), np.deg2rad(102.0266), 50000.0]), "vel_l": np.zeros(3),
@@ -87,7 +86,7 @@ def test_hot_start_predictions_use_the_perturbed_state(ephs):
 
 
 def test_assisted_bits_match_the_generator_convention(ephs):
-    from ultratight.receiver.startup import BitWipeoff
+    from ultratight.receiver.deep.startup import BitWipeoff
     from ultratight.signals.lnav import nav_bits
     w = BitWipeoff(ephs, PRNS[:2], WEEK, TOW, 2.0)
     assert w.mode == "assisted-bits"
@@ -120,8 +119,8 @@ def test_metrics_closed_forms():
 @pytest.fixture(scope="module")
 def short_run(tmp_path_factory):
     """3 s of paper-highdyn at 2.046 MHz (generation ~5 s) processed by dlb-ckf."""
-    from ultratight.receiver.scenario_config import load_scenario
-    from ultratight.receiver.scenario_runner import errors_vs_truth, prepare_data, run_method
+    from ultratight.receiver.cli.scenario_config import load_scenario
+    from ultratight.receiver.cli.scenario_runner import errors_vs_truth, prepare_data, run_method
     out = tmp_path_factory.mktemp("eng")
     cfg = load_scenario("paper-highdyn", {"duration_s": 3.0, "frontend.fs_hz": 2.046e6})
     paths, _ = prepare_data(cfg, 11, out, progress=False)
@@ -147,7 +146,7 @@ def test_engine_tracks_paper_highdyn_start(short_run):
 
 
 def test_run_on_files_and_bad_inputs(short_run, tmp_path):
-    from ultratight.receiver.engine import run_ultratight_on_files, write_result_h5
+    from ultratight.receiver.deep.engine import run_ultratight_on_files, write_result_h5
     from ultratight.ins.imu import read_imu_h5, write_imu_h5
     paths, cfg, res, _ = short_run
     r2 = run_ultratight_on_files(paths["if"], paths["imu"], method="dlb-ckf", seed=11, duration_s=0.3)
@@ -184,7 +183,7 @@ def test_run_on_files_and_bad_inputs(short_run, tmp_path):
 
 
 def test_noise_floor_estimator_modes():
-    from ultratight.receiver.engine import NoiseFloor
+    from ultratight.receiver.deep.engine import NoiseFloor
     blocks = np.array([1.0, 1.0, 20.0, 20.0, 20.0, 1.0])
     per_block = NoiseFloor(0.0, 0.01)
     assert [per_block.update(b) for b in blocks] == pytest.approx(blocks)
@@ -213,8 +212,8 @@ def test_phase_init_handover_keeps_the_doppler_continuous(short_run):
 def test_outer_freq_update_is_a_scalar_kalman_update():
     """The opt-in outer-loop frequency pseudo-measurement equals a textbook KF update of the
     prefilter's frequency state, only on the selected channels."""
-    from ultratight.fusion.prefilter import IF as I_F
-    from ultratight.receiver.engine import _outer_freq_update
+    from ultratight.fusion.channel.prefilter import IF as I_F
+    from ultratight.receiver.deep.engine import _outer_freq_update
     rng = np.random.default_rng(4)
     a = rng.standard_normal((2, 5, 5))
     P = np.einsum("cij,ckj->cik", a, a) + 0.1 * np.eye(5)

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from ultratight.errors import FilterError
-from ultratight.fusion.innerloop import InnerLoop
-from ultratight.fusion.prefilter import PrefilterBank
-from ultratight.receiver.engine import EngineOptions, epoch_threads
-from ultratight.receiver.scenario_config import load_scenario
-from ultratight.receiver.scenario_runner import prepare_data, run_method
+from ultratight.fusion.channel.innerloop import InnerLoop
+from ultratight.fusion.channel.prefilter import PrefilterBank
+from ultratight.receiver.deep.engine import EngineOptions, epoch_threads
+from ultratight.receiver.cli.scenario_config import load_scenario
+from ultratight.receiver.cli.scenario_runner import prepare_data, run_method
 from ultratight.signals.nco import NcoBank
 
 CUT = {"duration_s": 1.2, "frontend.fs_hz": 2.046e6, "satellites.max_count": 4}
@@ -76,9 +76,9 @@ def test_inner_loop_takes_an_nco_bank_only():
 
 def test_scalar_receiver_threads_give_the_serial_results(tmp_path):
     """`process` with its channels spread over threads gives the one-thread fixes and tracking."""
-    from ultratight.receiver.process import ProcessConfig, process
+    from ultratight.receiver.scalar.receiver import ProcessConfig, process
     from ultratight.signals.constellation import nominal_ephemerides
-    from ultratight.signals.iffile import open_if
+    from ultratight.signals.recording.iffile import open_if
     cfg = load_scenario("static-open-sky", {"duration_s": 8.5, "frontend.fs_hz": 2.046e6, "satellites.max_count": 5})
     paths, _ = prepare_data(cfg, 2, tmp_path)
     ephs = nominal_ephemerides(int(cfg["time"]["week"]), float(cfg["time"]["tow_s"]))

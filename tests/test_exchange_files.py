@@ -23,10 +23,10 @@ def run12(tmp_path_factory):
     Hatch filter only seconds old the code noise at 45 dB-Hz is ~1 m, and RTKLIB's weights (with
     ionosphere/troposphere model variances) differ from ours, which would turn noise into
     solution differences; the 60 s 45 dB-Hz comparison is the slow test below."""
-    from ultratight.receiver.process import ProcessConfig, process
-    from ultratight.receiver.scenario_config import load_scenario
+    from ultratight.receiver.scalar.receiver import ProcessConfig, process
+    from ultratight.receiver.cli.scenario_config import load_scenario
     from ultratight.signals.constellation import nominal_ephemerides
-    from ultratight.signals.generator import generate
+    from ultratight.signals.synth.generator import generate
     from ultratight.signals.lnav import quantise_iono
     from ultratight.signals.rinex import NavData
 
@@ -162,9 +162,9 @@ def test_rtklib_reads_and_positions_our_rinex(run12, tmp_path):
 def test_rtklib_agrees_with_our_pvt_60s(tmp_path):
     """Acceptance: the 60 s static-open-sky-atmosphere run (45 dB-Hz, seed 1, everything from
     the signal): RTKLIB on our RINEX obs+nav agrees with our PVT within 0.3 m at every epoch."""
-    from ultratight.receiver.process import ProcessConfig, process
-    from ultratight.receiver.scenario_config import load_scenario
-    from ultratight.signals.generator import generate
+    from ultratight.receiver.scalar.receiver import ProcessConfig, process
+    from ultratight.receiver.cli.scenario_config import load_scenario
+    from ultratight.signals.synth.generator import generate
     files = generate(load_scenario("static-open-sky-atmosphere"), tmp_path, "s60", progress=False)
     obs, nav = tmp_path / "o.obs", tmp_path / "o.nav"
     res = process(files["if"], ProcessConfig(), rinex_obs_path=obs, rinex_nav_path=nav)

@@ -3,9 +3,9 @@
 import pytest
 
 from ultratight.errors import ConfigError
-from ultratight.receiver import experiments
+from ultratight.receiver.cli import experiments
 from ultratight.receiver.cli import main
-from ultratight.receiver.scenario_config import check_known_keys
+from ultratight.config import check_known_keys
 
 
 def test_default_experiment_is_the_if_double_loop():

@@ -6,8 +6,8 @@ import pytest
 from scipy.stats import chi2
 
 from ultratight.errors import DivergenceError, FilterError
-from ultratight.fusion import filters as F
-from ultratight.fusion.guards import DivergenceMonitor, check_covariance, cholesky_lower, nearest_pd
+from ultratight.fusion.estimators import filters as F
+from ultratight.fusion.estimators.guards import DivergenceMonitor, check_covariance, cholesky_lower, nearest_pd
 
 
 def _linear_system(seed=0, n=4, m=3):

@@ -6,7 +6,7 @@ from scipy import signal as sps
 from scipy.stats import norm
 
 from ultratight.errors import ConfigError
-from ultratight.signals.frontend import FrontEnd, max_level, noise_lsb, quantize
+from ultratight.signals.synth.frontend import FrontEnd, max_level, noise_lsb, quantize
 
 
 @pytest.mark.parametrize("kw,msg", [

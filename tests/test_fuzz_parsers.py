@@ -68,7 +68,7 @@ sidecar_docs = st.one_of(
 
 
 def _sidecar(doc, size):
-    from ultratight.signals.iffile import open_if
+    from ultratight.signals.recording.iffile import open_if
     with _tmpdir() as d:
         p = Path(d) / "x.bin"
         p.write_bytes(bytes(size))
@@ -105,7 +105,7 @@ ion_docs = st.one_of(
 
 
 def _ion(doc):
-    from ultratight.signals.iffile import parse_ion_metadata
+    from ultratight.signals.recording.iffile import parse_ion_metadata
     with _tmpdir() as d:
         p = Path(d) / "m.xml"
         p.write_bytes(doc)
@@ -261,7 +261,7 @@ toml_mutation = st.tuples(st.sampled_from(["value", "key", "delete", "append", "
 
 
 def _scenario_toml(base, muts):
-    from ultratight.receiver.scenario_config import load_scenario
+    from ultratight.receiver.cli.scenario_config import load_scenario
     lines = _toml_lines(base)
     for kind, i, val, name in muts:
         i %= len(lines)

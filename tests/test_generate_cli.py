@@ -10,8 +10,8 @@ import pytest
 
 from ultratight.errors import ConfigError
 from ultratight.receiver.cli import main
-from ultratight.receiver.scenario_config import list_scenarios, load_scenario
-from ultratight.signals.iffile import open_if
+from ultratight.receiver.cli.scenario_config import list_scenarios, load_scenario
+from ultratight.signals.recording.iffile import open_if
 
 
 def _cli(*args):
@@ -40,7 +40,7 @@ def test_paper_highdyn_matches_spec():
     assert cfg["imu"]["preset"] == "paper" and cfg["imu"]["rate_hz"] == 100.0
     # 13 satellites in view at the start point with the nominal constellation
     from ultratight.ins.trajectory import build_trajectory
-    from ultratight.signals.generator import _ephemerides
+    from ultratight.signals.synth.generator import _ephemerides
 
     traj = build_trajectory(cfg["trajectory"], cfg["receiver"], cfg["duration_s"])
     ephs, cn0 = _ephemerides(cfg, traj.pos_vel_e(np.zeros(1))[0][0])
@@ -50,7 +50,7 @@ def test_paper_highdyn_matches_spec():
 def test_static_open_sky_has_8_or_more():
     cfg = load_scenario("static-open-sky")
     from ultratight.ins.trajectory import build_trajectory
-    from ultratight.signals.generator import _ephemerides
+    from ultratight.signals.synth.generator import _ephemerides
 
     traj = build_trajectory(cfg["trajectory"], cfg["receiver"], 1.0)
     ephs, cn0 = _ephemerides(cfg, traj.pos_vel_e(np.zeros(1))[0][0])
@@ -129,7 +129,7 @@ def test_generate_cli_errors_one_line_no_files(tmp_path, args, needle):
 
 
 def test_interrupted_generate_leaves_no_files(tmp_path, monkeypatch):
-    import ultratight.signals.generator as g
+    import ultratight.signals.synth.generator as g
 
     def boom(*a):
         raise KeyboardInterrupt
@@ -165,7 +165,7 @@ def test_generate_creates_missing_out_directories(tmp_path):
 
 
 def test_generate_failure_removes_directories_it_created(tmp_path, monkeypatch):
-    import ultratight.signals.generator as g
+    import ultratight.signals.synth.generator as g
 
     def boom(*a):
         raise KeyboardInterrupt

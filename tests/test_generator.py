@@ -17,9 +17,9 @@ from ultratight.errors import ConfigError
 from ultratight.ins.trajectory import build_trajectory
 from ultratight.signals.ca_code import ca_code
 from ultratight.signals.ephemeris import Ephemeris
-from ultratight.signals import generator
-from ultratight.signals.generator import SignalPlan, eval_poly, generate
-from ultratight.signals.iffile import open_if
+from ultratight.signals.synth import generator
+from ultratight.signals.synth.generator import SignalPlan, eval_poly, generate
+from ultratight.signals.recording.iffile import open_if
 
 TOW0 = 518400.0
 WEEK = 2190

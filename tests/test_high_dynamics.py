@@ -16,7 +16,7 @@ import h5py
 import numpy as np
 import pytest
 
-from ultratight.receiver.acquisition import acquire, doppler_rate_search
+from ultratight.receiver.dsp.acquisition import acquire, doppler_rate_search
 from ultratight.receiver.cli import main
 from ultratight.signals.signal import GPS_L1CA
 
@@ -81,7 +81,7 @@ def test_rate_search_noise_only_metric_is_low():
 
 
 def _highdyn(tmp_path_factory, name, duration_s):
-    from ultratight.receiver.scenario_config import locate_scenario
+    from ultratight.config import locate_scenario
     d = tmp_path_factory.mktemp(name)
     txt, n = re.subn(r"\[\[noise_events\]\][^\[]*", "", locate_scenario("paper-highdyn").read_text())
     assert n == 1
@@ -100,7 +100,7 @@ def test_highdyn_acquisition_and_rate_against_truth(short_rec):
     """paper-highdyn at 30 dB-Hz, 10 g from t = 0: the high-dynamics acquisition (5 ms x 16, floor
     25 dB-Hz) finds all 13 satellites; the rate search puts each within 2 Hz and 30 Hz/s of the
     generator's Doppler and Doppler rate (up to ~525 Hz/s)."""
-    from ultratight.signals.iffile import open_if
+    from ultratight.signals.recording.iffile import open_if
     src = open_if(str(short_rec) + ".ci16")
     with h5py.File(str(short_rec) + ".truth.h5") as tr:
         prns = [int(p) for p in tr.attrs["prn"]]
@@ -124,9 +124,9 @@ def test_highdyn_30dbhz_scalar_handover(tmp_path_factory):
     satellites acquired and tracked to the end of the 12 s window (Doppler within 5 Hz RMS of the
     truth over its last second), a hand-over fix (3 consecutive fixes, >= 5 satellites) inside
     the window, and the fixes within 3 stated sigmas (and 30 m / 1 m/s) of the true trajectory."""
-    from ultratight.receiver.handover import HandoverConfig, pick_fix, scalar_pass
+    from ultratight.receiver.deep.handover import HandoverConfig, pick_fix, scalar_pass
     from ultratight.signals.constellation import nominal_ephemerides
-    from ultratight.signals.iffile import open_if
+    from ultratight.signals.recording.iffile import open_if
     base = _highdyn(tmp_path_factory, "hd30_long", 13.0)
     src = open_if(str(base) + ".ci16")
     cfg = HandoverConfig(dynamics="high", acq_min_cn0_dbhz=25.0, acq_coherent_ms=5, acq_noncoherent=16)
@@ -158,7 +158,7 @@ def test_highdyn_30dbhz_scalar_handover(tmp_path_factory):
 
 
 def _energy_sync(ip, cpb=20):
-    from ultratight.receiver.tracking import _bit_sync_energy
+    from ultratight.receiver.dsp.tracking import _bit_sync_energy
     bse = np.zeros((1, 2 * cpb + 1))
     for e, v in enumerate(ip):
         k = _bit_sync_energy(0, float(v), e, bse, cpb)

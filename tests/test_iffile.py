@@ -8,8 +8,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from ultratight.errors import FormatError, InputFileError
-from ultratight.signals import iffile
-from ultratight.signals.iffile import FORMATS, IfWriter, open_if, write_if
+from ultratight.signals.recording import iffile
+from ultratight.signals.recording.iffile import FORMATS, IfWriter, open_if, write_if
 
 LEVELS2 = np.array([-3, -1, 1, 3], dtype=np.float32)
 

@@ -1,4 +1,4 @@
-"""One generated IF shared by several readers (ultratight.signals.ifring): every reader gets the
+"""One generated IF shared by several readers (ultratight.signals.synth.ifring): every reader gets the
 samples of its own stream, a reader that stops early holds nobody up, a failure stops everybody
 with one clear error, and the shared memory is freed."""
 
@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from ultratight.errors import ConfigError
-from ultratight.receiver.scenario_config import load_scenario
-from ultratight.signals.ifring import IfRing, RingIf
-from ultratight.signals.ifstream import GeneratedIf
+from ultratight.receiver.cli.scenario_config import load_scenario
+from ultratight.signals.synth.ifring import IfRing, RingIf
+from ultratight.signals.synth.ifstream import GeneratedIf
 
 STEP = 20000
 

@@ -1,4 +1,4 @@
-"""The generator's IF streamed into the receiver (ultratight.signals.ifstream.GeneratedIf): the samples
+"""The generator's IF streamed into the receiver (ultratight.signals.synth.ifstream.GeneratedIf): the samples
 of the IF file ``generate`` writes for the same configuration and seed, bit for bit, in every
 front-end variant; reads in any order; memory held independent of the run's length; and the
 scenario's methods on the streamed IF give exactly the results they give on the cached file."""
@@ -8,10 +8,10 @@ import threading
 import numpy as np
 import pytest
 
-from ultratight.receiver.scenario_config import load_scenario
-from ultratight.signals.generator import generate
-from ultratight.signals.iffile import open_if
-from ultratight.signals.ifstream import GeneratedIf
+from ultratight.receiver.cli.scenario_config import load_scenario
+from ultratight.signals.synth.generator import generate
+from ultratight.signals.recording.iffile import open_if
+from ultratight.signals.synth.ifstream import GeneratedIf
 
 SHORT = {"duration_s": 0.35, "frontend.fs_hz": 2.046e6, "satellites.max_count": 3}
 
@@ -102,7 +102,7 @@ def test_memory_held_does_not_grow_with_length():
 
 def test_streamed_methods_equal_cached(tmp_path, monkeypatch):
     """dlb-rackf and the scalar reference on the streamed IF: bit-identical to the cached file's run."""
-    from ultratight.receiver import scenario_runner as SR
+    from ultratight.receiver.cli import scenario_runner as SR
     cfg = load_scenario("paper-highdyn", {"duration_s": 1.0, "frontend.fs_hz": 2.046e6, "satellites.max_count": 3})
     streamed, cached_flag = SR.prepare_data(cfg, 4, tmp_path, cache_if=False)
     assert not cached_flag and "if" not in streamed and streamed["if_seed"] == 4
@@ -154,8 +154,8 @@ def test_campaign_run_streams_unless_cached(tmp_path):
     """The campaign's IF-level run (``if_double_loop.run_one``) streams by default and writes the IF
     file with ``cache=True``, with the same metrics; ``--cache`` is refused for other experiments."""
     from ultratight.errors import ConfigError
-    from ultratight.receiver.campaign import run_campaign
-    from ultratight.receiver.experiments import if_double_loop as X
+    from ultratight.receiver.cli.campaign import run_campaign
+    from ultratight.receiver.cli import if_double_loop as X
     cfg = X.load("paper-highdyn", {}, {"duration_s": 0.8, "frontend.fs_hz": 2.046e6, "satellites.max_count": 3})
     got = {}
     for cache in (False, True):

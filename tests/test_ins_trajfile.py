@@ -15,7 +15,7 @@ from ultratight.ins.sins import make_state, nav_errors, sins_run
 from ultratight.ins.trajectory import build_trajectory
 from ultratight.ins.trajfile import read_position_log
 from ultratight.receiver.cli import main
-from ultratight.receiver.scenario_config import load_scenario
+from ultratight.receiver.cli.scenario_config import load_scenario
 
 LAT, LON, H = math.radians(41.275), math.radians(1.987), 50.0
 R_M, V_MPS = 200.0, 20.0

@@ -8,14 +8,12 @@ import numpy as np
 import pytest
 
 from ultratight.errors import ConfigError
-from ultratight.fusion import integration as I
+from ultratight.fusion.coupling import integration as I
 from ultratight.ins import error_model as em
 from ultratight.ins.sins import sins_run_final
-from ultratight.receiver import experiments as E
-from ultratight.receiver.experiments import paper_robust_flight as RF
-from ultratight.receiver.experiments import paper_static_iakf as SI
-
-
+from ultratight.receiver.cli import experiments as E
+from ultratight.fusion.experiments import paper_robust_flight as RF
+from ultratight.fusion.experiments import paper_static_iakf as SI
 @pytest.fixture(scope="module")
 def flight():
     path, raw, _ = E.resolve("paper-robust-flight")

@@ -157,7 +157,7 @@ def test_an_interrupted_cleanup_that_fails_still_reports_the_interruption(monkey
     import signal as _signal
 
     from ultratight.receiver import cli
-    from ultratight.receiver.commands import ins
+    from ultratight.receiver.cli.commands import ins
 
     def run(args):
         try:

@@ -7,15 +7,15 @@ import math
 import numpy as np
 import pytest
 
-from ultratight.fusion import tight
+from ultratight.fusion.coupling import tight
 from ultratight.ins.attitude import dcm_to_quat, quat_to_dcm, rotvec_to_dcm
 from ultratight.ins.earth import dcm_ecef_from_enu, llh_to_ecef, llh_to_ecef_batch
 from ultratight.ins.imu import read_imu_h5, synthesize_imu
 from ultratight.ins.sins import make_state, nav_errors, sins_run
 from ultratight.ins.trajectory import build_trajectory
 from ultratight.receiver.cli import main
-from ultratight.receiver.engine import run_ultratight_on_files
-from ultratight.receiver.sins_clock import InsClock
+from ultratight.receiver.deep.engine import run_ultratight_on_files
+from ultratight.receiver.deep.sins_clock import InsClock
 
 LEVER = np.array([2.0, 1.0, 2.5])      # FLU, m (3.4 m)
 

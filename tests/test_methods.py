@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from ultratight.errors import ConfigError
-from ultratight.fusion.pbkf import PbKfBank
-from ultratight.fusion.prefilter import KINDS, PrefilterBank
-from ultratight.receiver.methods import DEFAULT_METHOD, METHODS, REGISTRY, check_method, method_spec
+from ultratight.fusion.channel.pbkf import PbKfBank
+from ultratight.fusion.channel.prefilter import KINDS, PrefilterBank
+from ultratight.receiver.deep.methods import DEFAULT_METHOD, METHODS, REGISTRY, check_method, method_spec
 
 
 def test_registry_names_banks_and_loops():
@@ -37,11 +37,11 @@ def test_banks_declare_their_covariance_indices():
 
 def test_engine_runs_the_scalar_method_through_the_scalar_pipeline(tmp_path):
     from ultratight.ins.imu import read_imu_h5
-    from ultratight.receiver.engine import UltratightEngine
-    from ultratight.receiver.scenario_config import load_scenario
-    from ultratight.receiver.scenario_runner import (
+    from ultratight.receiver.deep.engine import UltratightEngine
+    from ultratight.receiver.cli.scenario_config import load_scenario
+    from ultratight.receiver.cli.scenario_runner import (
         ephemerides_for, load_truth, prepare_data, run_scalar, truth_initial_state)
-    from ultratight.signals.iffile import open_if
+    from ultratight.signals.recording.iffile import open_if
     cfg = load_scenario("paper-highdyn", {"duration_s": 0.5, "frontend.fs_hz": 2.046e6, "satellites.max_count": 2})
     paths, _ = prepare_data(cfg, 3, tmp_path)
     truth, ephs, init = load_truth(paths["truth"]), ephemerides_for(cfg), truth_initial_state(cfg)
@@ -56,8 +56,8 @@ def test_engine_runs_the_scalar_method_through_the_scalar_pipeline(tmp_path):
 
 
 def test_paper_literal_rackf_gets_algorithm_1_settings():
-    from ultratight.receiver.engine import EngineOptions
-    from ultratight.receiver.tracking_banks import make_tracking_bank
+    from ultratight.receiver.deep.engine import EngineOptions
+    from ultratight.receiver.deep.tracking_banks import make_tracking_bank
     sig = (np.full(2, 0.05), np.full(2, 0.5))
     from ultratight.signals.signal import GPS_L1CA
     paper = make_tracking_bank(method_spec("dlb-rackf-paper"), 2, EngineOptions(), sig, GPS_L1CA)

@@ -10,10 +10,10 @@ import pytest
 
 from ultratight.constants import C
 from ultratight.errors import ConfigError
-from ultratight.fusion.adaptive import gdop
+from ultratight.fusion.estimators.adaptive import gdop
 from ultratight.ins import error_model as em
 from ultratight.ins.earth import ecef_to_llh, llh_to_ecef
-from ultratight.signals import obssim
+from ultratight.signals.synth import obssim
 from ultratight.signals.constellation import nominal_ephemerides
 from ultratight.signals.geometry import light_time
 

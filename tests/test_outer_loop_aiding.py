@@ -3,7 +3,7 @@ points and clamped to the filled part of the grid."""
 
 import numpy as np
 
-from ultratight.receiver.outer_loop import OuterLoop
+from ultratight.receiver.deep.outer_loop import OuterLoop
 from ultratight.signals.constellation import nominal_ephemerides
 
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from ultratight.errors import ConfigError
-from ultratight.signals.iffile import open_if
-from ultratight.signals.packing import ENCODINGS, PackedLayout
+from ultratight.signals.recording.iffile import open_if
+from ultratight.signals.recording.packing import ENCODINGS, PackedLayout
 
 
 def test_levels_of_every_encoding():
@@ -69,7 +69,7 @@ def test_every_layout_reads_back(tmp_path, bits, order, wb, endian, enc):
 
 def test_4bit_formats_are_read_only(tmp_path):
     from ultratight.errors import FormatError
-    from ultratight.signals.iffile import IfWriter
+    from ultratight.signals.recording.iffile import IfWriter
     with pytest.raises(FormatError, match="read only"):
         IfWriter(tmp_path / "x", "i4packed", 2e6)
 

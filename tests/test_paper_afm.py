@@ -8,11 +8,9 @@ import pytest
 
 from ultratight.errors import ConfigError
 from ultratight.ins.imu import ideal_increments
-from ultratight.receiver import experiments
+from ultratight.receiver.cli import experiments
 from ultratight.receiver.cli import main
-from ultratight.receiver.experiments import paper_afm
-
-
+from ultratight.fusion.experiments import paper_afm
 @pytest.mark.parametrize("name,exp", [("paper-afm-jump", "4.1"), ("paper-afm-noise", "4.2"),
                                       ("paper-afm-accel", "4.3")])
 def test_scenarios_resolve_to_the_experiment(name, exp):

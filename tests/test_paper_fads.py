@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from ultratight.errors import ConfigError
-from ultratight.receiver import experiments
+from ultratight.receiver.cli import experiments
 from ultratight.receiver.cli import main
 
 
@@ -180,7 +180,7 @@ def test_separate_observation_model_is_exact_at_the_truth(mod_cfg):
     """``filter.fusion = "separate"``: at the true state the measurement function gives the noise-free
     observation (position, GNSS velocity, the FADS air velocity in body axes, with a wind)."""
     from ultratight.airdata.frames import euler_to_dcm
-    from ultratight.fusion import airdata as AF
+    from ultratight.fusion.coupling import airdata as AF
     mod, path, raw, cfg = mod_cfg
     tr = mod._truth(mod._flight_key(cfg), cfg["imu"]["rate_hz"], cfg["filter"]["rate_hz"], cfg["duration_s"])[0]
     wind = np.array([30.0, -20.0, 5.0])

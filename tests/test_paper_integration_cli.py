@@ -10,12 +10,10 @@ import pytest
 
 from ultratight import __version__
 from ultratight.errors import ConfigError, InputFileError
-from ultratight.receiver import experiments as E
+from ultratight.receiver.cli import experiments as E
 from ultratight.receiver.cli import main
-from ultratight.receiver.experiments import paper_robust_flight as RF
-from ultratight.receiver.experiments import paper_static_iakf as SI
-
-
+from ultratight.fusion.experiments import paper_robust_flight as RF
+from ultratight.fusion.experiments import paper_static_iakf as SI
 def _strict(text):
     def bad(c):
         raise ValueError(f"non-finite JSON constant {c}")

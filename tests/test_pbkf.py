@@ -9,10 +9,10 @@ from scipy.special import hyp1f1
 
 from ultratight.constants import BETA_CODE_CARRIER, T_CA
 from ultratight.errors import FilterError
-from ultratight.fusion.loopsim import run_closed_loop
-from ultratight.fusion.pbkf import CAL_DLG, CAL_LG0, PbKfBank, discriminator_calibration
+from ultratight.fusion.channel.loopsim import run_closed_loop
+from ultratight.fusion.channel.pbkf import CAL_DLG, CAL_LG0, PbKfBank, discriminator_calibration
 from ultratight.signals import corr_model
-from ultratight.signals.corrsim import SimScenario, make_truth, rms
+from ultratight.signals.synth.corrsim import SimScenario, make_truth, rms
 
 T = T_CA
 

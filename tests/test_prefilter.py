@@ -10,11 +10,11 @@ import pytest
 
 from ultratight.constants import BETA_CODE_CARRIER, T_CA
 from ultratight.errors import FilterError
-from ultratight.fusion import prefilter as pf
-from ultratight.fusion.innerloop import InnerLoop, apply_feedback
-from ultratight.fusion.loopsim import run_closed_loop
+from ultratight.fusion.channel import prefilter as pf
+from ultratight.fusion.channel.innerloop import InnerLoop, apply_feedback
+from ultratight.fusion.channel.loopsim import run_closed_loop
 from ultratight.signals import corr_model
-from ultratight.signals.corrsim import SimNco, SimScenario, make_truth, rms
+from ultratight.signals.synth.corrsim import SimNco, SimScenario, make_truth, rms
 
 T = T_CA
 A20 = float(corr_model.amplitude_from_cn0(20.0, T))

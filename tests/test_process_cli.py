@@ -77,9 +77,9 @@ def gen9(tmp_path_factory):
 
 
 def test_generated_with_ephemeris_against_truth(gen9, tmp_path):
-    from ultratight.receiver.process import ProcessConfig, process
+    from ultratight.receiver.scalar.receiver import ProcessConfig, process
     from ultratight.signals.constellation import nominal_ephemerides
-    from ultratight.signals.iffile import open_if
+    from ultratight.signals.recording.iffile import open_if
 
     truth = h5py.File(gen9["truth"], "r")
     week, tow0 = int(truth.attrs["week"]), float(truth.attrs["tow0_s"])
@@ -196,7 +196,7 @@ def test_cli_with_rinex_ephemeris(tmp_path, rinex_path, capsys):
 
 
 def test_interrupt_leaves_valid_partial_output(gen9, tmp_path, capsys, monkeypatch):
-    from ultratight.receiver import tracking
+    from ultratight.receiver.dsp import tracking
     calls = {"n": 0}
     orig = tracking.ScalarTracker.run
 
@@ -275,8 +275,8 @@ def test_noise_only_file_reports_no_satellites(tmp_path, capsys):
 def test_loss_of_lock_and_reacquisition(tmp_path):
     """A signal that vanishes for 1.5 s: the channel is declared lost, then re-acquired and tracked."""
     import math
-    from ultratight.receiver.process import ProcessConfig, process
-    from ultratight.signals.iffile import open_if, write_if
+    from ultratight.receiver.scalar.receiver import ProcessConfig, process
+    from ultratight.signals.recording.iffile import open_if, write_if
     from ultratight.signals.ca_code import ca_code
     fs, dur = 2.6e6, 5.0
     rng = np.random.default_rng(3)
@@ -340,8 +340,8 @@ def _fix_errors(res, truth):
 
 @pytest.mark.slow
 def test_acceptance_static_60s_everything_from_the_signal(tmp_path):
-    from ultratight.receiver.process import ProcessConfig, process
-    from ultratight.signals.iffile import open_if
+    from ultratight.receiver.scalar.receiver import ProcessConfig, process
+    from ultratight.signals.recording.iffile import open_if
     files = _generate(tmp_path, "static-open-sky")
     truth = h5py.File(files["truth"], "r")
     res = process(open_if(files["if"]), ProcessConfig(iono="off", tropo="off"))   # no atmosphere in the signal
@@ -356,9 +356,9 @@ def test_acceptance_static_60s_everything_from_the_signal(tmp_path):
 
 @pytest.mark.slow
 def test_acceptance_vehicle_turns(tmp_path):
-    from ultratight.receiver.process import ProcessConfig, process
-    from ultratight.receiver.tracking import FL_PLL_LOCK
-    from ultratight.signals.iffile import open_if
+    from ultratight.receiver.scalar.receiver import ProcessConfig, process
+    from ultratight.receiver.dsp.tracking import FL_PLL_LOCK
+    from ultratight.signals.recording.iffile import open_if
     files = _generate(tmp_path, "vehicle-turns")
     truth = h5py.File(files["truth"], "r")
     res = process(open_if(files["if"]), ProcessConfig(n_channels=12, record_epochs=True, iono="off", tropo="off"))
@@ -378,10 +378,10 @@ def test_acceptance_vehicle_turns(tmp_path):
 @pytest.mark.slow
 def test_acceptance_sensitivity_static(tmp_path, cn0):
     """Tracking sensitivity: warm start from the truth (Doppler +10 Hz, code +0.25 chip), 60 s."""
-    from ultratight.receiver.process import ProcessConfig, process
-    from ultratight.receiver.tracking import FL_PLL_LOCK
+    from ultratight.receiver.scalar.receiver import ProcessConfig, process
+    from ultratight.receiver.dsp.tracking import FL_PLL_LOCK
     from ultratight.signals.constellation import nominal_ephemerides
-    from ultratight.signals.iffile import open_if
+    from ultratight.signals.recording.iffile import open_if
     files = _generate(tmp_path, "static-open-sky", "--cn0", str(cn0), "--fs", "2.6e6")
     T = h5py.File(files["truth"], "r")
     prns = [int(p) for p in T.attrs["prn"]]

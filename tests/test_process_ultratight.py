@@ -116,7 +116,7 @@ def test_parser_does_not_import_the_engine():
     # subcommands' add_arguments must stay cheap: the method choices are resolved lazily
     code = ("import sys; from ultratight.receiver.cli import build_parser; "
             "a = build_parser().parse_args(['process', 'x.bin', '--mode', 'ultratight']); "
-            "print(a.method, 'ultratight.receiver.engine' in sys.modules)")
+            "print(a.method, 'ultratight.receiver.deep.engine' in sys.modules)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert r.stdout.split() == ["None", "False"]

@@ -5,7 +5,7 @@ import pytest
 
 from ultratight.constants import C, OMEGA_E
 from ultratight.ins.earth import llh_to_ecef
-from ultratight.receiver.pvt import solve_pvt, dops, elevations
+from ultratight.receiver.scalar.pvt import solve_pvt, dops, elevations
 
 R_ORBIT = 26_560e3
 N_ORBIT = np.sqrt(3.986005e14 / R_ORBIT ** 3)

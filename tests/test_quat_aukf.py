@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from ultratight.fusion.adaptive import aukf_fading_step
-from ultratight.fusion.filters import kf_predict, kf_update
-from ultratight.fusion.quat_aukf import (ATT, C_lb_from_C_nb, NavModel, Nominal, QuatAUKF, QuatEKF,
+from ultratight.fusion.estimators.adaptive import aukf_fading_step
+from ultratight.fusion.estimators.filters import kf_predict, kf_update
+from ultratight.fusion.estimators.quat_aukf import (ATT, C_lb_from_C_nb, NavModel, Nominal, QuatAUKF, QuatEKF,
                                          euler_from_q_nb, process_noise, q_nb_from_euler)
 from ultratight.ins.attitude import quat_to_dcm
 from ultratight.ins.trajectory import build_trajectory
@@ -156,7 +156,7 @@ def test_swing_trajectory_config_errors():
 @pytest.fixture(scope="module")
 def quiet_run():
     """A 60 s swinging-base run without fault, all four filters on identical data."""
-    from ultratight.receiver.experiments import paper_afm
+    from ultratight.fusion.experiments import paper_afm
     raw = {"experiment": "paper-afm", "paper_experiment": "4.2", "duration_s": 60.0, "name": "quiet",
            "trajectory": {"kind": "swing", "att0_deg": [0.0, 0.0, 30.0]}, "fault": {"kind": "none"},
            # the filter's own error model (no accelerometer bias: the 13-state model has none)
@@ -202,7 +202,7 @@ def test_swing_kind_runs_through_the_ins_command(tmp_path, capsys):
     """The swing kind is a trajectory kind like the others: `ultratight ins` on an IF scenario using it."""
     import json
     from ultratight.receiver.cli import main
-    from ultratight.receiver.scenario_config import locate_scenario
+    from ultratight.config import locate_scenario
     src = locate_scenario("static-open-sky").read_text()
     src = src.replace('kind = "static"\nattitude = "fixed"', 'kind = "swing"\nswing_period_s = [4.0, 5.0, 6.0]')
     assert 'kind = "swing"' in src

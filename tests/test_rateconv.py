@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from ultratight.errors import ConfigError, FilterError
-from ultratight.fusion.rateconv import (AveragingDecimator, CicInterpolator, average_decimate,
+from ultratight.fusion.coupling.rateconv import (AveragingDecimator, CicInterpolator, average_decimate,
                                          cic_droop_db, cic_image_rejection_db, cic_impulse_response,
                                          cic_response, decimation_factor)
 

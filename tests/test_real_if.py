@@ -7,7 +7,7 @@ import pytest
 
 from ultratight.constants import CA_LEN, F_CA
 from ultratight.signals.ca_code import ca_code
-from ultratight.signals.iffile import open_if
+from ultratight.signals.recording.iffile import open_if
 
 FILES = [
     # path, open_if flags, present PRN, absent PRNs, ms to integrate

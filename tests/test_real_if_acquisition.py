@@ -1,7 +1,7 @@
 """Acquisition on the real recorded IF files of ../shared/data/real-if (all 32 PRNs searched).
 
 The files are read in place with numpy (see the README of the shared data folder for the formats).
-Threshold: false-alarm probability 1e-3 per PRN search for every file (ultratight.receiver.acquisition).
+Threshold: false-alarm probability 1e-3 per PRN search for every file (ultratight.receiver.dsp.acquisition).
 
 Expected sets: the PRNs listed in the data README, with two documented differences found here:
 * pocketsdr 4 MHz IQ: PRN 18 (~40 dB-Hz) is detected as well.  It is a real signal, not a false
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from ultratight.constants import CA_LEN, F_CA, F_L1
-from ultratight.receiver.acquisition import acquire
+from ultratight.receiver.dsp.acquisition import acquire
 
 PFA = 1e-3
 
@@ -84,8 +84,8 @@ def test_pocketsdr_iq_prn18_is_real(shared_data):
 
 
 def test_acquire_from_if_source(shared_data):
-    """The same detections through ultratight.signals.iffile.open_if (IfSource input, iq_conj)."""
-    iffile = pytest.importorskip("ultratight.signals.iffile")
+    """The same detections through ultratight.signals.recording.iffile.open_if (IfSource input, iq_conj)."""
+    iffile = pytest.importorskip("ultratight.signals.recording.iffile")
     p = shared_data / "real-if" / "pocketsdr" / "L1_20211202_084700_4MHz_IQ.bin"
     if not p.is_file():
         pytest.skip(f"real IF file not found: {p}")

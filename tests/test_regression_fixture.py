@@ -30,8 +30,8 @@ STRIDE_BURST = 4
 
 
 def _highdyn(out):
-    from ultratight.receiver.scenario_config import load_scenario
-    from ultratight.receiver.scenario_runner import prepare_data, run_method
+    from ultratight.receiver.cli.scenario_config import load_scenario
+    from ultratight.receiver.cli.scenario_runner import prepare_data, run_method
     cfg = load_scenario("paper-highdyn", HIGHDYN)
     paths, _ = prepare_data(cfg, 1, out)
     vals = {}
@@ -51,9 +51,9 @@ def _highdyn(out):
 
 
 def _burst(out):
-    from ultratight.receiver.engine import EngineOptions, monitor_options
-    from ultratight.receiver.scenario_config import load_scenario
-    from ultratight.receiver.scenario_runner import prepare_data, run_method
+    from ultratight.receiver.deep.engine import EngineOptions, monitor_options
+    from ultratight.receiver.cli.scenario_config import load_scenario
+    from ultratight.receiver.cli.scenario_runner import prepare_data, run_method
     cfg = load_scenario("paper-highdyn", BURST)
     cfg["noise_events"] = BURST_EVENTS
     paths, _ = prepare_data(cfg, 2, out)
@@ -70,11 +70,11 @@ def _burst(out):
 
 
 def _static(out):
-    from ultratight.receiver.process import ProcessConfig, process
-    from ultratight.receiver.scenario_config import load_scenario
-    from ultratight.receiver.scenario_runner import prepare_data
+    from ultratight.receiver.scalar.receiver import ProcessConfig, process
+    from ultratight.receiver.cli.scenario_config import load_scenario
+    from ultratight.receiver.cli.scenario_runner import prepare_data
     from ultratight.signals.constellation import nominal_ephemerides
-    from ultratight.signals.iffile import open_if
+    from ultratight.signals.recording.iffile import open_if
     cfg = load_scenario("static-open-sky", STATIC)
     paths, _ = prepare_data(cfg, 2, out)
     week, tow = int(cfg["time"]["week"]), float(cfg["time"]["tow_s"])
@@ -139,8 +139,8 @@ STRIDE_REAL = 5
 
 
 def _real_one(path, flags, duration_s):
-    from ultratight.receiver.process import ProcessConfig, process
-    from ultratight.signals.iffile import open_if
+    from ultratight.receiver.scalar.receiver import ProcessConfig, process
+    from ultratight.signals.recording.iffile import open_if
     with open_if(path, **flags) as src:
         res = process(src, ProcessConfig(n_channels=12, duration_s=duration_s, record_epochs=True))
     vals = {"acq": np.array([[a.prn, float(a.detected), a.doppler_hz, a.code_phase_chips, a.sample_index,

@@ -4,9 +4,8 @@ import numpy as np
 import pytest
 
 from ultratight.errors import FilterError
-from ultratight.fusion import filters as F
-from ultratight.fusion import robust as RB
-
+from ultratight.fusion.estimators import filters as F
+from ultratight.fusion.estimators import robust as RB
 # ----------------------------------------------------------------------------- Huber / ϑ
 
 
@@ -241,8 +240,8 @@ def test_weighted_replacement_enters_with_its_extrapolation_variance():
     """weight_replacements: a replaced dimension is updated with R_ii = Σc²/δ² · D_ii − (H P Hᵀ)_ii
     (the variance of the Newton combination of white innovations); one the guard zeroes is left out."""
     import numpy as np
-    from ultratight.fusion import filters as F
-    from ultratight.fusion import robust as RB
+    from ultratight.fusion.estimators import filters as F
+    from ultratight.fusion.estimators import robust as RB
     x = np.zeros(2)
     P = np.diag([4.0, 9.0])
     H = np.eye(2)

@@ -1,10 +1,10 @@
 """`ultratight scenario` with its methods in worker processes gives the tables of the same run in
 one process (receiver.workers + scenario_runner), and so does the default: the run's IF generated
-once and read by all its methods at the same time (ultratight.signals.ifring)."""
+once and read by all its methods at the same time (ultratight.signals.synth.ifring)."""
 
 import json
 
-from ultratight.receiver.scenario_runner import run_scenario
+from ultratight.receiver.cli.scenario_runner import run_scenario
 
 CUT = {"frontend.fs_hz": 2.046e6, "satellites.max_count": 3}
 TIMING = ("runtime_s", "realtime_factor")
@@ -42,8 +42,7 @@ def test_shared_if_ring_equals_one_stream_per_method(tmp_path, capsys):
 
 
 def test_without_shared_memory_each_method_streams_its_own_if(tmp_path, capsys, monkeypatch):
-    from ultratight.receiver import scenario_runner
-
+    from ultratight.receiver.cli import scenario_runner
     class NoShm:
         def __init__(self, *a, **k):
             raise OSError(28, "No space left on device")

@@ -9,8 +9,8 @@ import pytest
 
 from ultratight.constants import F_L1
 from ultratight.errors import FormatError
-from ultratight.receiver.acquisition import acquire
-from ultratight.signals.iffile import open_if
+from ultratight.receiver.dsp.acquisition import acquire
+from ultratight.signals.recording.iffile import open_if
 
 pytest.importorskip("sigmf", reason="sigmf package not installed")
 

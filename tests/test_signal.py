@@ -22,7 +22,7 @@ def test_gps_l1ca_description():
 
 def test_bit_wipeoff_follows_the_description():
     """A stub signal with 4 code periods per bit: the wipe-off indexes bits every 4 ms."""
-    from ultratight.receiver.startup import BitWipeoff
+    from ultratight.receiver.deep.startup import BitWipeoff
     stub = SignalDescription("stub", F_L1, F_CA, CA_LEN, ca_code, (1,), codes_per_bit=4)
     w = BitWipeoff({}, [1], 2190, 518400.0, 0.1, signal=stub)      # no ephemeris: bits stay +1
     w.bits[0] = np.arange(w.bits.shape[1]) % 2 * 2 - 1
@@ -31,7 +31,7 @@ def test_bit_wipeoff_follows_the_description():
     assert w.t0_ms[0] % 4 == 0
 
 
-@pytest.mark.parametrize("module", ["ultratight.receiver.engine", "ultratight.receiver.startup"])
+@pytest.mark.parametrize("module", ["ultratight.receiver.deep.engine", "ultratight.receiver.deep.startup"])
 def test_stages_take_the_signal_from_its_description(module):
     """The engine and the start-up stage read carrier, chip rate, code length and bit period from
     a SignalDescription, not from the GPS L1 C/A constants."""

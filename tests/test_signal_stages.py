@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 
 from ultratight.errors import ConfigError
-from ultratight.receiver.acquisition import AcqResult, acquire
-from ultratight.receiver.navdecode import ChannelNav, channel_nav
-from ultratight.receiver.process import ProcessConfig, allocate_channels
-from ultratight.receiver.tracking import (FL_PLL_LOCK, MODE_PULL, P_DOPP, R_CODE_PHASE, R_CODE_RATE, R_DOPP,
+from ultratight.receiver.dsp.acquisition import AcqResult, acquire
+from ultratight.receiver.scalar.navdecode import ChannelNav, channel_nav
+from ultratight.receiver.scalar.receiver import ProcessConfig, allocate_channels
+from ultratight.receiver.dsp.tracking import (FL_PLL_LOCK, MODE_PULL, P_DOPP, R_CODE_PHASE, R_CODE_RATE, R_DOPP,
                                           RI_FLAGS, RI_N, RI_PTR, STATE_NAMES, ScalarTracker)
 from ultratight.signals.signal import GPS_L1CA, SignalDescription
 

@@ -10,7 +10,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import study_highdyn as study  # noqa: E402
 
-from ultratight.receiver.metrics import PAPER_TABLE3  # noqa: E402
+from ultratight.receiver.cli.metrics import PAPER_TABLE3  # noqa: E402
 
 
 def _campaign(cells, lost=0, duration_s=60.0):

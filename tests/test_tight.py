@@ -7,7 +7,7 @@ import pytest
 
 from ultratight.constants import LAMBDA_L1
 from ultratight.errors import FilterError
-from ultratight.fusion import tight
+from ultratight.fusion.coupling import tight
 from ultratight.ins.earth import dcm_ecef_from_enu, llh_to_ecef, radii
 
 LAT, LON, H = np.deg2rad(28.246), np.deg2rad(102.0266), 50000.0

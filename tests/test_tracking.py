@@ -13,8 +13,8 @@ import pytest
 
 from ultratight.constants import CA_LEN, F_CA, F_L1
 from ultratight.signals.ca_code import ca_code
-from ultratight.receiver import tracking as tk
-from ultratight.receiver.tracking import (FL_BIT_DONE, FL_PLL_LOCK, MODE_LOST, R_BIT, R_CARR_ACC, R_CN0,
+from ultratight.receiver.dsp import tracking as tk
+from ultratight.receiver.dsp.tracking import (FL_BIT_DONE, FL_PLL_LOCK, MODE_LOST, R_BIT, R_CARR_ACC, R_CN0,
                                           R_CODE_PHASE, R_DOPP, RI_EPOCH, RI_FLAGS, RI_PTR, S_BIT_PHASE,
                                           ScalarTracker, TrackingConfig, cn0_m2m4, cn0_power)
 
@@ -135,7 +135,7 @@ def test_discriminators_closed_form():
 
 
 def test_prompt_el_kernel_matches_three_tap_kernel():
-    from ultratight.receiver.correlator import COS_LUT, SIN_LUT, integrate_channel
+    from ultratight.receiver.dsp.correlator import COS_LUT, SIN_LUT, integrate_channel
     rng = np.random.default_rng(4)
     pad = 3
     code = ca_code(9).astype(np.float32)

@@ -1,7 +1,7 @@
 """`process --mode ultratight` on a recording as a user has it: IF file + sidecar (no generator
 block, no PRN list), a RINEX navigation file and an IMU CSV without truth, in a directory without
 any truth file. The engine starts from the scalar receiver's own fix on the same file
-(ultratight.receiver.handover) and its outputs are compared with the generator's truth afterwards.
+(ultratight.receiver.deep.handover) and its outputs are compared with the generator's truth afterwards.
 
 The recording: paper-highdyn (10 g from t = 0, no still interval: the attitude comes from the
 specific force and the velocity direction) without its noise burst, 45 dB-Hz: the scalar
@@ -47,8 +47,8 @@ def _one_line_error(r):
 @pytest.fixture(scope="module")
 def rec(tmp_path_factory):
     from ultratight.ins.imu import read_imu_h5, write_imu_csv
-    from ultratight.receiver.rinex_out import write_rinex_nav
-    from ultratight.receiver.scenario_config import locate_scenario
+    from ultratight.receiver.io.rinex_out import write_rinex_nav
+    from ultratight.config import locate_scenario
     from ultratight.signals.constellation import nominal_ephemerides
 
     d = tmp_path_factory.mktemp("user_rec")
@@ -149,7 +149,7 @@ def test_navigation_solution_against_truth(rec):
 def test_no_channel_lost_against_truth(rec):
     """The scenario's loss-of-lock test (receiver.metrics.loss_of_lock: running-mean Doppler / code
     error against the generator's truth) agrees with the truth-free lock_lost_channels: none."""
-    from ultratight.receiver.metrics import loss_of_lock, tracking_errors
+    from ultratight.receiver.cli.metrics import loss_of_lock, tracking_errors
     with h5py.File(rec["out"] / "res.h5") as f, h5py.File(rec["gen"] / "ph.truth.h5") as tr:
         prns = [int(p) for p in f.attrs["prn"]]
         cols = [list(tr.attrs["prn"]).index(p) for p in prns]
@@ -214,7 +214,7 @@ def test_rinex_pseudoranges_against_truth(rec):
 def test_init_flags_start(rec, capsys, tmp_path):
     """All three --init-* flags: the engine starts at --start from exactly them (clock taken as zero,
     sigmas FLAG_SIGMAS) without a scalar pass; --prn is then needed (the sidecar has no list)."""
-    from ultratight.receiver.handover import FLAG_SIGMAS
+    from ultratight.receiver.deep.handover import FLAG_SIGMAS
     with h5py.File(rec["gen"] / "ph.traj.h5") as g:
         k = int(np.argmin(np.abs(g["t"][()] - 2.0)))
         lat, lon, h = (float(v) for v in g["llh"][k])
@@ -274,7 +274,7 @@ def test_startup_flags_need_ultratight_mode(rec):
 
 
 def test_parse_init_flags_negative_values_and_units():
-    from ultratight.receiver.handover import parse_init_flags
+    from ultratight.receiver.deep.handover import parse_init_flags
     from ultratight.ins.attitude import quat_to_euler
     o = parse_init_flags("-33.87,151.21,40", "-1,2,0.5", "-10,5,270")
     assert np.allclose(o["llh"], [math.radians(-33.87), math.radians(151.21), 40.0])
@@ -297,7 +297,7 @@ def _rot(seed):
 
 
 def test_wahba_recovers_rotation_and_covariance():
-    from ultratight.receiver.handover import wahba
+    from ultratight.receiver.deep.handover import wahba
     C = _rot(3)
     n1, n2 = np.array([0.0, 0.0, 1.0]), np.array([0.3, 0.9, 0.1])
     C_est, P = wahba([(n1, C.T @ n1, 1e-3), (n2, C.T @ n2, 1e-2)])
@@ -325,7 +325,7 @@ def test_still_alignment_levelling_and_gyro_compass(grade):
     from ultratight.errors import ConfigError
     from ultratight.ins.attitude import quat_to_dcm
     from ultratight.ins.imu import imu_errors_from_config
-    from ultratight.receiver.handover import HandoverConfig, attitude_at
+    from ultratight.receiver.deep.handover import HandoverConfig, attitude_at
     llh = np.array([math.radians(41.3), math.radians(2.0), 50.0])
     C = _rot(5)
     imu = _still_imu(C, llh, grade)
@@ -347,7 +347,7 @@ def test_still_alignment_levelling_and_gyro_compass(grade):
 def test_coordinated_bank_left_axis():
     """The body's left axis in coordinated flight: horizontal in straight flight; a right turn with a
     centripetal acceleration of g banks 45 deg right wing down (the left axis tilts up)."""
-    from ultratight.receiver.handover import coordinated_left
+    from ultratight.receiver.deep.handover import coordinated_left
     g = 9.81
     np.testing.assert_allclose(coordinated_left([200.0, 0.0, 0.0], [50.0, 0.0, 0.0], g), [0.0, 1.0, 0.0], atol=1e-12)
     np.testing.assert_allclose(coordinated_left([0.0, 100.0, 5.0], [0.0, 3.0, 0.0], g)[2], 0.0, atol=1e-12)

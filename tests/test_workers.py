@@ -6,9 +6,7 @@ import math
 import pytest
 
 from ultratight.errors import ConfigError
-from ultratight.receiver import workers
-
-
+from ultratight.receiver.cli import workers
 def test_jobs_in_processes_equal_jobs_here():
     jobs = [(n,) for n in (5, 10, 3, 20)]
     seen = []

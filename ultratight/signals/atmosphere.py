@@ -1,8 +1,8 @@
 """Signal delays in the atmosphere: Klobuchar ionosphere and Saastamoinen troposphere (L1);
 see docs/references.md.
 
-Both the IF generator (:mod:`ultratight.signals.generator`, scenario table ``[atmosphere]``) and
-the receiver's PVT (:mod:`ultratight.receiver.process`, ``--iono`` / ``--tropo``) use these
+Both the IF generator (:mod:`ultratight.signals.synth.generator`, scenario table ``[atmosphere]``) and
+the receiver's PVT (:mod:`ultratight.receiver.scalar.receiver`, ``--iono`` / ``--tropo``) use these
 functions; the generator can also apply a model the receiver does not share (a scaled ionosphere,
 another tropospheric mapping function) so that tests are not circular.
 

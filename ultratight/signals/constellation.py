@@ -103,3 +103,16 @@ def nominal_ephemerides(week, tow_s, prns=None):
 def repeat_period_s():
     """Period after which the nominal constellation geometry in ECEF repeats (two orbits)."""
     return 2.0 * 2.0 * math.pi / math.sqrt(GM / SEMI_MAJOR_AXIS_M ** 3)
+
+
+def ephemerides_for(cfg):
+    """The ephemerides a scenario's signals come from (dict prn -> Ephemeris) at its start time:
+    the nominal constellation (``[satellites] source = "nominal"``) or the healthy ephemerides of
+    its RINEX navigation file valid then (:meth:`ultratight.signals.rinex.NavData.select_all`)."""
+    from ultratight.signals.rinex import read_rinex_nav
+
+    sat = cfg.get("satellites", {})
+    week, tow = int(cfg["time"]["week"]), float(cfg["time"]["tow_s"])
+    if sat.get("source", "nominal") == "nominal":
+        return nominal_ephemerides(week, tow)
+    return read_rinex_nav(sat.get("rinex_path", sat.get("rinex"))).select_all(week, tow)

@@ -9,8 +9,8 @@ Per channel (float64 arrays, moved in place by the loop that owns the command):
 * ``carr_phase`` — cycles in [0, 1) at the start of the next integration;
 * ``carr_freq`` — Hz, intermediate frequency plus Doppler (``if_hz`` + Doppler).
 
-:class:`ultratight.receiver.correlator.CorrelatorBank` owns one (``bank.nco``) and
-:class:`ultratight.fusion.innerloop.InnerLoop` commands it; the correlator-level simulator's NCO
+:class:`ultratight.receiver.dsp.correlator.CorrelatorBank` owns one (``bank.nco``) and
+:class:`ultratight.fusion.channel.innerloop.InnerLoop` commands it; the correlator-level simulator's NCO
 is one too.
 """
 

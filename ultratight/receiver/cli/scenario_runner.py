@@ -1,0 +1,611 @@
+"""``ultratight scenario``: generate (or reuse) IMU + truth, stream (or cache) the IF, run each method,
+paper metrics.
+
+Cache: the generated files live in ``OUT/cache/<key>/`` where ``key`` is a hash of the
+resolved scenario configuration (including the seed and any overrides) and the package
+version, so a rerun with the same configuration reuses the data and any change regenerates it.
+
+IF samples: by default (``cache=False``) the cache entry holds the truth, IMU and trajectory only,
+and the IF is generated in memory, the samples of the IF file bit for bit: once per run, here,
+into a shared-memory ring that the run's methods read at the same time, one worker process each
+(:mod:`ultratight.signals.synth.ifring`, with several methods and the default workers), or by each
+method from its own generator (:class:`ultratight.signals.synth.ifstream.GeneratedIf`, produced block by
+block on a worker thread while the method tracks); ``cache=True`` (``--cache``) writes the IF file
+into the entry as well and the methods read it from disk.
+
+Per run (seed ``seed + r``) and method the engine runs on the *same* samples; the tracking
+errors are estimate minus the generator's truth (``<stem>.truth.h5``, docs/generator.md)
+interpolated at each channel's integration start (see :mod:`ultratight.receiver.cli.metrics`).
+The engine's own randomness (hot-start errors) is seeded by the run seed, so every method of
+a run starts from the same perturbed INS state.
+
+Outputs in ``OUT``: ``results.h5`` (per run and method: estimates, errors, arbitration modes,
+navigation solution; attributes with the resolved configuration) and ``metrics.json``; PNG
+figures like the paper's Fig. 4–7 when matplotlib is installed.
+"""
+
+import dataclasses
+import hashlib
+import json
+import sys
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from types import SimpleNamespace
+
+import h5py
+import numpy as np
+
+from ultratight import __version__, io_guard
+from ultratight.errors import ConfigError, InputFileError
+from ultratight.ins.imu import read_imu_h5
+from ultratight.ins.trajectory import build_trajectory
+from ultratight.io_guard import atomic_path, json_clean, note_complete, output_error, write_h5_atomic, write_text_atomic
+from ultratight.receiver.cli import metrics as M
+from ultratight.receiver.dsp.burst import PLACE_IF, event_place
+from ultratight.receiver.cli.commands.generate import estimate
+from ultratight.receiver.deep.engine import EngineOptions, UltratightEngine, check_method, monitor_mode
+from ultratight.receiver.deep.methods import method_spec
+from ultratight.receiver.deep.scalar_reference import run_scalar  # noqa: F401 (public here too)
+from ultratight.receiver.cli.scenario_config import IMU_DEFAULTS, load_scenario
+from ultratight.receiver.deep.startup import StartupErrors, perturb_state
+from ultratight.receiver.cli.workers import WorkerPool, check_workers, default_workers, fix_mmap_threshold, release_heap
+from ultratight.signals.constellation import ephemerides_for
+from ultratight.signals.synth.generator import generate
+from ultratight.signals.recording.iffile import open_if
+from ultratight.signals.synth.ifring import IfRing, RingIf
+from ultratight.signals.synth.ifstream import GeneratedIf
+
+try:
+    import fcntl
+except ImportError:      # pragma: no cover - no fcntl (not POSIX): cache entries are not locked
+    fcntl = None
+
+SCHEMA = "ultratight scenario results v1 (docs/ultratight.md)"
+
+
+def _cfg_key(cfg):
+    evs = cfg.get("noise_events") or []
+    if any(event_place(ev) != PLACE_IF for ev in evs):
+        # noise events inside the receiver do not change the data: one cache entry for their readings
+        cfg = dict(cfg, noise_events=[ev for ev in evs if event_place(ev) == PLACE_IF])
+    blob = json.dumps(cfg, sort_keys=True, default=str) + __version__
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+CACHE_VERSION = 2       # done.json layout: {"version", "files": {kind: {"name", "size"}}}
+
+
+def _cache_entry_ok(d, done, need_if=True):
+    """Paths of a verified cache entry, or None (missing, unparsable, wrong sizes, bad sidecar; without
+    the IF file when ``need_if``)."""
+    try:
+        entry = json.loads(done.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if not isinstance(entry, dict) or entry.get("version") != CACHE_VERSION or not isinstance(entry.get("files"), dict):
+        return None
+    paths = {}
+    for kind, rec in entry["files"].items():
+        if not isinstance(rec, dict) or not isinstance(rec.get("name"), str) or "/" in rec["name"]:
+            return None
+        p = d / rec["name"]
+        try:
+            if not p.is_file() or p.stat().st_size != rec.get("size"):
+                return None
+        except OSError:
+            return None
+        paths[kind] = p
+    if "truth" not in paths or (need_if and "if" not in paths):
+        return None
+    if "if" in paths:
+        try:
+            open_if(paths["if"]).close()
+        except (OSError, ValueError):
+            return None
+    return paths
+
+
+@contextmanager
+def _cache_lock(d):
+    """Exclusive per-key lock (``fcntl.flock`` on ``OUT/cache/<key>.lock``): concurrent runs of the same
+    configuration wait for each other instead of writing the same files."""
+    lock_path = d.with_name(d.name + ".lock")
+    fh = open(lock_path, "a+")
+    try:
+        if fcntl is not None:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
+        yield
+    finally:
+        fh.close()               # releases the lock
+
+
+def prepare_data(cfg, seed, out_dir, progress=False, cache_if=True):
+    """Generate the scenario's files under OUT/cache/<key>/ unless a verified entry is already there.
+
+    The entry is guarded by a per-key lock; ``done.json`` records every file's name and size and is
+    written last (atomically); an entry that does not verify is regenerated. ``cache_if=False``: the
+    entry needs no IF file (one without is generated without it) and the paths returned have no
+    ``if``/``meta`` but ``if_seed``, the seed :func:`run_method` streams the IF of."""
+    c = _generator_cfg(cfg)          # processing settings are not part of the generated data
+    c["seed"] = int(seed)
+    key = _cfg_key(c)
+    d = Path(out_dir) / "cache" / key
+    done = d / "done.json"
+    try:
+        d.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise output_error(d.parent, exc, "cannot create cache directory") from None
+    with _cache_lock(d):
+        paths = _cache_entry_ok(d, done, need_if=cache_if) if done.is_file() else None
+        if paths is not None:
+            return _data_paths(paths, cache_if, seed), True
+        try:
+            done.unlink()
+        except FileNotFoundError:
+            pass
+        except OSError as exc:
+            raise output_error(done, exc, "cannot remove stale cache entry") from None
+        try:
+            d.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise output_error(d, exc, "cannot create cache directory") from None
+        try:
+            res = generate(c, d, "data", seed=int(seed), progress=progress, write_if=cache_if)
+        except BaseException as exc:
+            try:
+                d.rmdir()                # only when empty: the generator removed its temporary files
+            except OSError:
+                pass
+            if isinstance(exc, OSError) and not isinstance(exc, (ConfigError, InputFileError)):
+                raise output_error(d, exc, "cannot write scenario data in") from None
+            raise
+        files = {k: {"name": Path(v).name, "size": Path(v).stat().st_size} for k, v in res.items() if k != "summary"}
+        write_text_atomic(done, json.dumps({"version": CACHE_VERSION, "files": files}))
+        return _data_paths({k: d / v["name"] for k, v in files.items()}, cache_if, seed), False
+
+
+def _data_paths(paths, cache_if, seed):
+    """The paths a method reads: with the cached IF file, or (streamed) without it and with ``if_seed``."""
+    if cache_if:
+        return paths
+    out = {k: v for k, v in paths.items() if k not in ("if", "meta")}
+    out["if_seed"] = int(seed)
+    return out
+
+
+def open_source(paths, cfg):
+    """The IF source of a run's data: the cached file (``paths["if"]``) or, without one, the generator of
+    ``cfg`` and ``paths["if_seed"]`` in memory (:class:`ultratight.signals.synth.ifstream.GeneratedIf`), or
+    read from the run's shared ring (``paths["if_ring"]``, :class:`ultratight.signals.synth.ifring.RingIf`)."""
+    if "if" in paths:
+        return open_if(paths["if"])
+    if "if_seed" not in paths:
+        raise ConfigError("scenario data: neither an IF file nor the seed of a streamed IF")
+    c = _generator_cfg(cfg)
+    if "if_ring" in paths:
+        return RingIf(c, int(paths["if_seed"]), paths["if_ring"], int(paths["if_consumer"]))
+    return GeneratedIf(c, int(paths["if_seed"]))
+
+
+def _generator_cfg(cfg):
+    """The generator's part of a scenario (processing settings left out)."""
+    return {k: v for k, v in cfg.items() if k not in ("source_file", "engine")}
+
+
+def load_truth(path):
+    """Truth arrays of the generator (docs/generator.md): t_s (n,), prn (n_ch,), code phase,
+    Doppler (n, n_ch)."""
+    try:
+        with h5py.File(path, "r") as f:
+            return {"t_s": f["t_s"][()], "prn": [int(p) for p in f.attrs["prn"]],
+                    "code_phase_chips": f["code_phase_chips"][()], "doppler_hz": f["doppler_hz"][()],
+                    "config": json.loads(f.attrs["config_json"]), "fs_hz": float(f.attrs["fs_hz"]),
+                    "week": int(f.attrs["week"]), "tow0_s": float(f.attrs["tow0_s"])}
+    except (OSError, KeyError) as exc:
+        raise InputFileError(f"{path}: cannot read generator truth ({exc})") from None
+
+
+def truth_initial_state(cfg):
+    """True INS/clock state at t = 0 from the scenario trajectory."""
+    traj = build_trajectory(cfg.get("trajectory", {"kind": "static"}), cfg.get("receiver", {}),
+                            float(cfg["duration_s"]))
+    k = traj.kinematics(np.zeros(1))
+    rcv = cfg.get("receiver", {})
+    return {"llh": k["llh"][0], "vel_l": k["vel_l"][0], "q_lb": k["q_lb"][0],
+            "clk_bias_m": float(rcv.get("clock_bias_m", 0.0)),
+            "clk_drift_mps": float(rcv.get("clock_drift_mps", 0.0))}
+
+
+def engine_options_for(cfg, options=None, seed=0):
+    """EngineOptions for a scenario: ``options`` (default EngineOptions()) with the scenario's
+    ``[engine]`` table applied (e.g. its noise-floor estimator) and its noise events that act inside
+    the receiver (:mod:`ultratight.receiver.dsp.burst`; their noise drawn from ``seed``)."""
+    opt = options or EngineOptions()
+    eng = cfg.get("engine") or {}
+    opt = dataclasses.replace(opt, **eng) if eng else opt
+    inside = [dict(ev) for ev in cfg.get("noise_events", []) or [] if event_place(ev) != PLACE_IF]
+    return dataclasses.replace(opt, noise_events=inside, noise_seed=int(seed)) if inside else opt
+
+
+def run_method(paths, cfg, method, seed, options=None, startup_errors=None, duration_s=None):
+    """Run one method on a run's data (:func:`prepare_data`: the IF file, or the IF streamed from the
+    generator); returns (EngineResult, truth dict)."""
+    spec = method_spec(method)
+    options = engine_options_for(cfg, options, seed)
+    truth = load_truth(paths["truth"])
+    if not spec.scalar and "imu" not in paths:
+        raise ConfigError(f"method {method!r} needs the scenario's IMU data; the scenario has no [imu] table")
+    src = open_source(paths, cfg)
+    try:
+        if list(getattr(src, "prns", truth["prn"])) != list(truth["prn"]):
+            raise ConfigError(f"{src.path}: satellites {src.prns} differ from the truth file's {truth['prn']} "
+                              f"({paths['truth']})")
+        ephs = ephemerides_for(cfg)
+        rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7]))
+        errs = startup_errors or StartupErrors()
+        init = perturb_state(truth_initial_state(cfg), errs, rng)
+        if spec.scalar:
+            res = run_scalar(src, truth["prn"], ephs, truth["week"], truth["tow0_s"], init, duration_s)
+        else:
+            imu = read_imu_h5(paths["imu"])
+            eng = UltratightEngine(src, imu, ephs, truth["prn"], truth["week"], truth["tow0_s"], method=method,
+                                   options=options or EngineOptions(), init_state=init, rng=rng,
+                                   duration_s=duration_s)
+            res = eng.run()
+    finally:
+        src.close()
+    return res, truth
+
+
+def errors_vs_truth(res, truth):
+    return M.tracking_errors(res.t_start, res.doppler_hz, res.code_phase_chips, truth["t_s"],
+                             truth["doppler_hz"], truth["code_phase_chips"])
+
+
+def scenario_config(name, methods, runs=1, duration_s=None, fs_hz=None, overrides=None):
+    """The resolved scenario configuration of a ``run_scenario`` call (methods and overrides checked;
+    a scenario without ``[imu]`` gets the default IMU when an ultra-tight method runs)."""
+    for m in methods:
+        check_method(m)
+    if int(runs) < 1:
+        raise ConfigError(f"--runs must be >= 1, got {runs}")
+    ov = dict(overrides or {})
+    if duration_s is not None:
+        if not duration_s > 0:
+            raise ConfigError(f"--duration must be > 0 s, got {duration_s}")
+        ov["duration_s"] = float(duration_s)
+    if fs_hz is not None:
+        ov["frontend.fs_hz"] = float(fs_hz)
+    cfg = load_scenario(name, ov)
+    if any(m != "scalar" for m in methods) and "imu" not in cfg:
+        # the ultra-tight methods run on an IMU: a scenario without [imu] gets the default one
+        cfg["imu"] = dict(IMU_DEFAULTS)
+    return cfg
+
+
+def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scenario_out", duration_s=None,
+                 fs_hz=None, channel=0, plots=True, progress=True, options=None, overrides=None, workers=None,
+                 cache=False):
+    """Every method on every run's data, the paper's tables, ``metrics.json``, ``results.h5`` and figures
+    (module docstring); ``cache``: write the IF files into the cache and read them (else streamed)."""
+    cfg = scenario_config(name, methods, runs, duration_s, fs_hz, overrides)
+    workers = check_workers(workers)
+    base_seed = int(cfg.get("seed", 0) if seed is None else seed)
+    if base_seed < 0:
+        raise ConfigError(f"--seed must be >= 0, got {base_seed}")
+    if isinstance(channel, bool) or not isinstance(channel, int) or channel < 0:
+        raise ConfigError(f"--channel must be an integer >= 0, got {channel}")
+    out = Path(out_dir)
+    _check_out_dir(out, cfg, int(runs), bool(cache))
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise output_error(out, exc, "cannot create output directory") from None
+    fix_mmap_threshold()        # per-epoch result arrays return to the system when freed
+    per, raw = _run_all(cfg, methods, int(runs), base_seed, out, channel, progress, options, workers, bool(cache))
+    return _report(name, cfg, methods, int(runs), base_seed, out, channel, plots, options, per, raw)
+
+
+def _method_job(paths, cfg, method, seed, options):
+    """One method on one run's data in a worker process (one numba thread: the workers share the cores)."""
+    opt = dataclasses.replace(engine_options_for(cfg, options), threads=1)
+    res, _truth = run_method(paths, cfg, method, seed, options=opt)
+    release_heap()
+    return res
+
+
+def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, workers=None, cache=False):
+    """Every method on every run's data: per-run summaries and raw (result, errors) per (run, method).
+
+    The data of every run are prepared first, here (``cache``: with the IF files); then the (run, method)
+    jobs run in worker processes (:mod:`ultratight.receiver.cli.workers`), one per free core and one when
+    no core is free, so this process, which collects every method's results and writes the outputs,
+    never holds an engine's working memory as well; ``workers`` = 1 runs them here, one after the
+    other. Streamed with the default workers and several methods, a run's IF is generated once, here,
+    into a ring the run's methods read at the same time, one worker process each
+    (:mod:`ultratight.signals.synth.ifring`); otherwise every method streams its own copy. The results do
+    not depend on where a job ran nor on where its samples came from."""
+    n_jobs = runs * len(methods)
+    shared = not cache and workers is None and len(methods) > 1
+    if shared:
+        n_workers = len(methods)
+    else:
+        n_workers = default_workers(n_jobs) if workers is None else min(int(workers), n_jobs)
+    here = workers is not None and int(workers) == 1
+    per_job = {}
+    keys = [(r, m) for r in range(runs) for m in methods]
+    truths = {}
+
+    def done(i, res):
+        r, m = keys[i]
+        if r not in truths:                  # one truth per run, shared by its methods
+            truths[r] = load_truth(all_paths[r]["truth"])
+        per_job[i] = _summarize_method(res, truths[r], channel, base_seed + r)
+        if progress:
+            summ = per_job[i][0]
+            print(f"  {m:10s} {'' if runs == 1 else f'(seed {base_seed + r}) '}Doppler RMS "
+                  f"{np.round(summ['doppler_rms_hz'], 4).tolist()} Hz, code RMS "
+                  f"{np.round(summ['code_rms_chips'], 4).tolist()} chip, lost {summ['lock_lost_channels']}, "
+                  f"{res.runtime_s:.1f} s (real-time factor {summ['realtime_factor']:.3f})", flush=True)
+
+    # the workers start (and import the engine) while this process generates the data
+    with WorkerPool(n_workers, preload=(__name__,), processes=not here) as pool:
+        all_paths = [_prepare_run(cfg, r, runs, base_seed + r, out, channel, progress, cache, shared)
+                     for r in range(runs)]
+        jobs = [(all_paths[r], cfg, m, base_seed + r, options) for r, m in keys]
+        if progress and not here:
+            how = ", the IF generated once per run and shared" if shared else ""
+            print(f"{len(jobs)} method run(s) in {n_workers} worker process(es){how}", flush=True)
+        if shared:
+            _map_shared(pool, cfg, methods, runs, base_seed, jobs, done)
+        else:
+            pool.map(_method_here if here else _method_job, jobs, on_done=done)
+    per = {m: [] for m in methods}
+    raw = {}
+    for i, (r, m) in enumerate(keys):
+        summ, entry = per_job[i]
+        per[m].append(summ)
+        raw[(r, m)] = entry
+    return per, raw
+
+
+def _map_shared(pool, cfg, methods, runs, base_seed, jobs, done):
+    """Run by run: the run's IF ring (produced in this process), its methods' jobs at the same time
+    (each reading the ring as one consumer), results handed to ``done`` with their job index."""
+    n = len(methods)
+    for r in range(runs):
+        run_jobs = jobs[r * n:(r + 1) * n]
+        try:
+            ring = IfRing(_generator_cfg(cfg), base_seed + r, n)
+        except OSError as exc:          # no shared memory here (a full or missing /dev/shm)
+            print(f"ultratight scenario: no shared memory for the IF ({exc.strerror or exc}); each method "
+                  f"generates its own copy", file=sys.stderr, flush=True)
+            ring = None
+        try:
+            if ring is not None:
+                ring.start()
+                run_jobs = [(dict(paths, if_ring=ring.name, if_consumer=j), *rest)
+                            for j, (paths, *rest) in enumerate(run_jobs)]
+            pool.map(_method_job, run_jobs, on_done=lambda j, res, r=r: done(r * n + j, res))
+        except BaseException:
+            if ring is not None:
+                ring.abort()
+            raise
+        finally:
+            if ring is not None:
+                ring.close()
+
+
+def _method_here(paths, cfg, method, seed, options):
+    res, _truth = run_method(paths, cfg, method, seed, options=options)
+    release_heap()              # the engine's working memory, before the next method runs here
+    return res
+
+
+def _prepare_run(cfg, r, runs, seed, out, channel, progress, cache=False, shared=False):
+    """The data of run ``r`` (generated or reused), its channel count checked against ``channel``."""
+    t0 = time.perf_counter()
+    paths, cached = prepare_data(cfg, seed, out, progress=progress, cache_if=cache)
+    release_heap()              # the generator's working memory (this process keeps the results)
+    n_ch = len(load_truth(paths["truth"])["prn"])
+    if channel >= n_ch:
+        raise ConfigError(f"--channel {channel}: the scenario has {n_ch} channel(s) (0..{n_ch - 1})")
+    if progress:
+        what = "" if cache else (", truth and IMU: the IF is generated in memory, "
+                                 + ("once for all methods" if shared else "for each method"))
+        print(f"run {r + 1}/{runs} seed {seed}: data {'reused' if cached else 'generated'} "
+              f"({time.perf_counter() - t0:.1f} s{what})", flush=True)
+    return paths
+
+
+def _summarize_method(res, truth, channel, seed):
+    """The per-run summary of one method's result and its (result, Doppler error, code error)."""
+    d_err, c_err = errors_vs_truth(res, truth)
+    summ = M.summarize(res.t_start, d_err, c_err, M.SEGMENTS_S, channel=channel)
+    summ["runtime_s"] = res.runtime_s
+    # wall-clock seconds per signal second (as `ultratight process`): < 1 = faster than real time
+    summ["realtime_factor"] = res.runtime_s / res.duration_s if res.duration_s > 0 else float("nan")
+    summ["seed"] = seed
+    return summ, (res, d_err, c_err)
+
+
+def _report(name, cfg, methods, runs, base_seed, out, channel, plots, options, per, raw):
+    """metrics.json, results.h5, figures and the text tables of a scenario run."""
+    dur = float(cfg["duration_s"])
+    segs = M.SEGMENTS_S
+    agg = {m: aggregate(per[m], raw, m, segs, channel) for m in methods}
+    events = _event_windows(cfg, dur)
+    for m in methods:
+        agg[m]["noise_events"] = event_rms(raw, m, events)
+    mon = monitor_mode(options or EngineOptions())
+    js = {"scenario": cfg.get("name", str(name)), "seed": base_seed, "runs": runs, "duration_s": dur,
+          "segments_s": [list(x) for x in segs], "channel": channel,
+          "methods": {m: {k: agg[m][k] for k in ("doppler_rms_hz", "code_rms_chips", "diverged",
+                                                  "lock_lost_channels", "runtime_s", "realtime_factor",
+                                                  "doppler_rms_hz_channel", "code_rms_chips_channel",
+                                                  "segment_diverged", "noise_events")}
+                      for m in methods}, "monitor": mon,
+          "per_run": per, "version": __version__, "paper_table3": M.PAPER_TABLE3, "paper_table4_s": M.PAPER_TABLE4_S}
+    mpath = out / "metrics.json"
+    write_text_atomic(mpath, json.dumps(json_clean(js), indent=2))
+    hpath = out / "results.h5"
+    # each (run, method) is dropped once in the file's image, but for what the figures draw (run 0)
+    write_results_h5(hpath, cfg, raw, methods, runs, base_seed, consume=True,
+                     keep={(0, m) for m in methods} if plots else ())
+    note_complete(mpath)
+    note_complete(hpath)
+    figs = make_plots(out, raw, methods, channel) if plots else []
+    text = M.format_tables(agg, segs) + "\n" + (
+        f"\n{runs} run(s), seeds {base_seed}..{base_seed + runs - 1}; RMS over all channels and runs; "
+        "'\\' = lock lost (diverged) in that segment.")
+    text += f"\nsignal monitor: {mon}"
+    for m in methods:
+        for ev in agg[m]["noise_events"]:
+            text += (f"\n{m:10s} noise x{ev['noise_factor']:g} over {ev['t0_s']:g}-{ev['t1_s']:g} s: Doppler RMS "
+                     f"{_f(ev['doppler_rms_hz'])} Hz (before: {_f(ev['doppler_rms_hz_before'])} Hz), code RMS "
+                     f"{_f(ev['code_rms_chips'])} chip")
+    return {"json": json_clean({k: js[k] for k in ("scenario", "seed", "runs", "monitor", "methods")}),
+            "text": text,
+            "metrics_path": str(mpath), "h5_path": str(hpath), "figures": figs}
+
+
+def _f(v):
+    return "-" if v is None or not np.isfinite(v) else f"{v:.4f}"
+
+
+def _event_windows(cfg, dur):
+    """The scenario's noise events clipped to the run: list of (t0, t1, factor)."""
+    out = []
+    for ev in cfg.get("noise_events", []) or []:
+        a, b = float(ev["t0_s"]), min(float(ev["t1_s"]), dur)
+        if b > a:
+            out.append((a, b, float(ev.get("noise_factor", 1.0))))
+    return out
+
+
+def event_rms(raw, method, events):
+    """RMS over all channels and runs of the tracking errors during each noise event and over the
+    same length just before it (the paper's "gross error" window vs the quiet level)."""
+    keys = [k for k in raw if k[1] == method]
+    t = np.concatenate([raw[k][0].t_start for k in keys], axis=0)
+    d = np.concatenate([raw[k][1] for k in keys], axis=0)
+    c = np.concatenate([raw[k][2] for k in keys], axis=0)
+    res = []
+    for a, b, fac in events:
+        pre = (max(0.0, a - (b - a)), a)
+        dr = M.segment_rms(t, d, [(a, b), pre])
+        cr = M.segment_rms(t, c, [(a, b)])
+        res.append({"t0_s": a, "t1_s": b, "noise_factor": fac, "doppler_rms_hz": float(dr[0]),
+                    "doppler_rms_hz_before": float(dr[1]), "code_rms_chips": float(cr[0])})
+    return res
+
+
+def aggregate(summaries, raw, method, segs, channel):
+    """Combine runs: RMS over all channels and runs (from the raw errors), lock figures summed."""
+    d_all = [raw[k][1] for k in raw if k[1] == method]
+    c_all = [raw[k][2] for k in raw if k[1] == method]
+    t_all = [raw[k][0].t_start for k in raw if k[1] == method]
+    t = np.concatenate(t_all, axis=0)
+    d = np.concatenate(d_all, axis=0)
+    c = np.concatenate(c_all, axis=0)
+    seg_div = [any(s["segment_diverged"][i] for s in summaries) for i in range(len(segs))]
+    return {
+        "doppler_rms_hz": M.segment_rms(t, d, segs).tolist(),
+        "code_rms_chips": M.segment_rms(t, c, segs).tolist(),
+        "doppler_rms_hz_channel": M.segment_rms(t, d, segs, channel).tolist(),
+        "code_rms_chips_channel": M.segment_rms(t, c, segs, channel).tolist(),
+        "diverged": bool(any(seg_div)),
+        "segment_diverged": seg_div,
+        "lock_lost_channels": int(sum(s["lock_lost_channels"] for s in summaries)),
+        "runtime_s": float(np.mean([s["runtime_s"] for s in summaries])),
+        "realtime_factor": float(np.mean([s["realtime_factor"] for s in summaries])),
+    }
+
+
+def _check_out_dir(out, cfg, runs, cache=True):
+    """--out: a directory (existing or creatable) with room for the runs' data (estimate; the IF files
+    only with ``cache``)."""
+    io_guard.check_path_length(out, "--out")
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out} exists and is not a directory")
+    io_guard.check_output_path(out / "metrics.json", "--out", create_parent=True)
+    est = estimate(cfg)
+    if_bytes = est["if_bytes"] if cache else 0.0
+    io_guard.check_disk(out, runs * (if_bytes + est["truth_bytes"] + 2 * est["imu_bytes"]),
+                        f"the data of {runs} run(s) of {cfg['duration_s']:g} s")
+    # the truth (HDF5 written as it is generated) must fit the file-size limit
+    io_guard.check_file_size(est["truth_bytes"], f"the truth file of a run of {cfg['duration_s']:g} s")
+    io_guard.check_memory(est["memory_bytes"], f"a run of {cfg['duration_s']:g} s")
+
+
+def write_results_h5(path, cfg, raw, methods, runs, base_seed, consume=False, keep=()):
+    """``results.h5`` of the (run, method) results ``raw`` (docs/ultratight.md). ``consume``: remove each
+    entry from ``raw`` once it is in the file's image (the image and all the results are then never
+    held at once) — but for the keys in ``keep``, which keep what :func:`make_plots` draws (times,
+    PRNs, errors)."""
+
+    def build(f):
+        f.attrs["schema"] = SCHEMA
+        f.attrs["version"] = __version__
+        f.attrs["config_json"] = json.dumps(cfg, default=str)
+        f.attrs["methods"] = ",".join(methods)
+        f.attrs["runs"] = int(runs)
+        f.attrs["seed"] = int(base_seed)
+        for r, m in list(raw):
+            res, d_err, c_err = raw.pop((r, m)) if consume else raw[(r, m)]
+            if consume and (r, m) in keep:
+                raw[(r, m)] = (SimpleNamespace(t_start=res.t_start, prns=res.prns), d_err, c_err)
+            g = f.create_group(f"run{r:03d}/{m}")
+            g.attrs["seed"] = int(base_seed + r)
+            g.attrs["prn"] = np.asarray(res.prns, dtype=np.int64)
+            g.attrs["runtime_s"] = float(res.runtime_s)
+            g.attrs["info_json"] = json.dumps(res.info, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+            for k, v in (("t_start_s", res.t_start), ("doppler_hz", res.doppler_hz),
+                         ("code_phase_chips", res.code_phase_chips), ("amplitude", res.amp),
+                         ("mode", res.mode), ("doppler_err_hz", d_err), ("code_err_chips", c_err),
+                         ("nav_t_s", res.nav_t), ("nav_pos_e", res.nav_pos_e), ("nav_vel_e", res.nav_vel_e),
+                         ("nav_clk", res.nav_clk), ("nav_sigma_doppler_hz", res.nav_sigma_doppler_hz)):
+                g.create_dataset(k, data=np.asarray(v), compression="gzip", compression_opts=1, shuffle=True)
+            if getattr(res, "bit_source", None) is not None:
+                g.create_dataset("bit_source", data=np.asarray(res.bit_source), compression="gzip",
+                                 compression_opts=1)
+
+    write_h5_atomic(path, build)
+
+
+def make_plots(out, raw, methods, channel):
+    """Paper-style figures (Fig. 4–7): Doppler and code-phase error of one channel vs time."""
+    try:                        # matplotlib: optional dependency (the "plot" extra)
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return []
+    figs = []
+    pairs = [("fig4_doppler_pbkf_vs_rackf.png", ("pb-kf-utc", "dlb-rackf"), 1, "Doppler error (Hz)"),
+             ("fig5_code_pbkf_vs_rackf.png", ("pb-kf-utc", "dlb-rackf"), 2, "code phase error (chips)"),
+             ("fig6_doppler_dlb.png", ("dlb-ukf", "dlb-ckf", "dlb-rackf"), 1, "Doppler error (Hz)"),
+             ("fig7_code_dlb.png", ("dlb-ukf", "dlb-ckf", "dlb-rackf"), 2, "code phase error (chips)")]
+    for name, ms, idx, ylabel in pairs:
+        have = [m for m in ms if (0, m) in raw]
+        if not have:
+            continue
+        fig, ax = plt.subplots(figsize=(8, 4))
+        for m in have:
+            res = raw[(0, m)][0]
+            err = raw[(0, m)][idx]
+            ax.plot(res.t_start[:, channel], err[:, channel], lw=0.5, label=m)
+        ax.set_xlabel("time (s)")
+        ax.set_ylabel(ylabel)
+        ax.set_title(f"channel {channel} (PRN {raw[(0, have[0])][0].prns[channel]}), run 0")
+        ax.grid(True, alpha=0.3)
+        ax.legend()
+        p = Path(out) / name
+        try:
+            with atomic_path(p) as tmp:
+                fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
+        finally:
+            plt.close(fig)
+        figs.append(str(p))
+    return figs

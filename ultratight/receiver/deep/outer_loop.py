@@ -1,0 +1,503 @@
+"""Outer (vector) loop: per-channel carrier Doppler and code-phase rate predicted from the
+corrected SINS position/velocity, the broadcast ephemeris and the receiver-clock estimates
+(Zhao et al. 2014, Fig. 1, the "倍频" branch), at the SINS rate (100 Hz), CIC-interpolated to the
+prefilter rate (1000 Hz) to aid every channel's NCO.
+
+Speed.  The light-time solution is the one of :func:`ultratight.signals.geometry.light_time`
+(same equations: fixed-point light time, Sagnac rotation, exact range-rate with the Sagnac
+rate and satellite clock drift), but evaluated for *all channels at once*: each satellite's
+ephemeris state is tabulated once per run on a 0.5 s grid (one vectorised ``sat_state`` call
+per PRN) and evaluated by cubic Hermite interpolation (position+velocity, error < 1 µm), and
+the light-time iteration starts from the previous epoch's travel time (2 iterations).  The
+test suite checks it against ``light_time`` (tests/test_engine.py).
+
+Timing.  ``t`` is seconds since the first IF sample, on the receiver clock; the receiver-clock
+reading of GPS time is ``tow0 + t``, and the true reception time used in the light-time
+equation is ``tow0 + t - b/c`` (``b`` = receiver clock bias estimate, m).
+
+CIC latency.  A CIC interpolator of order N and rate R delays its input by a known group delay
+D (s).  The value pushed at SINS epoch ``t_s`` is therefore the prediction for
+``t_s + D + 1/rate`` (kinematic extrapolation with the SINS acceleration and jerk), so that the 1 kHz
+samples that come out after the push at ``t_s`` cover ``[t_s + 1/rate, t_s + 2/rate)`` —
+strictly causal: the SINS never needs IMU data past the current correlator epoch + one SINS
+step.
+"""
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ultratight.constants import C, OMEGA_E
+from ultratight.errors import ConfigError
+from ultratight.fusion.coupling import rateconv
+from ultratight.signals.ephemeris import sat_state
+from ultratight.signals.signal import GPS_L1CA
+
+SAT_GRID_S = 0.5          # ephemeris tabulation step, s
+LT_ITER = 2               # light-time iterations per call (warm-started)
+NOMINAL_TAU_S = 0.075
+
+
+class SatTable:
+    """Tabulated satellite states of several PRNs for fast multi-channel evaluation."""
+
+    def __init__(self, ephs, prns, tow_start_s, tow_end_s, step_s=SAT_GRID_S):
+        self.prns = list(prns)
+        self.t0 = float(tow_start_s) - 2.0 * step_s - 0.2
+        n = int(np.ceil((float(tow_end_s) + 0.2 + 2.0 * step_s - self.t0) / step_s)) + 2
+        self.h = float(step_s)
+        t = self.t0 + np.arange(n) * self.h
+        nch = len(self.prns)
+        self.pos = np.empty((nch, n, 3))
+        self.vel = np.empty((nch, n, 3))
+        self.clk = np.empty((nch, n))
+        self.clk_dot = np.empty((nch, n))
+        for i, prn in enumerate(self.prns):
+            if prn not in ephs:
+                raise ConfigError(f"outer loop: no ephemeris for PRN {prn}")
+            p, v, b, d = sat_state(ephs[prn], t)
+            self.pos[i], self.vel[i], self.clk[i], self.clk_dot[i] = p, v, b, d
+        self.n = n
+        self._rows = np.arange(nch)
+
+    def state(self, t):
+        """Hermite-interpolated (pos (n,3), vel (n,3), clk (n,), clk_dot (n,)) at times t (n_ch,)."""
+        u = (np.asarray(t, dtype=float) - self.t0) / self.h
+        k = np.clip(np.floor(u).astype(np.int64), 0, self.n - 2)
+        s = u - k
+        r = self._rows
+        p0, p1 = self.pos[r, k], self.pos[r, k + 1]
+        v0, v1 = self.vel[r, k] * self.h, self.vel[r, k + 1] * self.h
+        s2 = s * s
+        s3 = s2 * s
+        h00 = 2 * s3 - 3 * s2 + 1
+        h10 = s3 - 2 * s2 + s
+        h01 = -2 * s3 + 3 * s2
+        h11 = s3 - s2
+        pos = h00[:, None] * p0 + h10[:, None] * v0 + h01[:, None] * p1 + h11[:, None] * v1
+        d00 = 6 * s2 - 6 * s
+        d10 = 3 * s2 - 4 * s + 1
+        d01 = -d00
+        d11 = 3 * s2 - 2 * s
+        vel = (d00[:, None] * p0 + d10[:, None] * v0 + d01[:, None] * p1 + d11[:, None] * v1) / self.h
+        c0, c1 = self.clk[r, k], self.clk[r, k + 1]
+        cd0, cd1 = self.clk_dot[r, k] * self.h, self.clk_dot[r, k + 1] * self.h
+        clk = h00 * c0 + h10 * cd0 + h01 * c1 + h11 * cd1
+        clk_dot = (d00 * c0 + d10 * cd0 + d01 * c1 + d11 * cd1) / self.h
+        return pos, vel, clk, clk_dot
+
+
+def _rot_z(theta, v):
+    c, s = np.cos(theta), np.sin(theta)
+    out = np.empty_like(v)
+    out[:, 0] = c * v[:, 0] + s * v[:, 1]
+    out[:, 1] = -s * v[:, 0] + c * v[:, 1]
+    out[:, 2] = v[:, 2]
+    return out
+
+
+@njit(cache=True)
+def _herm(tab_p, tab_v, i, k, s, h, out_p, out_v):
+    """Cubic Hermite position/velocity of row i at node k, fraction s (numba)."""
+    s2 = s * s
+    s3 = s2 * s
+    h00 = 2 * s3 - 3 * s2 + 1
+    h10 = s3 - 2 * s2 + s
+    h01 = -2 * s3 + 3 * s2
+    h11 = s3 - s2
+    d00 = 6 * s2 - 6 * s
+    d10 = 3 * s2 - 4 * s + 1
+    d11 = 3 * s2 - 2 * s
+    for a in range(tab_p.shape[2]):
+        p0 = tab_p[i, k, a]
+        p1 = tab_p[i, k + 1, a]
+        v0 = tab_v[i, k, a] * h
+        v1 = tab_v[i, k + 1, a] * h
+        out_p[a] = h00 * p0 + h10 * v0 + h01 * p1 + h11 * v1
+        out_v[a] = (d00 * p0 + d10 * v0 - d00 * p1 + d11 * v1) / h
+
+
+@njit(cache=True)
+def _solve_all(t0, h, n, pos, vel, clk, clkd, rx, rv, t_rx, bias, drift, iters, tau,
+               out_pr, out_prdot, out_cp, out_ttx, out_los, chip_rate, code_len):
+    """Light-time solution for every row of the table (same equations as geometry.light_time);
+    code phases for a code of ``code_len`` chips at ``chip_rate`` chips/s."""
+    nch = pos.shape[0]
+    p = np.empty(3)
+    v = np.empty(3)
+    for i in range(nch):
+        ta = tau[i]
+        for _ in range(iters):
+            u = (t_rx - ta - t0) / h
+            k = int(math.floor(u))
+            if k < 0:
+                k = 0
+            if k > n - 2:
+                k = n - 2
+            _herm(pos, vel, i, k, u - k, h, p, v)
+            th = OMEGA_E * ta
+            c, sn = math.cos(th), math.sin(th)
+            dx = c * p[0] + sn * p[1] - rx[0]
+            dy = -sn * p[0] + c * p[1] - rx[1]
+            dz = p[2] - rx[2]
+            ta = math.sqrt(dx * dx + dy * dy + dz * dz) / C
+        tau[i] = ta
+        t_tx = t_rx - ta
+        u = (t_tx - t0) / h
+        k = int(math.floor(u))
+        if k < 0:
+            k = 0
+        if k > n - 2:
+            k = n - 2
+        s = u - k
+        _herm(pos, vel, i, k, s, h, p, v)
+        # clock (Hermite with the drift)
+        s2 = s * s
+        s3 = s2 * s
+        ck = (2 * s3 - 3 * s2 + 1) * clk[i, k] + (s3 - 2 * s2 + s) * clkd[i, k] * h \
+            + (-2 * s3 + 3 * s2) * clk[i, k + 1] + (s3 - s2) * clkd[i, k + 1] * h
+        ckd = ((6 * s2 - 6 * s) * clk[i, k] + (3 * s2 - 4 * s + 1) * clkd[i, k] * h
+               - (6 * s2 - 6 * s) * clk[i, k + 1] + (3 * s2 - 2 * s) * clkd[i, k + 1] * h) / h
+        th = OMEGA_E * ta
+        c, sn = math.cos(th), math.sin(th)
+        pr0 = c * p[0] + sn * p[1]
+        pr1 = -sn * p[0] + c * p[1]
+        pr2 = p[2]
+        vr0 = c * v[0] + sn * v[1]
+        vr1 = -sn * v[0] + c * v[1]
+        vr2 = v[2]
+        # d/dtheta R3(theta) r = R3(theta) (y, -x, 0)
+        dp0 = c * p[1] + sn * (-p[0])
+        dp1 = -sn * p[1] + c * (-p[0])
+        dx = pr0 - rx[0]
+        dy = pr1 - rx[1]
+        dz = pr2 - rx[2]
+        rng = math.sqrt(dx * dx + dy * dy + dz * dz)
+        l0, l1, l2 = dx / rng, dy / rng, dz / rng
+        a_term = l0 * (vr0 - rv[0]) + l1 * (vr1 - rv[1]) + l2 * (vr2 - rv[2])
+        b_term = l0 * (vr0 - OMEGA_E * dp0) + l1 * (vr1 - OMEGA_E * dp1) + l2 * vr2
+        rng_dot = a_term / (1.0 + b_term / C)
+        tau_dot = rng_dot / C
+        out_pr[i] = rng + bias - C * ck
+        out_prdot[i] = rng_dot + drift - C * ckd * (1.0 - tau_dot)
+        t_sv = t_tx + ck
+        out_ttx[i] = t_sv
+        cpv = (t_sv * chip_rate) % code_len
+        out_cp[i] = cpv
+        out_los[i, 0] = l0
+        out_los[i, 1] = l1
+        out_los[i, 2] = l2
+
+
+class MultiLightTime:
+    """All-channel light-time solution (same equations as ``geometry.light_time``, numba)."""
+
+    def __init__(self, table, signal=GPS_L1CA):
+        self.table = table
+        self.signal = signal
+        self.tau = np.full(len(table.prns), NOMINAL_TAU_S)
+        n = len(table.prns)
+        self._pr = np.empty(n)
+        self._prd = np.empty(n)
+        self._cp = np.empty(n)
+        self._ttx = np.empty(n)
+        self._los = np.empty((n, 3))
+
+    def solve(self, rx_pos_e, rx_vel_e, t_rx_true_tow, clk_bias_m=0.0, clk_drift_mps=0.0, iters=LT_ITER):
+        tb = self.table
+        _solve_all(tb.t0, tb.h, tb.n, tb.pos, tb.vel, tb.clk, tb.clk_dot,
+                   np.ascontiguousarray(rx_pos_e, dtype=np.float64),
+                   np.ascontiguousarray(rx_vel_e, dtype=np.float64), float(t_rx_true_tow),
+                   float(clk_bias_m), float(clk_drift_mps), int(iters), self.tau,
+                   self._pr, self._prd, self._cp, self._ttx, self._los, float(self.signal.chip_rate_hz),
+                   float(self.signal.code_length))
+        doppler = -self._prd / self.signal.wavelength_m
+        return {
+            "pseudorange_m": self._pr.copy(), "range_rate_mps": self._prd.copy(), "doppler_hz": doppler,
+            "code_phase_chips": self._cp.copy(), "code_rate_cps": self.signal.code_rate_cps(doppler),
+            "t_tx_tow": self._ttx.copy(), "los_e": self._los.copy(),
+        }
+
+    def solve_numpy(self, rx_pos_e, rx_vel_e, t_rx_true_tow, clk_bias_m=0.0, clk_drift_mps=0.0, iters=LT_ITER):
+        rx = np.asarray(rx_pos_e, dtype=float)
+        rv = np.asarray(rx_vel_e, dtype=float)
+        t_rx = float(t_rx_true_tow)
+        tau = self.tau
+        for _ in range(iters):
+            pos = self.table.state(t_rx - tau)[0]
+            d = _rot_z(OMEGA_E * tau, pos) - rx
+            tau = np.sqrt(np.einsum("ij,ij->i", d, d)) / C
+        self.tau = tau
+        t_tx = t_rx - tau
+        pos, vel, clk, clk_dot = self.table.state(t_tx)
+        theta = OMEGA_E * tau
+        pos_r = _rot_z(theta, pos)
+        vel_r = _rot_z(theta, vel)
+        d = pos_r - rx
+        rng = np.sqrt(np.einsum("ij,ij->i", d, d))
+        los = d / rng[:, None]
+        n = pos.shape[0]
+        dpos_dtheta = _rot_z(theta, np.stack((pos[:, 1], -pos[:, 0], np.zeros(n)), axis=-1))
+        a_term = np.einsum("ij,ij->i", los, vel_r - rv)
+        b_term = np.einsum("ij,ij->i", los, vel_r - OMEGA_E * dpos_dtheta)
+        rng_dot = a_term / (1.0 + b_term / C)
+        tau_dot = rng_dot / C
+        pr = rng + clk_bias_m - C * clk
+        pr_dot = rng_dot + clk_drift_mps - C * clk_dot * (1.0 - tau_dot)
+        t_sv = t_tx + clk
+        sgl = self.signal
+        doppler = -pr_dot / sgl.wavelength_m
+        return {
+            "pseudorange_m": pr, "range_rate_mps": pr_dot, "doppler_hz": doppler,
+            "code_phase_chips": np.mod(t_sv * sgl.chip_rate_hz, float(sgl.code_length)),
+            "code_rate_cps": sgl.code_rate_cps(doppler),
+            "t_tx_tow": t_sv, "los_e": los, "sat_pos_e": pos_r, "sat_vel_e": vel_r, "range_m": rng,
+        }
+
+
+class OuterLoop:
+    """100 Hz per-channel predictions -> CIC -> 1 kHz NCO aiding (see module docstring).
+
+    ``interp_factory(n_ch)`` returns an interpolator object with ``push(x (n_ch, k)) ->
+    (n_ch, k*R)`` semantics and attributes ``ratio`` and ``delay_s``; by default
+    :func:`make_cic` (the CIC interpolator of fusion.rateconv).
+    """
+
+    def __init__(self, ephs, prns, week, tow0_s, duration_s, rate_hz=100.0, out_rate_hz=1000.0,
+                 interp_factory=None, cic_order=3, signal=GPS_L1CA):
+        self.signal = signal
+        self._chip_rate = float(signal.chip_rate_hz)
+        self.prns = list(prns)
+        self.week = week
+        self.tow0 = float(tow0_s)
+        self.rate_hz = float(rate_hz)
+        self.out_rate_hz = float(out_rate_hz)
+        ratio = self.out_rate_hz / self.rate_hz
+        if abs(ratio - round(ratio)) > 1e-9 or ratio < 1:
+            raise ConfigError(f"outer loop: output rate {out_rate_hz} Hz must be an integer multiple of "
+                              f"the SINS rate {rate_hz} Hz")
+        self.ratio = int(round(ratio))
+        self.table = SatTable(ephs, self.prns, self.tow0 - 1.0, self.tow0 + duration_s + 1.0)
+        self.lt = MultiLightTime(self.table, signal)
+        n_ch = len(self.prns)
+        if interp_factory is None:
+            interp_factory = make_cic
+        self.interp = interp_factory(n_ch, self.ratio, cic_order, self.rate_hz)
+        self.delay_s = float(self.interp.delay_s)
+        n_out = int(np.ceil((duration_s + 1.0) * self.out_rate_hz)) + 4 * self.ratio
+        self.aid_doppler = np.full((n_out, n_ch), np.nan)
+        self.aid_code_rate = np.full((n_out, n_ch), np.nan)
+        self.n_filled = 0          # aid arrays are valid on out-grid indices [j0, n_filled)
+        # Doppler offset removed from the aiding stream (the double loop books the tight-filter
+        # corrections here so that only the SINS *dynamics* reach the NCO increments)
+        self.offset_hz = np.zeros(n_ch)
+        self.j0 = None
+
+    def predict(self, t, pos_e, vel_e, clk_bias_m, clk_drift_mps):
+        """Predictions for all channels at receiver time ``t`` (s since the first sample)."""
+        t_true = self.tow0 + t - clk_bias_m / C
+        return self.lt.solve(pos_e, vel_e, t_true, clk_bias_m, clk_drift_mps)
+
+    def aiding_at(self, t):
+        """Doppler aiding (Hz) of each channel at its receiver time ``t[c]`` (s since the first
+        sample): linear interpolation on the output grid, clamped to the filled part."""
+        u = np.asarray(t) * self.out_rate_hz
+        j = np.clip(np.floor(u).astype(np.int64), 0, self.n_filled - 2)
+        r = np.arange(u.shape[0])
+        return self.aid_doppler[j, r] * (1.0 - (u - j)) + self.aid_doppler[j + 1, r] * (u - j)
+
+    def push(self, t_s, pos_e, vel_e, acc_e, clk_bias_m, clk_drift_mps, jerk_e=None):
+        """Feed the SINS state of epoch ``t_s``; appends 1 kHz aiding samples.
+
+        The prediction is made for ``t_s + lead`` with ``lead = delay + 1/rate`` by kinematic
+        extrapolation so the emerging 1 kHz samples refer to ``[t_s + 1/rate, t_s + 2/rate)``.
+        """
+        lead = self.delay_s + 1.0 / self.rate_hz
+        j = np.zeros(3) if jerk_e is None else np.asarray(jerk_e)
+        p = np.asarray(pos_e) + np.asarray(vel_e) * lead + 0.5 * np.asarray(acc_e) * lead * lead \
+            + j * lead ** 3 / 6.0
+        v = np.asarray(vel_e) + np.asarray(acc_e) * lead + 0.5 * j * lead * lead
+        pr = self.predict(t_s + lead, p, v, clk_bias_m + clk_drift_mps * lead, clk_drift_mps)
+        x = np.stack([pr["doppler_hz"] - self.offset_hz, pr["code_rate_cps"] - self._chip_rate], axis=0)   # (2, n_ch)
+        y = self.interp.push(x)                                              # (2, n_ch, ratio)
+        j_start = int(round((t_s + 1.0 / self.rate_hz) * self.out_rate_hz))
+        if self.j0 is None:
+            self.j0 = j_start
+        j_end = min(j_start + self.ratio, self.aid_doppler.shape[0])
+        k = j_end - j_start
+        if k > 0 and j_start >= 0:
+            self.aid_doppler[j_start:j_end] = y[0, :, :k].T
+            self.aid_code_rate[j_start:j_end] = y[1, :, :k].T + self._chip_rate
+            self.n_filled = j_end
+        return pr
+
+    def prime(self, t_s, pos_e, vel_e, acc_e, clk_bias_m, clk_drift_mps, n_hist=6):
+        """Fill the interpolator's history with the kinematically extrapolated *past* predictions
+        (constant acceleration), so that its output has no start-up transient on a ramp."""
+        if hasattr(self.interp, "prime"):
+            lead = self.delay_s + 1.0 / self.rate_hz
+            p0 = self.predict(t_s + lead - n_hist / self.rate_hz, pos_e, vel_e, clk_bias_m, clk_drift_mps)
+            self.interp.prime(np.stack([p0["doppler_hz"] - self.offset_hz, p0["code_rate_cps"] - self._chip_rate], axis=0))
+        pos_e, vel_e, acc_e = (np.asarray(v, dtype=float) for v in (pos_e, vel_e, acc_e))
+        for k in range(n_hist, 0, -1):
+            tau = self.delay_s + 1.0 / self.rate_hz - k / self.rate_hz
+            p = pos_e + vel_e * tau + 0.5 * acc_e * tau * tau
+            v = vel_e + acc_e * tau
+            pr = self.predict(t_s + tau, p, v, clk_bias_m + clk_drift_mps * tau, clk_drift_mps)
+            self.interp.push(np.stack([pr["doppler_hz"] - self.offset_hz, pr["code_rate_cps"] - self._chip_rate], axis=0))
+
+
+class PredictionRing:
+    """The outer loop's exact predictions at the last ``size`` SINS epochs (receiver time ``t``,
+    code phase, code rate, Doppler per channel): the reference the tracking estimates are
+    differenced against (residuals for the tight filter, linear in time between SINS epochs)."""
+
+    def __init__(self, n_ch, size=64):
+        self.t = np.full(size, np.nan)
+        self.cp = np.zeros((size, n_ch))
+        self.r = np.zeros((size, n_ch))
+        self.f = np.zeros((size, n_ch))
+        self.nf = np.zeros(size, dtype=np.int64)   # the outer loop's aiding grid end after each entry
+        self.k = 0                   # predictions put so far; the latest is at (k - 1) % size
+
+    @property
+    def latest(self):
+        return (self.k - 1) % self.t.shape[0]
+
+    def put(self, t, pr, n_filled):
+        i = self.k % self.t.shape[0]
+        self.nf[i] = n_filled
+        self.t[i] = t
+        self.cp[i] = pr["code_phase_chips"]
+        self.r[i] = pr["code_rate_cps"]
+        self.f[i] = pr["doppler_hz"]
+        self.k += 1
+
+
+class SinsFollower:
+    """Feeds an :class:`OuterLoop` from the corrected SINS (:class:`ultratight.receiver.deep.sins_clock.InsClock`):
+    exact predictions at every SINS epoch into its :class:`PredictionRing`, and the kinematics
+    (velocity, finite-difference acceleration and jerk) for the CIC-interpolated aiding.  Predictions
+    are made at the antenna (``InsClock.antenna_pos_vel_e``: the IMU point plus the lever arm)."""
+
+    def __init__(self, outer, ins, t_sins, dtheta0, dv0, dt0, code_period_s):
+        """Start the outer loop at the SINS epoch ``t_sins``: the acceleration from a trial step over
+        the first IMU interval, the interpolator's history, the aiding of the first interval by
+        direct predictions, and the first ring entry."""
+        self.outer = outer
+        self.ins = ins
+        self.t = float(t_sins)
+        self.ring = PredictionRing(len(outer.prns))
+        pos_e, vel_e, _ = ins.antenna_pos_vel_e()
+        self.first = outer.predict(self.t, pos_e, vel_e, ins.clk_b, ins.clk_d)
+        acc0_e = (ins.trial_velocity_e(dtheta0, dv0, dt0) - ins.pos_vel_e()[1]) / dt0
+        outer.prime(self.t, pos_e, vel_e, acc0_e, ins.clk_b, ins.clk_d)
+        for j in range(outer.ratio + 1):
+            tj = j * 1e-3
+            pj = outer.predict(self.t + tj, pos_e + vel_e * tj + 0.5 * acc0_e * tj * tj, vel_e + acc0_e * tj,
+                               ins.clk_b + ins.clk_d * tj, ins.clk_d)
+            outer.aid_doppler[j] = pj["doppler_hz"]
+            outer.aid_code_rate[j] = pj["code_rate_cps"]
+        outer.push(self.t, pos_e, vel_e, acc0_e, ins.clk_b, ins.clk_d)
+        self.ring.put(self.t, self.first, outer.n_filled)
+        self.vel_prev = vel_e.copy()
+        self.acc_prev = acc0_e.copy()
+
+    def step(self, t_sins, dt):
+        """After the SINS stepped to ``t_sins`` (interval ``dt``): ring entry and aiding samples."""
+        ins = self.ins
+        self.t = t_sins
+        pos_e, vel_e, _ = ins.antenna_pos_vel_e()
+        acc_e = (vel_e - self.vel_prev) / dt
+        jerk_e = (acc_e - self.acc_prev) / dt
+        self.acc_prev = acc_e
+        self.vel_prev = vel_e
+        pr = self.outer.predict(t_sins, pos_e, vel_e, ins.clk_b, ins.clk_d)
+        # kinematics at the middle of the last interval -> extrapolate from there
+        self.outer.push(t_sins, pos_e, vel_e, acc_e + 0.5 * dt * jerk_e, ins.clk_b, ins.clk_d, jerk_e)
+        self.ring.put(t_sins, pr, self.outer.n_filled)
+
+    def los_e(self):
+        """Unit lines of sight (ECEF) at the current SINS state."""
+        pos_e, vel_e, _ = self.ins.antenna_pos_vel_e()
+        return self.outer.predict(self.t, pos_e, vel_e, self.ins.clk_b, self.ins.clk_d)["los_e"]
+
+    def apply_correction(self, code_length, book_offset):
+        """After a tight-filter feedback: shift the ring's predictions to the corrected SINS (the
+        residuals stay consistent) and, with ``book_offset`` (double loop), book the Doppler change
+        in the outer loop's offset so the correction does not jump the NCOs. Returns the Doppler
+        change per channel (Hz)."""
+        ins = self.ins
+        ring = self.ring
+        pos_e, vel_e, _ = ins.antenna_pos_vel_e()
+        pr_fix = self.outer.predict(self.t, pos_e, vel_e, ins.clk_b, ins.clk_d)
+        i1 = ring.latest
+        half = 0.5 * code_length
+        dcp = np.mod(pr_fix["code_phase_chips"] - ring.cp[i1] + half, code_length) - half
+        dfp = pr_fix["doppler_hz"] - ring.f[i1]
+        ring.cp += dcp
+        ring.f += dfp
+        if book_offset:
+            self.outer.offset_hz += dfp
+        ring.r[i1] = pr_fix["code_rate_cps"]
+        self.vel_prev = vel_e.copy()
+        return dfp
+
+
+def make_cic(n_ch, ratio, order, in_rate_hz):
+    """The CIC interpolator of fusion.rateconv for two quantities x n_ch channels (adapter)."""
+    return _CicAdapter(n_ch, ratio, order, in_rate_hz)
+
+
+class _CicAdapter:
+    """Adapter around :mod:`ultratight.fusion.coupling.rateconv`'s CIC interpolator.
+
+    Works on a (2, n_ch) input per push and returns (2, n_ch, ratio).
+    """
+
+    def __new__(cls, n_ch, ratio, order, in_rate_hz):
+        try:
+            from ultratight.fusion import rateconv  # noqa: F401
+        except ImportError:
+            return _LinearInterp(n_ch, ratio, in_rate_hz)
+        return super().__new__(cls)
+
+    def __init__(self, n_ch, ratio, order, in_rate_hz):
+        self.ratio = ratio
+        self.n_ch = n_ch
+        self._cic = rateconv.CicInterpolator(ratio, N=order, M=1, f_lo_hz=in_rate_hz, shape=(2 * n_ch,))
+        self.delay_s = float(self._cic.delay_s)
+        self._t = 0.0
+        self._dt = 1.0 / in_rate_hz
+
+    def prime(self, x):
+        self._cic.prime(np.asarray(x, dtype=float).reshape(-1))
+
+    def push(self, x):
+        _, y = self._cic.push(self._t, np.asarray(x, dtype=float).reshape(-1))   # (ratio, 2*n_ch)
+        self._t += self._dt
+        return np.asarray(y).T.reshape(2, self.n_ch, self.ratio)
+
+
+class _LinearInterp:
+    """Fallback (only when ultratight.fusion.coupling.rateconv is unavailable): linear interpolation
+    between the last two inputs, delay one input period."""
+
+    def __init__(self, n_ch, ratio, in_rate_hz):
+        self.ratio = ratio
+        self.n_ch = n_ch
+        self.delay_s = 1.0 / in_rate_hz
+        self.prev = None
+        self._w = np.arange(ratio) / ratio
+
+    def prime(self, x):
+        self.prev = np.asarray(x, dtype=float).copy()
+
+    def push(self, x):
+        x = np.asarray(x, dtype=float)
+        if self.prev is None:
+            self.prev = x.copy()
+        y = self.prev[..., None] + (x - self.prev)[..., None] * self._w
+        self.prev = x.copy()
+        return y

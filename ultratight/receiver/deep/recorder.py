@@ -1,0 +1,117 @@
+"""Recorder of the ultra-tight engine: per-epoch tracking estimates, the navigation solution
+at every tight-filter update and at every SINS step (the SINS-rate solution with the 1-sigma of
+the integration filter's covariance), and the :class:`EngineResult` built from them."""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ultratight.fusion.coupling.tight import ATT, CLK_B, CLK_D, POS, VEL
+from ultratight.ins.attitude import quat_to_euler
+from ultratight.ins.earth import radii
+
+
+
+@dataclass
+class EngineResult:
+    method: str
+    prns: list
+    t_start: np.ndarray          # (n_ep, n_ch) s since the first sample
+    doppler_hz: np.ndarray       # (n_ep, n_ch) estimate (NCO + prefilter)
+    code_phase_chips: np.ndarray  # (n_ep, n_ch) estimate (NCO + prefilter), modulo the code length
+    amp: np.ndarray              # (n_ep, n_ch) prefilter amplitude estimate
+    mode: np.ndarray             # (n_ep, n_ch) int8 MODE_*
+    nav_t: np.ndarray            # (n_nav,) tight-update times
+    nav_pos_e: np.ndarray        # (n_nav, 3)
+    nav_vel_e: np.ndarray
+    nav_clk: np.ndarray          # (n_nav, 2) bias m, drift m/s
+    nav_sigma_doppler_hz: np.ndarray  # (n_nav, n_ch)
+    runtime_s: float
+    duration_s: float
+    info: dict
+    # the SINS-rate navigation solution (EpochRecorder.sins_arrays): t_s, llh, vel_l, q_lb, euler,
+    # clk and the 1-sigma of the integration filter (pos ENU m, vel ENU m/s, att ENU rad, clk m, m/s)
+    sins: dict = field(default_factory=dict)
+    bit_source: np.ndarray = None   # (n_ep, n_ch) int8 source of each epoch's data bit (receiver.wipeoff BIT_*)
+
+
+class EpochRecorder:
+    """Per-epoch arrays (written by the compiled epoch stages, :func:`ultratight.receiver.deep.epochs.epoch_post`)
+    for at most ``n_ep_max`` epochs of ``n_ch`` channels, and the navigation log."""
+
+    def __init__(self, n_ep_max, n_ch):
+        self.n_ep_max = int(n_ep_max)
+        self.n_ch = int(n_ch)
+        self.t = np.full((n_ep_max, n_ch), np.nan)
+        self.f = np.full((n_ep_max, n_ch), np.nan)
+        self.cp = np.full((n_ep_max, n_ch), np.nan)
+        self.a = np.full((n_ep_max, n_ch), np.nan)
+        self.mode = np.zeros((n_ep_max, n_ch), dtype=np.int8)
+        self.nav = {"t": [], "pos_e": [], "vel_e": [], "clk": [], "sig": []}
+        self.sins = []                     # rows: t, llh (3), vel_l (3), q_lb (4), clk b, d
+        self.sins_sig = []                 # rows: sigma pos ENU (3), vel (3), att (3), clk b, d
+        self.sigma_now = np.full(11, np.nan)
+
+    def set_sigma(self, P, llh):
+        """The 1-sigma of the integration filter's covariance ``P`` (tight.NX states) that the SINS
+        rows carry until the next update: position ENU (m), velocity ENU (m/s), attitude (rad,
+        ENU error angles), clock bias (m) and drift (m/s)."""
+        lat, _, h = (float(v) for v in llh)
+        rm, rn = radii(lat)
+        d = np.sqrt(np.maximum(np.diag(P), 0.0))
+        p = d[POS]
+        s = np.empty(11)
+        s[0] = p[1] * (rn + h) * np.cos(lat)
+        s[1] = p[0] * (rm + h)
+        s[2] = p[2]
+        s[3:6] = d[VEL]
+        s[6:9] = d[ATT]
+        s[9] = d[CLK_B]
+        s[10] = d[CLK_D]
+        self.sigma_now = s
+
+    def log_sins(self, t, x, clk_b, clk_d, replace=False):
+        """The SINS state vector ``x`` (ultratight.ins.sins layout: q_lb, vel_l, llh) at time ``t``;
+        ``replace``: overwrite the last row (the same step after a feedback)."""
+        row = np.empty(13)
+        row[0] = t
+        row[1:4] = x[7:10]
+        row[4:7] = x[4:7]
+        row[7:11] = x[0:4]
+        row[11] = clk_b
+        row[12] = clk_d
+        if replace and self.sins:
+            self.sins[-1] = row
+            self.sins_sig[-1] = self.sigma_now.copy()
+        else:
+            self.sins.append(row)
+            self.sins_sig.append(self.sigma_now.copy())
+
+    def sins_arrays(self):
+        """The SINS-rate solution as arrays (see EngineResult.sins)."""
+        a = np.asarray(self.sins, float).reshape(-1, 13)
+        s = np.asarray(self.sins_sig, float).reshape(-1, 11)
+        eul = np.array([quat_to_euler(q) for q in a[:, 7:11]]).reshape(-1, 3)
+        return {"t_s": a[:, 0], "llh": a[:, 1:4], "vel_l": a[:, 4:7], "q_lb": a[:, 7:11], "euler": eul,
+                "clk": a[:, 11:13], "sigma_pos_l_m": s[:, 0:3], "sigma_vel_l_mps": s[:, 3:6],
+                "sigma_att_rad": s[:, 6:9], "sigma_clk": s[:, 9:11]}
+
+    def log_nav(self, t, pos_e, vel_e, clk_b, clk_d, sig_dopp):
+        """The navigation state after a tight update (SINS time ``t``)."""
+        self.nav["t"].append(t)
+        self.nav["pos_e"].append(np.array(pos_e, dtype=float))
+        self.nav["vel_e"].append(np.array(vel_e, dtype=float))
+        self.nav["clk"].append([clk_b, clk_d])
+        self.nav["sig"].append(np.array(sig_dopp, dtype=float))
+
+    def result(self, method, prns, n_ep, runtime_s, code_period_s, info):
+        """The :class:`EngineResult` of the first ``n_ep`` epochs."""
+        n = int(n_ep)
+        nav = self.nav
+        return EngineResult(
+            method=method, prns=list(prns), t_start=self.t[:n], doppler_hz=self.f[:n],
+            code_phase_chips=self.cp[:n], amp=self.a[:n], mode=self.mode[:n],
+            nav_t=np.asarray(nav["t"]), nav_pos_e=np.asarray(nav["pos_e"]).reshape(-1, 3),
+            nav_vel_e=np.asarray(nav["vel_e"]).reshape(-1, 3), nav_clk=np.asarray(nav["clk"]).reshape(-1, 2),
+            nav_sigma_doppler_hz=np.asarray(nav["sig"]).reshape(-1, self.n_ch), runtime_s=runtime_s,
+            duration_s=n * code_period_s, info=info, sins=self.sins_arrays())

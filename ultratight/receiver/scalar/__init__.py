@@ -1,0 +1,1 @@
+"""The scalar receiver: tracking to observables, LNAV decoding, PVT, built from the dsp stages."""

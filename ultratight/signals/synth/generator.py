@@ -1,0 +1,802 @@
+"""GPS L1 C/A sampled-IF signal generator (streaming, numba, batched over satellites).
+
+Signal model (receiver sample ``n``, receiver-clock time ``T_n = tow0 + n/fs``)::
+
+    complex:  x_n = sum_k a_k D_k c_k(chi_k(n)) exp(j 2 pi (f_IF n/fs + phi_k(n))) + w_n
+    real:     x_n = sum_k a_k D_k c_k(chi_k(n)) cos(2 pi (f_IF n/fs + phi_k(n)))   + w_n
+
+``chi_k`` (C/A code phase, chips) and ``phi_k`` (carrier phase, cycles, = -pseudorange/lambda,
+i.e. relative to a nominal L1 oscillator driven by the receiver clock) come from
+:func:`ultratight.signals.geometry.light_time` for the signal arriving when the receiver
+clock reads ``T_n``. ``w`` is white Gaussian noise of std ``sigma = 1`` per real component
+(times the noise-event factor), ``a_k`` from :func:`ultratight.signals.corr_model.signal_amplitude`
+for the satellite's C/N0, ``D_k`` the LNAV bit (:func:`ultratight.signals.lnav.nav_bits`) of the
+C/A epoch being received (bits align with the satellite-clock transmit time). Spectral
+inversion writes ``conj`` (complex) or ``cos(2 pi f_IF t - phi)`` (real) and marks the sidecar
+``inversion: true``; :func:`ultratight.signals.recording.iffile.open_if` undoes it.
+
+Geometry: the light-time solution is evaluated per satellite at the start and the middle of
+every interval of ``L = round(fs * 1 ms)`` samples (plus the final end point); inside an
+interval the code phase and carrier phase are the quadratic through those three nodes,
+evaluated per sample. For the paper's 20 g / 40 g/s flight the interpolation error is far
+below 1 mm (tests/test_generator.py checks it against direct light-time solutions).
+
+Receiver clock: bias ``b(e) = clock_bias_m + clock_drift_mps * e`` (e = receiver-clock seconds
+since the start); the true reception time of sample ``n`` is ``T_n - b/c`` and the trajectory
+time is ``e - (b(e) - b(0))/c``.
+
+Atmosphere (scenario table ``[atmosphere]``, opt-in; :mod:`ultratight.signals.atmosphere`): the
+code is delayed by ``I + T`` and the carrier phase advanced by ``I`` and delayed by ``T``
+(``I``: Klobuchar ionosphere times ``iono_scale``, ``T``: Saastamoinen troposphere with the
+named mapping function), evaluated at the true receive time with the receiver's geodetic
+position and the satellite's elevation/azimuth: ``pseudorange += I + T``,
+``t_tx_tow -= (I + T)/c`` (code phase and data bits follow), ``carrier_phase_cycles -= (T - I)/lambda``
+and the truth Doppler gets ``-d(T - I)/dt / lambda``.  The truth file records ``iono_m`` and
+``tropo_m`` (zeros without ``[atmosphere]``); with ``broadcast = true`` the coefficients are sent
+in subframe 4 page 18 of every satellite's LNAV.
+
+Horizon (``satellites.horizon_deg``, opt-in): satellites rising above ``mask_deg`` during the
+run are generated as well, and every satellite's amplitude is zero while its elevation is below
+``horizon_deg`` (terrain or obstructions; 0 = the open horizon); the truth ``cn0_dbhz`` keeps the
+configured value.
+
+Random numbers: one ``numpy.random.Generator`` from the seed
+(``SeedSequence(seed).spawn(2)``: noise, IMU); noise is drawn block by block with
+``standard_normal(dtype=float32)`` in a fixed block size, so a seed always gives the same file.
+:class:`Generation` holds one generation's fixed part; every pass over its blocks
+(:meth:`Generation.blocks`) starts a new noise generator from the noise sequence and the front-end
+filter from rest, so :func:`generate` and :class:`ultratight.signals.synth.ifstream.GeneratedIf` (the same
+samples handed to a receiver in memory, without a file) agree bit for bit.
+
+Outputs (see docs/generator.md for the schema): ``<stem>.<format>`` IF file and its
+``.json`` sidecar, ``<stem>.truth.h5``, and when the scenario has ``[imu]``,
+``<stem>.imu.h5`` and ``<stem>.traj.h5``. Everything is written to temporary names and
+renamed at the end; a failure removes the temporaries.
+"""
+
+import errno
+import json
+import math
+import os
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import h5py
+import numpy as np
+from numba import njit, prange
+from tqdm import tqdm
+
+from ultratight import __version__
+from ultratight.constants import C, CA_LEN, F_CA, LAMBDA_L1, T_CA
+from ultratight.errors import ConfigError
+from ultratight.ins import imu as imu_mod
+from ultratight.ins.trajectory import build_trajectory
+from ultratight.io_guard import describe_os_error, os_errno, tmp_name
+from ultratight.signals.atmosphere import AtmosphereModel
+from ultratight.signals.ca_code import ca_code
+from ultratight.signals.corr_model import signal_amplitude
+from ultratight.signals.constellation import nominal_ephemerides
+from ultratight.signals.synth.frontend import FrontEnd
+from ultratight.signals.geometry import geodetic_llh, light_time, visible_prns
+from ultratight.signals.recording.iffile import FORMATS, IfWriter, check_bits_for_format, get_format
+from ultratight.signals.lnav import IonoUtc, nav_bits, nav_bits_mode, quantise_iono
+from ultratight.signals.rinex import read_rinex_nav
+
+LUT_BITS = 11
+LUT_N = 1 << LUT_BITS
+_LUT_ANG = 2.0 * np.pi * np.arange(LUT_N) / LUT_N
+COS_LUT = np.cos(_LUT_ANG).astype(np.float32)
+SIN_LUT = np.sin(_LUT_ANG).astype(np.float32)
+PHASE_OFFSET = float(1 << 20)     # keeps the per-sample carrier phase positive (see kernels)
+INTERVAL_S = 1e-3                 # geometry node spacing (one C/A period)
+BLOCK_INTERVALS = 100             # intervals per generated block (fixed: reproducibility)
+N_EXT = 3 * CA_LEN                # extended code table length (an interval spans <= 3 code periods)
+
+# coefficient columns: code c0, c1, c2 (chips; chips/sample; chips/sample^2), carrier p0, p1, p2
+C0, C1, C2, P0, P1, P2 = range(6)
+
+
+# ------------------------------------------------------------------------------------------
+# numba kernels
+# ------------------------------------------------------------------------------------------
+@njit(cache=True, fastmath=True, parallel=True, nogil=True)
+def _synth_complex(out, L, n_int, codes, coefs, amps, bits, cos_lut, sin_lut):
+    """Add the satellites' signals to ``out`` (float32 (n_int*L, 2): I, Q). Indices are unsigned
+    (``np.uint64``), so numba leaves out the negative-index wraparound of every look-up (the code
+    phase ``u`` and the carrier index are never negative)."""
+    nsat = codes.shape[0]
+    lutn = cos_lut.shape[0]
+    mask = lutn - 1
+    flut = float(lutn)
+    zero = np.uint64(0)
+    one = np.uint64(1)
+    for k in prange(n_int):          # intervals are independent: spread over numba's threads
+        base = k * L
+        for s in range(nsat):
+            a = amps[k, s]
+            if a == 0.0:
+                continue
+            c0 = coefs[k, s, 0]
+            c1 = coefs[k, s, 1]
+            c2 = coefs[k, s, 2]
+            p0 = coefs[k, s, 3] * flut
+            p1 = coefs[k, s, 4] * flut
+            p2 = coefs[k, s, 5] * flut
+            d0 = a * bits[k, s, 0]
+            d1 = a * bits[k, s, 1]
+            d2 = a * bits[k, s, 2]
+            us = np.uint64(s)
+            for i in range(L):
+                fi = float(i)
+                u = c0 + (c1 + c2 * fi) * fi
+                ci = int(u)
+                if ci > N_EXT - 1:
+                    ci = N_EXT - 1
+                g = d0
+                if ci >= CA_LEN:
+                    g = d1
+                if ci >= 2 * CA_LEN:
+                    g = d2
+                v = g * codes[us, np.uint64(ci)]
+                li = np.uint64(int(p0 + (p1 + p2 * fi) * fi + 0.5) & mask)
+                j = np.uint64(base + i)
+                out[j, zero] += v * cos_lut[li]
+                out[j, one] += v * sin_lut[li]
+
+
+@njit(cache=True, fastmath=True, parallel=True, nogil=True)
+def _synth_real(out, L, n_int, codes, coefs, amps, bits, cos_lut):
+    """Add the satellites' signals to ``out`` (float32 (n_int*L,))."""
+    nsat = codes.shape[0]
+    lutn = cos_lut.shape[0]
+    mask = lutn - 1
+    flut = float(lutn)
+    for k in prange(n_int):          # intervals are independent: spread over numba's threads
+        base = k * L
+        for s in range(nsat):
+            a = amps[k, s]
+            if a == 0.0:
+                continue
+            c0 = coefs[k, s, 0]
+            c1 = coefs[k, s, 1]
+            c2 = coefs[k, s, 2]
+            p0 = coefs[k, s, 3] * flut
+            p1 = coefs[k, s, 4] * flut
+            p2 = coefs[k, s, 5] * flut
+            d0 = a * bits[k, s, 0]
+            d1 = a * bits[k, s, 1]
+            d2 = a * bits[k, s, 2]
+            us = np.uint64(s)
+            for i in range(L):
+                fi = float(i)
+                u = c0 + (c1 + c2 * fi) * fi
+                ci = int(u)
+                if ci > N_EXT - 1:
+                    ci = N_EXT - 1
+                g = d0
+                if ci >= CA_LEN:
+                    g = d1
+                if ci >= 2 * CA_LEN:
+                    g = d2
+                li = np.uint64(int(p0 + (p1 + p2 * fi) * fi + 0.5) & mask)
+                out[np.uint64(base + i)] += g * codes[us, np.uint64(ci)] * cos_lut[li]
+
+
+# ------------------------------------------------------------------------------------------
+# geometry -> per-interval polynomial coefficients
+# ------------------------------------------------------------------------------------------
+class SignalPlan:
+    """Everything fixed for a run: time base, satellites, trajectory, clock.
+
+    ``ephs``: list of Ephemeris (one per satellite); ``cn0_dbhz``: (nsat,) array.
+    """
+
+    def __init__(self, ephs, cn0_dbhz, traj, week, tow0, fs_hz, if_hz, is_complex, inversion=False,
+                 clock_bias_m=0.0, clock_drift_mps=0.0, n_samples=None, atmosphere=None, iono_broadcast=None):
+        self.ephs = list(ephs)
+        self.prns = np.array([e.prn for e in self.ephs], dtype=np.int64)
+        self.cn0_dbhz = np.broadcast_to(np.asarray(cn0_dbhz, dtype=float), (len(self.ephs),)).copy()
+        self.traj = traj
+        self.week = int(week)
+        self.tow0 = float(tow0)
+        self.fs = float(fs_hz)
+        self.if_hz = float(if_hz)
+        self.is_complex = bool(is_complex)
+        self.inversion = bool(inversion)
+        self.b0 = float(clock_bias_m)
+        self.drift = float(clock_drift_mps)
+        self.L = max(1, int(round(self.fs * INTERVAL_S)))
+        self.n_samples = n_samples
+        self.codes = np.stack([np.tile(ca_code(int(p)).astype(np.float32), 3) for p in self.prns]) \
+            if len(self.prns) else np.zeros((0, N_EXT), np.float32)
+        self.amp = signal_amplitude(self.cn0_dbhz, self.fs, 1.0, self.is_complex).astype(np.float32)
+        self.bits = {}          # prn -> (first_bit_index (ms//20), int8 array) or None
+        self.atmosphere = atmosphere if atmosphere is not None and atmosphere.active else None
+        self.iono_broadcast = iono_broadcast     # lnav.IonoUtc sent in subframe 4 page 18 (or None)
+
+    # --- time base
+    def clock_bias_m(self, e):
+        return self.b0 + self.drift * e
+
+    def geometry(self, sample_pos):
+        """light_time per satellite at (fractional) sample positions; list of dicts + rx dict."""
+
+        e = np.asarray(sample_pos, dtype=float) / self.fs
+        b = self.clock_bias_m(e)
+        tau_traj = e - (b - self.b0) / C
+        pos, vel = self.traj.pos_vel_e(np.maximum(tau_traj, 0.0))
+        t_true = self.tow0 + e - b / C
+        out = [light_time(eph, pos, vel, self.week, t_true, b, self.drift) for eph in self.ephs]
+        if self.atmosphere is not None:
+            self._apply_atmosphere(out, pos, t_true, e)
+        return out, {"pos_e": pos, "vel_e": vel, "clk_bias_m": b, "t_true": t_true, "e": e}
+
+    def _apply_atmosphere(self, geo, pos, t_true, e):
+        """Add the ionospheric and tropospheric delays to the light-time solutions (module doc)."""
+
+        lat, lon, h = geodetic_llh(pos)
+        for g in geo:
+            iono, tropo = self.atmosphere.delays_m(lat, lon, h, g["elev_rad"], g["azim_rad"], t_true)
+            d_code = iono + tropo
+            d_carr = tropo - iono
+            g["iono_m"] = iono
+            g["tropo_m"] = tropo
+            g["pseudorange_m"] = g["pseudorange_m"] + d_code
+            g["t_tx_tow"] = g["t_tx_tow"] - d_code / C
+            g["code_phase_chips"] = np.mod(g["t_tx_tow"] * F_CA, float(CA_LEN))
+            g["carrier_phase_cycles"] = g["carrier_phase_cycles"] - d_carr / LAMBDA_L1
+            if e.size >= 2:
+                g["doppler_hz"] = g["doppler_hz"] - np.gradient(d_carr, e) / LAMBDA_L1
+
+    def coefficients(self, j0, n_int):
+        """Per-interval coefficients for intervals j0..j0+n_int-1.
+
+        Returns coefs (n_int, nsat, 6), epoch0 (n_int, nsat) int64 (C/A epoch count, ms of week
+        of the sat-clock transmit time, of the code period under way at the interval start),
+        and the geometry at the interval starts (list of dicts, rx dict) for the truth.
+        """
+        L = self.L
+        pos = (j0 * L + 0.5 * L * np.arange(2 * n_int + 1))
+        geo, rx = self.geometry(pos)
+        nsat = len(self.ephs)
+        coefs = np.zeros((n_int, nsat, 6))
+        epoch0 = np.zeros((n_int, nsat), dtype=np.int64)
+        sgn = -1.0 if self.inversion else 1.0
+        n_start = (j0 + np.arange(n_int)) * L
+        # IF phase at interval start (cycles, mod 1), exact for integer rates
+        if_frac = np.mod(np.mod(self.if_hz * n_start.astype(np.float64), self.fs) / self.fs, 1.0)
+        if_rate = self.if_hz / self.fs
+        for s, g in enumerate(geo):
+            cp = g["code_phase_chips"]
+            y0, ym, y1 = cp[0:-1:2], cp[1::2], cp[2::2]
+            dm = np.mod(ym - y0, CA_LEN)
+            d1 = dm + np.mod(y1 - ym, CA_LEN)
+            cq = 2.0 * (d1 - 2.0 * dm) / (L * L)
+            coefs[:, s, C0] = y0
+            coefs[:, s, C2] = cq
+            coefs[:, s, C1] = d1 / L - cq * L
+            ph = g["carrier_phase_cycles"]
+            f0, fm, f1 = ph[0:-1:2], ph[1::2], ph[2::2]
+            pm = sgn * (fm - f0)
+            p1 = sgn * (f1 - f0)
+            pq = 2.0 * (p1 - 2.0 * pm) / (L * L)
+            # complex inverted: conj of the whole signal (IF included); real inverted: cos(IF t - phi)
+            if_sgn = -1.0 if (self.is_complex and self.inversion) else 1.0
+            coefs[:, s, P0] = np.mod(sgn * f0 + if_sgn * if_frac, 1.0)
+            coefs[:, s, P1] = p1 / L - pq * L + if_sgn * if_rate
+            coefs[:, s, P2] = pq
+            coefs[:, s, P0] += PHASE_OFFSET
+            t_tx = g["t_tx_tow"][0:-1:2]
+            epoch0[:, s] = np.rint((t_tx - y0 / F_CA) / T_CA).astype(np.int64)
+        starts = [{k: (v[0:-1:2] if v.ndim == 1 else v[0:-1:2, :]) for k, v in g.items()} for g in geo]
+        rx0 = {k: v[0:-1:2] for k, v in rx.items()}
+        return coefs, epoch0, starts, rx0
+
+    # --- navigation data
+    def set_nav_bits(self, duration_s, enabled, mode="lnav", seed=0):
+        """Fetch the data bits covering the run for every satellite (None: all +1); ``mode``: the
+        content (:data:`ultratight.signals.lnav.NAV_DATA_MODES`), random parts drawn from ``seed``."""
+        self.bits = {}
+        if not enabled:
+            return
+
+        first = int(math.floor((self.tow0 - 0.2) / 0.02))
+        n_bits = int(math.ceil((duration_s + 0.5) / 0.02)) + 2
+        for eph in self.ephs:
+            kw = {"iono": self.iono_broadcast} if self.iono_broadcast is not None else {}
+            if mode == "lnav":
+                b = np.asarray(nav_bits(eph, self.week, first * 0.02, n_bits, **kw), dtype=np.int8)
+            else:
+                b = np.asarray(nav_bits_mode(eph, self.week, first * 0.02, n_bits, mode, seed, **kw), dtype=np.int8)
+            self.bits[int(eph.prn)] = (first, b)
+
+    def sent_bits(self):
+        """(first bit index of week ``self.week``, (nsat, n_bits) int8 ±1) of the bits sent, or None."""
+        if not self.bits:
+            return None
+        first = next(iter(self.bits.values()))[0]
+        return first, np.stack([self.bits[int(p)][1] for p in self.prns])
+
+    def bit_values(self, epoch0):
+        """(n_int, nsat, 3) float32 data bits of epochs epoch0, +1, +2."""
+        n_int, nsat = epoch0.shape
+        out = np.ones((n_int, nsat, 3), dtype=np.float32)
+        for s, prn in enumerate(self.prns):
+            entry = self.bits.get(int(prn))
+            if entry is None:
+                continue
+            first, b = entry
+            for e in range(3):
+                idx = (epoch0[:, s] + e) // 20 - first
+                idx = np.clip(idx, 0, len(b) - 1)
+                out[:, s, e] = b[idx]
+        return out
+
+
+def eval_poly(coefs, i):
+    """Evaluate code (chips) and carrier (cycles, offset removed) polynomials at sample offsets i."""
+    i = np.asarray(i, dtype=float)
+    code = coefs[..., C0] + (coefs[..., C1] + coefs[..., C2] * i) * i
+    carr = (coefs[..., P0] - PHASE_OFFSET) + (coefs[..., P1] + coefs[..., P2] * i) * i
+    return code, carr
+
+
+# ------------------------------------------------------------------------------------------
+# run configuration helpers
+# ------------------------------------------------------------------------------------------
+def _ephemerides(cfg, rx_pos0_e):
+    sat = cfg.get("satellites", {})
+    week, tow = int(cfg["time"]["week"]), float(cfg["time"]["tow_s"])
+    source = sat.get("source", "nominal")
+    if source == "nominal":
+
+        ephs = nominal_ephemerides(week, tow)
+    elif source == "rinex":
+
+        nav = read_rinex_nav(sat["rinex_path"] if "rinex_path" in sat else sat["rinex"])
+        ephs = {}
+        for prn in sorted(nav.ephemerides):
+            try:
+                e = nav.select(prn, week, tow)
+            except Exception:      # no usable ephemeris for this PRN at this time
+                continue
+            if e is not None:
+                ephs[prn] = e
+    else:
+        raise ConfigError(f"satellites.source must be 'nominal' or 'rinex', got {source!r}")
+    prns = list(sat.get("prns", []) or [])
+    if prns:
+        missing = [p for p in prns if p not in ephs]
+        if missing:
+            raise ConfigError(f"satellites.prns: no ephemeris for PRN {missing} from source {source!r}")
+    else:
+
+        prns = visible_prns(ephs, rx_pos0_e, week, tow, float(sat.get("mask_deg", 5.0)),
+                            max_count=sat.get("max_count"))
+        if sat.get("horizon_deg") is not None:
+            # satellites rising above the mask during the run are generated too (their signal
+            # starts at the horizon, see generate())
+            step = 30.0
+            for k in range(1, int(float(cfg.get("duration_s", 0.0)) // step) + 1):
+                for p in visible_prns(ephs, rx_pos0_e, week, tow + k * step, float(sat.get("mask_deg", 5.0))):
+                    if p not in prns:
+                        prns.append(p)
+        if not prns:
+            raise ConfigError("satellites: no satellite visible above mask_deg at the start point")
+    cn0 = sat.get("cn0_dbhz", 45.0)
+    if isinstance(cn0, (list, tuple)):
+        if len(cn0) != len(prns):
+            raise ConfigError(f"satellites.cn0_dbhz has {len(cn0)} values for {len(prns)} satellites")
+    return [ephs[p] for p in prns], np.broadcast_to(np.asarray(cn0, float), (len(prns),)).copy()
+
+
+def atmosphere_from_config(atm):
+    """(AtmosphereModel or None, lnav.IonoUtc or None) of a validated ``[atmosphere]`` table."""
+    if not atm:
+        return None, None
+
+    alpha, beta = atm["alpha"], atm["beta"]
+    if atm["broadcast"]:
+        # the delays the receiver can reproduce are those of the transmitted (quantised) coefficients
+        alpha, beta = quantise_iono(alpha, beta)
+    model = AtmosphereModel(iono=atm["iono"], alpha=alpha, beta=beta, tropo=atm["tropo"],
+                            mapping_name=atm["tropo_mapping"], iono_scale=atm["iono_scale"])
+    bc = IonoUtc(alpha=tuple(alpha), beta=tuple(beta)) if atm["broadcast"] else None
+    return model, bc
+
+
+def noise_factor(events, e):
+    """Noise std factor at receiver-clock seconds ``e`` (array) from [[noise_events]] (those at the IF:
+    ``place`` "if", the default; the others act inside the receiver)."""
+    f = np.ones(np.shape(e), dtype=np.float32)
+    for ev in events or []:
+        if ev.get("place", "if") != "if":
+            continue
+        inside = (e >= ev["t0_s"]) & (e < ev["t1_s"])
+        f[inside] *= np.float32(ev["noise_factor"])
+    return f
+
+
+class _NoiseAhead:
+    """The unit Gaussian noise of the generator's blocks, drawn from ``rng`` in block order (the same
+    stream as drawing each block when it is needed) one block ahead by a second thread, into two
+    alternating buffers, so the draw overlaps the synthesis, filtering and writing of the block
+    before (numpy's generator releases the GIL while it fills an array)."""
+
+    def __init__(self, rng, max_len, sizes):
+        self._rng = rng
+        self._bufs = [np.empty(max_len, dtype=np.float32), np.empty(max_len, dtype=np.float32)]
+        self._sizes = list(sizes)
+        self._k = 0
+        self._pool = ThreadPoolExecutor(max_workers=1)
+        self._next = self._submit(0)
+
+    def _submit(self, k):
+        if k >= len(self._sizes):
+            return None
+        x = self._bufs[k % 2][:self._sizes[k]]
+        return self._pool.submit(self._rng.standard_normal, out=x, dtype=np.float32)
+
+    def next(self):
+        """The next block's noise (float32 view of a buffer, valid until the next-but-one call)."""
+        x = self._next.result()
+        self._k += 1
+        self._next = self._submit(self._k)
+        return x
+
+    def close(self):
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _tmp(path):
+    return tmp_name(path)
+
+
+class _TruthWriter:
+    """Appends per-interval truth rows to an HDF5 file (resizable, chunked datasets)."""
+
+    def __init__(self, path, nsat, attrs):
+
+        self.path = Path(path)
+        self.tmp = _tmp(self.path)
+        self.f = None
+        try:
+            self._create(h5py, nsat, attrs)
+        except BaseException:          # also an interruption while the file is being set up
+            self.abort()
+            raise
+
+    def _create(self, h5py, nsat, attrs):
+        self.f = h5py.File(self.tmp, "w")
+        for k, v in attrs.items():
+            self.f.attrs[k] = v
+        self.n = 0
+        self._held, self._n_held = [], 0
+        self.ds = {}
+        spec = {"t_s": (), "sample_index": (), "tow_s": (), "t_true_tow_s": (), "pos_e": (3,),
+                "vel_e": (3,), "clk_bias_m": (), "clk_drift_mps": (), "noise_factor": (),
+                "code_phase_chips": (nsat,), "carrier_phase_cycles": (nsat,), "doppler_hz": (nsat,),
+                "cn0_dbhz": (nsat,), "nav_bit": (nsat,), "pseudorange_m": (nsat,), "elev_deg": (nsat,),
+                "azim_deg": (nsat,), "t_tx_tow_s": (nsat,), "iono_m": (nsat,), "tropo_m": (nsat,)}
+        for name, shp in spec.items():
+            dt = np.int8 if name == "nav_bit" else (np.int64 if name == "sample_index" else np.float64)
+            self.ds[name] = self.f.create_dataset(name, shape=(0,) + shp, maxshape=(None,) + shp,
+                                                  chunks=(1000,) + shp, dtype=dt)
+
+    FLUSH_ROWS = 5000     # rows held before they are written (one resize and write per dataset)
+
+    def append(self, rows):
+        self._held.append(rows)
+        self._n_held += len(rows["t_s"])
+        if self._n_held >= self.FLUSH_ROWS:
+            self._flush()
+
+    def _flush(self):
+        if not self._held:
+            return
+        m = self._n_held
+        try:
+            for k, d in self.ds.items():
+                d.resize(self.n + m, axis=0)
+                d[self.n:self.n + m] = np.concatenate([r[k] for r in self._held], axis=0)
+        except (RuntimeError, OSError) as exc:
+            raise self._write_error(exc) from None
+        self.n += m
+        self._held, self._n_held = [], 0
+
+    def finish(self):
+        self._flush()
+        try:
+            self.f.close()
+        except (RuntimeError, OSError) as exc:
+            raise self._write_error(exc) from None
+
+    def _write_error(self, exc):
+        """An HDF5 write failure (full disk, file-size limit) as the OSError it is, errno included (HDF5
+        reports it as a RuntimeError quoting ``errno = N``)."""
+        if isinstance(exc, OSError) and exc.errno:
+            return exc
+        code = os_errno(exc)
+        return OSError(code or errno.EIO, describe_os_error(exc), str(self.tmp))
+
+    def abort(self):
+        try:
+            if self.f is not None:
+                self.f.close()
+        except Exception:
+            pass
+        try:
+            os.unlink(self.tmp)
+        except FileNotFoundError:
+            pass
+
+
+def output_paths(out_dir, stem, fmt):
+    out_dir = Path(out_dir)
+    return {"if": out_dir / f"{stem}.{fmt}", "meta": out_dir / f"{stem}.{fmt}.json",
+            "truth": out_dir / f"{stem}.truth.h5", "imu": out_dir / f"{stem}.imu.h5",
+            "trajectory": out_dir / f"{stem}.traj.h5"}
+
+
+def _progress(total, enabled, desc):
+    if not enabled or not sys.stderr.isatty():
+        return None
+    return tqdm(total=total, unit="s", desc=desc, leave=False,
+                bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} s [{elapsed}<{remaining}]")
+
+
+class Generation:
+    """The fixed parts of one generation of a resolved scenario ``cfg`` and seed (front end, sample
+    format, signal plan, noise events, sizes, the seed's noise and IMU sequences), and its blocks.
+
+    :func:`generate` writes them to files; :class:`ultratight.signals.synth.ifstream.GeneratedIf` hands the
+    samples to a receiver without a file. Both run :meth:`blocks`, which starts from the first
+    block with a fresh noise generator and front-end state on every call, so every pass over a
+    generation yields the same samples."""
+
+    def __init__(self, cfg, seed=None, ephemerides=None, trajectory=None):
+        fe_cfg = cfg.get("frontend", {})
+        fe = FrontEnd.from_config(fe_cfg)
+        if fe.gain_mode == "fixed" and "headroom" not in fe_cfg:
+            # fixed gain without an explicit headroom: the loudest noise event must fit the clip level
+            fe.headroom = max([1.0] + [float(ev["noise_factor"]) for ev in cfg.get("noise_events", []) or []
+                                       if ev.get("place", "if") == "if"])
+        fmt = fe_cfg.get("format", "ci8" if fe.is_complex else "i8")
+        spec = get_format(fmt)
+        if spec.is_complex != fe.is_complex:
+            raise ConfigError(f"frontend.format {fmt!r} is {'complex' if spec.is_complex else 'real'} but "
+                              f"frontend.sampling is {'complex' if fe.is_complex else 'real'}")
+        check_bits_for_format(spec.name, fe.bits)
+        duration = float(cfg.get("duration_s", 0))
+        if not duration > 0:
+            raise ConfigError(f"duration_s must be > 0, got {cfg.get('duration_s')}")
+        seed = cfg.get("seed", 0) if seed is None else seed
+        self.seed = int(seed)
+        self.ss_noise, self.ss_imu = np.random.SeedSequence(self.seed).spawn(2)
+        week, tow0 = int(cfg["time"]["week"]), float(cfg["time"]["tow_s"])
+        rcv = cfg.get("receiver", {})
+        if trajectory is None:
+
+            trajectory = build_trajectory(cfg.get("trajectory", {"kind": "static"}), rcv, duration)
+        if ephemerides is None:
+            p0, _ = trajectory.pos_vel_e(np.zeros(1))
+            ephs, cn0 = _ephemerides(cfg, p0[0])
+        else:
+            ephs = list(ephemerides)
+            cn0 = np.broadcast_to(np.asarray(cfg.get("satellites", {}).get("cn0_dbhz", 45.0), float),
+                                  (len(ephs),)).copy()
+        atmosphere, iono_broadcast = atmosphere_from_config(cfg.get("atmosphere"))
+        plan = SignalPlan(ephs, cn0, trajectory, week, tow0, fe.fs_hz, fe.if_hz, fe.is_complex, fe.inversion,
+                          rcv.get("clock_bias_m", 0.0), rcv.get("clock_drift_mps", 0.0),
+                          atmosphere=atmosphere, iono_broadcast=iono_broadcast)
+        self.nav_data = cfg.get("nav", {}).get("data", "lnav")
+        plan.set_nav_bits(duration, bool(cfg.get("nav", {}).get("data_bits", True)), self.nav_data, self.seed)
+        self.cfg, self.fe, self.spec, self.plan, self.trajectory = cfg, fe, spec, plan, trajectory
+        self.week, self.tow0, self.duration = week, tow0, duration
+        self.events = cfg.get("noise_events", [])
+        self.horizon = cfg.get("satellites", {}).get("horizon_deg")
+        self.n_total = int(round(duration * fe.fs_hz))
+        self.n_int_total = -(-self.n_total // plan.L)
+        self.resolved = json.loads(json.dumps(cfg, default=str))
+        self.resolved["seed"] = self.seed
+
+    def sidecar_extra(self):
+        """The generator's entries of the IF sidecar (beside the format fields)."""
+        return {"generator": self.resolved, "prn": self.plan.prns.tolist(),
+                "cn0_dbhz": self.plan.cn0_dbhz.tolist(), "frontend": self.fe.to_dict()}
+
+    def block_starts(self):
+        """First interval of every block (blocks of :data:`BLOCK_INTERVALS` intervals)."""
+        return range(0, self.n_int_total, BLOCK_INTERVALS)
+
+    def blocks(self, samples=True, truth=True, synth=None):
+        """Yield ``(j0, n_valid, y, rows)`` per block of :data:`BLOCK_INTERVALS` intervals from the first:
+        ``j0`` the block's first interval, ``n_valid`` its samples, ``y`` the quantised samples
+        (complex64 / float32 on the quantiser's integer levels, or None without ``samples``; valid
+        until the next block is asked for) and ``rows`` the truth rows of its intervals (or None
+        without ``truth``). ``synth``: the (complex, real) synthesis kernels (default the module's)."""
+        plan, fe, events, horizon = self.plan, self.fe, self.events, self.horizon
+        L, n_total, n_int_total = plan.L, self.n_total, self.n_int_total
+        synth_c, synth_r = synth or (_synth_complex, _synth_real)
+        nsat = len(plan.ephs)
+        comps = 2 if fe.is_complex else 1
+        fe.reset()                       # the front-end filter starts from rest on every pass
+        noise = None
+        if samples:
+            noise = _NoiseAhead(np.random.default_rng(self.ss_noise), BLOCK_INTERVALS * L * comps,
+                                [min(BLOCK_INTERVALS, n_int_total - j) * L * comps for j in self.block_starts()])
+        try:
+            for j0 in self.block_starts():
+                n_int = min(BLOCK_INTERVALS, n_int_total - j0)
+                ns = n_int * L
+                n_valid = min(ns, n_total - j0 * L)
+                coefs, epoch0, starts, rx0 = plan.coefficients(j0, n_int)
+                bits = plan.bit_values(epoch0)
+                y = None
+                if samples:
+                    amps = np.broadcast_to(plan.amp, (n_int, nsat)).astype(np.float32)
+                    if horizon is not None and nsat:
+                        # terrain / obstructions block the satellites below the horizon elevation
+                        el = np.stack([g["elev_rad"] for g in starts], 1)
+                        amps = amps * (el > math.radians(float(horizon))).astype(np.float32)
+                    x = noise.next()      # this block's unit noise (drawn while the last block was processed)
+                    t_b0, t_b1 = j0 * L / fe.fs_hz, (j0 * L + ns) / fe.fs_hz
+                    fac = None
+                    if any(ev["t0_s"] < t_b1 and ev["t1_s"] > t_b0 for ev in events):
+                        fac = noise_factor(events, (j0 * L + np.arange(ns)) / fe.fs_hz)
+                    if fac is not None and np.any(fac != 1.0):
+                        if comps == 2:
+                            x.reshape(-1, 2)[...] *= fac[:, None]
+                        else:
+                            x *= fac
+                    if nsat:
+                        if fe.is_complex:
+                            synth_c(x.reshape(-1, 2), L, n_int, plan.codes, coefs, amps, bits, COS_LUT, SIN_LUT)
+                        else:
+                            synth_r(x, L, n_int, plan.codes, coefs, amps, bits, COS_LUT)
+                    y = x.view(np.complex64) if fe.is_complex else x
+                    y = y[:n_valid]
+                    y = fe.filter(y)
+                    sig_now = 1.0 if fac is None else fac[:n_valid]
+                    if fac is not None and np.all(fac[:n_valid] == fac[0]):
+                        sig_now = float(fac[0])
+                    y = fe.quantize_block(y, sig_now)
+                rows = self._truth_rows(j0, n_int, starts, rx0, bits) if truth else None
+                yield j0, n_valid, y, rows
+        finally:
+            if noise is not None:
+                noise.close()
+
+    def _truth_rows(self, j0, n_int, starts, rx0, bits):
+        """Truth rows of the intervals ``j0 .. j0 + n_int - 1`` (at the interval starts)."""
+        plan, fe, L = self.plan, self.fe, self.plan.L
+        nsat = len(plan.ephs)
+        e0 = (j0 + np.arange(n_int)) * L / fe.fs_hz
+        nf = noise_factor(self.events, e0)
+        rows = {"t_s": e0, "sample_index": (j0 + np.arange(n_int)) * L, "tow_s": self.tow0 + e0,
+                "t_true_tow_s": rx0["t_true"], "pos_e": rx0["pos_e"], "vel_e": rx0["vel_e"],
+                "clk_bias_m": rx0["clk_bias_m"], "clk_drift_mps": np.full(n_int, plan.drift),
+                "noise_factor": nf}
+        none = np.zeros((n_int, 0))
+        rows["code_phase_chips"] = np.stack([g["code_phase_chips"] for g in starts], 1) if nsat else none
+        rows["carrier_phase_cycles"] = np.stack([g["carrier_phase_cycles"] for g in starts], 1) if nsat else none
+        rows["doppler_hz"] = np.stack([g["doppler_hz"] for g in starts], 1) if nsat else none
+        rows["pseudorange_m"] = np.stack([g["pseudorange_m"] for g in starts], 1) if nsat else none
+        rows["elev_deg"] = np.degrees(np.stack([g["elev_rad"] for g in starts], 1)) if nsat else none
+        rows["azim_deg"] = np.degrees(np.stack([g["azim_rad"] for g in starts], 1)) if nsat else none
+        rows["t_tx_tow_s"] = np.stack([g["t_tx_tow"] for g in starts], 1) if nsat else none
+        for k in ("iono_m", "tropo_m"):
+            rows[k] = (np.stack([g[k] for g in starts], 1) if nsat and k in starts[0]
+                       else np.zeros((n_int, nsat)))
+        rows["cn0_dbhz"] = plan.cn0_dbhz[None, :] - 20.0 * np.log10(nf.astype(float))[:, None]
+        rows["nav_bit"] = bits[:, :, 0].astype(np.int8)
+        return rows
+
+
+def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, trajectory=None, write_if=True):
+    """Generate the IF file, sidecar, truth (and IMU/trajectory) for a resolved scenario ``cfg``.
+
+    ``seed`` overrides ``cfg['seed']``. ``ephemerides`` (list of Ephemeris, with
+    ``cfg['satellites']['cn0_dbhz']`` scalar or per-satellite) and ``trajectory`` (an object
+    with ``pos_vel_e(t)``) may be given to bypass the scenario's own sources. Returns a dict of
+    the written paths (keys ``if, meta, truth`` and, with ``[imu]``, ``imu, trajectory``) plus
+    ``summary`` (dict). ``write_if=False`` writes everything but the IF file and its sidecar (no
+    samples are synthesised: the truth does not depend on them) — for a receiver fed by
+    :class:`ultratight.signals.synth.ifstream.GeneratedIf` of the same configuration and seed.
+    """
+    t_start = time.perf_counter()
+    gen = Generation(cfg, seed, ephemerides, trajectory)
+    fe, spec, plan = gen.fe, gen.spec, gen.plan
+    seed = gen.seed
+    nav_data = gen.nav_data
+
+    out_dir = Path(out_dir)
+    if not out_dir.is_dir():
+        raise ConfigError(f"output directory does not exist: {out_dir}")
+    paths = output_paths(out_dir, stem, spec.name)
+    n_total = gen.n_total
+    attrs = {"config_json": json.dumps(gen.resolved), "version": __version__, "fs_hz": fe.fs_hz,
+             "if_hz": fe.if_hz, "is_complex": fe.is_complex, "inversion": fe.inversion,
+             "format": spec.name, "week": gen.week, "tow0_s": gen.tow0, "samples_per_row": plan.L,
+             "prn": plan.prns, "cn0_dbhz_config": plan.cn0_dbhz, "seed": seed,
+             "n_samples": n_total, "schema": "ultratight generator truth v1 (docs/generator.md)"}
+    writer = truth = blocks = None
+    extra_tmps = []
+    bar = _progress(gen.duration, progress, f"generate {stem}")
+    try:
+        if write_if:
+            writer = IfWriter(paths["if"], spec.name, fe.fs_hz, fe.if_hz, inversion=fe.inversion,
+                              start_week=gen.week, start_tow_s=gen.tow0, bits=fe.bits, extra=gen.sidecar_extra())
+        truth = _TruthWriter(paths["truth"], len(plan.ephs), attrs)
+        blocks = gen.blocks(samples=write_if)
+        for _j0, n_valid, y, rows in blocks:
+            if writer is not None:
+                writer.write(y, exact=fe.bits != 0)   # quantiser levels fit every integer format allowed
+            truth.append(rows)
+            if bar is not None:
+                bar.update(n_valid / fe.fs_hz)
+        sent = plan.sent_bits()
+        if sent is not None:
+            # every data bit sent (docs/generator.md): bit k of row s starts at GPS week ``week``,
+            # TOW (nav_bit0 + k) * 20 ms of satellite time
+            truth.f.attrs["nav_data"] = nav_data
+            truth.f.attrs["nav_bit0"] = int(sent[0])
+            truth.f.create_dataset("nav_bits", data=sent[1], compression="gzip", compression_opts=1)
+        truth.f.attrs["elapsed_s"] = time.perf_counter() - t_start
+        truth.finish()
+        result = {"if": paths["if"], "meta": paths["meta"]} if write_if else {}
+        result["truth"] = paths["truth"]
+        imu_cfg = cfg.get("imu")
+        if imu_cfg and hasattr(gen.trajectory, "save_h5"):
+            extra_tmps += _write_imu_traj(imu_cfg, gen.trajectory, paths, gen.ss_imu, gen.resolved)
+            result["imu"] = paths["imu"]
+            result["trajectory"] = paths["trajectory"]
+        if writer is not None:
+            writer.close()
+        os.replace(truth.tmp, paths["truth"])
+        for tmp, final in extra_tmps:
+            os.replace(tmp, final)
+    except BaseException:
+        if writer is not None:
+            writer.abort()
+        if truth is not None:
+            truth.abort()
+        for tmp, _ in extra_tmps:
+            try:
+                os.unlink(tmp)
+            except FileNotFoundError:
+                pass
+        raise
+    finally:
+        if blocks is not None:
+            blocks.close()
+        if bar is not None:
+            bar.close()
+    result["summary"] = {"prns": plan.prns.tolist(), "cn0_dbhz": plan.cn0_dbhz.tolist(),
+                         "n_samples": n_total, "duration_s": n_total / fe.fs_hz, "fs_hz": fe.fs_hz,
+                         "if_hz": fe.if_hz, "format": spec.name, "seed": seed, "if_written": bool(write_if),
+                         "elapsed_s": time.perf_counter() - t_start}
+    return result
+
+
+def _write_imu_traj(imu_cfg, trajectory, paths, ss_imu, resolved):
+    """Write IMU and trajectory truth to temp files; returns [(tmp, final), ...]."""
+
+    rate = float(imu_cfg.get("rate_hz", 100.0))
+    errors = imu_mod.imu_errors_from_config(imu_cfg)
+    lever = imu_cfg.get("lever_arm_m")
+    data = imu_mod.synthesize_imu(trajectory, rate, errors, np.random.default_rng(ss_imu),
+                                  lever_arm_b=None if lever is None else np.asarray(lever, float))
+    out = []
+    t_imu = _tmp(paths["imu"])
+    imu_mod.write_imu_h5(t_imu, data, {"config_json": json.dumps(resolved), "version": __version__})
+    out.append((t_imu, paths["imu"]))
+    t_traj = _tmp(paths["trajectory"])
+    trajectory.save_h5(t_traj, rate)
+    out.append((t_traj, paths["trajectory"]))
+    return out
+
+
+__all__ = ["generate", "Generation", "SignalPlan", "eval_poly", "noise_factor", "output_paths", "FORMATS"]
