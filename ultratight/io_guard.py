@@ -105,25 +105,43 @@ def _unlink_quiet(p):
         pass
 
 
+class StagedFile:
+    """A file written under a temporary name beside its target (:func:`tmp_name`) and renamed onto
+    it by :meth:`commit` — or removed by :meth:`discard` — so that the target is either complete or
+    untouched. The package's one temp-file-and-rename: :func:`atomic_path` and every streaming
+    writer (IF files and sidecars, generator truth, HDF5 result streams, RINEX) use it."""
+
+    def __init__(self, path):
+        self.path = Path(path)
+        self.tmp = tmp_name(self.path)
+
+    def commit(self):
+        """Rename the temporary file onto the target (atomic on one file system)."""
+        os.replace(self.tmp, self.path)
+
+    def discard(self):
+        """Remove the temporary file, if any."""
+        _unlink_quiet(self.tmp)
+
+
 @contextmanager
 def atomic_path(path):
     """Yield a temporary path beside ``path``; on success rename it onto ``path``, on any exception
     (also an interruption) remove it. OSError becomes :class:`OutputError` naming ``path``."""
-    path = Path(path)
-    tmp = tmp_name(path)
+    staged = StagedFile(path)
     try:
-        yield tmp
-        os.replace(tmp, path)
+        yield staged.tmp
+        staged.commit()
     except OutputError:
-        _unlink_quiet(tmp)
+        staged.discard()
         raise
     except OSError as exc:
-        _unlink_quiet(tmp)
+        staged.discard()
         if isinstance(exc, InputFileError):
             raise
-        raise output_error(path, exc) from None
+        raise output_error(staged.path, exc) from None
     except BaseException:
-        _unlink_quiet(tmp)
+        staged.discard()
         raise
 
 

@@ -59,13 +59,13 @@ what the SINS carries.
 import json
 import math
 import os
-from pathlib import Path
 
 import h5py
 import numpy as np
 
 from ultratight.constants import OMEGA_E, WGS84_A, WGS84_E2
 from ultratight.errors import ConfigError
+from ultratight.io_guard import atomic_path
 from ultratight.ins.attitude import (dcm_to_quat_vec, euler_to_dcm, euler_to_dcm_vec,
                                      rotvec_to_dcm, rotvec_to_dcm_vec)
 from ultratight.ins.earth import (dcm_ecef_from_enu, dcm_ecef_from_enu_vec, ecef_to_llh_batch,
@@ -367,11 +367,9 @@ class Trajectory:
                 g.create_dataset(key, data=k[key])
 
         if isinstance(path_or_group, (str, os.PathLike)):
-            path = Path(path_or_group)
-            tmp = path.with_name(path.name + ".tmp")
-            with h5py.File(tmp, "w") as f:
-                _write(f)
-            os.replace(tmp, path)
+            with atomic_path(path_or_group) as tmp:
+                with h5py.File(tmp, "w") as f:
+                    _write(f)
         else:
             _write(path_or_group)
 

@@ -15,7 +15,7 @@ import numpy as np
 from ultratight import __version__
 from ultratight.constants import C
 from ultratight.ins.earth import dcm_ecef_from_enu, llh_to_ecef
-from ultratight.io_guard import write_text_atomic
+from ultratight.receiver.io.outputs import write_table_csv
 
 NMEA_KML_RATE_HZ = 10.0     # NMEA / KML rows: every SINS row at this rate
 RINEX_RATE_HZ = 10.0        # RINEX observation epochs
@@ -49,18 +49,16 @@ def nav_rows(res):
             "sig_att": s["sigma_att_rad"], "sig_clk": s["sigma_clk"], "week": week, "gps_tow_s": gps}
 
 
-def write_csv(path, rows):
+def write_solution_csv(path, rows):
     """The SINS-rate solution as CSV (columns CSV_COLS; angles in degrees, sigmas 1-sigma)."""
-    lines = ["# ultratight " + __version__ + " process --mode ultratight: SINS-rate navigation solution",
-             ",".join(CSV_COLS)]
-    for i in range(rows["t_s"].shape[0]):
-        vals = [rows["t_s"][i], rows["week"], None if rows["gps_tow_s"] is None else rows["gps_tow_s"][i],
+    def values(i):
+        return [rows["t_s"][i], rows["week"], None if rows["gps_tow_s"] is None else rows["gps_tow_s"][i],
                 *rows["pos_e"][i], math.degrees(rows["llh"][i, 0]), math.degrees(rows["llh"][i, 1]), rows["llh"][i, 2],
                 *rows["vel_l"][i], *np.degrees(rows["euler"][i]), *rows["clk"][i], *rows["sig_pos"][i],
                 *rows["sig_vel"][i], *np.degrees(rows["sig_att"][i]), *rows["sig_clk"][i]]
-        lines.append(",".join("" if v is None else (f"{v:.12g}" if isinstance(v, (float, np.floating)) else str(v))
-                              for v in vals))
-    write_text_atomic(path, "\n".join(lines) + "\n")
+
+    write_table_csv(path, CSV_COLS, (values(i) for i in range(rows["t_s"].shape[0])), digits=12,
+                    comment=f"ultratight {__version__} process --mode ultratight: SINS-rate navigation solution")
 
 
 def fix_dicts(res, rows, rate_hz=NMEA_KML_RATE_HZ):
@@ -234,7 +232,7 @@ def write_files(res, csv_path=None, kml_path=None, nmea_path=None, rinex_obs_pat
 
     rows = nav_rows(res)
     if csv_path:
-        write_csv(csv_path, rows)
+        write_solution_csv(csv_path, rows)
     if kml_path or nmea_path:
         fixes = fix_dicts(res, rows)
         opts = {"mode": "ultratight", "method": res.method, "startup": (res.info or {}).get("startup_source")}

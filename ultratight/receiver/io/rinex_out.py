@@ -22,7 +22,6 @@ and renames the result onto the target, so a failed run never leaves a partial f
 """
 
 import math
-import os
 from datetime import datetime, timedelta
 from pathlib import Path
 
@@ -30,7 +29,7 @@ import numpy as np
 
 from ultratight import __version__
 from ultratight.errors import InputFileError
-from ultratight.io_guard import tmp_name, write_text_atomic
+from ultratight.io_guard import atomic_path, tmp_name, write_text_atomic
 
 GPS_EPOCH = datetime(1980, 1, 6)
 OBS_TYPES = ("C1C", "L1C", "D1C", "S1C")
@@ -43,10 +42,6 @@ def gps_to_datetime(week, tow_s):
 
 def _hline(text, label):
     return f"{text:<60.60s}{label:<20s}\n"
-
-
-def _tmp(path):
-    return tmp_name(path)
 
 
 def ssi(cn0_dbhz):
@@ -77,7 +72,7 @@ class RinexObsWriter:
         self.interval_s = float(interval_s)
         self.comments = list(comments)
         self.marker = marker
-        self.body = _tmp(self.path.with_name(self.path.name + ".body"))
+        self.body = tmp_name(self.path.with_name(self.path.name + ".body"))   # the epochs, before the header
         self.f = open(self.body, "w")
         self.first = None
         self.last = None
@@ -147,12 +142,10 @@ class RinexObsWriter:
         try:
             if self.first is None:
                 return False
-            tmp = _tmp(self.path)
-            with open(tmp, "w") as out, open(self.body) as body:
+            with atomic_path(self.path) as tmp, open(tmp, "w") as out, open(self.body) as body:
                 out.write(self.header(approx_pos_e))
                 for line in body:
                     out.write(line)
-            os.replace(tmp, self.path)
             return True
         finally:
             self.body.unlink(missing_ok=True)

@@ -55,7 +55,6 @@ to the XML when ``path`` is None.
 
 import json
 import mmap
-import os
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -63,7 +62,7 @@ import numpy as np
 
 from ultratight import __version__
 from ultratight.errors import FormatError, InputFileError
-from ultratight.io_guard import check_input_file, check_interrupted, tmp_name
+from ultratight.io_guard import StagedFile, check_input_file, check_interrupted
 from ultratight.signals.recording.metadata_check import check_sidecar, load_json_metadata
 from ultratight.signals.recording.packing import ION_ENCODINGS
 # the format registry lives in sampleformat (metadata_check and sigmf_io need it without this module);
@@ -428,9 +427,9 @@ class IfWriter:
             self.sidecar.update(extra)
         self.n_samples = 0
         self._enc = self.spec.encoder()
-        self._tmp = tmp_name(self.path)
-        self._side_tmp = tmp_name(sidecar_path(self.path))
-        self._f = open(self._tmp, "wb")
+        self._data = StagedFile(self.path)
+        self._side = StagedFile(sidecar_path(self.path))
+        self._f = open(self._data.tmp, "wb")
         self._closed = False
 
     def __enter__(self):
@@ -463,11 +462,10 @@ class IfWriter:
         self._f.write(self._enc.flush())
         self._f.close()
         self.sidecar["n_samples"] = int(self.n_samples)
-        side_tmp = self._side_tmp
-        with open(side_tmp, "w") as f:
+        with open(self._side.tmp, "w") as f:
             json.dump(self.sidecar, f, indent=1, default=_json_default)
-        os.replace(self._tmp, self.path)
-        os.replace(side_tmp, sidecar_path(self.path))
+        self._data.commit()
+        self._side.commit()
         self._closed = True
 
     def abort(self):
@@ -476,11 +474,8 @@ class IfWriter:
         try:
             self._f.close()
         finally:
-            for p in (self._tmp, self._side_tmp):
-                try:
-                    os.unlink(p)
-                except FileNotFoundError:
-                    pass
+            self._data.discard()
+            self._side.discard()
             self._closed = True
 
 

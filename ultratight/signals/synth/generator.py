@@ -57,7 +57,6 @@ renamed at the end; a failure removes the temporaries.
 import errno
 import json
 import math
-import os
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -73,7 +72,7 @@ from ultratight.constants import C, CA_LEN, F_CA, LAMBDA_L1, T_CA
 from ultratight.errors import ConfigError
 from ultratight.ins import imu as imu_mod
 from ultratight.ins.trajectory import build_trajectory
-from ultratight.io_guard import describe_os_error, os_errno, tmp_name
+from ultratight.io_guard import StagedFile, describe_os_error, os_errno
 from ultratight.signals.atmosphere import AtmosphereModel
 from ultratight.signals.ca_code import ca_code
 from ultratight.signals.corr_model import signal_amplitude
@@ -450,17 +449,13 @@ class _NoiseAhead:
         self._pool.shutdown(wait=True, cancel_futures=True)
 
 
-def _tmp(path):
-    return tmp_name(path)
-
-
 class _TruthWriter:
     """Appends per-interval truth rows to an HDF5 file (resizable, chunked datasets)."""
 
     def __init__(self, path, nsat, attrs):
 
-        self.path = Path(path)
-        self.tmp = _tmp(self.path)
+        self.staged = StagedFile(path)
+        self.path, self.tmp = self.staged.path, self.staged.tmp
         self.f = None
         try:
             self._create(h5py, nsat, attrs)
@@ -527,10 +522,7 @@ class _TruthWriter:
                 self.f.close()
         except Exception:
             pass
-        try:
-            os.unlink(self.tmp)
-        except FileNotFoundError:
-            pass
+        self.staged.discard()
 
 
 def output_paths(out_dir, stem, fmt):
@@ -723,7 +715,7 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
              "prn": plan.prns, "cn0_dbhz_config": plan.cn0_dbhz, "seed": seed,
              "n_samples": n_total, "schema": "ultratight generator truth v1 (docs/generator.md)"}
     writer = truth = blocks = None
-    extra_tmps = []
+    extra = []
     bar = _progress(gen.duration, progress, f"generate {stem}")
     try:
         if write_if:
@@ -750,24 +742,21 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
         result["truth"] = paths["truth"]
         imu_cfg = cfg.get("imu")
         if imu_cfg and hasattr(gen.trajectory, "save_h5"):
-            extra_tmps += _write_imu_traj(imu_cfg, gen.trajectory, paths, gen.ss_imu, gen.resolved)
+            extra += _write_imu_traj(imu_cfg, gen.trajectory, paths, gen.ss_imu, gen.resolved)
             result["imu"] = paths["imu"]
             result["trajectory"] = paths["trajectory"]
         if writer is not None:
             writer.close()
-        os.replace(truth.tmp, paths["truth"])
-        for tmp, final in extra_tmps:
-            os.replace(tmp, final)
+        truth.staged.commit()
+        for staged in extra:
+            staged.commit()
     except BaseException:
         if writer is not None:
             writer.abort()
         if truth is not None:
             truth.abort()
-        for tmp, _ in extra_tmps:
-            try:
-                os.unlink(tmp)
-            except FileNotFoundError:
-                pass
+        for staged in extra:
+            staged.discard()
         raise
     finally:
         if blocks is not None:
@@ -782,20 +771,17 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
 
 
 def _write_imu_traj(imu_cfg, trajectory, paths, ss_imu, resolved):
-    """Write IMU and trajectory truth to temp files; returns [(tmp, final), ...]."""
+    """Write IMU and trajectory truth under temporary names; returns their :class:`StagedFile`\ s."""
 
     rate = float(imu_cfg.get("rate_hz", 100.0))
     errors = imu_mod.imu_errors_from_config(imu_cfg)
     lever = imu_cfg.get("lever_arm_m")
     data = imu_mod.synthesize_imu(trajectory, rate, errors, np.random.default_rng(ss_imu),
                                   lever_arm_b=None if lever is None else np.asarray(lever, float))
-    out = []
-    t_imu = _tmp(paths["imu"])
-    imu_mod.write_imu_h5(t_imu, data, {"config_json": json.dumps(resolved), "version": __version__})
-    out.append((t_imu, paths["imu"]))
-    t_traj = _tmp(paths["trajectory"])
-    trajectory.save_h5(t_traj, rate)
-    out.append((t_traj, paths["trajectory"]))
+    out = [StagedFile(paths["imu"])]
+    imu_mod.write_imu_h5(out[0].tmp, data, {"config_json": json.dumps(resolved), "version": __version__})
+    out.append(StagedFile(paths["trajectory"]))
+    trajectory.save_h5(out[1].tmp, rate)
     return out
 
 
