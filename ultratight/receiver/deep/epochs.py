@@ -32,7 +32,7 @@ from ultratight.fusion.channel.innerloop import feedback_one
 from ultratight.fusion.channel.pbkf import pbkf_channel_epoch, pbkf_note_correction_one
 from ultratight.fusion.channel.prefilter import N_W1, N_W2, NZ, bank_channel_epoch
 from ultratight.receiver.dsp.burst import burst_one
-from ultratight.receiver.dsp.correlator import _correlate_one, _step_bank, tap_fixed_point
+from ultratight.receiver.dsp.correlator import correlate_one, step_bank, tap_fixed_point
 from ultratight.receiver.dsp.wipeoff import wipe_channel
 
 # status of run_epochs
@@ -196,9 +196,9 @@ def correlate(src, corr, sig):
         corr.cp0[c] = corr.code_phase[c]
         corr.f0[c] = corr.carr_freq[c]
         corr.sig[c] = src.sigma[corr.sample_ptr[c] // src.block_len]
-    _step_bank(src.buf, src.is_complex, src.buf_start, src.n_buf, corr.code_ext, corr.pad, corr.active,
-               corr.sample_ptr, corr.code_phase, corr.code_rate, corr.carr_phase, corr.carr_freq, corr.fs,
-               corr.tap_off, corr.sig, corr.out, corr.t_start, corr.n_s, sig.code_len)
+    step_bank(src.buf, src.is_complex, src.buf_start, src.n_buf, corr.code_ext, corr.pad, corr.active,
+              corr.sample_ptr, corr.code_phase, corr.code_rate, corr.carr_phase, corr.carr_freq, corr.fs,
+              corr.tap_off, corr.sig, corr.out, corr.t_start, corr.n_s, sig.code_len)
     return corr.n_s.min() > 0
 
 
@@ -212,9 +212,9 @@ def epoch_channel(c, k_ep, e_row, epoch, src, corr, wipe, bank, outer, window, r
     corr.cp0[c] = corr.code_phase[c]
     corr.f0[c] = corr.carr_freq[c]
     corr.sig[c] = src.sigma[corr.sample_ptr[c] // src.block_len]
-    _correlate_one(c, src.buf, src.is_complex, src.buf_start, src.n_buf, corr.code_ext, corr.pad, corr.active,
-                   corr.sample_ptr, corr.code_phase, corr.code_rate, corr.carr_phase, corr.carr_freq, corr.fs,
-                   tap_fix, corr.sig, corr.out, corr.t_start, corr.n_s, sig.code_len, WA)
+    correlate_one(c, src.buf, src.is_complex, src.buf_start, src.n_buf, corr.code_ext, corr.pad, corr.active,
+                  corr.sample_ptr, corr.code_phase, corr.code_rate, corr.carr_phase, corr.carr_freq, corr.fs,
+                  tap_fix, corr.sig, corr.out, corr.t_start, corr.n_s, sig.code_len, WA)
     if corr.n_s[c] <= 0:
         return ERR_CORR
     burst_one(c, k_ep, corr.t_start[c] / corr.fs, burst, corr.out)

@@ -44,16 +44,18 @@ The NCO state kept in the public float64 arrays is advanced exactly (float64)
 after every integration, so accumulator quantisation never accumulates.
 
 Not-ready channels.  A channel whose period does not end inside the buffer
-reports ``n_samples = 0`` (state unchanged: refill and call again, starting the
+reports ``n_samples = NOT_READY`` (0; state unchanged: refill and call again, starting the
 next buffer at or before its ``sample_ptr``).  A channel whose ``sample_ptr``
 lies before ``buf_start`` (its samples are no longer in the buffer) reports
-``n_samples = -1`` (state unchanged; use :meth:`CorrelatorBank.advance_to`).
-Inactive channels report ``n_samples = 0`` and zero outputs.  A channel with an
+``n_samples = BEHIND_BUFFER`` (-1; state unchanged; use :meth:`CorrelatorBank.advance_to`).
+Inactive channels report ``NOT_READY`` and zero outputs.  A channel with an
 invalid NCO state (``code_rate <= 0`` or non-finite phases/frequency) reports
-``n_samples = -2`` (state unchanged).
+``n_samples = INVALID_NCO`` (-2; state unchanged).
 
-Kernel-level API (public and stable: the tracking module's fused loops call it):
-:func:`integrate_channel` (one channel, raw sums over ``n`` samples), :func:`period_samples`
+Kernel-level API (public and stable: the tracking module's fused loops and the ultra-tight
+engine's compiled epoch runner, :mod:`ultratight.receiver.deep.epochs`, call it):
+:func:`step_bank` (one code period for every channel) and :func:`correlate_one` (one channel of it,
+with the caller's work array), :func:`integrate_channel` (one channel, raw sums over ``n`` samples), :func:`period_samples`
 (samples to the end of the current code period), :func:`nco_fixed_point` /
 :func:`tap_fixed_point` (the kernel's fixed-point start values and tap offsets), the carrier tables :data:`COS_LUT` /
 :data:`SIN_LUT` (``LUT_SIZE = 2**LUT_BITS`` float32 entries at bin centres, indexed by the top
@@ -256,27 +258,27 @@ def nco_fixed_point(code_phase, pad, dp, carr_phase, carr_freq, fs):
 
 
 @njit(cache=True)
-def _correlate_one(ch, buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_ptr,
+def correlate_one(ch, buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_ptr,
                    code_phase, code_rate, carr_phase, carr_freq, fs, tap_fix, sigma_arm, out, t_start, n_samples,
                    code_len, acc):
-    """One code period of channel ``ch`` (see :func:`_step_bank`); touches only row ``ch`` and the
+    """One code period of channel ``ch`` (see :func:`step_bank`); touches only row ``ch`` and the
     work array ``acc`` (at least 2 * number of taps; the caller's, so no allocation per period)."""
     n_taps = tap_fix.shape[0]
     t_start[ch] = sample_ptr[ch]
     for c in range(out.shape[1]):
         out[ch, c] = 0.0
-    n_samples[ch] = 0
+    n_samples[ch] = NOT_READY
     if not active[ch]:
         return
     dp = code_rate[ch] / fs
     if not (dp > 0.0 and dp < 1e6 and np.isfinite(code_phase[ch]) and np.isfinite(carr_freq[ch])
             and np.isfinite(carr_phase[ch])):
-        n_samples[ch] = -2
+        n_samples[ch] = INVALID_NCO
         return
     n = period_samples(code_phase[ch], dp, code_len)
     off = sample_ptr[ch] - buf_start
     if off < 0:
-        n_samples[ch] = -1
+        n_samples[ch] = BEHIND_BUFFER
         return
     if off + n > n_buf:
         return
@@ -303,14 +305,14 @@ def _correlate_one(ch, buf, is_complex, buf_start, n_buf, code_ext, pad, active,
 
 
 @njit(cache=True)
-def _step_bank(buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_ptr,
+def step_bank(buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_ptr,
                code_phase, code_rate, carr_phase, carr_freq, fs, tap_off, sigma_arm,
                out, t_start, n_samples, code_len):
     """One code period for every active channel (see module docstring)."""
     tap_fix = tap_fixed_point(tap_off)
     acc = np.empty(2 * tap_fix.shape[0])
     for ch in range(code_phase.shape[0]):
-        _correlate_one(ch, buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_ptr,
+        correlate_one(ch, buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_ptr,
                        code_phase, code_rate, carr_phase, carr_freq, fs, tap_fix, sigma_arm, out, t_start, n_samples,
                        code_len, acc)
 
@@ -319,14 +321,14 @@ def _step_bank(buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_
 def _run_epochs(buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_ptr,
                 code_phase, code_rate, carr_phase, carr_freq, fs, tap_off, sigma_arm,
                 max_epochs, out, t_start, n_samples, code_len):
-    """Open-loop: repeat _step_bank until no channel can complete another period."""
+    """Open-loop: repeat step_bank until no channel can complete another period."""
     n_ch = code_phase.shape[0]
     row = np.empty((n_ch, out.shape[2]))
     ts = np.empty(n_ch, dtype=np.int64)
     ns = np.empty(n_ch, dtype=np.int64)
     n_done = np.zeros(n_ch, dtype=np.int64)
     for e in range(max_epochs):
-        _step_bank(buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_ptr,
+        step_bank(buf, is_complex, buf_start, n_buf, code_ext, pad, active, sample_ptr,
                    code_phase, code_rate, carr_phase, carr_freq, fs, tap_off, sigma_arm,
                    row, ts, ns, code_len)
         any_done = False
@@ -568,16 +570,16 @@ class CorrelatorBank:
         ``buf`` holds samples ``buf_start .. buf_start+len(buf)-1`` (complex64 or
         float32); ``noise_sigma_arm`` is a scalar or (n_ch,) array (see
         :func:`estimate_sigma_arm`).  Returns ``(out (n_ch, n_cols),
-        t_start_samples (n_ch,), n_samples (n_ch,))``; ``n_samples`` is 0 for a
-        channel not ready (period not complete in the buffer, or inactive), -1
-        for a channel whose ``sample_ptr`` precedes ``buf_start`` and -2 for an
+        t_start_samples (n_ch,), n_samples (n_ch,))``; ``n_samples`` is ``NOT_READY`` (0) for a
+        channel not ready (period not complete in the buffer, or inactive), ``BEHIND_BUFFER`` (-1)
+        for a channel whose ``sample_ptr`` precedes ``buf_start`` and ``INVALID_NCO`` (-2) for an
         invalid NCO state (code_rate <= 0, non-finite phase/frequency).
         """
         b, n_buf, sig = self._prep(buf, noise_sigma_arm)
         out = np.zeros((self.n_ch, self.n_cols))
         t_start = np.zeros(self.n_ch, dtype=np.int64)
         n_samples = np.zeros(self.n_ch, dtype=np.int64)
-        _step_bank(b, self.is_complex, int(buf_start), n_buf, self.code_ext, self.pad, self.active,
+        step_bank(b, self.is_complex, int(buf_start), n_buf, self.code_ext, self.pad, self.active,
                    self.sample_ptr, self.code_phase, self.code_rate, self.carr_phase, self.carr_freq,
                    self.fs_hz, self.tap_offsets_chips, sig, out, t_start, n_samples, self.code_len)
         return out, t_start, n_samples
