@@ -591,6 +591,28 @@ def doppler_rate_search(source, prn, doppler_hz, code_phase_chips, sample_index,
     of the rate/frequency surface (a noise-only surface has its peak at ~ln(cells)).
     Cost: one 1 ms code wipe-off of the span, then per Doppler alias one FFT per rate (~0.2 s of CPU
     per satellite for 0.4 s at 2 MHz)."""
+    z1, k_blocks, per, n1, fs = _wiped_millisecond_sums(source, prn, doppler_hz, code_phase_chips, sample_index,
+                                                        span_s, block_ms, signal)
+    t1 = (np.arange(k_blocks * per) + 0.5) * (n1 / fs)
+    tb = per * n1 / fs
+    tk = (np.arange(k_blocks) + 0.5) * tb
+    span = k_blocks * tb
+    r_step = 1.0 / (4.0 * span * span)
+    rates = np.arange(-rate_max_hz_s, rate_max_hz_s + 0.5 * r_step, r_step)
+    alias = 0.5 / tb
+    surf, base, i_r, i_f = _rate_frequency_surface(z1, t1, tk, k_blocks, per, rates, alias, freq_span_hz)
+    metric = float(surf[i_r, i_f] / np.mean(surf))
+    rate, df0 = _surface_peak(surf, i_r, i_f, rates, r_step, tb, base)
+    df = _strongest_alias(z1, t1, k_blocks, per, df0, rate, alias, freq_span_hz)
+    return RateResult(doppler_hz=float(doppler_hz) + df, rate_hz_s=rate, metric=metric,
+                      sample_index=int(sample_index), span_s=span)
+
+
+def _wiped_millisecond_sums(source, prn, doppler_hz, code_phase_chips, sample_index, span_s, block_ms, signal):
+    """Step 1 of :func:`doppler_rate_search`: the 1 ms sums of the span with the code wiped at the
+    acquisition code phase (Doppler-aided code rate) and the carrier at the acquisition Doppler.
+    Returns ``(z1, k_blocks, per, n1, fs)``: the sums, the number of blocks, 1 ms sums per block,
+    samples per 1 ms sum and the sampling rate."""
     fs = float(source.fs_hz)
     n1 = int(round(1e-3 * fs))                        # 1 ms sub-blocks
     per = max(1, int(block_ms))                        # sub-blocks per block
@@ -610,33 +632,41 @@ def doppler_rate_search(source, prn, doppler_hz, code_phase_chips, sample_index,
                .astype(np.int64) % signal.code_length]
     w = xb * (rep * np.exp(-2j * np.pi * (ph - np.floor(ph)))).astype(np.complex64)
     z1 = w.reshape(k_blocks * per, n1).sum(axis=1).astype(np.complex128)
-    t1 = (np.arange(k_blocks * per) + 0.5) * (n1 / fs)
-    tb = per * n1 / fs
-    tk = (np.arange(k_blocks) + 0.5) * tb
-    span = k_blocks * tb
+    return z1, k_blocks, per, n1, fs
 
-    def block_sums(df, rate):
-        """Block sums of the 1 ms sums counter-rotated by a Doppler offset ``df`` and a rate."""
-        rot = np.exp(-2j * np.pi * (df * t1 + 0.5 * rate * t1 * t1))
-        return (z1 * rot).reshape(k_blocks, per).sum(axis=1)
 
-    r_step = 1.0 / (4.0 * span * span)
-    rates = np.arange(-rate_max_hz_s, rate_max_hz_s + 0.5 * r_step, r_step)
+def _block_sums(z1, t1, k_blocks, per, df, rate):
+    """Block sums of the 1 ms sums ``z1`` (at times ``t1``) counter-rotated by a Doppler offset ``df``
+    and a rate."""
+    rot = np.exp(-2j * np.pi * (df * t1 + 0.5 * rate * t1 * t1))
+    return (z1 * rot).reshape(k_blocks, per).sum(axis=1)
+
+
+def _rate_frequency_surface(z1, t1, tk, k_blocks, per, rates, alias, freq_span_hz):
+    """Step 2 of :func:`doppler_rate_search`: the rate / frequency surface (squared block sums,
+    chirp removed for every rate, zero-padded FFT over the blocks) of the Doppler alias with the
+    highest peak. Returns ``(surf, base, i_r, i_f)``: the surface, the alias's Doppler offset and
+    the peak's rate and frequency indices."""
     n_fft = 1 << int(math.ceil(math.log2(16 * k_blocks)))
     chirp = np.exp(-2j * np.pi * np.outer(rates, tk * tk))
-    alias = 0.5 / tb
     best = None
     # the squared sums of blocks wiped far off the signal's frequency are attenuated (sinc of the
     # block): search with the wipe at the acquisition Doppler and at its aliases within the span
     for m in range(-int(freq_span_hz // alias), int(freq_span_hz // alias) + 1):
-        s = block_sums(m * alias, 0.0) ** 2
+        s = _block_sums(z1, t1, k_blocks, per, m * alias, 0.0) ** 2
         s /= np.mean(np.abs(s))
         surf = np.abs(np.fft.fft(s[None, :] * chirp, n=n_fft, axis=1)) ** 2
         i_r, i_f = np.unravel_index(int(np.argmax(surf)), surf.shape)
         if best is None or surf[i_r, i_f] > best[0]:
             best = (float(surf[i_r, i_f]), m * alias, surf, i_r, i_f)
-    peak, base, surf, i_r, i_f = best
-    metric = float(peak / np.mean(surf))
+    _, base, surf, i_r, i_f = best
+    return surf, base, i_r, i_f
+
+
+def _surface_peak(surf, i_r, i_f, rates, r_step, tb, base):
+    """The rate (Hz/s) and Doppler offset ``df`` (Hz, one of the aliases step ``1/(2 tb)``) of the
+    surface peak, interpolated in both directions."""
+    n_fft = surf.shape[1]
     dr = _parabolic(surf[i_r - 1, i_f] if i_r > 0 else None, surf[i_r, i_f],
                     surf[i_r + 1, i_f] if i_r + 1 < rates.size else None)
     dfb = _parabolic(surf[i_r, (i_f - 1) % n_fft], surf[i_r, i_f], surf[i_r, (i_f + 1) % n_fft])
@@ -644,11 +674,13 @@ def doppler_rate_search(source, prn, doppler_hz, code_phase_chips, sample_index,
     f2 = ((i_f + dfb) / n_fft) / tb                    # 2 df, in [0, 1/tb)
     if f2 >= 0.5 / tb:
         f2 -= 1.0 / tb
-    df0 = base + 0.5 * f2
-    # the alias of df0 (step 1/(2 tb)) with the largest block power once the chirp is removed
+    return rate, base + 0.5 * f2
+
+
+def _strongest_alias(z1, t1, k_blocks, per, df0, rate, alias, freq_span_hz):
+    """Step 3 of :func:`doppler_rate_search`: the alias of ``df0`` (step ``alias`` = 1/(2 tb)) with
+    the largest block power once the chirp is removed."""
     cands = [df0 + m * alias for m in range(-int(freq_span_hz // alias) - 1, int(freq_span_hz // alias) + 2)
              if abs(df0 + m * alias) <= freq_span_hz + alias]
-    pw = [float(np.sum(np.abs(block_sums(df, rate)) ** 2)) for df in cands]
-    df = cands[int(np.argmax(pw))]
-    return RateResult(doppler_hz=fd0 + df, rate_hz_s=rate, metric=metric,
-                      sample_index=int(sample_index), span_s=span)
+    pw = [float(np.sum(np.abs(_block_sums(z1, t1, k_blocks, per, df, rate)) ** 2)) for df in cands]
+    return cands[int(np.argmax(pw))]
