@@ -28,7 +28,7 @@ DOPPLER_LIMIT_HZ = 0.2
 
 def one(cfg, seed, strategy, method, data_dir):
     from ultratight.receiver.cli import metrics as M
-    from ultratight.receiver.deep.engine import EngineOptions
+    from ultratight.receiver.deep.options import EngineOptions
     from ultratight.receiver.cli.scenario_runner import errors_vs_truth, prepare_data, run_method
     from ultratight.receiver.dsp.wipeoff import BIT_BLIND
 

@@ -36,7 +36,7 @@ MONITORS = {
 
 def run(seeds, duration, fs_hz, methods, monitors, data_dir, progress=True, overrides=None, engine_kw=None):
     from ultratight.receiver.cli import metrics as M
-    from ultratight.receiver.deep.engine import EngineOptions
+    from ultratight.receiver.deep.options import EngineOptions
     from ultratight.receiver.cli.scenario_config import load_scenario
     from ultratight.receiver.cli.scenario_runner import errors_vs_truth, prepare_data, run_method
 

@@ -40,7 +40,7 @@ def main(argv=None):
     methods = [m.strip() for m in a.methods.split(",") if m.strip()]
 
     from ultratight.errors import UltratightError
-    from ultratight.receiver.deep.engine import EngineOptions
+    from ultratight.receiver.deep.options import EngineOptions
     from ultratight.receiver.cli.scenario_config import load_scenario
     from ultratight.receiver.cli.scenario_runner import prepare_data, run_method
 

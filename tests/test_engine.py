@@ -146,7 +146,8 @@ def test_engine_tracks_paper_highdyn_start(short_run):
 
 
 def test_run_on_files_and_bad_inputs(short_run, tmp_path):
-    from ultratight.receiver.deep.engine import run_ultratight_on_files, write_result_h5
+    from ultratight.receiver.deep.recordings import run_ultratight_on_files
+    from ultratight.receiver.deep.outputs import write_result_h5
     from ultratight.ins.imu import read_imu_h5, write_imu_h5
     paths, cfg, res, _ = short_run
     r2 = run_ultratight_on_files(paths["if"], paths["imu"], method="dlb-ckf", seed=11, duration_s=0.3)
@@ -183,7 +184,7 @@ def test_run_on_files_and_bad_inputs(short_run, tmp_path):
 
 
 def test_noise_floor_estimator_modes():
-    from ultratight.receiver.deep.engine import NoiseFloor
+    from ultratight.receiver.dsp.blockstream import NoiseFloor
     blocks = np.array([1.0, 1.0, 20.0, 20.0, 20.0, 1.0])
     per_block = NoiseFloor(0.0, 0.01)
     assert [per_block.update(b) for b in blocks] == pytest.approx(blocks)

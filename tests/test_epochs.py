@@ -8,7 +8,7 @@ import pytest
 from ultratight.errors import FilterError
 from ultratight.fusion.channel.innerloop import InnerLoop
 from ultratight.fusion.channel.prefilter import PrefilterBank
-from ultratight.receiver.deep.engine import EngineOptions, epoch_threads
+from ultratight.receiver.deep.options import EngineOptions, epoch_threads
 from ultratight.receiver.cli.scenario_config import load_scenario
 from ultratight.receiver.cli.scenario_runner import prepare_data, run_method
 from ultratight.signals.nco import NcoBank

@@ -14,7 +14,7 @@ from ultratight.ins.imu import read_imu_h5, synthesize_imu
 from ultratight.ins.sins import make_state, nav_errors, sins_run
 from ultratight.ins.trajectory import build_trajectory
 from ultratight.receiver.cli import main
-from ultratight.receiver.deep.engine import run_ultratight_on_files
+from ultratight.receiver.deep.recordings import run_ultratight_on_files
 from ultratight.receiver.deep.sins_clock import InsClock
 
 LEVER = np.array([2.0, 1.0, 2.5])      # FLU, m (3.4 m)

@@ -56,7 +56,7 @@ def test_engine_runs_the_scalar_method_through_the_scalar_pipeline(tmp_path):
 
 
 def test_paper_literal_rackf_gets_algorithm_1_settings():
-    from ultratight.receiver.deep.engine import EngineOptions
+    from ultratight.receiver.deep.options import EngineOptions
     from ultratight.receiver.deep.tracking_banks import make_tracking_bank
     sig = (np.full(2, 0.05), np.full(2, 0.5))
     from ultratight.signals.signal import GPS_L1CA

@@ -51,7 +51,7 @@ def _highdyn(out):
 
 
 def _burst(out):
-    from ultratight.receiver.deep.engine import EngineOptions, monitor_options
+    from ultratight.receiver.deep.options import EngineOptions, monitor_options
     from ultratight.receiver.cli.scenario_config import load_scenario
     from ultratight.receiver.cli.scenario_runner import prepare_data, run_method
     cfg = load_scenario("paper-highdyn", BURST)

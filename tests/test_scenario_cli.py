@@ -99,7 +99,7 @@ def test_user_errors_exit_2(argv, what, tmp_path, capsys):
 
 def test_engine_table_validated_and_kept_out_of_the_data_key(tmp_path):
     from ultratight.errors import ConfigError
-    from ultratight.receiver.deep.engine import EngineOptions
+    from ultratight.receiver.deep.options import EngineOptions
     from ultratight.receiver.cli.scenario_config import load_scenario
     from ultratight.receiver.cli.scenario_runner import engine_options_for, prepare_data
 

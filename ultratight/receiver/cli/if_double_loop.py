@@ -21,7 +21,7 @@ from ultratight.errors import ConfigError
 from ultratight.io_guard import json_clean
 from ultratight.receiver.cli import metrics as M
 from ultratight.receiver.cli import scenario_runner
-from ultratight.receiver.deep.engine import METHODS  # noqa: F401  (the accepted method names)
+from ultratight.receiver.deep.methods import METHODS  # noqa: F401  (the accepted method names)
 from ultratight.receiver.cli.scenario_config import IMU_DEFAULTS, load_scenario
 from ultratight.receiver.cli.scenario_runner import (_event_windows, _f, aggregate, errors_vs_truth, event_rms,
                                                  prepare_data, run_method)

@@ -44,7 +44,9 @@ from ultratight.io_guard import atomic_path, json_clean, note_complete, output_e
 from ultratight.receiver.cli import metrics as M
 from ultratight.receiver.dsp.burst import PLACE_IF, event_place
 from ultratight.receiver.cli.commands.generate import estimate
-from ultratight.receiver.deep.engine import EngineOptions, UltratightEngine, check_method, monitor_mode
+from ultratight.receiver.deep.options import EngineOptions, monitor_mode
+from ultratight.receiver.deep.engine import UltratightEngine
+from ultratight.receiver.deep.methods import check_method
 from ultratight.receiver.deep.methods import method_spec
 from ultratight.receiver.deep.scalar_reference import run_scalar  # noqa: F401 (public here too)
 from ultratight.receiver.cli.scenario_config import IMU_DEFAULTS, load_scenario

@@ -47,24 +47,19 @@ ultratight.fusion.channel.prefilter), with their time ``t_start`` (s since the f
 References: docs/references.md.
 """
 
-import json
 import math
 import time
-from dataclasses import asdict, dataclass, field, replace
-from pathlib import Path
+from dataclasses import replace
 
 import numba
 import numpy as np
 
-from ultratight import __version__
-from ultratight.errors import ConfigError, DivergenceError, FilterError, InputFileError
+from ultratight.errors import ConfigError, DivergenceError, FilterError
 from ultratight.fusion.coupling import tight as tightmod
 from ultratight.fusion.channel.innerloop import InnerLoop
 from ultratight.fusion.channel.prefilter import IF as PREFILTER_IF
 from ultratight.fusion.coupling.rateconv import ResidualDecimator
 from ultratight.ins.earth import radii
-from ultratight.ins import imu_decl
-from ultratight.io_guard import write_h5_atomic
 from ultratight.receiver.deep import epochs
 from ultratight.receiver.dsp.blockstream import BlockStream, NoiseFloor
 from ultratight.receiver.dsp.burst import burst_all, make_burst
@@ -72,63 +67,21 @@ from ultratight.receiver.dsp.correlator import CorrelatorBank
 from ultratight.receiver.deep.epochs import (CONTINUE, END, ERR_BANK, ERR_CORR, NEED_IF, NEED_SINS, TIGHT,
                                         correlate, epoch_gate, epoch_post, run_epochs)
 from ultratight.receiver.dsp.lockmon import LockMonitor, amplitude_threshold
-from ultratight.receiver.deep.methods import DEFAULT_METHOD, METHODS, check_method, method_spec  # noqa: F401
+from ultratight.receiver.deep.methods import DEFAULT_METHOD, check_method, method_spec
+from ultratight.receiver.deep.options import MODE_COAST, MODE_COMBINED, MODE_INNER, MODE_OUTER, EngineOptions, epoch_threads
 from ultratight.receiver.deep.outer_loop import OuterLoop, SinsFollower
-from ultratight.receiver.deep.recorder import EngineResult, EpochRecorder  # noqa: F401 (EngineResult: public here)
+from ultratight.receiver.deep.recorder import EpochRecorder
 from ultratight.receiver.deep.scalar_reference import run_scalar
-from ultratight.receiver.deep.sins_clock import InsClock  # noqa: F401 (public here too)
+from ultratight.receiver.deep.sins_clock import InsClock
 from ultratight.receiver.deep.bitsources import bit_source, check_strategy, decoded_from_pass
-from ultratight.receiver.deep.startup import StartupErrors, first_period_ms, perturb_state, predict_channels
+from ultratight.receiver.deep.startup import first_period_ms, predict_channels
 from ultratight.receiver.deep.tracking_banks import bank_view, make_tracking_bank, restart_covariance
 from ultratight.receiver.dsp.wipeoff import BIT_SOURCE_NAMES, DataWipeoff
-from ultratight.cores import stage_threads
-from ultratight.signals.constellation import nominal_ephemerides
-from ultratight.signals.ephemeris import sat_state
-from ultratight.signals.recording.iffile import open_if
-from ultratight.signals.rinex import read_rinex_nav
 from ultratight.signals.signal import GPS_L1CA
 
-__all__ = ["EngineOptions", "EngineResult", "UltratightEngine", "NoiseFloor", "BlockStream", "MODE_INNER",
-           "MODE_COMBINED", "MODE_OUTER", "MODE_COAST", "monitor_options", "monitor_mode",
-           "check_imu_if_alignment", "run_ultratight_on_files", "write_result_h5"]
+__all__ = ["UltratightEngine", "EpochState"]
 
 PEND_EPOCHS = 256   # most epochs the compiled runner runs before summing their residuals
-
-MODE_INNER = 0
-MODE_COMBINED = 1
-MODE_OUTER = 2
-MODE_COAST = 3      # signal lost: NCO on the outer-loop aiding only, prefilter restarted on return
-
-# process noise of the aided prefilters (same for the three DLB methods; densities of eq. 2)
-DLB_PREFILTER_Q = {
-    "q_amp": 2.5e-3,     # amplitude random walk
-    "q_tau": 1e-8,       # chips^2/s: code-carrier divergence (none in the simulation: small)
-    "q_phi": 0.01,       # rad^2/s
-    "q_f": 0.1,          # rad^2/s^3: aiding error drift (INS velocity / clock-drift error rate)
-    "q_a": 0.1,          # rad^2/s^5: residual LOS jerk after aiding (CIC/extrapolation residuals)
-}
-
-MONITOR_MODES = {
-    "off": {"lock_monitor": False, "monitor_gates_tight": False},    # paper structure (default)
-    "gate": {"lock_monitor": False, "monitor_gates_tight": True},    # only gates tight-filter rows
-    "coast": {"lock_monitor": True, "monitor_gates_tight": True},    # gates, coasts and restarts
-}
-
-
-def monitor_options(mode):
-    """EngineOptions fields of a signal-monitor mode ("off" | "gate" | "coast")."""
-    if mode not in MONITOR_MODES:
-        raise ConfigError(f"unknown signal-monitor mode {mode!r}; expected one of {', '.join(MONITOR_MODES)}")
-    return dict(MONITOR_MODES[mode])
-
-
-def monitor_mode(opt):
-    """The monitor mode name of an EngineOptions."""
-    for k, v in MONITOR_MODES.items():
-        if v == {"lock_monitor": opt.lock_monitor, "monitor_gates_tight": opt.monitor_gates_tight}:
-            return k
-    return "coast-only"
-
 
 def _outer_freq_update(x, P, sel, resid_hz, r_var):
     """Scalar Kalman update of the prefilters' frequency states (rad/s) of channels ``sel`` with
@@ -142,66 +95,6 @@ def _outer_freq_update(x, P, sel, resid_hz, r_var):
         x[c] += k * (-2.0 * math.pi * resid_hz[c])
         P[c] -= np.outer(k, P[c, PREFILTER_IF, :])
         P[c] = 0.5 * (P[c] + P[c].T)
-
-
-@dataclass
-class EngineOptions:
-    """Parameters of the engine (all recorded in the outputs)."""
-
-    tight_rate_hz: float = 10.0          # integration-filter (decimated) rate
-    tight_core: str = "ekf"              # ekf | ukf | ckf | iakf
-    arbitration_sigma_hz: float = 2.0    # combined command when predicted Doppler 1-sigma < this
-    prefilter_q: dict = field(default_factory=lambda: dict(DLB_PREFILTER_Q))
-    rackf_period: int = 50               # RACKF robust-adaptive correction period, epochs
-    huber_c: float = 1.5
-    robust_mode: str = "every"           # RACKF: Huber step every epoch, adaptive factor every period
-    rackf_kwargs: dict = field(default_factory=lambda: {"adaptive_stat": "window"})
-    cn0_init_dbhz: float = 25.0          # assumed C/N0 for the prefilters' initial amplitude
-    block_ms: int = 10                   # IF read block (noise estimate granularity)
-    # noise-floor estimator: 0 = the estimate of each IF block alone (follows every noise change);
-    # tau > 0 = exponential average of the block variances with this time constant (a slow
-    # noise-floor tracker); inf = calibrated on the first block and then held.
-    noise_tau_s: float = 0.0
-    cic_order: int = 3
-    pr_sigma_floor_m: float = 3.0        # tight filter pseudorange noise floor
-    prr_sigma_floor_mps: float = 0.05    # tight filter pseudorange-rate noise floor
-    meas_corr_factor: float = 10.0       # inflation of prefilter variances (correlated outputs)
-    amp_min: float = 0.15                # channels below this amplitude estimate skip the update
-    gate_sigma: float = 5.0
-    code_sigma_margin_chips: float = 0.002   # added to the hot-start code sigma of the prefilters
-    clock_q_drift: float = 1e-4          # (m/s)^2/s clock drift random walk in the tight filter
-    phase_init_ms: int = 40              # startup coherent phase initialisation window (0: off)
-    aid_time_offset_s: float = 0.5e-3    # aiding sampled at next-interval middle + this (see docs)
-    # double loop: a channel whose rows are out of the tight filter (amplitude below amp_min) gets
-    # the outer loop's Doppler as a frequency pseudo-measurement (variance sigma_i^2), see docs
-    outer_freq_update: bool = False
-    # engine-level signal monitor (not part of the paper's structure, off by default: the prefilters
-    # must ride through fades themselves; see docs/ultratight.md "Signal monitor"):
-    monitor_gates_tight: bool = False    # keep fading channels out of the tight filter (NCOs untouched)
-    lock_monitor: bool = False           # coast (NCO on the outer loop alone) / restart on fades
-    lock_window_ms: int = 300            # signal/lock monitor window
-    lock_off_dbhz: float = 10.0          # coast (outer loop only) below this C/N0 (in-phase estimate)
-    lock_on_dbhz: float = 16.5           # restart the prefilter above this C/N0 (coherent magnitude)
-    cn0_min_dbhz: float = 10.0           # floor of the re-initialised amplitude
-    reinit_sigma_f_hz: float = 0.3       # frequency 1-sigma after a phase (re)initialisation
-    reinit_sigma_a_hzps: float = 0.3     # Doppler-rate 1-sigma after a (re)initialisation (aided)
-    prefilter_kwargs: dict = field(default_factory=dict)   # extra PrefilterBank parameters
-    # noise events inside the receiver (receiver.burst): [[noise_events]] entries whose place is
-    # "correlator" or "filter-r" ("if" ones are the generator's), and the seed of the correlator noise
-    noise_events: list = field(default_factory=list)
-    noise_seed: int = 0
-    startup: dict = field(default_factory=dict)   # StartupErrors overrides
-    threads: int = 0                     # epoch-stage threads: 0 = auto (epoch_threads), 1 = one, k = k
-    # navigation-data bits (receiver.bitsources): assisted | decoded | blind | path of a bit file
-    bits: str = "assisted"
-
-    def as_dict(self):
-        return asdict(self)
-
-
-def epoch_threads(requested):
-    """Threads for the compiled epoch stages (:func:`ultratight.cores.stage_threads`)."""
-    return stage_threads(requested)
 
 
 class EpochState:
@@ -723,254 +616,3 @@ class _BankProxy:
     def note_correction(self, dx):
         self._bank.note_correction(dx)
 
-# ---------------------------------------------------------------------------------------
-# recorded data: IF file + IMU file
-# ---------------------------------------------------------------------------------------
-IMU_IF_TOLERANCE_S = 1e-3      # largest accepted IMU/IF start-time mismatch
-
-
-def _imu_start_tow(imu):
-    """GPS time (week, tow) of the IMU's t = 0, when the file says (None otherwise)."""
-    meta = getattr(imu, "meta", None) or {}
-    if "start_tow_s" in meta:
-        return meta.get("start_week"), float(meta["start_tow_s"])
-    cfg = meta.get("config_json")
-    if isinstance(cfg, str):
-        try:
-            cfg = json.loads(cfg)
-        except ValueError:
-            cfg = None
-    if isinstance(cfg, dict) and isinstance(cfg.get("time"), dict) and "tow_s" in cfg["time"]:
-        return cfg["time"].get("week"), float(cfg["time"]["tow_s"])
-    return None
-
-
-def check_imu_if_alignment(src, imu, if_path="IF file", imu_path="IMU file", tol_s=IMU_IF_TOLERANCE_S):
-    """Check that the IMU data can drive the SINS over the IF record; returns the usable duration.
-
-    * stamps: finite, strictly increasing, no gaps (also checked by the IMU readers);
-    * the IMU time axis starts at the first IF sample: ``t0 == 0`` and, when the IMU file carries
-      a GPS start time, it equals the IF start time within ``tol_s``;
-    * the IMU covers at least one SINS step of the IF record.
-    Raises InputFileError naming the file and the offending values.
-    """
-    t = np.asarray(imu.t, dtype=float)
-    if t.size < 2 or not np.all(np.isfinite(t)):
-        raise InputFileError(f"{imu_path}: IMU time stamps missing or not finite")
-    d = np.diff(t)
-    if np.any(d <= 0):
-        i = int(np.flatnonzero(d <= 0)[0]) + 1
-        raise InputFileError(f"{imu_path}: sample {i}: out-of-order or duplicate time stamp t = {t[i]!r} s "
-                             f"(previous {t[i - 1]!r} s)")
-    dt = 1.0 / float(imu.rate_hz)
-    if np.any(np.abs(d - dt) > 0.25 * dt):
-        i = int(np.flatnonzero(np.abs(d - dt) > 0.25 * dt)[0]) + 1
-        raise InputFileError(f"{imu_path}: sample {i}: interval {d[i - 1]:.6g} s at t = {t[i]!r} s differs from "
-                             f"the nominal {dt:.6g} s ({imu.rate_hz} Hz): gap or irregular sampling")
-    t0 = float(getattr(imu, "t0", t[0] - dt))
-    if abs(float(t[0]) - dt) > tol_s:
-        raise InputFileError(f"{imu_path}: first IMU stamp t = {float(t[0]):.6g} s; the first increment must end "
-                             f"one IMU interval ({dt:.6g} s) after the first IF sample (t = 0): IMU/IF time offset "
-                             f"{float(t[0]) - dt:+.6g} s")
-    if abs(t0) > tol_s:
-        raise InputFileError(f"{imu_path}: IMU time axis starts at t0 = {t0:.6g} s but must start at the first IF "
-                             f"sample (t0 = 0 within {tol_s} s); IMU/IF time offset {t0:.6g} s")
-    st = _imu_start_tow(imu)
-    if st is not None and src.start_tow_s is not None:
-        w_imu, tow_imu = st
-        off = tow_imu - float(src.start_tow_s)
-        if w_imu is not None and src.start_week is not None:
-            off += (int(w_imu) - int(src.start_week)) * 604800.0
-        if abs(off) > tol_s:
-            raise InputFileError(f"{imu_path}: IMU starts at GPS TOW {tow_imu:.6f} s but {if_path} starts at "
-                                 f"{float(src.start_tow_s):.6f} s: IMU/IF time offset {off:+.6f} s "
-                                 f"(tolerance {tol_s} s)")
-    usable = min(src.duration_s, float(t[-1]))
-    if usable < 2 * dt:
-        raise InputFileError(f"{imu_path}: IMU data end at t = {t[-1]:.6g} s; they must cover the IF record "
-                             f"({src.duration_s:.6g} s)")
-    return usable
-
-
-def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None, nav_path=None, prns=None,
-                            init_state=None, options=None, duration_s=None, seed=0, startup_errors=None,
-                            imu_declaration=None, startup="auto", init_overrides=None, start_s=0.0,
-                            handover=None):
-    """Run the ultra-tight engine on a recorded IF file and an IMU file (HDF5 or CSV).
-
-    * ``meta``: sidecar/ION metadata for the IF file (default ``IFFILE.json``); the IF start time
-      (``start_week``/``start_tow_s``) is required.
-    * Ephemerides: ``nav_path`` (RINEX) or, for generator files, the sidecar's scenario
-      (nominal constellation).  PRNs: ``prns``, the sidecar's list or, after a scalar start-up,
-      the satellites of the hand-over fix.
-    * Initial state (``startup``: ``auto`` | ``scalar-fix`` | ``truth-perturbed``; the source used
-      is ``result.info["startup_source"]``):
-
-      - ``init_state`` dict (``llh``, ``vel_l``, ``q_lb``, ``clk_bias_m``, ``clk_drift_mps``) given
-        by the caller: used as it is, at ``start_s`` (``init-state``);
-      - ``init_overrides`` with all of ``llh``, ``vel_l``, ``q_lb`` (the ``--init-*`` flags,
-        :func:`ultratight.receiver.deep.handover.parse_init_flags`): those at ``start_s``, clock zero
-        (``init-flags``);
-      - the IMU file's truth at t0 perturbed by ``startup_errors`` (seeded by ``seed``; the hot
-        start never uses the truth itself) — the default (``auto``) for generator files with
-        truth and ``start_s`` = 0 (``truth-perturbed``);
-      - otherwise the scalar receiver's first fixes from ``start_s`` on (``scalar-fix``,
-        :func:`ultratight.receiver.deep.handover.scalar_handover`, configured by ``handover``), the
-        flags in ``init_overrides`` replacing their part.
-
-      The engine starts at the hand-over time (an IMU stamp): the IF source and the IMU data are
-      seen from there on (:class:`~ultratight.receiver.deep.handover.SourceWindow`,
-      :func:`~ultratight.receiver.deep.handover.imu_window`), the channels from predicted code phase
-      and Doppler (no acquisition); the result's times are shifted back to seconds since the first
-      sample of the file.
-    * IMU conventions: ``imu_declaration`` (sidecar keys, :mod:`ultratight.ins.imu_decl`) over the
-      IMU file's sidecar; a GPS-stamped IMU starting before the IF is cut to the IF start.
-    * Time alignment is checked by :func:`check_imu_if_alignment` (gaps, out-of-order stamps,
-      IMU/IF offset -> InputFileError).
-    Returns an :class:`EngineResult`.
-    """
-    from ultratight.receiver.deep import handover as ho
-    if not method_spec(method).needs_imu:
-        raise ConfigError(f"method {method!r} is the scalar receiver: use `ultratight process` without "
-                          f"--mode ultratight")
-    if startup not in ("auto", ho.STARTUP_SCALAR, ho.STARTUP_TRUTH):
-        raise ConfigError(f"unknown start-up {startup!r}; expected auto, {ho.STARTUP_SCALAR} or {ho.STARTUP_TRUTH}")
-    src = open_if(if_path, meta=meta)
-    if src.start_tow_s is None or src.start_week is None:
-        raise InputFileError(f"{if_path}: the IF start time (start_week, start_tow_s) is unknown; "
-                             "give it in the sidecar/metadata")
-    imu_path = Path(imu_path)
-    # the IMU's declared conventions (sidecar IMU.csv.json + ``imu_declaration`` overrides, ins.imu_decl)
-    imu = imu_decl.read_imu_file(imu_path, imu_declaration)
-    imu = imu_decl.align_to_gps_start(imu, src.start_week, src.start_tow_s, imu_path)
-    usable = check_imu_if_alignment(src, imu, if_path, imu_path)
-    dur = usable if duration_s is None else min(float(duration_s), usable)
-    side = src.meta or {}
-    gen_cfg = side.get("generator") if isinstance(side.get("generator"), dict) else None
-    week, tow0 = int(src.start_week), float(src.start_tow_s)
-    nav, ephs = _file_ephemerides(if_path, nav_path, gen_cfg, week, tow0)
-    if prns is None:
-        prns = side.get("prn")
-    start_s = float(start_s or 0.0)
-    if not 0.0 <= start_s < dur:
-        raise ConfigError(f"--start {start_s:g} s is outside the usable record (0 .. {dur:.3f} s)")
-    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7]))
-    source, hand, t_h, init_state, prns = _startup(
-        src, imu, imu_path, nav if nav is not None else ephs, ephs, prns, startup, init_state,
-        dict(init_overrides or {}), start_s, handover, gen_cfg, startup_errors, rng)
-    if not prns:
-        raise ConfigError(f"{if_path}: no PRN list in the sidecar: give the PRNs to track (--prn)")
-    missing = [p for p in prns if p not in ephs]
-    if missing:
-        raise ConfigError(f"no ephemeris for PRN {missing}")
-    file_start = {"week": int(week), "tow_s": float(tow0)}
-    if t_h > 0.0:
-        src, imu, t_h = _from_handover(src, imu, t_h, dur)
-        tow0, week = float(src.start_tow_s), int(src.start_week)
-    eng = UltratightEngine(src, imu, ephs, [int(p) for p in prns], week, tow0, method=method,
-                           options=options, init_state=init_state, rng=rng, duration_s=dur - t_h)
-    res = eng.run()
-    if t_h > 0.0:
-        res.t_start = res.t_start + t_h
-        res.nav_t = res.nav_t + t_h
-        if res.sins:
-            res.sins["t_s"] = res.sins["t_s"] + t_h
-    res.info["startup_source"] = source
-    res.info["t_offset_s"] = float(t_h)
-    res.info["handover"] = (hand or {}).get("startup", {"source": source, "handover_t_s": float(t_h)})
-    res.info["if_file_start"] = file_start          # the result's times count from this receiver time
-    t_mid = file_start["tow_s"] + t_h + 0.5 * res.duration_s
-    res.info["sat_pos_e"] = [np.asarray(sat_state(ephs[int(p)], np.array([t_mid]))[0][0]).tolist() for p in prns]
-    return res
-
-
-def _file_ephemerides(if_path, nav_path, gen_cfg, week, tow0):
-    """``(nav, ephs)`` of a recording: the RINEX file's ephemerides valid at the start (``nav`` the
-    parsed file) or, for a generator file on the nominal constellation, the nominal ones (``nav``
-    None)."""
-    if nav_path is not None:
-        nav = read_rinex_nav(nav_path)
-        return nav, nav.select_all(week, tow0)
-    if gen_cfg is not None and gen_cfg.get("satellites", {}).get("source", "nominal") == "nominal":
-        return None, nominal_ephemerides(week, tow0)
-    raise ConfigError(f"{if_path}: no ephemerides: give a RINEX navigation file (--ephemeris)")
-
-
-def _startup(src, imu, imu_path, nav_or_ephs, ephs, prns, startup, init_state, overrides, start_s, handover,
-             gen_cfg, startup_errors, rng):
-    """The initial state of a recording's run (:func:`run_ultratight_on_files`, "Initial state"):
-    ``(source, hand, t_h, init_state, prns)`` — the start-up source's name, the scalar or flags
-    hand-over (or None), its time (s since the first sample), the state and the PRNs to track."""
-    from ultratight.receiver.deep import handover as ho
-    tr = getattr(imu, "truth", None)
-    has_truth = bool(tr) and "llh" in tr
-    t_h = 0.0
-    source = "init-state"
-    hand = None
-    if init_state is not None:
-        t_h = start_s
-    elif all(k in overrides for k in ("llh", "vel_l", "q_lb")):
-        hand = ho.flags_state(overrides, start_s)
-        source = ho.STARTUP_FLAGS
-    elif startup == ho.STARTUP_TRUTH or (startup == "auto" and has_truth and start_s == 0.0 and not overrides):
-        if not has_truth:
-            raise ConfigError(f"{imu_path}: start-up {ho.STARTUP_TRUTH} needs the truth in the IMU file (none here)")
-        if start_s != 0.0:
-            raise ConfigError(f"start-up {ho.STARTUP_TRUTH} starts at the first sample: --start not supported")
-        source = ho.STARTUP_TRUTH
-        rcv = (gen_cfg or {}).get("receiver", {})
-        truth0 = {"llh": np.asarray(tr["llh"][0]), "vel_l": np.asarray(tr["vel_l"][0]),
-                  "q_lb": np.asarray(tr["q_lb"][0]), "clk_bias_m": float(rcv.get("clock_bias_m", 0.0)),
-                  "clk_drift_mps": float(rcv.get("clock_drift_mps", 0.0))}
-        init_state = perturb_state(truth0, startup_errors or StartupErrors(), rng)
-    else:
-        hand = ho.scalar_handover(src, imu, tightmod.imu_errors_from_meta(imu), nav_or_ephs,
-                                  prns, start_s=start_s, cfg=handover, overrides=overrides)
-        source = ho.STARTUP_SCALAR
-        if not prns:
-            # every satellite the scalar pass kept tracking (not only the hand-over fix's)
-            prns = [p for p in hand["startup"]["scalar_pass"]["tracked"] if p in ephs]
-    if hand is not None:
-        t_h = hand["t_s"]
-        init_state = {k: hand[k] for k in ("llh", "vel_l", "q_lb", "clk_bias_m", "clk_drift_mps", "sigmas",
-                                           "code_phase_chips") if k in hand}
-    return source, hand, t_h, init_state, prns
-
-
-def _from_handover(src, imu, t_h, dur):
-    """The IF source and IMU data seen from the hand-over time ``t_h`` on (rounded to an IMU stamp):
-    ``(src, imu, t_h)``."""
-    from ultratight.receiver.deep import handover as ho
-    dt_imu = 1.0 / float(imu.rate_hz)
-    t_h = float(getattr(imu, "t0", 0.0)) + round((t_h - float(getattr(imu, "t0", 0.0))) / dt_imu) * dt_imu
-    if t_h >= dur - 2 * dt_imu:
-        raise ConfigError(f"start-up at t = {t_h:.3f} s leaves no record to process (usable {dur:.3f} s)")
-    n0 = int(round(t_h * src.fs_hz))
-    return ho.SourceWindow(src, n0), ho.imu_window(imu, t_h), t_h
-
-
-def write_result_h5(path, res, extra_attrs=None):
-    """Write an :class:`EngineResult` to HDF5 (built in memory, written under a unique temporary
-    name, then renamed; schema in docs/ultratight.md). Disk errors raise OutputError."""
-
-    def build(f):
-        f.attrs["schema"] = "ultratight engine result v1 (docs/ultratight.md)"
-        f.attrs["version"] = __version__
-        f.attrs["method"] = res.method
-        f.attrs["prn"] = np.asarray(res.prns, dtype=np.int64)
-        f.attrs["runtime_s"] = float(res.runtime_s)
-        f.attrs["duration_s"] = float(res.duration_s)
-        f.attrs["info_json"] = json.dumps(res.info, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
-        for k, v in (extra_attrs or {}).items():
-            f.attrs[k] = v
-        for k, v in (res.sins or {}).items():
-            f.create_dataset(f"sins/{k}", data=np.asarray(v), compression="gzip", compression_opts=1, shuffle=True)
-        for k, v in (("t_start_s", res.t_start), ("doppler_hz", res.doppler_hz),
-                     ("code_phase_chips", res.code_phase_chips), ("amplitude", res.amp), ("mode", res.mode),
-                     ("nav_t_s", res.nav_t), ("nav_pos_e", res.nav_pos_e), ("nav_vel_e", res.nav_vel_e),
-                     ("nav_clk", res.nav_clk), ("nav_sigma_doppler_hz", res.nav_sigma_doppler_hz)):
-            f.create_dataset(k, data=np.asarray(v), compression="gzip", compression_opts=1, shuffle=True)
-        if getattr(res, "bit_source", None) is not None:
-            f.create_dataset("bit_source", data=np.asarray(res.bit_source), compression="gzip", compression_opts=1)
-
-    return write_h5_atomic(path, build)

@@ -8,6 +8,7 @@ the IF file; the receiver time of ``t`` is the IF start TOW + t (``info["if_file
 is receiver time - clock bias / c. Layout of the files: docs/process.md, "Ultra-tight outputs".
 """
 
+import json
 import math
 
 import numpy as np
@@ -15,6 +16,7 @@ import numpy as np
 from ultratight import __version__
 from ultratight.constants import C
 from ultratight.ins.earth import dcm_ecef_from_enu, llh_to_ecef
+from ultratight.io_guard import write_h5_atomic
 from ultratight.receiver.io.outputs import write_table_csv
 
 NMEA_KML_RATE_HZ = 10.0     # NMEA / KML rows: every SINS row at this rate
@@ -101,7 +103,7 @@ def lock_lost_channels(res, amp_min=None, window_ms=None):
     """PRNs whose channel lost lock: coasting epochs (signal monitor) or an amplitude estimate below
     the engine's ``amp_min`` (the tight filter's own threshold) for ``lock_window_ms`` consecutive
     epochs after the start-up phase initialisation."""
-    from ultratight.receiver.deep.engine import MODE_COAST
+    from ultratight.receiver.deep.options import MODE_COAST
 
     opt = (res.info or {}).get("options", {})
     amp_min = float(opt.get("amp_min", 0.15)) if amp_min is None else amp_min
@@ -242,3 +244,30 @@ def write_files(res, csv_path=None, kml_path=None, nmea_path=None, rinex_obs_pat
             write_nmea(nmea_path, fixes, leap_s=DEFAULT_LEAP_S, options=opts)
     if rinex_obs_path:
         write_rinex_obs(rinex_obs_path, res)
+
+
+def write_result_h5(path, res, extra_attrs=None):
+    """Write an :class:`EngineResult` to HDF5 (built in memory, written under a unique temporary
+    name, then renamed; schema in docs/ultratight.md). Disk errors raise OutputError."""
+
+    def build(f):
+        f.attrs["schema"] = "ultratight engine result v1 (docs/ultratight.md)"
+        f.attrs["version"] = __version__
+        f.attrs["method"] = res.method
+        f.attrs["prn"] = np.asarray(res.prns, dtype=np.int64)
+        f.attrs["runtime_s"] = float(res.runtime_s)
+        f.attrs["duration_s"] = float(res.duration_s)
+        f.attrs["info_json"] = json.dumps(res.info, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+        for k, v in (extra_attrs or {}).items():
+            f.attrs[k] = v
+        for k, v in (res.sins or {}).items():
+            f.create_dataset(f"sins/{k}", data=np.asarray(v), compression="gzip", compression_opts=1, shuffle=True)
+        for k, v in (("t_start_s", res.t_start), ("doppler_hz", res.doppler_hz),
+                     ("code_phase_chips", res.code_phase_chips), ("amplitude", res.amp), ("mode", res.mode),
+                     ("nav_t_s", res.nav_t), ("nav_pos_e", res.nav_pos_e), ("nav_vel_e", res.nav_vel_e),
+                     ("nav_clk", res.nav_clk), ("nav_sigma_doppler_hz", res.nav_sigma_doppler_hz)):
+            f.create_dataset(k, data=np.asarray(v), compression="gzip", compression_opts=1, shuffle=True)
+        if getattr(res, "bit_source", None) is not None:
+            f.create_dataset("bit_source", data=np.asarray(res.bit_source), compression="gzip", compression_opts=1)
+
+    return write_h5_atomic(path, build)

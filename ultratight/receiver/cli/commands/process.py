@@ -2,7 +2,7 @@
 
 ``--mode scalar`` (default): the scalar receiver (acquisition -> tracking -> LNAV -> PVT).
 ``--mode ultratight --imu IMU.h5 [--method M]``: the ultra-tight GPS/INS engine
-(:func:`ultratight.receiver.deep.engine.run_ultratight_on_files`) on the IF file and a recorded IMU
+(:func:`ultratight.receiver.deep.recordings.run_ultratight_on_files`) on the IF file and a recorded IMU
 file (HDF5 or CSV) whose time axis starts at the first IF sample; it starts from the scalar
 receiver's first fixes on the same file, the ``--init-*`` flags or (generated files) the
 perturbed truth (``--startup``, :mod:`ultratight.receiver.deep.handover`), and writes the SINS-rate
@@ -331,7 +331,10 @@ def _run_ultratight(args):
     """``--mode ultratight``: the engine on IFFILE + IMU; summary on stdout, result HDF5 with --out."""
     from ultratight.errors import ConfigError
     from ultratight.receiver.deep.bitsources import check_strategy
-    from ultratight.receiver.deep.engine import DEFAULT_METHOD, EngineOptions, run_ultratight_on_files, write_result_h5
+    from ultratight.receiver.deep.methods import DEFAULT_METHOD
+    from ultratight.receiver.deep.options import EngineOptions
+    from ultratight.receiver.deep.recordings import run_ultratight_on_files
+    from ultratight.receiver.deep.outputs import write_result_h5
 
     if not args.imu:
         raise ConfigError("--mode ultratight needs --imu IMU.h5")

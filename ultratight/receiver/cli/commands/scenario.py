@@ -103,7 +103,7 @@ IF_ONLY = ("fs_hz", "channel", "monitor", "noise_tau", "frontend_gain", "format"
 def _run_if(args, path, module):
     from ultratight.errors import ConfigError
     from ultratight.receiver.cli import experiments
-    from ultratight.receiver.deep.engine import EngineOptions, monitor_options
+    from ultratight.receiver.deep.options import EngineOptions, monitor_options
     try:
         mon = monitor_options(args.monitor or "off")
     except ConfigError as exc:

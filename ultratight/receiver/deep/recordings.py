@@ -1,0 +1,256 @@
+"""The double loop on a user's recorded files: an IF file (with its sidecar) and an IMU file (HDF5 or
+CSV with its declaration). Checks that the two belong together in time, selects the ephemerides,
+chooses the initial state (given, from flags, from the scalar receiver's first fix, or from the
+IMU file's truth) and runs :class:`~ultratight.receiver.deep.engine.UltratightEngine` from the
+hand-over on (docs/process.md, docs/ultratight.md).
+"""
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ultratight.errors import ConfigError, InputFileError
+from ultratight.fusion.coupling import tight as tightmod
+from ultratight.ins import imu_decl
+from ultratight.receiver.deep.engine import UltratightEngine
+from ultratight.receiver.deep.methods import DEFAULT_METHOD, method_spec
+from ultratight.receiver.deep.startup import StartupErrors, perturb_state
+from ultratight.signals.constellation import nominal_ephemerides
+from ultratight.signals.ephemeris import sat_state
+from ultratight.signals.recording.iffile import open_if
+from ultratight.signals.rinex import read_rinex_nav
+
+IMU_IF_TOLERANCE_S = 1e-3      # largest accepted IMU/IF start-time mismatch
+
+
+def _imu_start_tow(imu):
+    """GPS time (week, tow) of the IMU's t = 0, when the file says (None otherwise)."""
+    meta = getattr(imu, "meta", None) or {}
+    if "start_tow_s" in meta:
+        return meta.get("start_week"), float(meta["start_tow_s"])
+    cfg = meta.get("config_json")
+    if isinstance(cfg, str):
+        try:
+            cfg = json.loads(cfg)
+        except ValueError:
+            cfg = None
+    if isinstance(cfg, dict) and isinstance(cfg.get("time"), dict) and "tow_s" in cfg["time"]:
+        return cfg["time"].get("week"), float(cfg["time"]["tow_s"])
+    return None
+
+
+def check_imu_if_alignment(src, imu, if_path="IF file", imu_path="IMU file", tol_s=IMU_IF_TOLERANCE_S):
+    """Check that the IMU data can drive the SINS over the IF record; returns the usable duration.
+
+    * stamps: finite, strictly increasing, no gaps (also checked by the IMU readers);
+    * the IMU time axis starts at the first IF sample: ``t0 == 0`` and, when the IMU file carries
+      a GPS start time, it equals the IF start time within ``tol_s``;
+    * the IMU covers at least one SINS step of the IF record.
+    Raises InputFileError naming the file and the offending values.
+    """
+    t = np.asarray(imu.t, dtype=float)
+    if t.size < 2 or not np.all(np.isfinite(t)):
+        raise InputFileError(f"{imu_path}: IMU time stamps missing or not finite")
+    d = np.diff(t)
+    if np.any(d <= 0):
+        i = int(np.flatnonzero(d <= 0)[0]) + 1
+        raise InputFileError(f"{imu_path}: sample {i}: out-of-order or duplicate time stamp t = {t[i]!r} s "
+                             f"(previous {t[i - 1]!r} s)")
+    dt = 1.0 / float(imu.rate_hz)
+    if np.any(np.abs(d - dt) > 0.25 * dt):
+        i = int(np.flatnonzero(np.abs(d - dt) > 0.25 * dt)[0]) + 1
+        raise InputFileError(f"{imu_path}: sample {i}: interval {d[i - 1]:.6g} s at t = {t[i]!r} s differs from "
+                             f"the nominal {dt:.6g} s ({imu.rate_hz} Hz): gap or irregular sampling")
+    t0 = float(getattr(imu, "t0", t[0] - dt))
+    if abs(float(t[0]) - dt) > tol_s:
+        raise InputFileError(f"{imu_path}: first IMU stamp t = {float(t[0]):.6g} s; the first increment must end "
+                             f"one IMU interval ({dt:.6g} s) after the first IF sample (t = 0): IMU/IF time offset "
+                             f"{float(t[0]) - dt:+.6g} s")
+    if abs(t0) > tol_s:
+        raise InputFileError(f"{imu_path}: IMU time axis starts at t0 = {t0:.6g} s but must start at the first IF "
+                             f"sample (t0 = 0 within {tol_s} s); IMU/IF time offset {t0:.6g} s")
+    st = _imu_start_tow(imu)
+    if st is not None and src.start_tow_s is not None:
+        w_imu, tow_imu = st
+        off = tow_imu - float(src.start_tow_s)
+        if w_imu is not None and src.start_week is not None:
+            off += (int(w_imu) - int(src.start_week)) * 604800.0
+        if abs(off) > tol_s:
+            raise InputFileError(f"{imu_path}: IMU starts at GPS TOW {tow_imu:.6f} s but {if_path} starts at "
+                                 f"{float(src.start_tow_s):.6f} s: IMU/IF time offset {off:+.6f} s "
+                                 f"(tolerance {tol_s} s)")
+    usable = min(src.duration_s, float(t[-1]))
+    if usable < 2 * dt:
+        raise InputFileError(f"{imu_path}: IMU data end at t = {t[-1]:.6g} s; they must cover the IF record "
+                             f"({src.duration_s:.6g} s)")
+    return usable
+
+
+def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None, nav_path=None, prns=None,
+                            init_state=None, options=None, duration_s=None, seed=0, startup_errors=None,
+                            imu_declaration=None, startup="auto", init_overrides=None, start_s=0.0,
+                            handover=None):
+    """Run the ultra-tight engine on a recorded IF file and an IMU file (HDF5 or CSV).
+
+    * ``meta``: sidecar/ION metadata for the IF file (default ``IFFILE.json``); the IF start time
+      (``start_week``/``start_tow_s``) is required.
+    * Ephemerides: ``nav_path`` (RINEX) or, for generator files, the sidecar's scenario
+      (nominal constellation).  PRNs: ``prns``, the sidecar's list or, after a scalar start-up,
+      the satellites of the hand-over fix.
+    * Initial state (``startup``: ``auto`` | ``scalar-fix`` | ``truth-perturbed``; the source used
+      is ``result.info["startup_source"]``):
+
+      - ``init_state`` dict (``llh``, ``vel_l``, ``q_lb``, ``clk_bias_m``, ``clk_drift_mps``) given
+        by the caller: used as it is, at ``start_s`` (``init-state``);
+      - ``init_overrides`` with all of ``llh``, ``vel_l``, ``q_lb`` (the ``--init-*`` flags,
+        :func:`ultratight.receiver.deep.handover.parse_init_flags`): those at ``start_s``, clock zero
+        (``init-flags``);
+      - the IMU file's truth at t0 perturbed by ``startup_errors`` (seeded by ``seed``; the hot
+        start never uses the truth itself) — the default (``auto``) for generator files with
+        truth and ``start_s`` = 0 (``truth-perturbed``);
+      - otherwise the scalar receiver's first fixes from ``start_s`` on (``scalar-fix``,
+        :func:`ultratight.receiver.deep.handover.scalar_handover`, configured by ``handover``), the
+        flags in ``init_overrides`` replacing their part.
+
+      The engine starts at the hand-over time (an IMU stamp): the IF source and the IMU data are
+      seen from there on (:class:`~ultratight.receiver.deep.handover.SourceWindow`,
+      :func:`~ultratight.receiver.deep.handover.imu_window`), the channels from predicted code phase
+      and Doppler (no acquisition); the result's times are shifted back to seconds since the first
+      sample of the file.
+    * IMU conventions: ``imu_declaration`` (sidecar keys, :mod:`ultratight.ins.imu_decl`) over the
+      IMU file's sidecar; a GPS-stamped IMU starting before the IF is cut to the IF start.
+    * Time alignment is checked by :func:`check_imu_if_alignment` (gaps, out-of-order stamps,
+      IMU/IF offset -> InputFileError).
+    Returns an :class:`EngineResult`.
+    """
+    from ultratight.receiver.deep import handover as ho
+    if not method_spec(method).needs_imu:
+        raise ConfigError(f"method {method!r} is the scalar receiver: use `ultratight process` without "
+                          f"--mode ultratight")
+    if startup not in ("auto", ho.STARTUP_SCALAR, ho.STARTUP_TRUTH):
+        raise ConfigError(f"unknown start-up {startup!r}; expected auto, {ho.STARTUP_SCALAR} or {ho.STARTUP_TRUTH}")
+    src, imu, imu_path, dur = _open_recording(if_path, imu_path, meta, imu_declaration, duration_s)
+    side = src.meta or {}
+    gen_cfg = side.get("generator") if isinstance(side.get("generator"), dict) else None
+    week, tow0 = int(src.start_week), float(src.start_tow_s)
+    nav, ephs = _file_ephemerides(if_path, nav_path, gen_cfg, week, tow0)
+    if prns is None:
+        prns = side.get("prn")
+    start_s = float(start_s or 0.0)
+    if not 0.0 <= start_s < dur:
+        raise ConfigError(f"--start {start_s:g} s is outside the usable record (0 .. {dur:.3f} s)")
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7]))
+    source, hand, t_h, init_state, prns = _startup(
+        src, imu, imu_path, nav if nav is not None else ephs, ephs, prns, startup, init_state,
+        dict(init_overrides or {}), start_s, handover, gen_cfg, startup_errors, rng)
+    if not prns:
+        raise ConfigError(f"{if_path}: no PRN list in the sidecar: give the PRNs to track (--prn)")
+    missing = [p for p in prns if p not in ephs]
+    if missing:
+        raise ConfigError(f"no ephemeris for PRN {missing}")
+    file_start = {"week": int(week), "tow_s": float(tow0)}
+    if t_h > 0.0:
+        src, imu, t_h = _from_handover(src, imu, t_h, dur)
+        tow0, week = float(src.start_tow_s), int(src.start_week)
+    eng = UltratightEngine(src, imu, ephs, [int(p) for p in prns], week, tow0, method=method,
+                           options=options, init_state=init_state, rng=rng, duration_s=dur - t_h)
+    res = eng.run()
+    _note_start(res, t_h, source, hand, file_start)
+    t_mid = file_start["tow_s"] + t_h + 0.5 * res.duration_s
+    res.info["sat_pos_e"] = [np.asarray(sat_state(ephs[int(p)], np.array([t_mid]))[0][0]).tolist() for p in prns]
+    return res
+
+
+def _open_recording(if_path, imu_path, meta, imu_declaration, duration_s):
+    """``(src, imu, imu_path, duration)``: the IF file (its start time required), the IMU file read in
+    its declared conventions and cut to the IF start, and the duration both cover."""
+    src = open_if(if_path, meta=meta)
+    if src.start_tow_s is None or src.start_week is None:
+        raise InputFileError(f"{if_path}: the IF start time (start_week, start_tow_s) is unknown; "
+                             "give it in the sidecar/metadata")
+    imu_path = Path(imu_path)
+    # the IMU's declared conventions (sidecar IMU.csv.json + ``imu_declaration`` overrides, ins.imu_decl)
+    imu = imu_decl.read_imu_file(imu_path, imu_declaration)
+    imu = imu_decl.align_to_gps_start(imu, src.start_week, src.start_tow_s, imu_path)
+    usable = check_imu_if_alignment(src, imu, if_path, imu_path)
+    dur = usable if duration_s is None else min(float(duration_s), usable)
+    return src, imu, imu_path, dur
+
+
+def _note_start(res, t_h, source, hand, file_start):
+    """Times of ``res`` shifted back to seconds since the file's first sample; the start-up recorded."""
+    if t_h > 0.0:
+        res.t_start = res.t_start + t_h
+        res.nav_t = res.nav_t + t_h
+        if res.sins:
+            res.sins["t_s"] = res.sins["t_s"] + t_h
+    res.info["startup_source"] = source
+    res.info["t_offset_s"] = float(t_h)
+    res.info["handover"] = (hand or {}).get("startup", {"source": source, "handover_t_s": float(t_h)})
+    res.info["if_file_start"] = file_start          # the result's times count from this receiver time
+
+
+def _file_ephemerides(if_path, nav_path, gen_cfg, week, tow0):
+    """``(nav, ephs)`` of a recording: the RINEX file's ephemerides valid at the start (``nav`` the
+    parsed file) or, for a generator file on the nominal constellation, the nominal ones (``nav``
+    None)."""
+    if nav_path is not None:
+        nav = read_rinex_nav(nav_path)
+        return nav, nav.select_all(week, tow0)
+    if gen_cfg is not None and gen_cfg.get("satellites", {}).get("source", "nominal") == "nominal":
+        return None, nominal_ephemerides(week, tow0)
+    raise ConfigError(f"{if_path}: no ephemerides: give a RINEX navigation file (--ephemeris)")
+
+
+def _startup(src, imu, imu_path, nav_or_ephs, ephs, prns, startup, init_state, overrides, start_s, handover,
+             gen_cfg, startup_errors, rng):
+    """The initial state of a recording's run (:func:`run_ultratight_on_files`, "Initial state"):
+    ``(source, hand, t_h, init_state, prns)`` — the start-up source's name, the scalar or flags
+    hand-over (or None), its time (s since the first sample), the state and the PRNs to track."""
+    from ultratight.receiver.deep import handover as ho
+    tr = getattr(imu, "truth", None)
+    has_truth = bool(tr) and "llh" in tr
+    t_h = 0.0
+    source = "init-state"
+    hand = None
+    if init_state is not None:
+        t_h = start_s
+    elif all(k in overrides for k in ("llh", "vel_l", "q_lb")):
+        hand = ho.flags_state(overrides, start_s)
+        source = ho.STARTUP_FLAGS
+    elif startup == ho.STARTUP_TRUTH or (startup == "auto" and has_truth and start_s == 0.0 and not overrides):
+        if not has_truth:
+            raise ConfigError(f"{imu_path}: start-up {ho.STARTUP_TRUTH} needs the truth in the IMU file (none here)")
+        if start_s != 0.0:
+            raise ConfigError(f"start-up {ho.STARTUP_TRUTH} starts at the first sample: --start not supported")
+        source = ho.STARTUP_TRUTH
+        rcv = (gen_cfg or {}).get("receiver", {})
+        truth0 = {"llh": np.asarray(tr["llh"][0]), "vel_l": np.asarray(tr["vel_l"][0]),
+                  "q_lb": np.asarray(tr["q_lb"][0]), "clk_bias_m": float(rcv.get("clock_bias_m", 0.0)),
+                  "clk_drift_mps": float(rcv.get("clock_drift_mps", 0.0))}
+        init_state = perturb_state(truth0, startup_errors or StartupErrors(), rng)
+    else:
+        hand = ho.scalar_handover(src, imu, tightmod.imu_errors_from_meta(imu), nav_or_ephs,
+                                  prns, start_s=start_s, cfg=handover, overrides=overrides)
+        source = ho.STARTUP_SCALAR
+        if not prns:
+            # every satellite the scalar pass kept tracking (not only the hand-over fix's)
+            prns = [p for p in hand["startup"]["scalar_pass"]["tracked"] if p in ephs]
+    if hand is not None:
+        t_h = hand["t_s"]
+        init_state = {k: hand[k] for k in ("llh", "vel_l", "q_lb", "clk_bias_m", "clk_drift_mps", "sigmas",
+                                           "code_phase_chips") if k in hand}
+    return source, hand, t_h, init_state, prns
+
+
+def _from_handover(src, imu, t_h, dur):
+    """The IF source and IMU data seen from the hand-over time ``t_h`` on (rounded to an IMU stamp):
+    ``(src, imu, t_h)``."""
+    from ultratight.receiver.deep import handover as ho
+    dt_imu = 1.0 / float(imu.rate_hz)
+    t_h = float(getattr(imu, "t0", 0.0)) + round((t_h - float(getattr(imu, "t0", 0.0))) / dt_imu) * dt_imu
+    if t_h >= dur - 2 * dt_imu:
+        raise ConfigError(f"start-up at t = {t_h:.3f} s leaves no record to process (usable {dur:.3f} s)")
+    n0 = int(round(t_h * src.fs_hz))
+    return ho.SourceWindow(src, n0), ho.imu_window(imu, t_h), t_h
