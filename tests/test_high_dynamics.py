@@ -158,7 +158,7 @@ def test_highdyn_30dbhz_scalar_handover(tmp_path_factory):
 
 
 def _energy_sync(ip, cpb=20):
-    from ultratight.receiver.dsp.tracking import _bit_sync_energy
+    from ultratight.receiver.dsp.tracking_block import _bit_sync_energy
     bse = np.zeros((1, 2 * cpb + 1))
     for e, v in enumerate(ip):
         k = _bit_sync_energy(0, float(v), e, bse, cpb)

@@ -5,8 +5,8 @@ import pytest
 
 from ultratight.constants import C, CA_LEN, F_CA
 from ultratight.receiver.scalar.observables import ChannelHistory, observe, pseudorange
-from ultratight.receiver.dsp.tracking import (N_RF, N_RI, R_CARR_ACC, R_CN0, R_CODE_PHASE, R_CODE_RATE, R_DOPP,
-                                          RI_EPOCH, RI_FLAGS, RI_N, RI_PTR, FL_PLL_LOCK)
+from ultratight.receiver.dsp.tracking_layout import (N_RF, N_RI, R_CARR_ACC, R_CN0, R_CODE_PHASE, R_CODE_RATE, R_DOPP,
+                                                 RI_EPOCH, RI_FLAGS, RI_N, RI_PTR, FL_PLL_LOCK)
 
 FS = 2.6e6
 

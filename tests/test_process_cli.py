@@ -357,7 +357,7 @@ def test_acceptance_static_60s_everything_from_the_signal(tmp_path):
 @pytest.mark.slow
 def test_acceptance_vehicle_turns(tmp_path):
     from ultratight.receiver.scalar.receiver import ProcessConfig, process
-    from ultratight.receiver.dsp.tracking import FL_PLL_LOCK
+    from ultratight.receiver.dsp.tracking_layout import FL_PLL_LOCK
     from ultratight.signals.recording.iffile import open_if
     files = _generate(tmp_path, "vehicle-turns")
     truth = h5py.File(files["truth"], "r")
@@ -379,7 +379,7 @@ def test_acceptance_vehicle_turns(tmp_path):
 def test_acceptance_sensitivity_static(tmp_path, cn0):
     """Tracking sensitivity: warm start from the truth (Doppler +10 Hz, code +0.25 chip), 60 s."""
     from ultratight.receiver.scalar.receiver import ProcessConfig, process
-    from ultratight.receiver.dsp.tracking import FL_PLL_LOCK
+    from ultratight.receiver.dsp.tracking_layout import FL_PLL_LOCK
     from ultratight.signals.constellation import nominal_ephemerides
     from ultratight.signals.recording.iffile import open_if
     files = _generate(tmp_path, "static-open-sky", "--cn0", str(cn0), "--fs", "2.6e6")

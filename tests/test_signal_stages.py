@@ -20,8 +20,9 @@ from ultratight.errors import ConfigError
 from ultratight.receiver.dsp.acquisition import AcqResult, acquire
 from ultratight.receiver.scalar.navdecode import ChannelNav, channel_nav
 from ultratight.receiver.scalar.receiver import ProcessConfig, allocate_channels
-from ultratight.receiver.dsp.tracking import (FL_PLL_LOCK, MODE_PULL, P_DOPP, R_CODE_PHASE, R_CODE_RATE, R_DOPP,
-                                          RI_FLAGS, RI_N, RI_PTR, STATE_NAMES, ScalarTracker)
+from ultratight.receiver.dsp.tracking import ScalarTracker
+from ultratight.receiver.dsp.tracking_layout import (FL_PLL_LOCK, MODE_PULL, P_DOPP, R_CODE_PHASE, R_CODE_RATE, R_DOPP,
+                                                 RI_FLAGS, RI_N, RI_PTR, STATE_NAMES)
 from ultratight.signals.signal import GPS_L1CA, SignalDescription
 
 FS = 5.0e6

@@ -13,10 +13,10 @@ import pytest
 
 from ultratight.constants import CA_LEN, F_CA, F_L1
 from ultratight.signals.ca_code import ca_code
-from ultratight.receiver.dsp import tracking as tk
-from ultratight.receiver.dsp.tracking import (FL_BIT_DONE, FL_PLL_LOCK, MODE_LOST, R_BIT, R_CARR_ACC, R_CN0,
-                                          R_CODE_PHASE, R_DOPP, RI_EPOCH, RI_FLAGS, RI_PTR, S_BIT_PHASE,
-                                          ScalarTracker, TrackingConfig, cn0_m2m4, cn0_power)
+from ultratight.receiver.dsp import tracking_kernels as tk
+from ultratight.receiver.dsp.tracking import ScalarTracker, TrackingConfig, cn0_m2m4, cn0_power
+from ultratight.receiver.dsp.tracking_layout import (FL_BIT_DONE, FL_PLL_LOCK, MODE_LOST, R_BIT, R_CARR_ACC, R_CN0,
+                                                 R_CODE_PHASE, R_DOPP, RI_EPOCH, RI_FLAGS, RI_PTR, S_BIT_PHASE)
 
 FS = 2.6e6
 

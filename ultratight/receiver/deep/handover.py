@@ -53,7 +53,7 @@ from ultratight.errors import ConfigError, InputFileError
 from ultratight.ins.attitude import dcm_to_euler, dcm_to_quat, euler_to_dcm, quat_to_dcm
 from ultratight.ins.earth import dcm_ecef_from_enu, earth_rate_l, ecef_to_llh, gravity_l, transport_rate_l
 from ultratight.ins.imu import ImuData
-from ultratight.receiver.dsp.tracking import MODE_TRACK
+from ultratight.receiver.dsp.tracking_layout import MODE_TRACK
 from ultratight.signals.signal import GPS_L1CA
 
 STARTUP_SCALAR = "scalar-fix"
@@ -262,7 +262,7 @@ def attitude_at(imu, imu_errors, t_h, llh, vel_l, acc_l, sig_acc, cfg):
 def scalar_pass(source, ephemerides, prns, start_s, cfg):
     """Run the scalar receiver over ``window_s`` from ``start_s``: its :class:`ProcessResult`."""
     from ultratight.receiver.scalar.receiver import NoSignalError, ProcessConfig, process
-    from ultratight.receiver.dsp.tracking import TrackingConfig
+    from ultratight.receiver.dsp.tracking_config import TrackingConfig
 
     avail = source.n_samples / source.fs_hz - start_s
     pc = ProcessConfig(prns=list(prns) if prns else None, start_s=float(start_s), record_epochs=True,

@@ -11,7 +11,8 @@ from ultratight.ins.earth import dcm_ecef_from_enu, llh_to_ecef
 from ultratight.receiver.dsp.blockstream import BlockStream
 from ultratight.receiver.deep.recorder import EngineResult
 from ultratight.receiver.deep.startup import predict_channels
-from ultratight.receiver.dsp.tracking import REC_F_NAMES, REC_I_NAMES, ScalarTracker
+from ultratight.receiver.dsp.tracking import ScalarTracker
+from ultratight.receiver.dsp.tracking_layout import REC_F_NAMES, REC_I_NAMES
 from ultratight.signals.signal import GPS_L1CA
 
 

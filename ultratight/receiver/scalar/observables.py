@@ -24,8 +24,8 @@ Observables at receive sample ``s`` (receiver-clock time ``t_rx``):
 import numpy as np
 
 from ultratight.constants import C
-from ultratight.receiver.dsp.tracking import (R_CODE_PHASE, R_CODE_RATE, R_CARR_ACC, R_DOPP, R_CN0,
-                                          RI_PTR, RI_N, RI_EPOCH, RI_FLAGS, FL_PLL_LOCK)
+from ultratight.receiver.dsp.tracking_layout import (R_CODE_PHASE, R_CODE_RATE, R_CARR_ACC, R_DOPP, R_CN0,
+                                                 RI_PTR, RI_N, RI_EPOCH, RI_FLAGS, FL_PLL_LOCK)
 from ultratight.signals.signal import GPS_L1CA
 
 HIST_KEEP_S = 1.0      # seconds of epoch records kept per channel

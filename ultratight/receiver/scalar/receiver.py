@@ -64,9 +64,11 @@ from ultratight.receiver.scalar.observables import CarrierSmoother, ChannelHisto
 from ultratight.receiver.io.outputs import H5Stream, write_csv, write_kml
 from ultratight.receiver.scalar.pvt import atmosphere_delays, elevations, solve_pvt
 from ultratight.receiver.io.rinex_out import RinexObsWriter, write_rinex_nav
-from ultratight.receiver.dsp.tracking import (
+from ultratight.receiver.dsp.tracking import ScalarTracker
+from ultratight.receiver.dsp.tracking_config import TrackingConfig
+from ultratight.receiver.dsp.tracking_layout import (
     FL_BIT_DONE, FL_BIT_SYNC, FL_PLL_LOCK, MODE_LOST, MODE_TRACK, R_BIT, R_CN0, R_CODE_PHASE, R_DOPP, R_IP,
-    REC_F_NAMES, REC_I_NAMES, RI_EPOCH, RI_FLAGS, RI_MODE, RI_PTR, S_MODE, ScalarTracker, TrackingConfig)
+    REC_F_NAMES, REC_I_NAMES, RI_EPOCH, RI_FLAGS, RI_MODE, RI_PTR, S_MODE)
 from ultratight.cores import stage_threads
 from ultratight.signals.atmosphere import IONO_MODELS, MAPPINGS, TROPO_MODELS, AtmosphereModel
 from ultratight.signals.ephemeris import sat_state
