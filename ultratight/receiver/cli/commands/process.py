@@ -98,6 +98,8 @@ def _check_numbers(args):
         raise ConfigError(f"--start must be >= 0 s, got {args.start}")
     if args.duration is not None and not args.duration > 0:
         raise ConfigError(f"--duration must be > 0 s, got {args.duration}")
+    if args.fs is not None and not args.fs > 0:
+        raise ConfigError(f"--fs must be a positive sampling rate in Hz, got {args.fs}")
     if args.pll_bw is not None and not args.pll_bw > 0:
         raise ConfigError(f"--pll-bw must be > 0 Hz, got {args.pll_bw}")
     if getattr(args, "threads", None) is not None and args.threads < 1:
@@ -266,8 +268,6 @@ def run(args):
     if args.meta is None and (args.fs is not None or args.fmt is not None):
         if args.fs is None or args.fmt is None:
             raise ConfigError("give both --fs and --format (and --if, default 0) when the file has no sidecar")
-    if args.fs is not None and not (math.isfinite(args.fs) and args.fs > 0):
-        raise ConfigError(f"--fs must be a positive sampling rate in Hz, got {args.fs}")
     if args.if_hz is not None and args.fs is not None and abs(args.if_hz) >= args.fs:
         raise ConfigError(f"--if {args.if_hz} Hz must be smaller in magnitude than --fs {args.fs} Hz")
     packing = {k: v for k, v in (("order", args.packing), ("encoding", args.encoding),
@@ -353,8 +353,6 @@ def _run_ultratight(args):
     if args.iono is not None or args.tropo is not None:
         raise ConfigError("--iono/--tropo not supported with --mode ultratight (the tight filter's pseudorange "
                           "model has no atmosphere terms yet)")
-    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
-        raise ConfigError(f"--duration must be > 0 s, got {args.duration}")
     prns = _prn_list(args.prn) if args.prn else None
     hcfg = HandoverConfig(acq_min_cn0_dbhz=args.acq_min_cn0, acq_noncoherent=args.acq_noncoherent,
                           acq_coherent_ms=args.acq_coherent, doppler_range_hz=args.doppler_range,
