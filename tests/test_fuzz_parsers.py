@@ -25,7 +25,10 @@ ROOT = Path(__file__).resolve().parents[1]
 SCENARIOS = ROOT / "ultratight" / "data" / "scenarios"
 RINEX = SHARED_DATA / "rinex" / "brdc0010.22n"
 
-FAST = settings(max_examples=100, deadline=None, suppress_health_check=list(HealthCheck), database=None)
+# the default suite explores the same examples on every run (CI passes or fails on the code, not by
+# chance); the slow suite draws fresh ones, and every counterexample it finds is pinned with @example
+FAST = settings(max_examples=100, deadline=None, suppress_health_check=list(HealthCheck), database=None,
+                derandomize=True)
 SLOW = settings(max_examples=2000, deadline=None, suppress_health_check=list(HealthCheck), database=None)
 
 scalars = st.one_of(
@@ -81,7 +84,13 @@ def _sidecar(doc, size):
         src.close()
 
 
-test_fuzz_sidecar_json, test_fuzz_sidecar_json_slow = _both(_sidecar, doc=sidecar_docs, size=st.integers(0, 5000))
+# found by the property: an optional field given as null (it means "not given")
+NULL_SIDECARS = [{"doc": json.dumps(d).encode(), "size": 64} for d in (
+    {"format": "i8", "fs_hz": 10, "if_hz": None},
+    {"format": "ci8", "fs_hz": 4e6, **{k: None for k in SIDECAR_KEYS[2:]}},
+    {"format": None, "fs_hz": None})]
+test_fuzz_sidecar_json, test_fuzz_sidecar_json_slow = _both(_sidecar, NULL_SIDECARS, doc=sidecar_docs,
+                                                            size=st.integers(0, 5000))
 
 
 # ------------------------------------------------------------------------------------------ ION XML
@@ -187,7 +196,7 @@ csv_docs = st.one_of(
 
 
 def _imu_csv(doc):
-    from ultratight.ins.imu import read_imu_csv
+    from ultratight.ins.imu_data import read_imu_csv
     with _tmpdir() as d:
         p = Path(d) / "imu.csv"
         p.write_bytes(doc)
@@ -215,7 +224,7 @@ arrays = st.one_of(
 
 
 def _imu_h5(fmt, rate, t0, meta, t, dth, dv, truth):
-    from ultratight.ins.imu import read_imu_h5
+    from ultratight.ins.imu_data import read_imu_h5
     with _tmpdir() as d:
         p = Path(d) / "imu.h5"
         with h5py.File(p, "w") as f:

@@ -380,21 +380,22 @@ def open_if(path=None, meta=None, fs_hz=None, if_hz=None, fmt=None, iq_conj=Fals
         check_input_file(path, "IF file")
     if meta is None:
         info = read_sidecar(path) or {}
-    fmt = fmt or info.get("format")
-    fs = fs_hz if fs_hz is not None else info.get("fs_hz")
+    given = {k: v for k, v in info.items() if v is not None}     # a field given as null is not given
+    fmt = fmt or given.get("format")
+    fs = fs_hz if fs_hz is not None else given.get("fs_hz")
     if fmt is None or fs is None:
-        raise FormatError(
-            f"{path}: no sidecar {sidecar_path(path).name} or metadata; give the sample format and rate "
-            f"(fmt=/--format and fs_hz=/--fs)")
-    ifh = if_hz if if_hz is not None else info.get("if_hz", 0.0)
+        why = "the metadata lacks the sample format or rate" if info else \
+            f"no sidecar {sidecar_path(path).name} or metadata"
+        raise FormatError(f"{path}: {why}; give the sample format and rate (fmt=/--format and fs_hz=/--fs)")
+    ifh = if_hz if if_hz is not None else given.get("if_hz", 0.0)
     spec = get_format(fmt)
-    dtype = info.get("dtype") if info.get("format") == spec.name else None
-    return IfSource(path, spec.name, fs, ifh, iq_conj=bool(iq_conj) or bool(info.get("iq_conj", False)),
-                    inversion=bool(info.get("inversion", False)), start_week=info.get("start_week"),
-                    start_tow_s=info.get("start_tow_s"),
-                    n_samples=info.get("n_samples") if info.get("format") == spec.name else None,
-                    dtype=dtype, iq_swap=info.get("iq_swap", False), meta=info,
-                    packing={**(info.get("packing") or {}), **(packing or {})} if spec.packed else None)
+    same_format = given.get("format") == spec.name
+    return IfSource(path, spec.name, fs, ifh, iq_conj=bool(iq_conj) or bool(given.get("iq_conj", False)),
+                    inversion=bool(given.get("inversion", False)), start_week=given.get("start_week"),
+                    start_tow_s=given.get("start_tow_s"),
+                    n_samples=given.get("n_samples") if same_format else None,
+                    dtype=given.get("dtype") if same_format else None, iq_swap=given.get("iq_swap", False),
+                    meta=info, packing={**(given.get("packing") or {}), **(packing or {})} if spec.packed else None)
 
 
 # ------------------------------------------------------------------------------------------
