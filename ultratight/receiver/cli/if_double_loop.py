@@ -23,8 +23,8 @@ from ultratight.receiver.cli import metrics as M
 from ultratight.receiver.cli import scenario_runner
 from ultratight.receiver.deep.methods import METHODS  # noqa: F401  (the accepted method names)
 from ultratight.receiver.cli.scenario_config import IMU_DEFAULTS, load_scenario
-from ultratight.receiver.cli.scenario_runner import (_event_windows, _f, aggregate, errors_vs_truth, event_rms,
-                                                 prepare_data, run_method)
+from ultratight.receiver.cli.scenario_runner import (METHOD_METRICS, aggregate_methods, errors_vs_truth,
+                                                     noise_event_text, prepare_data, run_method)
 
 DEFAULT_METHODS = ("pb-kf-utc", "dlb-ukf", "dlb-ckf", "dlb-rackf")
 
@@ -84,25 +84,14 @@ def summarize(cfg, runs):
     per = {m: [dict(r["methods"][m], seed=r["seed"]) for r in runs] for m in methods}
     raw = {(i, m): (SimpleNamespace(t_start=r["series"][m]["t_start_s"]), r["series"][m]["doppler_err_hz"],
                     r["series"][m]["code_err_chips"]) for i, r in enumerate(runs) for m in methods}
-    agg = {m: aggregate(per[m], raw, m, segs, 0) for m in methods}
+    agg = aggregate_methods(cfg, per, raw, methods, 0)
     dur = float(cfg["duration_s"])
-    events = _event_windows(cfg, dur)
-    for m in methods:
-        agg[m]["noise_events"] = event_rms(raw, m, events)
     seeds = [int(r["seed"]) for r in runs]
     text = M.format_tables(agg, segs) + "\n" + (
         f"\n{len(runs)} run(s), seeds {', '.join(map(str, seeds))}; RMS over all channels and runs; "
-        "'\\' = lock lost (diverged) in that segment.")
-    for m in methods:
-        for ev in agg[m]["noise_events"]:
-            text += (f"\n{m:10s} noise x{ev['noise_factor']:g} over {ev['t0_s']:g}-{ev['t1_s']:g} s: Doppler RMS "
-                     f"{_f(ev['doppler_rms_hz'])} Hz (before: {_f(ev['doppler_rms_hz_before'])} Hz), code RMS "
-                     f"{_f(ev['code_rms_chips'])} chip")
+        "'\\' = lock lost (diverged) in that segment.") + noise_event_text(agg, methods)
     js = {"scenario": cfg.get("name"), "runs": len(runs), "seeds": seeds, "duration_s": dur,
           "segments_s": [list(x) for x in segs], "channel": 0,
-          "methods": {m: {k: agg[m][k] for k in ("doppler_rms_hz", "code_rms_chips", "diverged",
-                                                  "lock_lost_channels", "runtime_s", "realtime_factor",
-                                                  "doppler_rms_hz_channel", "code_rms_chips_channel",
-                                                  "segment_diverged", "noise_events")} for m in methods},
+          "methods": {m: {k: agg[m][k] for k in METHOD_METRICS} for m in methods},
           "paper_table3": M.PAPER_TABLE3, "paper_table4_s": M.PAPER_TABLE4_S}
     return {"text": text, "json": json_clean(js)}

@@ -436,18 +436,11 @@ def _report(name, cfg, methods, runs, base_seed, out, channel, plots, options, p
     """metrics.json, results.h5, figures and the text tables of a scenario run."""
     dur = float(cfg["duration_s"])
     segs = M.SEGMENTS_S
-    agg = {m: aggregate(per[m], raw, m, segs, channel) for m in methods}
-    events = _event_windows(cfg, dur)
-    for m in methods:
-        agg[m]["noise_events"] = event_rms(raw, m, events)
+    agg = aggregate_methods(cfg, per, raw, methods, channel)
     mon = monitor_mode(options or EngineOptions())
     js = {"scenario": cfg.get("name", str(name)), "seed": base_seed, "runs": runs, "duration_s": dur,
           "segments_s": [list(x) for x in segs], "channel": channel,
-          "methods": {m: {k: agg[m][k] for k in ("doppler_rms_hz", "code_rms_chips", "diverged",
-                                                  "lock_lost_channels", "runtime_s", "realtime_factor",
-                                                  "doppler_rms_hz_channel", "code_rms_chips_channel",
-                                                  "segment_diverged", "noise_events")}
-                      for m in methods}, "monitor": mon,
+          "methods": {m: {k: agg[m][k] for k in METHOD_METRICS} for m in methods}, "monitor": mon,
           "per_run": per, "version": __version__, "paper_table3": M.PAPER_TABLE3, "paper_table4_s": M.PAPER_TABLE4_S}
     mpath = out / "metrics.json"
     write_text_atomic(mpath, json.dumps(json_clean(js), indent=2))
@@ -461,22 +454,43 @@ def _report(name, cfg, methods, runs, base_seed, out, channel, plots, options, p
     text = M.format_tables(agg, segs) + "\n" + (
         f"\n{runs} run(s), seeds {base_seed}..{base_seed + runs - 1}; RMS over all channels and runs; "
         "'\\' = lock lost (diverged) in that segment.")
-    text += f"\nsignal monitor: {mon}"
-    for m in methods:
-        for ev in agg[m]["noise_events"]:
-            text += (f"\n{m:10s} noise x{ev['noise_factor']:g} over {ev['t0_s']:g}-{ev['t1_s']:g} s: Doppler RMS "
-                     f"{_f(ev['doppler_rms_hz'])} Hz (before: {_f(ev['doppler_rms_hz_before'])} Hz), code RMS "
-                     f"{_f(ev['code_rms_chips'])} chip")
+    text += f"\nsignal monitor: {mon}" + noise_event_text(agg, methods)
     return {"json": json_clean({k: js[k] for k in ("scenario", "seed", "runs", "monitor", "methods")}),
             "text": text,
             "metrics_path": str(mpath), "h5_path": str(hpath), "figures": figs}
+
+
+# the per-method metrics of metrics.json (and of a campaign's summary)
+METHOD_METRICS = ("doppler_rms_hz", "code_rms_chips", "diverged", "lock_lost_channels", "runtime_s",
+                  "realtime_factor", "doppler_rms_hz_channel", "code_rms_chips_channel", "segment_diverged",
+                  "noise_events")
+
+
+def aggregate_methods(cfg, per, raw, methods, channel):
+    """:func:`aggregate` of every method, with its RMS inside each noise event (:func:`event_rms`)."""
+    agg = {m: aggregate(per[m], raw, m, M.SEGMENTS_S, channel) for m in methods}
+    events = event_windows(cfg, float(cfg["duration_s"]))
+    for m in methods:
+        agg[m]["noise_events"] = event_rms(raw, m, events)
+    return agg
 
 
 def _f(v):
     return "-" if v is None or not np.isfinite(v) else f"{v:.4f}"
 
 
-def _event_windows(cfg, dur):
+def noise_event_text(agg, methods):
+    """One line per method and noise event: Doppler RMS inside it and before it, code RMS."""
+    text = ""
+    for m in methods:
+        for ev in agg[m]["noise_events"]:
+            text += (f"\n{m:10s} noise x{ev['noise_factor']:g} over {ev['t0_s']:g}-{ev['t1_s']:g} s: Doppler RMS "
+                     f"{_f(ev['doppler_rms_hz'])} Hz (before: {_f(ev['doppler_rms_hz_before'])} Hz), code RMS "
+                     f"{_f(ev['code_rms_chips'])} chip")
+    return text
+
+
+def event_windows(cfg, dur):
     """The scenario's noise events clipped to the run: list of (t0, t1, factor)."""
     out = []
     for ev in cfg.get("noise_events", []) or []:
