@@ -11,7 +11,8 @@ import pytest
 
 from ultratight.errors import ConfigError, InputFileError
 from ultratight.ins import imu_decl
-from ultratight.ins.imu import imu_errors_from_config, read_imu_csv, synthesize_imu, write_imu_csv
+from ultratight.ins.imu import imu_errors_from_config, synthesize_imu
+from ultratight.ins.imu_data import read_imu_csv, write_imu_csv
 from ultratight.ins.imu_decl import ImuDeclaration, axes_matrix, resolve_declaration
 from ultratight.ins.trajectory import build_trajectory
 from ultratight.receiver.cli import main
@@ -171,7 +172,7 @@ def test_gps_time_reference_offset_and_alignment(imu, tmp_path):
 
 
 def test_hdf5_takes_only_a_lever_arm(imu, tmp_path):
-    from ultratight.ins.imu import write_imu_h5
+    from ultratight.ins.imu_data import write_imu_h5
     p = tmp_path / "x.imu.h5"
     write_imu_h5(p, imu)
     assert np.array_equal(imu_decl.read_imu_file(p).lever_arm_b, LEVER)

@@ -10,8 +10,8 @@ from ultratight.constants import OMEGA_E
 from ultratight.errors import ConfigError, InputFileError
 from ultratight.ins import imu as imu_mod
 from ultratight.ins.earth import gravity_l
-from ultratight.ins.imu import (ImuErrors, allan_deviation, apply_errors, imu_errors_from_config, read_imu_csv,
-                                read_imu_h5, synthesize_imu, write_imu_csv, write_imu_h5)
+from ultratight.ins.imu import ImuErrors, allan_deviation, apply_errors, imu_errors_from_config, synthesize_imu
+from ultratight.ins.imu_data import read_imu_csv, read_imu_h5, write_imu_csv, write_imu_h5
 from ultratight.ins.trajectory import PAPER_HIGHDYN_RECEIVER, PAPER_HIGHDYN_TRAJECTORY, build_trajectory
 
 

@@ -46,7 +46,7 @@ def _one_line_error(r):
 
 @pytest.fixture(scope="module")
 def rec(tmp_path_factory):
-    from ultratight.ins.imu import read_imu_h5, write_imu_csv
+    from ultratight.ins.imu_data import read_imu_h5, write_imu_csv
     from ultratight.receiver.io.rinex_out import write_rinex_nav
     from ultratight.config import locate_scenario
     from ultratight.signals.constellation import nominal_ephemerides

@@ -377,11 +377,11 @@ def _proper_axes():
 # ------------------------------------------------------------------ files
 def read_imu_file(path, overrides=None):
     """An IMU file (CSV with its sidecar, or the project's HDF5) with the declaration
-    ``overrides`` (sidecar keys, e.g. from CLI flags) applied -> :class:`ultratight.ins.imu.ImuData`.
+    ``overrides`` (sidecar keys, e.g. from CLI flags) applied -> :class:`ultratight.ins.imu_data.ImuData`.
 
     HDF5 files are in the internal convention already: only ``lever_arm_m`` (FLU) may be declared
     for them."""
-    from ultratight.ins.imu import read_imu_csv, read_imu_h5
+    from ultratight.ins.imu_data import read_imu_csv, read_imu_h5
 
     path = Path(path)
     ov = {k: v for k, v in (overrides or {}).items() if v is not None}

@@ -13,7 +13,7 @@ to that experiment's module (its ``load`` validates its own schema).
 from ultratight.config import check_known_keys
 from ultratight.errors import ConfigError
 from ultratight.ins import trajectory
-from ultratight.ins.imu import _KNOWN_KEYS as _IMU_KNOWN_KEYS
+from ultratight.ins.imu import CONFIG_KEYS as _IMU_KNOWN_KEYS
 
 # receiver settings a scenario may fix (the ultra-tight engine's EngineOptions fields); they do not
 # change the generated data, only how the scenario is processed
