@@ -423,6 +423,35 @@ def build_trajectory(traj_cfg, receiver_cfg, duration_s):
     kind = traj_cfg.get("kind", "static")
     if kind not in KINDS:
         raise ConfigError(f"trajectory.kind must be one of {', '.join(KINDS)}; got {kind!r}")
+    fmotion, lat_deg, lon_deg, h_m = _start_point(kind, traj_cfg, receiver_cfg, duration_s)
+    mode = _attitude_mode(kind, traj_cfg, fmotion)
+    att0 = np.radians(_vec3(traj_cfg.get("att0_deg", [0.0, 0.0, 0.0]), "att0_deg"))
+    if kind == "turns" and "att0_deg" not in traj_cfg:
+        att0[2] = math.radians(_num(traj_cfg.get("heading0_deg", 0.0), "heading0_deg"))
+    config = {"kind": kind, "attitude": mode, "lat_deg": lat_deg, "lon_deg": lon_deg, "h_m": h_m,
+              "duration_s": duration_s, "trajectory": _jsonable(traj_cfg)}
+    tr = Trajectory(kind, math.radians(lat_deg), math.radians(lon_deg), h_m, duration_s, mode, att0, config)
+
+    if kind == "file":
+        tr.file_motion = fmotion
+        tr.seg_t0 = np.zeros(1)
+    elif kind == "static":
+        if mode == "velocity":
+            tr.attitude_mode = "fixed"
+    elif kind == "swing":
+        _set_swing(tr, traj_cfg)
+    elif kind == "segments":
+        _set_segments(tr, traj_cfg)
+    else:  # turns
+        _set_turns(tr, traj_cfg, duration_s)
+    if tr.attitude_mode == "rates":
+        _set_rate_attitude(tr, traj_cfg)
+    return tr
+
+
+def _start_point(kind, traj_cfg, receiver_cfg, duration_s):
+    """(FileMotion or None, lat_deg, lon_deg, h_m) of the start point: the file's first position for
+    ``kind = "file"`` (which must cover ``duration_s``), else the ``[receiver]`` table's."""
     fmotion = None
     if kind == "file":
         fmotion = load_file_motion(traj_cfg)
@@ -439,6 +468,11 @@ def build_trajectory(traj_cfg, receiver_cfg, duration_s):
             raise ConfigError(f"receiver: missing field {exc.args[0]!r} (need lat_deg, lon_deg, h_m)") from None
     if not -90.0 <= lat_deg <= 90.0:
         raise ConfigError(f"receiver.lat_deg must be in [-90, 90], got {lat_deg}")
+    return fmotion, lat_deg, lon_deg, h_m
+
+
+def _attitude_mode(kind, traj_cfg, fmotion):
+    """The ``attitude`` of a ``[trajectory]`` table (default by kind), checked against the kind."""
     default_mode = {"static": "fixed", "swing": "swing"}.get(kind, "velocity")
     if fmotion is not None and fmotion.att is not None:
         default_mode = "file"
@@ -454,99 +488,100 @@ def build_trajectory(traj_cfg, receiver_cfg, duration_s):
                           "\"fixed\" or the file's own attitude columns)")
     if mode not in ATTITUDE_MODES:
         raise ConfigError(f"trajectory.attitude must be one of {', '.join(ATTITUDE_MODES)}; got {mode!r}")
-    att0 = np.radians(_vec3(traj_cfg.get("att0_deg", [0.0, 0.0, 0.0]), "att0_deg"))
-    if kind == "turns" and "att0_deg" not in traj_cfg:
-        att0[2] = math.radians(_num(traj_cfg.get("heading0_deg", 0.0), "heading0_deg"))
-    config = {"kind": kind, "attitude": mode, "lat_deg": lat_deg, "lon_deg": lon_deg, "h_m": h_m,
-              "duration_s": duration_s, "trajectory": _jsonable(traj_cfg)}
-    tr = Trajectory(kind, math.radians(lat_deg), math.radians(lon_deg), h_m, duration_s, mode, att0, config)
+    return mode
 
-    if kind == "file":
-        tr.file_motion = fmotion
-        tr.seg_t0 = np.zeros(1)
-    elif kind == "static":
-        if mode == "velocity":
-            tr.attitude_mode = "fixed"
-    elif kind == "swing":
-        amp = np.radians(_vec3(traj_cfg.get("swing_amp_deg", SWING_AMP_DEG), "swing_amp_deg"))
-        per = _vec3(traj_cfg.get("swing_period_s", SWING_PERIOD_S), "swing_period_s")
-        if np.any(per <= 0.0):
-            raise ConfigError(f"trajectory: swing_period_s must be > 0 on every axis, got {per.tolist()}")
-        if np.any(np.abs(np.degrees(tr.att0[1]) + np.degrees(np.abs(amp[1]))) >= 89.0):
-            raise ConfigError("trajectory: att0_deg[1] + swing_amp_deg[1] must stay below 89 deg of pitch "
-                              "(Euler singularity)")
-        tr.swing_amp = amp
-        tr.swing_w = 2.0 * np.pi / per
-        tr.swing_phase = np.radians(_vec3(traj_cfg.get("swing_phase_deg", [0.0, 0.0, 0.0]), "swing_phase_deg"))
-    elif kind == "segments":
-        segs, t0 = _segments_list(traj_cfg, kind)
-        n = len(segs)
-        v0 = _vec3(traj_cfg.get("vel0_enu_mps", [0.0, 0.0, 0.0]), "vel0_enu_mps")
-        P = np.zeros((n, 3))
-        V = np.zeros((n, 3))
-        A = np.zeros((n, 3))
-        J = np.zeros((n, 3))
-        V[0] = v0
-        for i, s in enumerate(segs):
-            A[i] = _vec3(s.get("acc_enu", [0.0, 0.0, 0.0]), f"segments[{i}].acc_enu")
-            J[i] = _vec3(s.get("jerk_enu", [0.0, 0.0, 0.0]), f"segments[{i}].jerk_enu")
-            if i > 0:
-                d = t0[i] - t0[i - 1]
-                P[i] = P[i - 1] + d * (V[i - 1] + d * (A[i - 1] / 2.0 + d * J[i - 1] / 6.0))
-                V[i] = V[i - 1] + d * (A[i - 1] + d * J[i - 1] / 2.0)
-        tr.seg_t0, tr.seg_p0, tr.seg_v0, tr.seg_a0, tr.seg_j0 = t0, P, V, A, J
-    else:  # turns
-        segs, t0 = _segments_list(traj_cfg, kind)
-        n = len(segs)
-        # initial speed: speed0_mps, else the first segment's speed_mps, else 0
-        s0 = traj_cfg.get("speed0_mps", segs[0].get("speed_mps", 0.0))
-        s0 = _num(s0, "speed0_mps")
-        heading0 = math.radians(_num(traj_cfg.get("heading0_deg", math.degrees(att0[2])), "heading0_deg"))
-        Z = np.zeros(n, complex)
-        S = np.zeros(n)
-        AL = np.zeros(n)
-        OM = np.zeros(n)
-        AC = np.zeros(n)
-        S[0] = s0
-        AL[0] = 0.5 * math.pi - heading0
-        ends = np.append(t0[1:], max(duration_s, t0[-1]))
-        for i, s in enumerate(segs):
-            OM[i] = -math.radians(_num(s.get("turn_rate_dps", 0.0), f"segments[{i}].turn_rate_dps"))
-            d = ends[i] - t0[i]
-            if "acc_mps2" in s and "speed_mps" in s:
-                raise ConfigError(f"trajectory: segments[{i}] gives both acc_mps2 and speed_mps; give one")
-            if "acc_mps2" in s:
-                AC[i] = _num(s["acc_mps2"], f"segments[{i}].acc_mps2")
-            elif "speed_mps" in s:
-                target = _num(s["speed_mps"], f"segments[{i}].speed_mps")
-                AC[i] = (target - S[i]) / d if d > 0 else 0.0
-            if S[i] + AC[i] * d < -1e-9:
-                raise ConfigError(f"trajectory: speed becomes negative in segments[{i}]")
-            if i + 1 < n:
-                tmp = Trajectory.__new__(Trajectory)
-                tmp.seg_t0 = np.array([0.0])
-                tmp.turn_z0, tmp.turn_s0 = np.array([Z[i]]), np.array([S[i]])
-                tmp.turn_alpha0, tmp.turn_om, tmp.turn_acc = np.array([AL[i]]), np.array([OM[i]]), \
-                    np.array([AC[i]])
-                tmp.up_l0 = 0.0
-                p_end, _, _, _ = Trajectory._turn_motion(tmp, np.array([d]))
-                Z[i + 1] = p_end[0, 0] + 1j * p_end[0, 1]
-                S[i + 1] = S[i] + AC[i] * d
-                AL[i + 1] = AL[i] + OM[i] * d
-        tr.seg_t0 = t0
-        tr.turn_z0, tr.turn_s0, tr.turn_alpha0, tr.turn_om, tr.turn_acc = Z, S, AL, OM, AC
 
-    if tr.attitude_mode == "rates":
-        segs = traj_cfg.get("segments") or [{"t0": 0.0}]
-        rt0 = np.array([_num(s.get("t0", 0.0), f"segments[{i}].t0") for i, s in enumerate(segs)])
-        W = np.array([np.radians(_vec3(s.get("rate_dps", [0.0, 0.0, 0.0]), f"segments[{i}].rate_dps"))
-                      for i, s in enumerate(segs)])
-        C0 = np.empty((len(segs), 3, 3))
-        C0[0] = tr.C_l0b0
-        for i in range(1, len(segs)):
-            C0[i] = C0[i - 1] @ rotvec_to_dcm(W[i - 1] * (rt0[i] - rt0[i - 1]))
-        tr.rate_t0, tr.rate_w, tr.rate_C0 = rt0, W, C0
-    return tr
+def _set_swing(tr, traj_cfg):
+    """Swing amplitudes, angular frequencies and phases of a ``kind = "swing"`` trajectory."""
+    amp = np.radians(_vec3(traj_cfg.get("swing_amp_deg", SWING_AMP_DEG), "swing_amp_deg"))
+    per = _vec3(traj_cfg.get("swing_period_s", SWING_PERIOD_S), "swing_period_s")
+    if np.any(per <= 0.0):
+        raise ConfigError(f"trajectory: swing_period_s must be > 0 on every axis, got {per.tolist()}")
+    if np.any(np.abs(np.degrees(tr.att0[1]) + np.degrees(np.abs(amp[1]))) >= 89.0):
+        raise ConfigError("trajectory: att0_deg[1] + swing_amp_deg[1] must stay below 89 deg of pitch "
+                          "(Euler singularity)")
+    tr.swing_amp = amp
+    tr.swing_w = 2.0 * np.pi / per
+    tr.swing_phase = np.radians(_vec3(traj_cfg.get("swing_phase_deg", [0.0, 0.0, 0.0]), "swing_phase_deg"))
+
+
+def _set_segments(tr, traj_cfg):
+    """Segment tables (start time, position, velocity, acceleration, jerk in l0) of a
+    ``kind = "segments"`` trajectory: constant jerk per segment, position and velocity carried."""
+    segs, t0 = _segments_list(traj_cfg, "segments")
+    n = len(segs)
+    v0 = _vec3(traj_cfg.get("vel0_enu_mps", [0.0, 0.0, 0.0]), "vel0_enu_mps")
+    P = np.zeros((n, 3))
+    V = np.zeros((n, 3))
+    A = np.zeros((n, 3))
+    J = np.zeros((n, 3))
+    V[0] = v0
+    for i, s in enumerate(segs):
+        A[i] = _vec3(s.get("acc_enu", [0.0, 0.0, 0.0]), f"segments[{i}].acc_enu")
+        J[i] = _vec3(s.get("jerk_enu", [0.0, 0.0, 0.0]), f"segments[{i}].jerk_enu")
+        if i > 0:
+            d = t0[i] - t0[i - 1]
+            P[i] = P[i - 1] + d * (V[i - 1] + d * (A[i - 1] / 2.0 + d * J[i - 1] / 6.0))
+            V[i] = V[i - 1] + d * (A[i - 1] + d * J[i - 1] / 2.0)
+    tr.seg_t0, tr.seg_p0, tr.seg_v0, tr.seg_a0, tr.seg_j0 = t0, P, V, A, J
+
+
+def _set_turns(tr, traj_cfg, duration_s):
+    """Per-segment start position (complex, l0 east + j north), speed, direction, turn rate and
+    tangential acceleration of a ``kind = "turns"`` trajectory, each segment's end carried to the next."""
+    segs, t0 = _segments_list(traj_cfg, "turns")
+    n = len(segs)
+    # initial speed: speed0_mps, else the first segment's speed_mps, else 0
+    s0 = traj_cfg.get("speed0_mps", segs[0].get("speed_mps", 0.0))
+    s0 = _num(s0, "speed0_mps")
+    heading0 = math.radians(_num(traj_cfg.get("heading0_deg", math.degrees(tr.att0[2])), "heading0_deg"))
+    Z = np.zeros(n, complex)
+    S = np.zeros(n)
+    AL = np.zeros(n)
+    OM = np.zeros(n)
+    AC = np.zeros(n)
+    S[0] = s0
+    AL[0] = 0.5 * math.pi - heading0
+    ends = np.append(t0[1:], max(duration_s, t0[-1]))
+    for i, s in enumerate(segs):
+        OM[i] = -math.radians(_num(s.get("turn_rate_dps", 0.0), f"segments[{i}].turn_rate_dps"))
+        d = ends[i] - t0[i]
+        if "acc_mps2" in s and "speed_mps" in s:
+            raise ConfigError(f"trajectory: segments[{i}] gives both acc_mps2 and speed_mps; give one")
+        if "acc_mps2" in s:
+            AC[i] = _num(s["acc_mps2"], f"segments[{i}].acc_mps2")
+        elif "speed_mps" in s:
+            target = _num(s["speed_mps"], f"segments[{i}].speed_mps")
+            AC[i] = (target - S[i]) / d if d > 0 else 0.0
+        if S[i] + AC[i] * d < -1e-9:
+            raise ConfigError(f"trajectory: speed becomes negative in segments[{i}]")
+        if i + 1 < n:
+            tmp = Trajectory.__new__(Trajectory)
+            tmp.seg_t0 = np.array([0.0])
+            tmp.turn_z0, tmp.turn_s0 = np.array([Z[i]]), np.array([S[i]])
+            tmp.turn_alpha0, tmp.turn_om, tmp.turn_acc = np.array([AL[i]]), np.array([OM[i]]), \
+                np.array([AC[i]])
+            tmp.up_l0 = 0.0
+            p_end, _, _, _ = Trajectory._turn_motion(tmp, np.array([d]))
+            Z[i + 1] = p_end[0, 0] + 1j * p_end[0, 1]
+            S[i + 1] = S[i] + AC[i] * d
+            AL[i + 1] = AL[i] + OM[i] * d
+    tr.seg_t0 = t0
+    tr.turn_z0, tr.turn_s0, tr.turn_alpha0, tr.turn_om, tr.turn_acc = Z, S, AL, OM, AC
+
+
+def _set_rate_attitude(tr, traj_cfg):
+    """Body-rate tables of the ``attitude = "rates"`` mode: per segment its start time, constant
+    rate and the attitude at its start."""
+    segs = traj_cfg.get("segments") or [{"t0": 0.0}]
+    rt0 = np.array([_num(s.get("t0", 0.0), f"segments[{i}].t0") for i, s in enumerate(segs)])
+    W = np.array([np.radians(_vec3(s.get("rate_dps", [0.0, 0.0, 0.0]), f"segments[{i}].rate_dps"))
+                  for i, s in enumerate(segs)])
+    C0 = np.empty((len(segs), 3, 3))
+    C0[0] = tr.C_l0b0
+    for i in range(1, len(segs)):
+        C0[i] = C0[i - 1] @ rotvec_to_dcm(W[i - 1] * (rt0[i] - rt0[i - 1]))
+    tr.rate_t0, tr.rate_w, tr.rate_C0 = rt0, W, C0
 
 
 def load_file_motion(traj_cfg):
