@@ -124,7 +124,32 @@ def make_truth(sc: SimScenario, rng: np.random.Generator) -> Truth:
     tm = t[:-1] + 0.5 * T
     scale = _per_ch(sc.los_scale, n, "los_scale")
     f0 = _per_ch(sc.f0_hz, n, "f0_hz")
-    segs = sorted(sc.segments, key=lambda s: s[0])
+    acc, freq, theta, jerk1 = _segment_dynamics(sc.segments, tm, N, T)
+    freq_dyn = f0[None, :] + freq[:, None] * scale[None, :]
+    theta_dyn = f0[None, :] * t[:, None] + theta[:, None] * scale[None, :]
+    acc_c = acc[:, None] * scale[None, :]
+    jerk_c = jerk1[:, None] * scale[None, :]
+    clk_f, clk_th = _clock_walk(sc, rng, N, T)
+    theta_true = theta_dyn + clk_th[:, None]
+    freq_true = freq_dyn + clk_f[:, None]
+    freq_mid = (theta_true[1:] - theta_true[:-1]) / T
+    amp, nf = _amplitude_and_noise(sc, tm, N, n, T)
+    if sc.data_bits:
+        nb = N // CODE_PER_BIT + 1
+        b = rng.choice(np.array([-1.0, 1.0]), size=(nb, n))
+        bits = np.repeat(b, CODE_PER_BIT, axis=0)[:N]
+    else:
+        bits = np.ones((N, n))
+    aid = _aiding(sc, theta_dyn, tm, f0, n, T)
+    return Truth(t=t, theta=theta_true, freq=freq_true, acc=acc_c, jerk=jerk_c, freq_dyn=freq_dyn,
+                 amp=amp, noise_factor=nf, bits=bits, aid_hz=aid, freq_mid=freq_mid)
+
+
+def _segment_dynamics(segments, tm, N, T):
+    """Line-of-sight dynamics of the ``(t0, acc_hzps, jerk_hzps2)`` segments at the N + 1 epoch
+    boundaries, before the per-channel scale: acceleration (Hz/s), Doppler (Hz) and phase (cycles)
+    from 0, and the jerk (Hz/s^2) of each epoch (that of the segment holding its middle ``tm``)."""
+    segs = sorted(segments, key=lambda s: s[0])
     # per-epoch jerk and acceleration at segment starts
     seg_idx = np.searchsorted([s[0] for s in segs], tm, side="right") - 1
     seg_idx = np.maximum(seg_idx, 0)
@@ -150,13 +175,12 @@ def make_truth(sc: SimScenario, rng: np.random.Generator) -> Truth:
         acc[k + 1] = a
         freq[k + 1] = f
         theta[k + 1] = th
-    fmid_dyn = freq[:-1] + 0.5 * T * acc[:-1] + T * T / 8 * jerk1  # not used for truth; mean below
-    del fmid_dyn
-    freq_dyn = f0[None, :] + freq[:, None] * scale[None, :]
-    theta_dyn = f0[None, :] * t[:, None] + theta[:, None] * scale[None, :]
-    acc_c = acc[:, None] * scale[None, :]
-    jerk_c = jerk1[:, None] * scale[None, :]
-    # receiver clock (common to all channels)
+    return acc, freq, theta, jerk1
+
+
+def _clock_walk(sc, rng, N, T):
+    """Receiver-clock frequency (Hz) and phase (cycles) at the N + 1 epoch boundaries, common to all
+    channels: the random walk of ``q_f_clk``, ``q_phi_clk`` drawn from ``rng`` (zeros without)."""
     clk_f = np.zeros(N + 1)
     clk_th = np.zeros(N + 1)
     if sc.q_f_clk > 0 or sc.q_phi_clk > 0:
@@ -164,10 +188,11 @@ def make_truth(sc: SimScenario, rng: np.random.Generator) -> Truth:
         wp = rng.standard_normal(N) * math.sqrt(sc.q_phi_clk * T) / TWO_PI
         clk_f[1:] = np.cumsum(wf)
         clk_th[1:] = np.cumsum(clk_f[:-1] * T + wp)
-    theta_true = theta_dyn + clk_th[:, None]
-    freq_true = freq_dyn + clk_f[:, None]
-    freq_mid = (theta_true[1:] - theta_true[:-1]) / T
-    # amplitude, noise factor
+    return clk_f, clk_th
+
+
+def _amplitude_and_noise(sc, tm, N, n, T):
+    """(N, n) prompt amplitudes (C/N0 with its events) and noise factors of the epochs (middles ``tm``)."""
     cn0 = np.full((N, n), float(sc.cn0_dbhz))
     for (a0, a1, v) in sc.cn0_events:
         cn0[(tm >= a0) & (tm < a1)] = v
@@ -176,13 +201,11 @@ def make_truth(sc: SimScenario, rng: np.random.Generator) -> Truth:
         if not v > 0:
             raise ConfigError(f"corrsim: noise factor {v!r} must be > 0")
         nf[(tm >= a0) & (tm < a1)] = v
-    amp = corr_model.amplitude_from_cn0(cn0, T)
-    if sc.data_bits:
-        nb = N // CODE_PER_BIT + 1
-        b = rng.choice(np.array([-1.0, 1.0]), size=(nb, n))
-        bits = np.repeat(b, CODE_PER_BIT, axis=0)[:N]
-    else:
-        bits = np.ones((N, n))
+    return corr_model.amplitude_from_cn0(cn0, T), nf
+
+
+def _aiding(sc, theta_dyn, tm, f0, n, T):
+    """(N, n) outer-loop Doppler prediction for the middle of each interval (module docstring)."""
     bias = _per_ch(sc.aid_bias_hz, n, "aid_bias_hz")
     serr = _per_ch(sc.aid_scale_err, n, "aid_scale_err")
     fdyn_mid = (theta_dyn[1:] - theta_dyn[:-1]) / T
@@ -192,9 +215,7 @@ def make_truth(sc: SimScenario, rng: np.random.Generator) -> Truth:
         # the outer loop reports the Doppler of aid_delay_s ago (linear interpolation)
         td = np.maximum(tm - sc.aid_delay_s, tm[0])
         fdyn_mid = np.stack([np.interp(td, tm, fdyn_mid[:, c]) for c in range(n)], axis=1)
-    aid = fdyn_mid + bias[None, :] + serr[None, :] * (fdyn_mid - f0[None, :])
-    return Truth(t=t, theta=theta_true, freq=freq_true, acc=acc_c, jerk=jerk_c, freq_dyn=freq_dyn,
-                 amp=amp, noise_factor=nf, bits=bits, aid_hz=aid, freq_mid=freq_mid)
+    return fdyn_mid + bias[None, :] + serr[None, :] * (fdyn_mid - f0[None, :])
 
 
 @njit(cache=True)
