@@ -261,7 +261,7 @@ class OuterLoop:
 
     ``interp_factory(n_ch)`` returns an interpolator object with ``push(x (n_ch, k)) ->
     (n_ch, k*R)`` semantics and attributes ``ratio`` and ``delay_s``; by default
-    :func:`make_cic` (the CIC interpolator of fusion.rateconv).
+    :func:`make_cic` (the CIC interpolator of fusion.coupling.rateconv).
     """
 
     def __init__(self, ephs, prns, week, tow0_s, duration_s, rate_hz=100.0, out_rate_hz=1000.0,
@@ -446,7 +446,8 @@ class SinsFollower:
 
 
 def make_cic(n_ch, ratio, order, in_rate_hz):
-    """The CIC interpolator of fusion.rateconv for two quantities x n_ch channels (adapter)."""
+    """The CIC interpolator of :mod:`ultratight.fusion.coupling.rateconv` for two quantities x n_ch
+    channels (adapter)."""
     return _CicAdapter(n_ch, ratio, order, in_rate_hz)
 
 
@@ -455,13 +456,6 @@ class _CicAdapter:
 
     Works on a (2, n_ch) input per push and returns (2, n_ch, ratio).
     """
-
-    def __new__(cls, n_ch, ratio, order, in_rate_hz):
-        try:
-            from ultratight.fusion import rateconv  # noqa: F401
-        except ImportError:
-            return _LinearInterp(n_ch, ratio, in_rate_hz)
-        return super().__new__(cls)
 
     def __init__(self, n_ch, ratio, order, in_rate_hz):
         self.ratio = ratio
@@ -478,26 +472,3 @@ class _CicAdapter:
         _, y = self._cic.push(self._t, np.asarray(x, dtype=float).reshape(-1))   # (ratio, 2*n_ch)
         self._t += self._dt
         return np.asarray(y).T.reshape(2, self.n_ch, self.ratio)
-
-
-class _LinearInterp:
-    """Fallback (only when ultratight.fusion.coupling.rateconv is unavailable): linear interpolation
-    between the last two inputs, delay one input period."""
-
-    def __init__(self, n_ch, ratio, in_rate_hz):
-        self.ratio = ratio
-        self.n_ch = n_ch
-        self.delay_s = 1.0 / in_rate_hz
-        self.prev = None
-        self._w = np.arange(ratio) / ratio
-
-    def prime(self, x):
-        self.prev = np.asarray(x, dtype=float).copy()
-
-    def push(self, x):
-        x = np.asarray(x, dtype=float)
-        if self.prev is None:
-            self.prev = x.copy()
-        y = self.prev[..., None] + (x - self.prev)[..., None] * self._w
-        self.prev = x.copy()
-        return y
