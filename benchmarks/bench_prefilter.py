@@ -28,6 +28,8 @@ from ultratight.fusion.channel import prefilter as pf
 from ultratight.fusion.channel.innerloop import InnerLoop
 from ultratight.fusion.channel.pbkf import PbKfBank
 from ultratight.fusion.channel.prefilter import PrefilterBank
+from ultratight.fusion.channel.prefilter_kernels import bank_step
+from ultratight.fusion.channel.prefilter_model import IPRM_DO_CORRECTION
 from ultratight.signals.synth.corrsim import CorrSim, SimNco, SimScenario
 
 # CPU time of this thread: robust to other processes competing for the 2 cores (wall time
@@ -70,17 +72,14 @@ def bench_kind(kind, Z, bits, reps):
         # kernel alone
         bank.reset(np.arange(n_ch))
         bank.epoch = 0
-        k_fn = pf._bank_step_packed
-        kc = bank._kind
+        kc, fbuf, ibuf = bank.packed
         iprm = bank._iprm
-        fbuf = bank._fbuf
-        ibuf = bank._ibuf
         rscale = np.ones(n_ch)          # no filter-R noise event
         t0 = _clock()
         w0 = _wall()
         for k in range(n_ep):
-            iprm[0] = 1 if k % bank.correction_period == 0 else 0
-            k_fn(kc, fbuf, ibuf, Z[k], bits[k], rscale)
+            iprm[IPRM_DO_CORRECTION] = 1 if k % bank.correction_period == 0 else 0
+            bank_step(kc, fbuf, ibuf, Z[k], bits[k], rscale)
             bank.x[:, 1:3] = 0.0
         kern.append((_clock() - t0) / n_ep)
         wall.append(_wall() - w0)
