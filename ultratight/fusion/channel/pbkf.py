@@ -52,11 +52,44 @@ from numba import njit
 
 from ultratight.constants import BETA_CODE_CARRIER, T_CA
 from ultratight.errors import FilterError
-from ultratight.fusion.channel.prefilter import DEFAULT_P_LIMITS, FLAG_DIVERGED, NX, NZ, PackedActiveMask, prefilter_model
+from ultratight.fusion.channel.prefilter import PackedActiveMask
+from ultratight.fusion.channel.prefilter_model import (
+    DEFAULT_P_LIMITS,
+    FLAG_DIVERGED,
+    IA,
+    IE,
+    IF,
+    IL,
+    IP,
+    IPHI,
+    ITAU,
+    NX,
+    NZ,
+    QE,
+    QL,
+    QP,
+    prefilter_model,
+)
 from ultratight.signals import corr_model
 
-NK = 4        # KF states: dtau, dphi, df, da (prefilter indices 1..4)
-NM = 3        # measurements: DLL, PLL, FLL
+NK = 4                              # KF states: dtau, dphi, df, da (prefilter indices ITAU + K_*)
+K_TAU, K_PHI, K_F, K_A = 0, 1, 2, 3
+NM = 3                              # measurements: the DLL, PLL and FLL discriminators
+M_DLL, M_PLL, M_FLL = 0, 1, 2       # (the FLL last: it is left out of the first epoch's update)
+
+# The float parameters of a bank (its ``prm`` vector); names are compile-time constants in the kernels.
+PB_PRM_T = 0                        # coherent integration time T (s)
+PB_PRM_BETA = 1                     # code-carrier ratio beta
+PB_PRM_SPACING = 2                  # early-late spacing (chips)
+PB_PRM_AMP_ALPHA = 3                # weight of the newest epoch in the prompt moments (T / amp_tau_s)
+PB_PRM_AMP_MIN = 4                  # amplitude floor of the C/N0 estimate
+PB_PRM_P_LIMITS = 5                 # NK entries: divergence limits on the covariance diagonal
+PB_PRM_CAL_LG0 = PB_PRM_P_LIMITS + NK   # CAL_LG0 of the calibration tables
+PB_PRM_CAL_DLG = PB_PRM_CAL_LG0 + 1     # CAL_DLG of the calibration tables
+N_PB_PRM = PB_PRM_CAL_DLG + 1
+
+MOM_P2, MOM_P4 = 0, 1               # columns of the running prompt moments E|P|^2, E|P|^4
+PREV_I, PREV_Q = 0, 1               # columns of the previous (bit-wiped) prompt
 
 DEFAULT_Q_PBKF = {"q_tau": 1e-6, "q_phi": 0.1, "q_f": 40.0, "q_a": 10.0}
 
@@ -64,20 +97,21 @@ DEFAULT_Q_PBKF = {"q_tau": 1e-6, "q_phi": 0.1, "q_f": 40.0, "q_a": 10.0}
 CAL_LG0 = -2.5           # log10(C/N0 T) of the first calibration point
 CAL_DLG = 0.125          # grid step in log10
 CAL_N = 41               # grid points: C/N0 T from 10^-2.5 to 10^2.5 (~15 .. 65 dB-Hz at 1 ms)
+CAL_GAIN, CAL_VAR = 0, NM    # calibration table columns: gains CAL_GAIN + M_*, variances CAL_VAR + M_*
 _CAL_CACHE = {}
 
 
 def _disc_outputs(z, zprev, spacing, T, known):
     """Vectorised discriminators (numpy) for the calibration: z, zprev (m, 6)."""
-    e = np.hypot(z[:, 1], z[:, 4])
-    l = np.hypot(z[:, 2], z[:, 5])
+    e = np.hypot(z[:, IE], z[:, QE])
+    l = np.hypot(z[:, IL], z[:, QL])
     y_tau = 0.5 * (2.0 - spacing) * (e - l) / (e + l)
     if known:
-        y_phi = np.arctan2(z[:, 3], z[:, 0])
+        y_phi = np.arctan2(z[:, QP], z[:, IP])
     else:
-        y_phi = np.arctan(z[:, 3] / z[:, 0])
-    cross = zprev[:, 0] * z[:, 3] - z[:, 0] * zprev[:, 3]
-    dot = zprev[:, 0] * z[:, 0] + zprev[:, 3] * z[:, 3]
+        y_phi = np.arctan(z[:, QP] / z[:, IP])
+    cross = zprev[:, IP] * z[:, QP] - z[:, IP] * zprev[:, QP]
+    dot = zprev[:, IP] * z[:, IP] + zprev[:, QP] * z[:, QP]
     y_f = (np.arctan2(cross, dot) if known else np.arctan(cross / dot)) / T
     return y_tau, y_phi, y_f
 
@@ -86,8 +120,9 @@ def discriminator_calibration(spacing_chips, T, known_bits, n_mc=20000, seed=123
     """Gain (slope at zero error) and variance of the three discriminators vs C/N0 T.
 
     Monte Carlo over the correlator model of ultratight.signals.corr_model (unit noise per arm,
-    correlated taps), fixed seed, cached per (spacing, T, known_bits).  Returns (CAL_N, 6):
-    [k_tau, k_phi, k_f, var_tau, var_phi, var_f] at C/N0 T = 10**(CAL_LG0 + i CAL_DLG).
+    correlated taps), fixed seed, cached per (spacing, T, known_bits).  Returns (CAL_N, 2 NM):
+    [k_tau, k_phi, k_f, var_tau, var_phi, var_f] (columns CAL_GAIN + M_*, CAL_VAR + M_*) at
+    C/N0 T = 10**(CAL_LG0 + i CAL_DLG).
     At low C/N0 the envelope DLL, the atan PLL and the FLL lose gain (squaring/suppression
     loss); a KF that assumed unit gain would be mistuned, so the baseline uses these figures.
     """
@@ -99,7 +134,7 @@ def discriminator_calibration(spacing_chips, T, known_bits, n_mc=20000, seed=123
     d = corr_model.tap_offsets(spacing_chips)
     n1 = rng.standard_normal((n_mc, 6)) @ Lc.T
     n2 = rng.standard_normal((n_mc, 6)) @ Lc.T
-    out = np.zeros((CAL_N, 6))
+    out = np.zeros((CAL_N, 2 * NM))
     dtau = 0.05 * min(1.0, spacing_chips)
     dphi = 0.05
     dfT = 0.05
@@ -130,22 +165,28 @@ def discriminator_calibration(spacing_chips, T, known_bits, n_mc=20000, seed=123
 @njit(cache=True)
 def _pbkf_channel(c, x, P, Phi, Qd, z, bits, rscale, active, prm, prev, have_prev, rot, innov, flags, x0, P0, mom,
                   tab_k, tab_u):
-    """One epoch of channel ``c`` (the loop body of :func:`_pbkf_step`; touches only row ``c``)."""
-    T = prm[0]
-    beta = prm[1]
-    sp = prm[2]
-    alpha = prm[3]
-    amin = prm[4]
+    """One epoch of channel ``c`` (the loop body of :func:`_pbkf_step`; touches only row ``c``).
+
+    Kept as one kernel because the C/N0 estimate, the discriminators, the calibrated gains and the
+    sequential scalar updates hand each other the channel's live values (the bit, the prompt, the
+    C/N0, the residuals corrected row by row): split into helpers they would be passed back and
+    forth on every call, and this body runs once per channel per epoch inside the receiver's
+    compiled loop."""
+    T = prm[PB_PRM_T]
+    beta = prm[PB_PRM_BETA]
+    sp = prm[PB_PRM_SPACING]
+    alpha = prm[PB_PRM_AMP_ALPHA]
+    amin = prm[PB_PRM_AMP_MIN]
     H0 = np.zeros((NM, NK))
-    H0[0, 0] = 1.0
-    H0[0, 2] = beta * T * 0.5
-    H0[1, 1] = 1.0
-    H0[1, 2] = T * 0.5
-    H0[2, 2] = 1.0
+    H0[M_DLL, K_TAU] = 1.0
+    H0[M_DLL, K_F] = beta * T * 0.5
+    H0[M_PLL, K_PHI] = 1.0
+    H0[M_PLL, K_F] = T * 0.5
+    H0[M_FLL, K_F] = 1.0
     H = np.zeros((NM, NK))
     gk = np.zeros(NM)
-    lg0 = prm[9]
-    dlg = prm[10]
+    lg0 = prm[PB_PRM_CAL_LG0]
+    dlg = prm[PB_PRM_CAL_DLG]
     y = np.zeros(NM)
     Rv = np.zeros(NM)
     PHt = np.zeros((NK, NM))
@@ -158,47 +199,47 @@ def _pbkf_channel(c, x, P, Phi, Qd, z, bits, rscale, active, prm, prev, have_pre
     D = bits[c]
     known = D != 0.0
     w = D if known else 1.0
-    ip = z[c, 0] * w
-    qp = z[c, 3] * w
+    ip = z[c, IP] * w
+    qp = z[c, QP] * w
     # C/N0 by the moment method (scale-free): with m2 = E|P|^2 = A^2 + 2 s^2 and
     # m4 = E|P|^4 = A^4 + 8 A^2 s^2 + 8 s^4:  A^2 = sqrt(2 m2^2 - m4), s^2 = (m2 - A^2)/2
     p2 = ip * ip + qp * qp
-    mom[c, 0] = (1.0 - alpha) * mom[c, 0] + alpha * p2
-    mom[c, 1] = (1.0 - alpha) * mom[c, 1] + alpha * p2 * p2
-    dd = 2.0 * mom[c, 0] * mom[c, 0] - mom[c, 1]
+    mom[c, MOM_P2] = (1.0 - alpha) * mom[c, MOM_P2] + alpha * p2
+    mom[c, MOM_P4] = (1.0 - alpha) * mom[c, MOM_P4] + alpha * p2 * p2
+    dd = 2.0 * mom[c, MOM_P2] * mom[c, MOM_P2] - mom[c, MOM_P4]
     a2 = math.sqrt(dd) if dd > 0.0 else 0.0
-    s2 = 0.5 * (mom[c, 0] - a2)
-    if s2 < 1e-3 * mom[c, 0]:
-        s2 = 1e-3 * mom[c, 0]
+    s2 = 0.5 * (mom[c, MOM_P2] - a2)
+    if s2 < 1e-3 * mom[c, MOM_P2]:
+        s2 = 1e-3 * mom[c, MOM_P2]
     if s2 <= 0.0:
         s2 = 1.0
     cn = 0.5 * a2 / s2                          # C/N0 * T
     if cn < 0.5 * amin * amin:
         cn = 0.5 * amin * amin
-    x[c, 0] = math.sqrt(2.0 * cn)               # amplitude in unit-noise terms
+    x[c, IA] = math.sqrt(2.0 * cn)              # amplitude in unit-noise terms
     # discriminators
-    e = math.sqrt(z[c, 1] * z[c, 1] + z[c, 4] * z[c, 4])
-    l = math.sqrt(z[c, 2] * z[c, 2] + z[c, 5] * z[c, 5])
-    y[0] = 0.5 * (2.0 - sp) * (e - l) / (e + l) if e + l > 0 else 0.0
+    e = math.sqrt(z[c, IE] * z[c, IE] + z[c, QE] * z[c, QE])
+    l = math.sqrt(z[c, IL] * z[c, IL] + z[c, QL] * z[c, QL])
+    y[M_DLL] = 0.5 * (2.0 - sp) * (e - l) / (e + l) if e + l > 0 else 0.0
     if known:
-        y[1] = math.atan2(qp, ip)
+        y[M_PLL] = math.atan2(qp, ip)
     else:
-        y[1] = math.atan(qp / ip) if ip != 0.0 else 0.0
+        y[M_PLL] = math.atan(qp / ip) if ip != 0.0 else 0.0
     # previous prompt rotated by the NCO corrections applied in between
     use_f = have_prev[c] != 0
     if use_f:
         cr = math.cos(rot[c])
         sr = math.sin(rot[c])
-        i1 = prev[c, 0] * cr + prev[c, 1] * sr
-        q1 = -prev[c, 0] * sr + prev[c, 1] * cr
+        i1 = prev[c, PREV_I] * cr + prev[c, PREV_Q] * sr
+        q1 = -prev[c, PREV_I] * sr + prev[c, PREV_Q] * cr
         cross = i1 * qp - ip * q1
         dot = i1 * ip + q1 * qp
         if known:
-            y[2] = math.atan2(cross, dot) / T
+            y[M_FLL] = math.atan2(cross, dot) / T
         else:
-            y[2] = math.atan(cross / dot) / T if dot != 0.0 else 0.0
-    prev[c, 0] = ip
-    prev[c, 1] = qp
+            y[M_FLL] = math.atan(cross / dot) / T if dot != 0.0 else 0.0
+    prev[c, PREV_I] = ip
+    prev[c, PREV_Q] = qp
     have_prev[c] = 1
     rot[c] = 0.0
     # calibrated discriminator gains and variances at this C/N0 (table on log10(cn))
@@ -211,21 +252,21 @@ def _pbkf_channel(c, x, P, Phi, Qd, z, bits, rscale, active, prm, prev, have_pre
     i0 = int(u)
     fr = u - i0
     for m in range(NM):
-        gk[m] = tab[i0, m] * (1.0 - fr) + tab[i0 + 1, m] * fr
-        Rv[m] = (tab[i0, NM + m] * (1.0 - fr) + tab[i0 + 1, NM + m] * fr) * rscale[c]
+        gk[m] = tab[i0, CAL_GAIN + m] * (1.0 - fr) + tab[i0 + 1, CAL_GAIN + m] * fr
+        Rv[m] = (tab[i0, CAL_VAR + m] * (1.0 - fr) + tab[i0 + 1, CAL_VAR + m] * fr) * rscale[c]
     for m in range(NM):
         for i in range(NK):
             H[m, i] = gk[m] * H0[m, i]
-    nm = NM if use_f else NM - 1
+    nm = NM if use_f else M_FLL             # rows used: the FLL needs the previous prompt
     # innovation (PLL residual wrapped)
     for i in range(NK):
-        xs[i] = x[c, 1 + i]
+        xs[i] = x[c, ITAU + i]
     for m in range(NM):
         acc = 0.0
         for i in range(NK):
             acc += H[m, i] * xs[i]
         r = y[m] - acc
-        if m == 1:
+        if m == M_PLL:
             per = 2.0 * math.pi if known else math.pi
             r = r - per * math.floor(r / per + 0.5)
         innov[c, m] = r if m < nm else np.nan
@@ -259,7 +300,7 @@ def _pbkf_channel(c, x, P, Phi, Qd, z, bits, rscale, active, prm, prev, have_pre
         acc = 0.0
         for j in range(NK):
             acc += Phi[i, j] * xs[j]
-        x[c, 1 + i] = acc
+        x[c, ITAU + i] = acc
     for i in range(NK):
         for j in range(NK):
             acc = 0.0
@@ -274,7 +315,7 @@ def _pbkf_channel(c, x, P, Phi, Qd, z, bits, rscale, active, prm, prev, have_pre
                 acc += tmp[i, k] * Phi[j, k]
             Pc[i, j] = acc
             Pc[j, i] = acc
-        if not (np.isfinite(x[c, 1 + i]) and Pc[i, i] >= 0.0 and Pc[i, i] <= prm[5 + i]):
+        if not (np.isfinite(x[c, ITAU + i]) and Pc[i, i] >= 0.0 and Pc[i, i] <= prm[PB_PRM_P_LIMITS + i]):
             bad = True
     if bad:
         flags[c] |= FLAG_DIVERGED
@@ -289,7 +330,8 @@ def _pbkf_channel(c, x, P, Phi, Qd, z, bits, rscale, active, prm, prev, have_pre
 @njit(cache=True)
 def _pbkf_step(x, P, Phi, Qd, z, bits, rscale, active, prm, prev, have_prev, rot, innov, flags, x0, P0, mom,
                tab_k, tab_u):
-    """prm = [T, beta, spacing, amp_alpha, amp_min, plim(4)...]; prev (n,2) prompt of the last epoch."""
+    """One epoch of all channels; prm (N_PB_PRM): entries ``PB_PRM_*``; prev (n, 2): the last epoch's
+    prompt (columns PREV_I, PREV_Q); mom (n, 2): the running prompt moments (MOM_P2, MOM_P4)."""
     n = x.shape[0]
     for c in range(n):
         for m in range(NZ):
@@ -299,6 +341,11 @@ def _pbkf_step(x, P, Phi, Qd, z, bits, rscale, active, prm, prev, have_prev, rot
         _pbkf_channel(c, x, P, Phi, Qd, z, bits, rscale, active, prm, prev, have_prev, rot, innov, flags, x0, P0, mom,
                       tab_k, tab_u)
     return 0
+
+
+def _pbkf_float_size(n, n_prm, n_tab):
+    """Length of the packed float buffer of ``n`` channels (the segments of :func:`_pbkf_views`)."""
+    return n * (3 * NX + 2 * NK * NK + 2 + 1 + NM + 2) + 2 * NK * NK + n_prm + 2 * n_tab
 
 
 @njit(cache=True)
@@ -341,8 +388,8 @@ def pbkf_channel_epoch(fbuf, ibuf, c, z, bits, rscale, n_prm, n_tab):
     if (flags[c] & FLAG_DIVERGED) != 0:
         n_resets[c] += 1
     # posterior at the interval start: the time update undone (LAPACK's solve, as numpy's)
-    x_post[c, 0] = x[c, 0]
-    x_post[c, 1:] = np.linalg.solve(Phi, np.ascontiguousarray(x[c, 1:]))
+    x_post[c, IA] = x[c, IA]
+    x_post[c, ITAU:] = np.linalg.solve(Phi, np.ascontiguousarray(x[c, ITAU:]))
     return 0
 
 
@@ -360,18 +407,23 @@ def pbkf_epoch(fbuf, ibuf, z, bits, rscale, n_prm, n_tab):
     for c in range(n):
         if (flags[c] & FLAG_DIVERGED) != 0:
             n_resets[c] += 1
-        x_post[c, 0] = x[c, 0]
-    x_post[:, 1:] = np.linalg.solve(Phi, np.ascontiguousarray(x[:, 1:].T)).T
+        x_post[c, IA] = x[c, IA]
+    x_post[:, ITAU:] = np.linalg.solve(Phi, np.ascontiguousarray(x[:, ITAU:].T)).T
     return st
+
+
+@njit(cache=True)
+def _pbkf_prm_rot(fbuf, ibuf, n, n_prm, n_tab):
+    """The parameter vector and the per-channel FLL rotation of a packed bank."""
+    (_, _, _, _, _, _, _, prm, _, rot, _, _, _, _, _, _, _, _) = _pbkf_views(fbuf, ibuf, n, n_prm, n_tab)
+    return prm, rot
 
 
 @njit(cache=True)
 def pbkf_note_correction_one(fbuf, ibuf, c, dx, n_prm, n_tab):
     """:func:`pbkf_note_correction` for channel ``c`` alone."""
-    views = _pbkf_views(fbuf, ibuf, dx.shape[0], n_prm, n_tab)
-    prm = views[7]
-    rot = views[9]
-    rot[c] += dx[c, 2] - 0.5 * prm[0] * dx[c, 3]
+    prm, rot = _pbkf_prm_rot(fbuf, ibuf, dx.shape[0], n_prm, n_tab)
+    rot[c] += dx[c, IPHI] - 0.5 * prm[PB_PRM_T] * dx[c, IF]
 
 
 @njit(cache=True)
@@ -379,12 +431,10 @@ def pbkf_note_correction(fbuf, ibuf, dx, n_prm, n_tab):
     """The NCO corrections (state changes) applied before the next interval, for the FLL:
     angle(P_k conj(P_{k-1})) + u_phi - u_f T/2 measures the corrected df (module docstring)."""
     n = dx.shape[0]
-    views = _pbkf_views(fbuf, ibuf, n, n_prm, n_tab)
-    prm = views[7]
-    rot = views[9]
-    T = prm[0]
+    prm, rot = _pbkf_prm_rot(fbuf, ibuf, n, n_prm, n_tab)
+    T = prm[PB_PRM_T]
     for c in range(n):
-        rot[c] += dx[c, 2] - 0.5 * T * dx[c, 3]
+        rot[c] += dx[c, IPHI] - 0.5 * T * dx[c, IF]
 
 
 class PbKfBank(PackedActiveMask):
@@ -396,7 +446,7 @@ class PbKfBank(PackedActiveMask):
     """
 
     kind = "pbkf"
-    P_ITAU, P_IF = 0, 2       # code and frequency errors in the covariance P (states dtau, dphi, df, da)
+    P_ITAU, P_IF = K_TAU, K_F       # code and frequency errors in the covariance P (states dtau, dphi, df, da)
 
     def __init__(self, n_ch, T=T_CA, spacing_chips=1.0, q=None, cn0_dbhz_init=35.0, amp_tau_s=1.0,
                  cn0_min_dbhz=15.0, p_limits=None):
@@ -414,20 +464,26 @@ class PbKfBank(PackedActiveMask):
         self.spacing_chips = float(spacing_chips)
         self.q = qq
         Phi5, Q5 = prefilter_model(self.T, dict(q_amp=0.0, **qq))
-        Phi4 = Phi5[1:, 1:]
-        Qd4 = Q5[1:, 1:]
-        lim = DEFAULT_P_LIMITS[1:] if p_limits is None else np.asarray(p_limits, dtype=float)
+        Phi4 = Phi5[ITAU:, ITAU:]
+        Qd4 = Q5[ITAU:, ITAU:]
+        lim = DEFAULT_P_LIMITS[ITAU:] if p_limits is None else np.asarray(p_limits, dtype=float)
         amin = float(corr_model.amplitude_from_cn0(cn0_min_dbhz, self.T))
-        prm = np.array([self.T, BETA_CODE_CARRIER, self.spacing_chips, self.T / amp_tau_s, amin, *lim,
-                        CAL_LG0, CAL_DLG])
+        prm = np.zeros(N_PB_PRM)
+        prm[PB_PRM_T] = self.T
+        prm[PB_PRM_BETA] = BETA_CODE_CARRIER
+        prm[PB_PRM_SPACING] = self.spacing_chips
+        prm[PB_PRM_AMP_ALPHA] = self.T / amp_tau_s
+        prm[PB_PRM_AMP_MIN] = amin
+        prm[PB_PRM_P_LIMITS:PB_PRM_P_LIMITS + NK] = lim
+        prm[PB_PRM_CAL_LG0] = CAL_LG0
+        prm[PB_PRM_CAL_DLG] = CAL_DLG
         tab_k = discriminator_calibration(self.spacing_chips, self.T, True)
         tab_u = discriminator_calibration(self.spacing_chips, self.T, False)
         # one packed float buffer and one int buffer (compiled callers take the whole bank as two
         # arrays, :attr:`packed`); the attributes below are views of them
         self._n_prm = prm.size
         self._n_tab = tab_k.size
-        n_f = n_ch * (4 * NX + 2 * NK * NK + 2 + 1 + NM + 2) + 2 * NK * NK + prm.size + 2 * tab_k.size
-        self._fbuf = np.zeros(n_f)
+        self._fbuf = np.zeros(_pbkf_float_size(n_ch, self._n_prm, self._n_tab))
         self._ibuf = np.zeros(4 * n_ch, dtype=np.int64)
         (self.x, self.x_post, self.P, self.x0, self.P0, self.Phi, self.Qd, self._prm, self._prev,
          self._rot, self.innov, self._mom, self._tab_k, self._tab_u, self.flags, self._active_i, self._have_prev,
@@ -438,15 +494,15 @@ class PbKfBank(PackedActiveMask):
         self._tab_k[:] = tab_k
         self._tab_u[:] = tab_u
         a0 = float(corr_model.amplitude_from_cn0(cn0_dbhz_init, self.T))
-        self.x0[:, 0] = a0
+        self.x0[:, IA] = a0
         self.P0[:] = np.diag([0.1 ** 2, 0.3 ** 2, (2 * math.pi * 5.0) ** 2, (2 * math.pi * 10.0) ** 2])
         self.x[:] = self.x0
         self.P[:] = self.P0
         self.innov[:] = np.nan
         self.nis = np.full(n_ch, np.nan)
         self.theta = np.ones(n_ch)
-        self._mom[:, 0] = a0 * a0 + 2.0
-        self._mom[:, 1] = a0 ** 4 + 8 * a0 * a0 + 8.0
+        self._mom[:, MOM_P2] = a0 * a0 + 2.0
+        self._mom[:, MOM_P4] = a0 ** 4 + 8 * a0 * a0 + 8.0
         self._bits_unknown = np.zeros(n_ch)
         self._rscale_one = np.ones(n_ch)
 
@@ -460,7 +516,7 @@ class PbKfBank(PackedActiveMask):
         if x0 is not None:
             xa = np.broadcast_to(np.asarray(x0, dtype=float), (ch.size, NX))
             self.x0[ch] = 0.0
-            self.x0[ch, 0] = xa[:, 0]
+            self.x0[ch, IA] = xa[:, IA]
         if P0 is not None:
             self.P0[ch] = np.broadcast_to(np.asarray(P0, dtype=float), (ch.size, NK, NK))
         self.x[ch] = self.x0[ch] if xa is None else xa
@@ -468,9 +524,9 @@ class PbKfBank(PackedActiveMask):
         self.P[ch] = self.P0[ch]
         self._have_prev[ch] = 0
         self._rot[ch] = 0.0
-        a0 = self.x0[ch, 0]
-        self._mom[ch, 0] = a0 * a0 + 2.0
-        self._mom[ch, 1] = a0 ** 4 + 8 * a0 * a0 + 8.0
+        a0 = self.x0[ch, IA]
+        self._mom[ch, MOM_P2] = a0 * a0 + 2.0
+        self._mom[ch, MOM_P4] = a0 ** 4 + 8 * a0 * a0 + 8.0
         if activate:
             self._active_i[ch] = 1
 
