@@ -56,45 +56,60 @@ from numba import njit
 
 from ultratight.constants import F_CA, F_L1, T_CA
 from ultratight.errors import FilterError
+from ultratight.fusion.channel.prefilter_model import IDA, IF, IPHI, ITAU, NX
 from ultratight.signals.nco import NcoBank
 from ultratight.signals.signal import GPS_L1CA
 
-NX = 5
-ITAU, IPHI, IF, IDA = 1, 2, 3, 4
 TWO_PI = 2.0 * math.pi
+
+# The law's parameters (its ``prm`` vector); names are compile-time constants in the kernels.
+LAW_T = 0                   # epoch T (s)
+LAW_IF_HZ = 1               # the correlator's IF (Hz)
+LAW_K_TAU = 2               # code phase gain
+LAW_K_PHI = 3               # carrier phase gain
+LAW_K_F = 4                 # carrier frequency gain
+LAW_K_DA = 5                # weight of the acceleration term da T/2 in the frequency command
+LAW_CHIP_RATE_HZ = 6        # code chip rate (Hz) of the code-rate aiding
+LAW_CARRIER_HZ = 7          # carrier frequency (Hz) of the code-rate aiding
+N_LAW_PRM = 8
+
+# Aiding history of a channel (``hist``).
+HIST_NONE = 0               # no aiding history
+HIST_AID = 1                # previous aiding value known
+HIST_RATE = 2               # previous aiding rate known
 
 
 @njit(cache=True)
 def feedback_one(c, x, active, code_phase, code_rate, carr_phase, carr_freq, aid_now, aid_prev,
                  rate_prev, hist, use_aid, prm, dx):
     """The law for channel ``c`` (the loop body of :func:`feedback_kernel`; touches only row ``c``)."""
-    T = prm[0]
-    if_hz = prm[1]
-    k_tau = prm[2]
-    k_phi = prm[3]
-    k_f = prm[4]
-    k_da = prm[5]
-    f_ca = prm[6]
-    f_l1 = prm[7]
+    T = prm[LAW_T]
+    if_hz = prm[LAW_IF_HZ]
+    k_tau = prm[LAW_K_TAU]
+    k_phi = prm[LAW_K_PHI]
+    k_f = prm[LAW_K_F]
+    k_da = prm[LAW_K_DA]
+    f_ca = prm[LAW_CHIP_RATE_HZ]
+    f_l1 = prm[LAW_CARRIER_HZ]
     for i in range(NX):
         dx[c, i] = 0.0
     if not active[c]:
         return
     # outer-loop aiding: its Doppler rate is a known input to the error acceleration
     if use_aid[c] and aid_now[c] == aid_now[c]:
-        if hist[c] >= 1:
+        if hist[c] >= HIST_AID:
             rate = (aid_now[c] - aid_prev[c]) / T
-            if hist[c] >= 2:
+            if hist[c] >= HIST_RATE:
                 d_in = TWO_PI * (rate - rate_prev[c])
                 x[c, IDA] += d_in
                 dx[c, IDA] = -d_in
             rate_prev[c] = rate
-            hist[c] = 2
+            hist[c] = HIST_RATE
         else:
-            hist[c] = 1
+            hist[c] = HIST_AID
         aid_prev[c] = aid_now[c]
     else:
-        hist[c] = 0
+        hist[c] = HIST_NONE
     f_old = carr_freq[c]
     u_f = k_f * (x[c, IF] + k_da * x[c, IDA] * 0.5 * T)      # rad/s
     f_new = f_old + u_f / TWO_PI
@@ -116,13 +131,25 @@ def feedback_one(c, x, active, code_phase, code_rate, carr_phase, carr_freq, aid
 @njit(cache=True)
 def feedback_kernel(x, active, code_phase, code_rate, carr_phase, carr_freq, aid_now, aid_prev,
                     rate_prev, hist, use_aid, prm, dx):
-    """prm = [T, if_hz, k_tau, k_phi, k_f, k_da, f_ca, f_l1].
-
-    hist[c]: 0 = no aiding history, 1 = previous aiding value known, 2 = previous rate known.
-    """
+    """The law for every channel; prm (N_LAW_PRM): entries ``LAW_*`` (:func:`law_parameters`);
+    hist[c]: the aiding history, ``HIST_NONE`` | ``HIST_AID`` | ``HIST_RATE``."""
     for c in range(x.shape[0]):
         feedback_one(c, x, active, code_phase, code_rate, carr_phase, carr_freq, aid_now, aid_prev,
                      rate_prev, hist, use_aid, prm, dx)
+
+
+def law_parameters(T, if_hz, k_tau, k_phi, k_f, k_da, chip_rate_hz, carrier_hz):
+    """The law's parameter vector (entries ``LAW_*``)."""
+    prm = np.zeros(N_LAW_PRM)
+    prm[LAW_T] = T
+    prm[LAW_IF_HZ] = if_hz
+    prm[LAW_K_TAU] = k_tau
+    prm[LAW_K_PHI] = k_phi
+    prm[LAW_K_F] = k_f
+    prm[LAW_K_DA] = k_da
+    prm[LAW_CHIP_RATE_HZ] = chip_rate_hz
+    prm[LAW_CARRIER_HZ] = carrier_hz
+    return prm
 
 
 def apply_feedback(x, active, code_phase, code_rate, carr_phase, carr_freq, T=T_CA, if_hz=0.0,
@@ -132,7 +159,7 @@ def apply_feedback(x, active, code_phase, code_rate, carr_phase, carr_freq, T=T_
     from ``x`` (in place) and returns the state change dx (n_ch, 5).  With aiding use
     :class:`InnerLoop` (it keeps the aiding history)."""
     n = x.shape[0]
-    prm = np.array([float(T), float(if_hz), k_tau, k_phi, k_f, k_da, F_CA, F_L1])
+    prm = law_parameters(float(T), float(if_hz), k_tau, k_phi, k_f, k_da, F_CA, F_L1)
     dx = np.zeros((n, NX))
     nan = np.full(n, np.nan)
     feedback_kernel(x, np.asarray(active), code_phase, code_rate, carr_phase, carr_freq, nan, nan.copy(),
@@ -165,7 +192,8 @@ class InnerLoop:
                 raise FilterError(f"InnerLoop {name}={g!r}: expected a gain in [0, 1]")
         self.n_ch = int(n_ch)
         self.T = float(T)
-        self.prm = np.array([float(T), float(if_hz), k_tau, k_phi, k_f, k_da, signal.chip_rate_hz, signal.carrier_hz])
+        self.prm = law_parameters(float(T), float(if_hz), k_tau, k_phi, k_f, k_da, signal.chip_rate_hz,
+                                  signal.carrier_hz)
         self.aid_prev = np.zeros(self.n_ch)
         self.rate_prev = np.zeros(self.n_ch)
         self.hist = np.zeros(self.n_ch, dtype=np.int64)
@@ -180,15 +208,15 @@ class InnerLoop:
         ch = np.arange(self.n_ch) if channels is None else np.atleast_1d(np.asarray(channels))
         self.aid_prev[ch] = np.broadcast_to(np.asarray(aid_doppler_hz, dtype=float), (self.n_ch,))[ch]
         self.rate_prev[ch] = np.broadcast_to(np.asarray(aid_rate_hzps, dtype=float), (self.n_ch,))[ch]
-        self.hist[ch] = 2
+        self.hist[ch] = HIST_RATE
         bank.x[ch, IDA] += TWO_PI * self.rate_prev[ch]
 
     def reset_aiding(self, channels=None):
         """Forget the aiding history (e.g. after a channel (re)start)."""
         if channels is None:
-            self.hist[:] = 0
+            self.hist[:] = HIST_NONE
         else:
-            self.hist[np.asarray(channels)] = 0
+            self.hist[np.asarray(channels)] = HIST_NONE
 
     def apply(self, bank, nco, aid_doppler_hz=None, use_aid=None):
         if not isinstance(nco, NcoBank):

@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from ultratight.fusion.channel.innerloop import InnerLoop
+from ultratight.fusion.channel.prefilter_model import IA, IDA, IF, ITAU
 from ultratight.signals.synth.corrsim import TWO_PI, CorrSim, SimScenario
 
 
@@ -55,15 +56,15 @@ def run_closed_loop(sc: SimScenario, bank, rng: np.random.Generator, law=None, a
         bank.step(z, bits)
         xp = bank.x_post
         log["dopp_true_hz"][k] = tr.freq_mid[k]
-        log["dopp_est_hz"][k] = f_nco + (xp[:, 3] + 0.5 * T * xp[:, 4]) / TWO_PI
+        log["dopp_est_hz"][k] = f_nco + (xp[:, IF] + 0.5 * T * xp[:, IDA]) / TWO_PI
         log["nco_dopp_err_hz"][k] = f_nco - tr.freq_mid[k]
         log["true_dtau"][k] = sim.err[:, 0]
         log["true_dphi"][k] = sim.err[:, 1]
-        log["code_err_chips"][k] = sim.err[:, 0] - xp[:, 1]
+        log["code_err_chips"][k] = sim.err[:, 0] - xp[:, ITAU]
         log["nis"][k] = bank.nis
         log["theta"][k] = bank.theta
         log["flags"][k] = bank.flags
-        log["amp_est"][k] = xp[:, 0]
+        log["amp_est"][k] = xp[:, IA]
         if k + 1 < N:
             aid = tr.aid_hz[k + 1] if aiding else None
             law.apply(bank, sim.nco, aid, use_aid)
