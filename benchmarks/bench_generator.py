@@ -43,7 +43,7 @@ def main():
     plan = g.SignalPlan(ephs, cn0, traj, cfg["time"]["week"], cfg["time"]["tow_s"], fs, 0.0, True)
     nsat, L, B = len(ephs), plan.L, g.BLOCK_INTERVALS
     t0 = time.perf_counter()
-    plan.set_nav_bits(1.0, True)
+    g.set_nav_bits(plan, 1.0, True)
     t_nav = time.perf_counter() - t0
 
     # split on 1 s (10 blocks)

@@ -111,7 +111,8 @@ def test_model_options_are_checked():
 # ------------------------------------------------------------------------- LNAV page 18
 def test_subframe4_page18_round_trip_and_layout():
     from ultratight.signals.constellation import nominal_ephemerides
-    from ultratight.signals.lnav import ALPHA_SCALE, IonoUtc, decode_bits, encode_subframe, nav_bits, quantise_iono
+    from ultratight.signals.lnav import decode_bits, encode_subframe, nav_bits
+    from ultratight.signals.lnav_message import ALPHA_SCALE, IonoUtc, quantise_iono
 
     eph = nominal_ephemerides(2190, 569026.0)[5]
     io = IonoUtc(alpha=ALPHA, beta=BETA, a0=2.7939677e-09, a1=7.9936058e-15, tot=147456.0, wnt=2191 % 256,

@@ -19,7 +19,8 @@ from ultratight.receiver.deep.startup import BitWipeoff
 from ultratight.receiver.dsp.wipeoff import BIT_ASSISTED, BIT_BLIND, BIT_DECODED, BIT_FILE
 from ultratight.signals.constellation import nominal_ephemerides
 from ultratight.signals.synth.generator import generate
-from ultratight.signals.lnav import decode_bits, nav_bits, nav_bits_mode, quantise
+from ultratight.signals.lnav import decode_bits, nav_bits, nav_bits_mode
+from ultratight.signals.lnav_message import quantise
 
 WEEK = 2190
 TOW0 = 518400.0               # a subframe 1 starts here

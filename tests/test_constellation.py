@@ -9,7 +9,7 @@ import pytest
 from ultratight.signals.constellation import (ALL_SLOTS, SLOTS, nominal_ephemerides,
                                               repeat_period_s, slot_of_prn)
 from ultratight.signals.ephemeris import sat_state
-from ultratight.signals.lnav import quantise
+from ultratight.signals.lnav_message import quantise
 
 WE = 7.2921151467e-5
 GHA = math.radians((18 + 36 / 60 + 14.4 / 3600) * 15)

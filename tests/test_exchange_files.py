@@ -27,7 +27,7 @@ def run12(tmp_path_factory):
     from ultratight.receiver.cli.scenario_config import load_scenario
     from ultratight.signals.constellation import nominal_ephemerides
     from ultratight.signals.synth.generator import generate
-    from ultratight.signals.lnav import quantise_iono
+    from ultratight.signals.lnav_message import quantise_iono
     from ultratight.signals.rinex import NavData
 
     d = tmp_path_factory.mktemp("x12")
@@ -85,7 +85,7 @@ def test_rinex_obs_read_back_by_georinex(run12):
 
 def test_rinex_nav_read_back(run12):
     from ultratight.signals.rinex import read_rinex_nav
-    from ultratight.signals.lnav import quantise_iono
+    from ultratight.signals.lnav_message import quantise_iono
     res, out, _ = run12
     nav = read_rinex_nav(out["nav"])
     qa, qb = quantise_iono(ALPHA, BETA)

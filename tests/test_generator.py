@@ -18,7 +18,8 @@ from ultratight.ins.trajectory import build_trajectory
 from ultratight.signals.ca_code import ca_code
 from ultratight.signals.ephemeris import Ephemeris
 from ultratight.signals.synth import generator
-from ultratight.signals.synth.generator import SignalPlan, eval_poly, generate
+from ultratight.signals.synth.generator import generate
+from ultratight.signals.synth.synthesis import SignalPlan, eval_poly
 from ultratight.signals.recording.iffile import open_if
 
 TOW0 = 518400.0

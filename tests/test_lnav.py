@@ -8,8 +8,9 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from ultratight.signals.ephemeris import Ephemeris
-from ultratight.signals.lnav import (LnavDecoder, check_word, decode_bits, encode_subframe,
-                                     encode_word, nav_bits, nav_bits_at, parity_bits, quantise)
+from ultratight.signals.lnav import (LnavDecoder, check_word, decode_bits, encode_subframe, encode_word,
+                                     nav_bits, nav_bits_at, parity_bits)
+from ultratight.signals.lnav_message import quantise
 
 PI = 3.1415926535898
 WEEK = 2190
@@ -229,7 +230,7 @@ def test_polarity_flip_midstream_is_followed(eph):
 
 
 def test_almanac_page_structure(eph):
-    from ultratight.signals.lnav import _get
+    from ultratight.signals.lnav_message import _get
     alm = {3: eph.copy(prn=3)}
     def frame_start(page):                       # first frame start after TOW0 showing `page`
         k = int(TOW0 // 30)
@@ -248,7 +249,7 @@ def test_almanac_page_structure(eph):
     assert abs((_get(v, 192, 32, 16, True) * 2 ** -19 + 0.30) * PI - eph.i0) <= 2 ** -20 * PI
     # subframe 4 page 18 carries SV ID 56 (Table 20-V) with the ionospheric/UTC parameters; without
     # them the generator sends it as a reserved page (SV ID 57) so that no receiver reads filler as alpha/beta
-    from ultratight.signals.lnav import IonoUtc
+    from ultratight.signals.lnav_message import IonoUtc
     t18 = frame_start(18) + 18.0
     io = IonoUtc(alpha=(1e-8, 0.0, -6e-8, 1e-7), beta=(1e5, 0.0, -2e5, 1e5))
     for iono, sv_id in ((io, 56), (None, 57)):

@@ -32,7 +32,8 @@ import numpy as np
 
 from ultratight import __version__
 from ultratight.errors import ConfigError
-from ultratight.signals.synth.generator import COS_LUT, N_EXT, Generation, _synth_real
+from ultratight.signals.synth.generator import Generation
+from ultratight.signals.synth.synthesis import COS_LUT, N_EXT, _synth_real
 from ultratight.signals.recording.iffile import iter_blocks, orient
 
 _END = object()
