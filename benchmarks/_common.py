@@ -62,10 +62,11 @@ def add_baseline_arg(ap):
     return ap
 
 
-def baseline_env(rev, tmp):
+def baseline_env(rev, tmp, folders=("ultratight",)):
     """Environment that runs ``python -m ultratight...`` from commit ``rev`` of this repository: the
-    commit's tree is exported (``git archive``) into ``tmp`` and put first on ``PYTHONPATH``. Returns
-    ``(env, description)``, or ``(None, reason)`` when there is no git checkout or no such commit."""
+    commit's ``folders`` are exported (``git archive``) into ``tmp`` and the package put first on
+    ``PYTHONPATH``. Returns ``(env, description)`` — the export's folder is ``env["ULTRATIGHT_BASELINE_DIR"]``
+    — or ``(None, reason)`` when there is no git checkout or no such commit."""
     import subprocess
     import tarfile
 
@@ -74,10 +75,10 @@ def baseline_env(rev, tmp):
         full = subprocess.run(["git", "-C", str(root), "rev-parse", "--verify", f"{rev}^{{commit}}"],
                               capture_output=True, text=True, check=True).stdout.strip()
         dest = Path(tmp) / f"baseline-{full[:12]}"
-        if not (dest / "ultratight").is_dir():
+        if not all((dest / f).is_dir() for f in folders):
             dest.mkdir(parents=True, exist_ok=True)
             arch = Path(tmp) / f"baseline-{full[:12]}.tar"
-            subprocess.run(["git", "-C", str(root), "archive", "--format=tar", "-o", str(arch), full, "ultratight"],
+            subprocess.run(["git", "-C", str(root), "archive", "--format=tar", "-o", str(arch), full, *folders],
                            capture_output=True, check=True)
             with tarfile.open(arch) as tf:
                 tf.extractall(dest, filter="data")
@@ -86,6 +87,7 @@ def baseline_env(rev, tmp):
         return None, f"baseline {rev} not available ({exc.__class__.__name__})"
     env = dict(os.environ)
     env["PYTHONPATH"] = str(dest) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    env["ULTRATIGHT_BASELINE_DIR"] = str(dest)
     return env, f"commit {full[:12]}"
 
 

@@ -15,7 +15,10 @@ both cores of the reference machine) — and reports:
   SINS + outer loop, tight filter);
 * ``ratio_rackf_over_ukf`` (whole run, one thread; the paper's Table 4 reports ≈ 0.5 for its
   filters);
-* ``maxrss_mb``: peak resident set size of this process.
+* ``maxrss_mb``: peak resident set size of this process;
+* with ``--baseline REV``: the same benchmark of commit ``REV`` (its own ``bench_ultratight.py``,
+  exported with ``git archive`` and run in a subprocess right after, same cut and threads) under
+  ``baseline``, and per method ``ratio_baseline``: this run's real-time factor over the baseline's.
 """
 
 import argparse
@@ -25,7 +28,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _common import add_common_args, finish
+from _common import add_common_args, baseline_env, finish
 
 
 def main(argv=None):
@@ -35,6 +38,8 @@ def main(argv=None):
     ap.add_argument("--methods", default="dlb-rackf,dlb-ukf,dlb-ckf")
     ap.add_argument("--workdir", default=None, help="data cache (default: a temporary folder)")
     ap.add_argument("--threads", type=int, default=2, help="threads of the measured run (reference: 1)")
+    ap.add_argument("--baseline", metavar="REV", default="none",
+                    help="also run this commit's own bench_ultratight.py on the same cut (default: none)")
     a = ap.parse_args(argv)
     dur = a.duration or (5.0 if a.quick else 20.0)
     methods = [m.strip() for m in a.methods.split(",") if m.strip()]
@@ -85,8 +90,39 @@ def main(argv=None):
         print(f"dlb-rackf / dlb-ukf (one thread): whole run {out['ratio_rackf_over_ukf']:.2f} (paper Table 4: 0.52)")
     print(f"peak RSS {out['maxrss_mb']:.0f} MB; {cfg['frontend']['fs_hz'] / 1e6:g} MHz {cfg['frontend']['format']}, "
           f"{dur:g} s cut of paper-highdyn")
+    if a.baseline.lower() != "none":
+        _compare_baseline(a, out, dur, fs)
     finish(a, out)
     return 0
+
+
+def _compare_baseline(a, out, dur, fs):
+    """Run commit ``a.baseline``'s own bench_ultratight.py on the same cut; add its figures and the
+    ratios of the real-time factors to ``out``."""
+    import json
+    import os
+    import subprocess
+
+    with tempfile.TemporaryDirectory() as tmp:
+        env, name = baseline_env(a.baseline, tmp, folders=("ultratight", "benchmarks"))
+        if env is None:
+            print(f"{name}: no baseline", flush=True)
+            return
+        rep = os.path.join(tmp, "baseline.json")
+        cmd = [sys.executable, os.path.join(env["ULTRATIGHT_BASELINE_DIR"], "benchmarks", "bench_ultratight.py"),
+               "--duration", str(dur), "--methods", a.methods, "--threads", str(a.threads), "--json", rep]
+        if fs:
+            cmd += ["--fs", str(fs)]
+        subprocess.run(cmd, env=env, check=True)
+        with open(rep) as f:
+            base = json.load(f)
+    out["baseline"] = {"commit": name, "methods": base["methods"]}
+    for m, r in out["methods"].items():
+        b = base["methods"].get(m)
+        if b:
+            r["ratio_baseline"] = r["realtime_factor"] / b["realtime_factor"]
+            print(f"{m:10s} real-time factor {r['realtime_factor']:.3f} against {b['realtime_factor']:.3f} on "
+                  f"{name}: {r['ratio_baseline']:.3f}", flush=True)
 
 
 if __name__ == "__main__":
