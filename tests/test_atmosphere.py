@@ -178,7 +178,7 @@ def test_generator_applies_the_delays_code_late_carrier_early(gen_pair):
         assert 1.0 < iono.min() and iono.max() < 30.0 and 2.4 < tropo.min() and tropo.max() < 30.0
         # the recorded delays are the models at the truth geometry
         lat, lon, h = geodetic_llh(on["pos_e"][0])
-        m = AtmosphereModel("klobuchar", *__import__("ultratight.signals.lnav", fromlist=["x"]).quantise_iono(ALPHA, BETA),
+        m = AtmosphereModel("klobuchar", *__import__("ultratight.signals.lnav_message", fromlist=["x"]).quantise_iono(ALPHA, BETA),
                             tropo="saastamoinen")
         i_ref, t_ref = m.delays_m(lat, lon, h, np.radians(on["elev_deg"][0]), np.radians(on["azim_deg"][0]),
                                   on["t_true_tow_s"][0])

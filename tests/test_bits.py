@@ -12,7 +12,7 @@ from ultratight.errors import ConfigError, InputFileError
 from ultratight.receiver.cli import metrics as M
 from ultratight.receiver.deep.bitsources import check_strategy, known_words, read_bits_csv, write_bits_csv
 from ultratight.receiver.cli import main
-from ultratight.receiver.deep.engine import EngineOptions
+from ultratight.receiver.deep.options import EngineOptions
 from ultratight.receiver.cli.scenario_config import load_scenario
 from ultratight.receiver.cli.scenario_runner import errors_vs_truth, run_method
 from ultratight.receiver.deep.startup import BitWipeoff
@@ -188,7 +188,7 @@ def test_decoded_bits_equal_sent_bits(unknown):
     from ultratight.receiver.cli.scenario_runner import load_truth, truth_initial_state
     from ultratight.signals.constellation import ephemerides_for
     from ultratight.receiver.deep.startup import StartupErrors, perturb_state
-    from ultratight.ins.imu import read_imu_h5
+    from ultratight.ins.imu_data import read_imu_h5
     from ultratight.signals.recording.iffile import open_if
     cfg, paths, sent, b0 = unknown
     tr = load_truth(paths["truth"])

@@ -148,7 +148,7 @@ def test_engine_tracks_paper_highdyn_start(short_run):
 def test_run_on_files_and_bad_inputs(short_run, tmp_path):
     from ultratight.receiver.deep.recordings import run_ultratight_on_files
     from ultratight.receiver.deep.outputs import write_result_h5
-    from ultratight.ins.imu import read_imu_h5, write_imu_h5
+    from ultratight.ins.imu_data import read_imu_h5, write_imu_h5
     paths, cfg, res, _ = short_run
     r2 = run_ultratight_on_files(paths["if"], paths["imu"], method="dlb-ckf", seed=11, duration_s=0.3)
     assert r2.doppler_hz.shape[1] == 13

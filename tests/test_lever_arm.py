@@ -10,7 +10,8 @@ import pytest
 from ultratight.fusion.coupling import tight
 from ultratight.ins.attitude import dcm_to_quat, quat_to_dcm, rotvec_to_dcm
 from ultratight.ins.earth import dcm_ecef_from_enu, llh_to_ecef, llh_to_ecef_batch
-from ultratight.ins.imu import read_imu_h5, synthesize_imu
+from ultratight.ins.imu import synthesize_imu
+from ultratight.ins.imu_data import read_imu_h5
 from ultratight.ins.sins import make_state, nav_errors, sins_run
 from ultratight.ins.trajectory import build_trajectory
 from ultratight.receiver.cli import main

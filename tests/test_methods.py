@@ -36,7 +36,7 @@ def test_banks_declare_their_covariance_indices():
 
 
 def test_engine_runs_the_scalar_method_through_the_scalar_pipeline(tmp_path):
-    from ultratight.ins.imu import read_imu_h5
+    from ultratight.ins.imu_data import read_imu_h5
     from ultratight.receiver.deep.engine import UltratightEngine
     from ultratight.receiver.cli.scenario_config import load_scenario
     from ultratight.receiver.cli.scenario_runner import (

@@ -100,7 +100,7 @@ def test_imu_given_without_ultratight_mode(cut):
 
 
 def test_ultratight_out_of_order_imu_stamp(cut, tmp_path):
-    from ultratight.ins.imu import read_imu_h5, write_imu_h5
+    from ultratight.ins.imu_data import read_imu_h5, write_imu_h5
     imu = read_imu_h5(cut["imu"])
     k = 57
     imu.t = imu.t.copy()

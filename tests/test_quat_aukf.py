@@ -212,7 +212,7 @@ def test_swing_kind_runs_through_the_ins_command(tmp_path, capsys):
     assert main(["ins", str(p), "--errors", "ideal", "--duration", "20", "--json", "--save-imu", str(imu_path)]) == 0
     js = json.loads(capsys.readouterr().out)
     assert js["max_att_err_deg"] < 1e-5 and js["max_vel_err_mps"] < 1e-3
-    from ultratight.ins.imu import read_imu_h5
+    from ultratight.ins.imu_data import read_imu_h5
     imu = read_imu_h5(imu_path)
     rate = np.abs(imu.dtheta_b).max(axis=0) * imu.rate_hz
     # peak body rates of the swing: roll 10° at 4 s, pitch 8° at 5 s → ≥ 0.15 / 0.1 rad/s on some axis

@@ -311,7 +311,7 @@ def test_wahba_recovers_rotation_and_covariance():
 
 def _still_imu(C_lb, llh, grade, seconds=2.0, rate=100.0):
     from ultratight.ins.earth import earth_rate_l, gravity_l
-    from ultratight.ins.imu import ImuData
+    from ultratight.ins.imu_data import ImuData
     n = int(seconds * rate)
     f_b = C_lb.T @ -np.asarray(gravity_l(llh[0], llh[2]))
     w_b = C_lb.T @ np.asarray(earth_rate_l(llh[0]))

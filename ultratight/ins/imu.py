@@ -37,7 +37,6 @@ from ultratight.ins.earth import dcm_ecef_from_enu_vec, ecef_to_llh_batch, gravi
 from ultratight.ins.imu_data import ImuData
 # the HDF5 reader and writer are also imported from here by ultratight.receiver.cli.scenario_runner
 # and ultratight.receiver.cli.commands.ins
-from ultratight.ins.imu_data import read_imu_h5, write_imu_h5  # noqa: F401  (re-exported)
 
 # ------------------------------------------------------------------ unit conversions
 G0 = 9.80665                                  # standard gravity, m/s^2 (for ug / g units only)

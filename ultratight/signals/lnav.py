@@ -33,8 +33,6 @@ from ultratight.signals.gpstime import full_week, normalize
 from ultratight.signals.lnav_message import (BIT_S, BITS_PER_WEEK, PREAMBLE, SUBFRAME_BITS, SUBFRAME_S,
                                              SUBFRAME_WORDS, WORD_BITS, ints_to_eph, parse_iono_page,
                                              parse_sf123, subframe_words)
-# quantise_iono is read as ``lnav.quantise_iono`` by tests/test_atmosphere.py
-from ultratight.signals.lnav_message import quantise_iono  # noqa: F401
 
 DEFAULT_WEEK_ERA = 2048          # ref for 10-bit week when no reference week is given (2019-2038)
 

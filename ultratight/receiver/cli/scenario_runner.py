@@ -38,7 +38,7 @@ import numpy as np
 
 from ultratight import __version__, io_guard
 from ultratight.errors import ConfigError, InputFileError
-from ultratight.ins.imu import read_imu_h5
+from ultratight.ins.imu_data import read_imu_h5
 from ultratight.ins.trajectory import build_trajectory
 from ultratight.io_guard import atomic_path, json_clean, note_complete, output_error, write_h5_atomic, write_text_atomic
 from ultratight.receiver.cli import metrics as M

@@ -52,7 +52,7 @@ from ultratight.constants import C
 from ultratight.errors import ConfigError, InputFileError
 from ultratight.ins.attitude import dcm_to_euler, dcm_to_quat, euler_to_dcm, quat_to_dcm
 from ultratight.ins.earth import dcm_ecef_from_enu, earth_rate_l, ecef_to_llh, gravity_l, transport_rate_l
-from ultratight.ins.imu import ImuData
+from ultratight.ins.imu_data import ImuData
 from ultratight.receiver.dsp.tracking_layout import MODE_TRACK
 from ultratight.signals.signal import GPS_L1CA
 
@@ -261,7 +261,8 @@ def attitude_at(imu, imu_errors, t_h, llh, vel_l, acc_l, sig_acc, cfg):
 # ------------------------------------------------------------------ the scalar pass
 def scalar_pass(source, ephemerides, prns, start_s, cfg):
     """Run the scalar receiver over ``window_s`` from ``start_s``: its :class:`ProcessResult`."""
-    from ultratight.receiver.scalar.receiver import NoSignalError, ProcessConfig, process
+    from ultratight.receiver.scalar.process_config import NoSignalError, ProcessConfig
+    from ultratight.receiver.scalar.receiver import process
     from ultratight.receiver.dsp.tracking_config import TrackingConfig
 
     avail = source.n_samples / source.fs_hz - start_s

@@ -71,6 +71,7 @@ def _synthesize(args, src):
 
     from ultratight import io_guard
     from ultratight.ins import imu as imu_mod
+    from ultratight.ins.imu_data import write_imu_h5
     from ultratight.ins.trajectory import build_trajectory
 
     cfg = _load_scenario(src)
@@ -92,7 +93,7 @@ def _synthesize(args, src):
     imu = imu_mod.synthesize_imu(traj, rate, errors, np.random.default_rng(seed), duration_s=duration,
                                  lever_arm_b=None if lever is None else np.asarray(lever, float))
     if args.save_imu:
-        imu_mod.write_imu_h5(args.save_imu, imu, {"scenario": cfg.get("name", src), "seed": seed})
+        write_imu_h5(args.save_imu, imu, {"scenario": cfg.get("name", src), "seed": seed})
     return imu, cfg.get("name", src), errors.preset
 
 
