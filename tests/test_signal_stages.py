@@ -19,7 +19,8 @@ import pytest
 from ultratight.errors import ConfigError
 from ultratight.receiver.dsp.acquisition import AcqResult, acquire
 from ultratight.receiver.scalar.navdecode import ChannelNav, channel_nav
-from ultratight.receiver.scalar.receiver import ProcessConfig, allocate_channels
+from ultratight.receiver.scalar.channels import allocate_channels
+from ultratight.receiver.scalar.process_config import ProcessConfig
 from ultratight.receiver.dsp.tracking import ScalarTracker
 from ultratight.receiver.dsp.tracking_layout import (FL_PLL_LOCK, MODE_PULL, P_DOPP, R_CODE_PHASE, R_CODE_RATE, R_DOPP,
                                                  RI_FLAGS, RI_N, RI_PTR, STATE_NAMES)

@@ -238,18 +238,12 @@ def decoded_source(src, prns, ephs, week, tow_start_s, duration_s, pred0, cn0_db
     into known words (:func:`known_words`)."""
     from ultratight.receiver.scalar.receiver import ProcessConfig, ScalarReceiver   # the scalar receiver (heavy import)
 
-    class _Logging(ScalarReceiver):
-        def _build(self, acq, out_path, rinex_obs_path):
-            super()._build(acq, out_path, rinex_obs_path)
-            for nav in self.navs:
-                nav.log = []
-
     assist = [{"prn": int(p), "doppler_hz": float(pred0["doppler_hz"][i]),
                "code_phase_chips": float(pred0["code_phase_chips"][i]), "sample_index": 0,
                "cn0_dbhz": float(cn0_dbhz)} for i, p in enumerate(prns)]
     cfg = ProcessConfig(n_channels=len(prns), prns=[int(p) for p in prns], duration_s=float(duration_s),
                         smoothing_s=0.0)
-    rx = _Logging(src, cfg, ephemerides={int(p): ephs[p] for p in prns}, signal=signal)
+    rx = ScalarReceiver(src, cfg, ephemerides={int(p): ephs[p] for p in prns}, signal=signal, log_nav_bits=True)
     rx.run(assist=assist)
     rows = BitRows(len(prns), tow_start_s, duration_s, BIT_DECODED, "decoded-scalar", signal)
     navs = {nav.prn: nav for nav in rx.navs}
