@@ -43,7 +43,6 @@ from ultratight.ins.trajectory import build_trajectory
 from ultratight.io_guard import atomic_path, json_clean, note_complete, output_error, write_h5_atomic, write_text_atomic
 from ultratight.receiver.cli import metrics as M
 from ultratight.receiver.dsp.burst import PLACE_IF, event_place
-from ultratight.receiver.cli.commands.generate import estimate
 from ultratight.receiver.deep.options import EngineOptions, monitor_mode
 from ultratight.receiver.deep.engine import UltratightEngine
 from ultratight.receiver.deep.methods import check_method
@@ -53,7 +52,7 @@ from ultratight.receiver.cli.scenario_config import IMU_DEFAULTS, load_scenario
 from ultratight.receiver.deep.startup import StartupErrors, perturb_state
 from ultratight.receiver.cli.workers import WorkerPool, check_workers, default_workers, fix_mmap_threshold, release_heap
 from ultratight.signals.constellation import ephemerides_for
-from ultratight.signals.synth.generator import generate
+from ultratight.signals.synth.generator import generate, generation_estimate
 from ultratight.signals.recording.iffile import open_if
 from ultratight.signals.synth.ifring import IfRing, RingIf
 from ultratight.signals.synth.ifstream import GeneratedIf
@@ -546,7 +545,7 @@ def _check_out_dir(out, cfg, runs, cache=True):
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out} exists and is not a directory")
     io_guard.check_output_path(out / "metrics.json", "--out", create_parent=True)
-    est = estimate(cfg)
+    est = generation_estimate(cfg)
     if_bytes = est["if_bytes"] if cache else 0.0
     io_guard.check_disk(out, runs * (if_bytes + est["truth_bytes"] + 2 * est["imu_bytes"]),
                         f"the data of {runs} run(s) of {cfg['duration_s']:g} s")

@@ -275,6 +275,27 @@ def output_paths(out_dir, stem, fmt):
             "trajectory": out_dir / f"{stem}.traj.h5"}
 
 
+def generation_estimate(cfg):
+    """Up-front estimate of a generation: ``{"if_bytes", "truth_bytes", "imu_bytes", "memory_bytes"}``.
+
+    IF bytes = duration x fs x sample size; truth: one row (~40 numbers + 12 per satellite) per
+    1 ms interval, in whole chunks of 1000 rows; IMU + trajectory: ~40 numbers per IMU sample (written from memory)."""
+    fe = cfg["frontend"]
+    spec = get_format(fe["format"])
+    n = float(cfg["duration_s"]) * float(fe["fs_hz"])
+    if_bytes = spec.nbytes(n, spec.layout())
+    n_sat = max(len(cfg["satellites"].get("prns") or []), int(cfg["satellites"].get("max_count", 12)))
+    rows = float(cfg["duration_s"]) * 1000.0
+    if math.isfinite(rows):
+        rows = math.ceil(rows / 1000.0) * 1000.0            # the truth datasets hold whole 1000-row chunks
+    truth_bytes = rows * 8 * (12 + 12 * n_sat)
+    imu_rows = float(cfg["duration_s"]) * float((cfg.get("imu") or {}).get("rate_hz", 0.0)) if cfg.get("imu") else 0.0
+    imu_bytes = imu_rows * 8 * 40
+    # the generator's plan holds per-interval polynomial coefficients for a block, the IMU whole
+    memory = 3 * imu_bytes + 64e6
+    return {"if_bytes": if_bytes, "truth_bytes": truth_bytes, "imu_bytes": imu_bytes, "memory_bytes": memory}
+
+
 def _progress(total, enabled, desc):
     if not enabled or not sys.stderr.isatty():
         return None
@@ -535,4 +556,4 @@ def _write_imu_traj(imu_cfg, trajectory, paths, ss_imu, resolved):
     return out
 
 
-__all__ = ["generate", "Generation", "noise_factor", "output_paths", "set_nav_bits"]
+__all__ = ["generate", "generation_estimate", "Generation", "noise_factor", "output_paths", "set_nav_bits"]

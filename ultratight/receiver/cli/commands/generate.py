@@ -74,39 +74,15 @@ def _remove_empty_dirs(dirs):
             break
 
 
-def estimate(cfg):
-    """Up-front estimate of a generation: ``{"if_bytes", "truth_bytes", "imu_bytes", "memory_bytes"}``.
-
-    IF bytes = duration x fs x sample size; truth: one row (~40 numbers + 12 per satellite) per
-    1 ms interval, in whole chunks of 1000 rows; IMU + trajectory: ~40 numbers per IMU sample (written from memory)."""
-    import math
-
-    from ultratight.signals.recording.iffile import get_format
-    fe = cfg["frontend"]
-    spec = get_format(fe["format"])
-    n = float(cfg["duration_s"]) * float(fe["fs_hz"])
-    if_bytes = spec.nbytes(n, spec.layout())
-    n_sat = max(len(cfg["satellites"].get("prns") or []), int(cfg["satellites"].get("max_count", 12)))
-    rows = float(cfg["duration_s"]) * 1000.0
-    if math.isfinite(rows):
-        rows = math.ceil(rows / 1000.0) * 1000.0            # the truth datasets hold whole 1000-row chunks
-    truth_bytes = rows * 8 * (12 + 12 * n_sat)
-    imu_rows = float(cfg["duration_s"]) * float((cfg.get("imu") or {}).get("rate_hz", 0.0)) if cfg.get("imu") else 0.0
-    imu_bytes = imu_rows * 8 * 40
-    # the generator's plan holds per-interval polynomial coefficients for a block, the IMU whole
-    memory = 3 * imu_bytes + 64e6
-    return {"if_bytes": if_bytes, "truth_bytes": truth_bytes, "imu_bytes": imu_bytes, "memory_bytes": memory}
-
-
 def check_outputs(cfg, out_dir, stem):
     """Refuse before any work: output names invalid or naming the scenario file, not enough free
-    disk or memory for the estimate (:func:`estimate`)."""
+    disk or memory for the estimate (:func:`ultratight.signals.synth.generator.generation_estimate`)."""
     from ultratight import io_guard
-    from ultratight.signals.synth.generator import output_paths
+    from ultratight.signals.synth.generator import generation_estimate, output_paths
     paths = output_paths(out_dir, stem, cfg["frontend"]["format"])
     io_guard.check_io([("SCENARIO", cfg.get("source_file"))],
                       [(f"--out ({k})", str(v)) for k, v in paths.items()], create_parents=True)
-    est = estimate(cfg)
+    est = generation_estimate(cfg)
     total = est["if_bytes"] + est["truth_bytes"] + 2 * est["imu_bytes"]
     io_guard.check_disk(out_dir, total, f"generating {cfg['duration_s']:g} s at {cfg['frontend']['fs_hz']:g} Hz "
                                         f"({cfg['frontend']['format']})")
