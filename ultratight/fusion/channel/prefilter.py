@@ -120,6 +120,12 @@ class PackedActiveMask:
         a.flags.writeable = False
         return a
 
+    @property
+    def active_flags(self):
+        """The integer active flags in the packed buffer itself (a writable view, for the compiled
+        epoch runner that switches channels on and off)."""
+        return self._active_i
+
     def set_active(self, mask):
         m = np.asarray(mask, dtype=np.bool_)
         if m.shape != (self.n_ch,):
