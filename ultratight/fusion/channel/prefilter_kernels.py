@@ -467,7 +467,7 @@ def _channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, rscale, a
             lam = acc[c, ACC_LAM]    # measurement-noise scale held over this period
             if lam < 1.0:
                 lam = 1.0
-            lam *= rs                # (a filter-R noise event: receiver.burst)
+            lam *= rs                # (a filter-R noise event: receiver.dsp.burst)
             # eqs. 20-23: standardised residuals against P_zz of eq. 13 (with lam R)
             any_out = False
             for m in range(NZ):

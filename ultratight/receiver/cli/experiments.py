@@ -3,7 +3,7 @@
 A scenario TOML names the experiment that runs it with a top-level key
 ``experiment = "NAME"``; without it the scenario is Zhao et al. 2014's IF-level
 double-loop experiment (``if-double-loop``: IF generator → correlators →
-prefilters → tight filter, ``receiver.scenario_runner``).
+prefilters → tight filter, ``receiver.cli.scenario_runner``).
 
 Each experiment is a module named in :data:`EXPERIMENTS`: the IF-level double loop lives with
 its runner (``ultratight.receiver.cli.if_double_loop``), the integration-filter experiments beside

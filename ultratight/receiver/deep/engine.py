@@ -2,17 +2,17 @@
 
 Stages, in the order of the paper's Fig. 1 (each a module of its own, arrays in and out)::
 
-    IF block stream (receiver.blockstream, noise sigma per block)
-      ─► correlator bank (receiver.correlator; its NCOs: signals.nco.NcoBank)
-      ─► data wipe-off (receiver.wipeoff)
-      ─► tracking bank (fusion.prefilter / fusion.pbkf, chosen by the method's spec in
-         receiver.methods; the inner loop, 1 kHz)
-      ─► inner-loop NCO command (fusion.innerloop; aiding increments from the outer loop
+    IF block stream (receiver.dsp.blockstream, noise sigma per block)
+      ─► correlator bank (receiver.dsp.correlator; its NCOs: signals.nco.NcoBank)
+      ─► data wipe-off (receiver.dsp.wipeoff)
+      ─► tracking bank (fusion.channel.prefilter / fusion.channel.pbkf, chosen by the method's spec in
+         receiver.deep.methods; the inner loop, 1 kHz)
+      ─► inner-loop NCO command (fusion.channel.innerloop; aiding increments from the outer loop
          when the arbitration allows)
-      ─► residuals vs the SINS predictions ─► averaging decimator (fusion.rateconv.ResidualDecimator, 10 Hz)
-      ─► tight 17-state filter (fusion.tight) ⇄ SINS + clock (receiver.sins_clock, 100 Hz, feedback)
-      ─► outer loop (receiver.outer_loop: 100 Hz predictions, CIC to 1 kHz) ─► aiding of the next epochs
-      ─► recorder (receiver.recorder); lock monitor (receiver.lockmon, optional)
+      ─► residuals vs the SINS predictions ─► averaging decimator (fusion.coupling.rateconv.ResidualDecimator, 10 Hz)
+      ─► tight 17-state filter (fusion.coupling.tight) ⇄ SINS + clock (receiver.deep.sins_clock, 100 Hz, feedback)
+      ─► outer loop (receiver.deep.outer_loop: 100 Hz predictions, CIC to 1 kHz) ─► aiding of the next epochs
+      ─► recorder (receiver.deep.recorder); lock monitor (receiver.dsp.lockmon, optional)
 
 The 1 kHz part runs compiled, many epochs per call (:func:`ultratight.receiver.deep.epochs.run_epochs`),
 and hands back to :meth:`UltratightEngine.run` whenever the 100 Hz / 10 Hz part is due; the
@@ -29,7 +29,7 @@ Methods (all on the same IF/IMU data; each is a spec of the registry
 * ``pb-kf-utc``: single loop baseline — discriminator outputs into a linear KF per channel
   (``ultratight.fusion.channel.pbkf``); the NCOs are driven by the outer loop only (absolute
   SINS-predicted Doppler and code phase, no inner loop).
-* ``scalar``: the scalar tracking pipeline of receiver.tracking (no INS), for reference;
+* ``scalar``: the scalar tracking pipeline of receiver.dsp.tracking (no INS), for reference;
   :meth:`UltratightEngine.run` hands it to :func:`ultratight.receiver.deep.scalar_reference.run_scalar`.
 
 Arbitration (double loop, logged per channel per epoch in ``mode``): after every tight
@@ -314,7 +314,7 @@ class UltratightEngine:
 
     def _decoding_pass(self):
         """``decoded`` bits: the same method with blind bits over the same data first; its per-bit soft
-        decisions go through the LNAV decoder (receiver.bitsources.decoded_from_pass)."""
+        decisions go through the LNAV decoder (receiver.deep.bitsources.decoded_from_pass)."""
         t0 = time.perf_counter()
         first = UltratightEngine(self.src, self.imu, self.ephs, self.prns, self.week, self.tow0, method=self.method,
                                  options=replace(self.opt, bits="blind"), init_state=self.init_state, rng=self.rng,

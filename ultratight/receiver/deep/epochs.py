@@ -4,12 +4,12 @@ NCO command, for every channel, epoch after epoch, until the outer part of the e
 One epoch (:func:`run_epochs`, in this order; every step is a compiled stage of its own module)::
 
     IF block (noise sigma of its aligned block) ─► correlators (one code period per channel,
-    receiver.correlator; channels spread over the threads)
-    ─► noise events inside the receiver (receiver.burst; none by default) ─► data wipe-off
-    (receiver.wipeoff) ─► tracking bank epoch (fusion.prefilter.bank_channel_epoch or
-    fusion.pbkf.pbkf_channel_epoch) ─► recorder + residuals against the outer loop's predictions
+    receiver.dsp.correlator; channels spread over the threads)
+    ─► noise events inside the receiver (receiver.dsp.burst; none by default) ─► data wipe-off
+    (receiver.dsp.wipeoff) ─► tracking bank epoch (fusion.channel.prefilter.bank_channel_epoch or
+    fusion.channel.pbkf.pbkf_channel_epoch) ─► recorder + residuals against the outer loop's predictions
     + decimator window + outer-loop aiding of the next interval (:func:`epoch_post`)
-    ─► inner-loop NCO command (fusion.innerloop)
+    ─► inner-loop NCO command (fusion.channel.innerloop)
 
 :func:`run_epochs` stops *before* an epoch that needs something only the Python side has — IF
 samples beyond the buffer (``NEED_IF``), outer-loop aiding beyond the SINS (``NEED_SINS``), the end
@@ -44,8 +44,8 @@ END = 4            # the run's samples or epochs are exhausted
 ERR_CORR = 5       # a channel could not integrate (buffer management): ``n_s`` tells which
 ERR_BANK = 6       # non-finite input to the tracking bank: ``info`` is the channel
 
-BANK_PREFILTER = 0     # fusion.prefilter.PrefilterBank (ckf, ukf, rackf)
-BANK_PBKF = 1          # fusion.pbkf.PbKfBank
+BANK_PREFILTER = 0     # fusion.channel.prefilter.PrefilterBank (ckf, ukf, rackf)
+BANK_PBKF = 1          # fusion.channel.pbkf.PbKfBank
 
 If = namedtuple("If", "buf is_complex buf_start n_buf n_total block_len sigma")
 Corr = namedtuple("Corr", "code_ext pad active sample_ptr code_phase code_rate carr_phase carr_freq fs "

@@ -86,13 +86,13 @@ class EngineOptions:
     reinit_sigma_f_hz: float = 0.3       # frequency 1-sigma after a phase (re)initialisation
     reinit_sigma_a_hzps: float = 0.3     # Doppler-rate 1-sigma after a (re)initialisation (aided)
     prefilter_kwargs: dict = field(default_factory=dict)   # extra PrefilterBank parameters
-    # noise events inside the receiver (receiver.burst): [[noise_events]] entries whose place is
+    # noise events inside the receiver (receiver.dsp.burst): [[noise_events]] entries whose place is
     # "correlator" or "filter-r" ("if" ones are the generator's), and the seed of the correlator noise
     noise_events: list = field(default_factory=list)
     noise_seed: int = 0
     startup: dict = field(default_factory=dict)   # StartupErrors overrides
     threads: int = 0                     # epoch-stage threads: 0 = auto (epoch_threads), 1 = one, k = k
-    # navigation-data bits (receiver.bitsources): assisted | decoded | blind | path of a bit file
+    # navigation-data bits (receiver.deep.bitsources): assisted | decoded | blind | path of a bit file
     bits: str = "assisted"
 
     def as_dict(self):

@@ -32,7 +32,7 @@ class EngineResult:
     # the SINS-rate navigation solution (EpochRecorder.sins_arrays): t_s, llh, vel_l, q_lb, euler,
     # clk and the 1-sigma of the integration filter (pos ENU m, vel ENU m/s, att ENU rad, clk m, m/s)
     sins: dict = field(default_factory=dict)
-    bit_source: np.ndarray = None   # (n_ep, n_ch) int8 source of each epoch's data bit (receiver.wipeoff BIT_*)
+    bit_source: np.ndarray = None   # (n_ep, n_ch) int8 source of each epoch's data bit (receiver.dsp.wipeoff BIT_*)
 
 
 class EpochRecorder:

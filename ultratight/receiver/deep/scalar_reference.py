@@ -51,4 +51,4 @@ def run_scalar(src, prns, ephs, week, tow0, init, duration_s=None, block_ms=100)
                         mode=np.zeros(t.shape, dtype=np.int8), nav_t=np.zeros(0), nav_pos_e=empty,
                         nav_vel_e=empty, nav_clk=np.zeros((0, 2)), nav_sigma_doppler_hz=np.zeros((0, n_ch)),
                         runtime_s=time.perf_counter() - t0, duration_s=n * GPS_L1CA.code_period_s,
-                        info={"pipeline": "receiver.tracking ScalarTracker (FLL-assisted PLL, DLL), no INS"})
+                        info={"pipeline": "receiver.dsp.tracking ScalarTracker (FLL-assisted PLL, DLL), no INS"})

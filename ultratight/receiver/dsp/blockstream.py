@@ -2,12 +2,12 @@
 
 Every loop over IF data goes through :class:`BlockStream`:
 
-* the ultra-tight engine (``receiver.engine``) and the scenario's scalar reference
-  (``receiver.scenario_runner.run_scalar``) read *aligned* blocks ``[k L, (k+1) L)`` into a sliding
+* the ultra-tight engine (``receiver.deep.engine``) and the scenario's scalar reference
+  (``receiver.cli.scenario_runner.run_scalar``) read *aligned* blocks ``[k L, (k+1) L)`` into a sliding
   buffer (:meth:`BlockStream.ensure`, :meth:`BlockStream.view`); each block gets its per-arm noise
   std once, when it is read (:meth:`BlockStream.sigma_at`), passed through an optional
   :class:`NoiseFloor`;
-* ``receiver.process`` reads where its tracking channels need samples (they stop, re-acquire and
+* ``receiver.scalar.receiver`` reads where its tracking channels need samples (they stop, re-acquire and
   restart anywhere): :meth:`BlockStream.read_at` returns the samples and the noise estimate of
   their first ``head`` samples.
 

@@ -113,8 +113,8 @@ class TrackingState:
 class ScalarTracker:
     """The scalar tracking bank: code/carrier NCOs + FLL-assisted PLL and DLL per channel.
 
-    The vocabulary of the ultra-tight prefilter banks (``fusion.prefilter.PrefilterBank``,
-    ``fusion.pbkf.PbKfBank``): :meth:`reset` (channels, optional initial state), :meth:`describe`
+    The vocabulary of the ultra-tight prefilter banks (``fusion.channel.prefilter.PrefilterBank``,
+    ``fusion.channel.pbkf.PbKfBank``): :meth:`reset` (channels, optional initial state), :meth:`describe`
     (the loop parameters), :data:`STATE_NAMES` and the indices ``P_DOPP``, ``P_PLL_X``,
     ``P_PLL_Y``, ``P_DLL_Z`` of the recorded loop state; :meth:`run` is its ``step`` over a block.
     Unlike the prefilter banks, whose ``step`` takes correlator outputs, the scalar loops take the
