@@ -17,6 +17,10 @@ Conventions (project-wide):
 
 All conversions normalise their output (quaternions to unit norm with
 ``w >= 0``; DCMs are exact rotations when built from quaternions).
+
+The quaternion product, normalisation and rotation-vector conversion are written once, on
+components (``quat_mult_tuple``, ``quat_normalize_tuple``, ``rotvec_to_quat_tuple``: floats in,
+a tuple out, no allocation, for numba loops such as the SINS step); the array functions call them.
 """
 
 import math
@@ -38,16 +42,48 @@ def skew(v):
     return m
 
 
+# ------------------------------------------------ quaternion algebra on components (see module doc)
+
+@njit(cache=True, inline="always")
+def quat_normalize_tuple(q0, q1, q2, q3):
+    """Unit quaternion with non-negative scalar part, on components (tuple in, tuple out)."""
+    s = 1.0 / math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
+    if q0 < 0.0:
+        s = -s
+    return q0 * s, q1 * s, q2 * s, q3 * s
+
+
+@njit(cache=True, inline="always")
+def quat_mult_tuple(a0, a1, a2, a3, b0, b1, b2, b3):
+    """Hamilton product a * b on components (tuple in, tuple out)."""
+    return (a0 * b0 - a1 * b1 - a2 * b2 - a3 * b3,
+            a0 * b1 + a1 * b0 + a2 * b3 - a3 * b2,
+            a0 * b2 - a1 * b3 + a2 * b0 + a3 * b1,
+            a0 * b3 + a1 * b2 - a2 * b1 + a3 * b0)
+
+
+@njit(cache=True, inline="always")
+def rotvec_to_quat_tuple(x, y, z):
+    """Rotation vector (x, y, z) -> quaternion components (w, x, y, z); series near zero angle
+    (sin(a/2)/a and cos(a/2) to O(a^6) below a = 1e-4: relative error < 1e-20)."""
+    a2 = x * x + y * y + z * z
+    if a2 < 1e-8:
+        s = 0.5 - a2 / 48.0 + a2 * a2 / 3840.0
+        w = 1.0 - a2 / 8.0 + a2 * a2 / 384.0
+    else:
+        a = math.sqrt(a2)
+        s = math.sin(0.5 * a) / a
+        w = math.cos(0.5 * a)
+    return w, x * s, y * s, z * s
+
+
+# ------------------------------------------------ arrays
+
 @njit(cache=True)
 def quat_normalize(q):
     """Unit quaternion with non-negative scalar part."""
-    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    s = 1.0 / n
-    if q[0] < 0.0:
-        s = -s
     out = np.empty(4)
-    for i in range(4):
-        out[i] = q[i] * s
+    out[0], out[1], out[2], out[3] = quat_normalize_tuple(q[0], q[1], q[2], q[3])
     return out
 
 
@@ -55,10 +91,7 @@ def quat_normalize(q):
 def quat_mult(p, q):
     """Hamilton product p * q (so q_ac = q_ab * q_bc)."""
     out = np.empty(4)
-    out[0] = p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3]
-    out[1] = p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2]
-    out[2] = p[0] * q[2] - p[1] * q[3] + p[2] * q[0] + p[3] * q[1]
-    out[3] = p[0] * q[3] + p[1] * q[2] - p[2] * q[1] + p[3] * q[0]
+    out[0], out[1], out[2], out[3] = quat_mult_tuple(p[0], p[1], p[2], p[3], q[0], q[1], q[2], q[3])
     return out
 
 
@@ -125,20 +158,9 @@ def dcm_to_quat(c):
 
 @njit(cache=True)
 def rotvec_to_quat(phi):
-    """Rotation vector -> unit quaternion (series near zero angle)."""
-    a2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
-    a = math.sqrt(a2)
+    """Rotation vector -> unit quaternion (series near zero angle, :func:`rotvec_to_quat_tuple`)."""
     q = np.empty(4)
-    if a < 1e-4:
-        # sin(a/2)/a and cos(a/2) to O(a^6): relative error < 1e-20
-        s = 0.5 - a2 / 48.0 + a2 * a2 / 3840.0
-        q[0] = 1.0 - a2 / 8.0 + a2 * a2 / 384.0
-    else:
-        s = math.sin(0.5 * a) / a
-        q[0] = math.cos(0.5 * a)
-    q[1] = phi[0] * s
-    q[2] = phi[1] * s
-    q[3] = phi[2] * s
+    q[0], q[1], q[2], q[3] = rotvec_to_quat_tuple(phi[0], phi[1], phi[2])
     return q
 
 

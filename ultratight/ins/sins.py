@@ -28,7 +28,8 @@ import numpy as np
 from numba import njit
 
 from ultratight.constants import OMEGA_E
-from ultratight.ins.attitude import dcm_to_quat_vec, quat_to_dcm_vec
+from ultratight.ins.attitude import (dcm_to_quat_vec, quat_mult_tuple, quat_normalize_tuple, quat_to_dcm_vec,
+                                     rotvec_to_quat_tuple)
 from ultratight.ins.earth import (dcm_ecef_from_enu, dcm_ecef_from_enu_vec, gravity_nu, llh_to_ecef, llh_to_ecef_batch,
                                   radii)
 
@@ -50,28 +51,6 @@ def make_state(q_lb, vel_l, llh):
     x[VEL] = vel_l
     x[LLH] = llh
     return x
-
-
-@njit(cache=True, inline="always")
-def _rv2q(x, y, z):
-    """Rotation vector -> quaternion (tuple; series near zero)."""
-    a2 = x * x + y * y + z * z
-    if a2 < 1e-8:
-        s = 0.5 - a2 / 48.0 + a2 * a2 / 3840.0
-        w = 1.0 - a2 / 8.0 + a2 * a2 / 384.0
-    else:
-        a = math.sqrt(a2)
-        s = math.sin(0.5 * a) / a
-        w = math.cos(0.5 * a)
-    return w, x * s, y * s, z * s
-
-
-@njit(cache=True, inline="always")
-def _qmul(a0, a1, a2, a3, b0, b1, b2, b3):
-    return (a0 * b0 - a1 * b1 - a2 * b2 - a3 * b3,
-            a0 * b1 + a1 * b0 + a2 * b3 - a3 * b2,
-            a0 * b2 - a1 * b3 + a2 * b0 + a3 * b1,
-            a0 * b3 + a1 * b2 - a2 * b1 + a3 * b0)
 
 
 @njit(cache=True)
@@ -154,14 +133,11 @@ def sins_step(x, dtheta, dv, dt):
     x[8] = lon0 + dt * vEm / ((rn + h_m) * clat)
     x[4], x[5], x[6] = vE1, vN1, vU1
     # attitude: q <- q(-zeta) * q * q(phi)
-    b0, b1, b2, b3 = _rv2q(fx, fy, fz)
-    l0, l1, l2, l3 = _rv2q(-zx, -zy, -zz)
-    r0, r1, r2, r3 = _qmul(q0, q1, q2, q3, b0, b1, b2, b3)
-    r0, r1, r2, r3 = _qmul(l0, l1, l2, l3, r0, r1, r2, r3)
-    nrm = 1.0 / math.sqrt(r0 * r0 + r1 * r1 + r2 * r2 + r3 * r3)
-    if r0 < 0.0:
-        nrm = -nrm
-    x[0], x[1], x[2], x[3] = r0 * nrm, r1 * nrm, r2 * nrm, r3 * nrm
+    b0, b1, b2, b3 = rotvec_to_quat_tuple(fx, fy, fz)
+    l0, l1, l2, l3 = rotvec_to_quat_tuple(-zx, -zy, -zz)
+    r0, r1, r2, r3 = quat_mult_tuple(q0, q1, q2, q3, b0, b1, b2, b3)
+    r0, r1, r2, r3 = quat_mult_tuple(l0, l1, l2, l3, r0, r1, r2, r3)
+    x[0], x[1], x[2], x[3] = quat_normalize_tuple(r0, r1, r2, r3)
     x[10], x[11], x[12] = tx, ty, tz
     x[13], x[14], x[15] = ux, uy, uz
     x[HAS_PREV] = 1.0

@@ -74,10 +74,10 @@ from ultratight.errors import FilterError
 from ultratight.fusion.estimators.adaptive import apply_fading, fading_factor, fading_matrix, fading_terms
 from ultratight.fusion.estimators.filters import aukf_measure, gain_update, kf_update, unscented_scheme
 from ultratight.fusion.estimators.guards import check_covariance, cholesky_lower, symmetrize
-from ultratight.ins.attitude import (dcm_to_euler, dcm_to_quat, euler_to_dcm, quat_mult, quat_normalize,
-                                     quat_to_dcm, rotvec_to_quat, skew)
+from ultratight.ins.attitude import (dcm_to_euler, dcm_to_quat, euler_to_dcm, quat_mult, quat_mult_tuple,
+                                     quat_normalize, quat_normalize_tuple, quat_to_dcm, rotvec_to_quat,
+                                     rotvec_to_quat_tuple, skew)
 from ultratight.ins.earth import gravity_l
-from ultratight.ins.sins import _qmul, _rv2q   # scalar (tuple) quaternion algebra of the mechanisation
 
 __all__ = ["ATT", "VEL", "POS", "BG", "N_ERR", "NG", "NA", "NB", "Q_DIM", "M_DIM", "MEAS_COLS",
            "NavModel", "Nominal", "propagate_points", "QuatAUKF", "QuatEKF", "euler_from_q_nb",
@@ -168,19 +168,12 @@ def process_noise(gyro_arw, accel_vrw, gyro_bias_rw, dt):
 # --------------------------------------------------------------------------- numba kernels
 
 
-@njit(cache=True, inline="always")
-def _qnorm(a0, a1, a2, a3):
-    s = 1.0 / math.sqrt(a0 * a0 + a1 * a1 + a2 * a2 + a3 * a3)
-    if a0 < 0.0:
-        s = -s
-    return a0 * s, a1 * s, a2 * s, a3 * s
-
-
 @njit(cache=True)
 def propagate_points(Qs, Vs, Ps, Bs, W, dtheta, dv, dt, g_n, w_ie):
     """The model's f over a set of full-state points, in place: Qs (N,4), Vs, Ps, Bs (N,3);
     W (N,9) process noise [n_g, n_a, n_b] per point (zeros for the noise-free P′ points)."""
-    e0, e1, e2, e3 = _rv2q(-w_ie[0] * dt, -w_ie[1] * dt, -w_ie[2] * dt)   # nav-frame rotation over Δt
+    # nav-frame rotation over Δt
+    e0, e1, e2, e3 = rotvec_to_quat_tuple(-w_ie[0] * dt, -w_ie[1] * dt, -w_ie[2] * dt)
     for i in range(Qs.shape[0]):
         t0 = dtheta[0] - (Bs[i, 0] + W[i, 0]) * dt
         t1 = dtheta[1] - (Bs[i, 1] + W[i, 1]) * dt
@@ -210,10 +203,10 @@ def propagate_points(Qs, Vs, Ps, Bs, W, dtheta, dv, dt, g_n, w_ie):
         Bs[i, 0] += W[i, 6] * dt
         Bs[i, 1] += W[i, 7] * dt
         Bs[i, 2] += W[i, 8] * dt
-        r0, r1, r2, r3 = _rv2q(t0, t1, t2)
-        a0, a1, a2, a3 = _qmul(e0, e1, e2, e3, w, x, y, z)
-        a0, a1, a2, a3 = _qmul(a0, a1, a2, a3, r0, r1, r2, r3)
-        Qs[i, 0], Qs[i, 1], Qs[i, 2], Qs[i, 3] = _qnorm(a0, a1, a2, a3)
+        r0, r1, r2, r3 = rotvec_to_quat_tuple(t0, t1, t2)
+        a0, a1, a2, a3 = quat_mult_tuple(e0, e1, e2, e3, w, x, y, z)
+        a0, a1, a2, a3 = quat_mult_tuple(a0, a1, a2, a3, r0, r1, r2, r3)
+        Qs[i, 0], Qs[i, 1], Qs[i, 2], Qs[i, 3] = quat_normalize_tuple(a0, a1, a2, a3)
 
 
 @njit(cache=True)
@@ -225,9 +218,9 @@ def points_from_chart(q, v, p, b, D):
     Ps = np.empty((n, 3))
     Bs = np.empty((n, 3))
     for i in range(n):
-        r0, r1, r2, r3 = _rv2q(D[i, 0], D[i, 1], D[i, 2])
-        a0, a1, a2, a3 = _qmul(r0, r1, r2, r3, q[0], q[1], q[2], q[3])
-        Qs[i, 0], Qs[i, 1], Qs[i, 2], Qs[i, 3] = _qnorm(a0, a1, a2, a3)
+        r0, r1, r2, r3 = rotvec_to_quat_tuple(D[i, 0], D[i, 1], D[i, 2])
+        a0, a1, a2, a3 = quat_mult_tuple(r0, r1, r2, r3, q[0], q[1], q[2], q[3])
+        Qs[i, 0], Qs[i, 1], Qs[i, 2], Qs[i, 3] = quat_normalize_tuple(a0, a1, a2, a3)
         for k in range(3):
             Vs[i, k] = v[k] + D[i, 3 + k]
             Ps[i, k] = p[k] + D[i, 6 + k]
@@ -241,8 +234,9 @@ def chart_of_points(Qs, Vs, Ps, Bs, q_ref):
     n = Qs.shape[0]
     out = np.empty((n, 12))
     for i in range(n):
-        a0, a1, a2, a3 = _qmul(Qs[i, 0], Qs[i, 1], Qs[i, 2], Qs[i, 3], q_ref[0], -q_ref[1], -q_ref[2], -q_ref[3])
-        a0, a1, a2, a3 = _qnorm(a0, a1, a2, a3)
+        a0, a1, a2, a3 = quat_mult_tuple(Qs[i, 0], Qs[i, 1], Qs[i, 2], Qs[i, 3],
+                                         q_ref[0], -q_ref[1], -q_ref[2], -q_ref[3])
+        a0, a1, a2, a3 = quat_normalize_tuple(a0, a1, a2, a3)
         vn = math.sqrt(a1 * a1 + a2 * a2 + a3 * a3)
         if vn < 1e-8:
             k = 2.0 / a0 * (1.0 - vn * vn / (3.0 * a0 * a0))
