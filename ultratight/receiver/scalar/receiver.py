@@ -72,8 +72,7 @@ from ultratight.receiver.scalar.channels import (acquire_signals, allocate_chann
 from ultratight.receiver.scalar.nav_pvt import NavBitStage, ObservableStage, PvtStage, ephemeris_lookup
 from ultratight.receiver.scalar.navdecode import channel_nav
 from ultratight.receiver.scalar.observables import CarrierSmoother, ChannelHistory
-# NoSignalError is not used here: the process command (receiver.cli.commands.process) imports it from here
-from ultratight.receiver.scalar.process_config import NoSignalError, ProcessConfig, ProcessResult  # noqa: F401
+from ultratight.receiver.scalar.process_config import ProcessConfig, ProcessResult
 from ultratight.receiver.scalar.recording import Recorder, finish_hdf5, write_exchange_files
 from ultratight.signals.recording.iffile import open_if
 from ultratight.signals.signal import GPS_L1CA

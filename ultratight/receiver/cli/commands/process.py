@@ -191,7 +191,7 @@ def _add_receiver_arguments(p):
     p.add_argument("--dynamics", choices=DYNAMICS, default="normal",
                    help="receiver dynamics: normal (default) or high - a Doppler-rate search after every "
                         "acquisition starts the third-order PLL with the rate, the high-dynamic loop profile "
-                        "(tracking.DYNAMICS_PROFILES) and weak-signal acquisition defaults (5 ms x 16, floor "
+                        "(tracking_config.DYNAMICS_PROFILES) and weak-signal acquisition defaults (5 ms x 16, floor "
                         "25 dB-Hz); for starts under acceleration at low C/N0 (docs/process.md)")
     p.add_argument("--acq-min-cn0", type=float, default=None, metavar="DBHZ",
                    help="declare an acquisition only when its peak C/N0, 10 log10((metric-1)/T_coh), reaches "
@@ -262,8 +262,9 @@ def run(args):
     args.iono = args.iono or "klobuchar"           # defaults of the scalar receiver (recorded resolved)
     args.tropo = args.tropo or "saastamoinen"
     from ultratight.signals.recording.iffile import open_if
-    from ultratight.receiver.scalar.receiver import NoSignalError, ProcessConfig, process
-    from ultratight.receiver.dsp.tracking import TrackingConfig
+    from ultratight.receiver.dsp.tracking_config import TrackingConfig
+    from ultratight.receiver.scalar.process_config import NoSignalError, ProcessConfig
+    from ultratight.receiver.scalar.receiver import process
 
     if args.meta is None and (args.fs is not None or args.fmt is not None):
         if args.fs is None or args.fmt is None:
