@@ -26,12 +26,12 @@ from _common import add_common_args, finish
 
 
 def errors_enu(fixes, truth_pos):
-    from ultratight.signals.geometry import enu_basis
+    from ultratight.ins.earth import dcm_ecef_from_enu, ecef_to_llh
 
     P = np.array([f["pos_e"] for f in fixes])
     d = P - truth_pos[None, :]
-    east, north, up = enu_basis(truth_pos)
-    enu = np.stack([d @ east, d @ north, d @ up], axis=1)
+    llh = ecef_to_llh(np.asarray(truth_pos, dtype=float))
+    enu = d @ dcm_ecef_from_enu(llh[0], llh[1])          # (C_el^T d)^T: east, north, up
     return {"fixes": len(fixes), "first_fix_s": round(float(fixes[0]["t_s"]), 2) if fixes else None,
             "n_used_median": float(np.median([f["n_used"] for f in fixes])) if fixes else None,
             "n_used_max": int(max(f["n_used"] for f in fixes)) if fixes else None,

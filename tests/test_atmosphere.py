@@ -170,7 +170,7 @@ def gen_pair(tmp_path_factory):
 
 
 def test_generator_applies_the_delays_code_late_carrier_early(gen_pair):
-    from ultratight.signals.geometry import geodetic_llh
+    from ultratight.ins.earth import ecef_to_llh as geodetic_llh
     with h5py.File(gen_pair["on"]["truth"], "r") as on, h5py.File(gen_pair["off"]["truth"], "r") as off:
         iono, tropo = on["iono_m"][:], on["tropo_m"][:]
         assert np.all(off["iono_m"][:] == 0) and np.all(off["tropo_m"][:] == 0)
@@ -206,8 +206,8 @@ def test_tgd_enters_the_satellite_clock():
 
 # ------------------------------------------------------------------------------ PVT
 def test_pvt_removes_the_delays():
-    from ultratight.ins.earth import llh_to_ecef
-    from ultratight.receiver.scalar.pvt import atmosphere_delays, elevations, solve_pvt
+    from ultratight.ins.earth import elev_azim as elevations, llh_to_ecef
+    from ultratight.receiver.scalar.pvt import atmosphere_delays, solve_pvt
     from ultratight.signals.constellation import nominal_ephemerides
     from ultratight.signals.ephemeris import sat_state
     from ultratight.signals.geometry import visible_prns

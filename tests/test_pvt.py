@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from ultratight.constants import C, OMEGA_E
-from ultratight.ins.earth import llh_to_ecef
-from ultratight.receiver.scalar.pvt import solve_pvt, dops, elevations
+from ultratight.ins.earth import elev_azim as elevations, llh_to_ecef
+from ultratight.receiver.scalar.pvt import solve_pvt, dops
 
 R_ORBIT = 26_560e3
 N_ORBIT = np.sqrt(3.986005e14 / R_ORBIT ** 3)

@@ -1,10 +1,13 @@
-"""WGS-84 Earth model: geodetic <-> ECEF conversions and local-frame rotations (NIMA TR8350.2;
-see docs/references.md).
+"""WGS-84 Earth model (NIMA TR8350.2; see docs/references.md) and the package's one home of frame
+conversions: geodetic <-> ECEF, the local ENU basis (``C_el``), elevation and azimuth of a line of
+sight, and the scaling between metres and latitude/longitude/height increments by the radii of
+curvature; Earth rate, transport rate and normal gravity.
 
-All functions are numba-compatible (plain math on floats / small arrays) and
-use SI units and radians.  ``llh`` is ``[lat_rad, lon_rad, h_m]``.
-Local frame of the project: ENU (east, north, up); ``C_el`` rotates a local
-ENU vector into ECEF (``v_e = C_el @ v_l``).
+SI units and radians; ``llh`` is ``[lat_rad, lon_rad, h_m]``.  Local frame of the project: ENU
+(east, north, up); ``C_el`` rotates a local ENU vector into ECEF (``v_e = C_el @ v_l``), so its
+columns are the east, north and up unit vectors in ECEF.  The scalar functions are numba
+``@njit``; the ``_batch`` / ``_vec`` forms and :func:`elev_azim` work on arrays and share the
+scalar forms' arithmetic (see each).
 """
 
 import math
@@ -29,9 +32,10 @@ def llh_to_ecef(lat, lon, h):
 
 
 @njit(cache=True)
-def ecef_to_llh(pos_e):
-    """ECEF (m) -> [lat_rad, lon_rad, h_m] (iterative; sub-micrometre at any height)."""
-    x, y, z = pos_e[0], pos_e[1], pos_e[2]
+def _ecef_to_llh_xyz(x, y, z):
+    """(lat_rad, lon_rad, h_m) of the ECEF point (x, y, z): at most 8 fixed-point iterations on the
+    latitude, stopped early once an iteration returns its input exactly (every further one would
+    repeat it, so the result is that of all 8)."""
     p = math.sqrt(x * x + y * y)
     lon = math.atan2(y, x)
     lat = math.atan2(z, p * (1.0 - WGS84_E2))
@@ -44,29 +48,46 @@ def ecef_to_llh(pos_e):
             h = p / clat - rn
         else:
             h = abs(z) - rn * (1.0 - WGS84_E2)
-        lat = math.atan2(z, p * (1.0 - WGS84_E2 * rn / (rn + h)))
+        lat_next = math.atan2(z, p * (1.0 - WGS84_E2 * rn / (rn + h)))
+        if lat_next == lat:
+            break
+        lat = lat_next
+    return lat, lon, h
+
+
+@njit(cache=True)
+def ecef_to_llh(pos_e):
+    """ECEF (m) -> [lat_rad, lon_rad, h_m] (iterative; sub-micrometre at any height)."""
     out = np.empty(3)
-    out[0] = lat
-    out[1] = lon
-    out[2] = h
+    out[0], out[1], out[2] = _ecef_to_llh_xyz(pos_e[0], pos_e[1], pos_e[2])
     return out
+
+
+def _fill_dcm_ecef_from_enu(c, lat, lon):
+    """Write C_el at (lat, lon) into ``c`` (..., 3, 3): the one definition of the ENU basis, run
+    compiled for one position (:func:`dcm_ecef_from_enu`) and by numpy for arrays
+    (:func:`dcm_ecef_from_enu_vec`)."""
+    sl, cl = np.sin(lat), np.cos(lat)
+    so, co = np.sin(lon), np.cos(lon)
+    c[..., 0, 0] = -so
+    c[..., 0, 1] = -sl * co
+    c[..., 0, 2] = cl * co
+    c[..., 1, 0] = co
+    c[..., 1, 1] = -sl * so
+    c[..., 1, 2] = cl * so
+    c[..., 2, 0] = 0.0
+    c[..., 2, 1] = cl
+    c[..., 2, 2] = sl
+
+
+_fill_dcm_ecef_from_enu_njit = njit(cache=True)(_fill_dcm_ecef_from_enu)
 
 
 @njit(cache=True)
 def dcm_ecef_from_enu(lat, lon):
-    """C_el: rotation taking a local ENU vector at (lat, lon) into ECEF."""
-    sl, cl = math.sin(lat), math.cos(lat)
-    so, co = math.sin(lon), math.cos(lon)
+    """C_el: rotation taking a local ENU vector at (lat, lon) into ECEF (columns: east, north, up)."""
     c = np.empty((3, 3))
-    c[0, 0] = -so
-    c[0, 1] = -sl * co
-    c[0, 2] = cl * co
-    c[1, 0] = co
-    c[1, 1] = -sl * so
-    c[1, 2] = cl * so
-    c[2, 0] = 0.0
-    c[2, 1] = cl
-    c[2, 2] = sl
+    _fill_dcm_ecef_from_enu_njit(c, lat, lon)
     return c
 
 
@@ -94,18 +115,50 @@ def dcm_ecef_from_enu_vec(lat, lon):
     """Vectorised :func:`dcm_ecef_from_enu`: arrays (n,) -> (n, 3, 3)."""
     lat = np.asarray(lat, float)
     lon = np.asarray(lon, float)
-    sl, cl = np.sin(lat), np.cos(lat)
-    so, co = np.sin(lon), np.cos(lon)
-    c = np.zeros(lat.shape + (3, 3))
-    c[..., 0, 0] = -so
-    c[..., 0, 1] = -sl * co
-    c[..., 0, 2] = cl * co
-    c[..., 1, 0] = co
-    c[..., 1, 1] = -sl * so
-    c[..., 1, 2] = cl * so
-    c[..., 2, 1] = cl
-    c[..., 2, 2] = sl
+    c = np.empty(lat.shape + (3, 3))
+    _fill_dcm_ecef_from_enu(c, lat, lon)
     return c
+
+
+# ------------------------------------------------------------------ elevation and azimuth
+
+@njit(cache=True)
+def _elev_azim_rows(rx, sat, out):
+    """out[i] = (elevation, azimuth) of sat[i] seen from rx[i] (from rx[0] when rx has one row)."""
+    one_rx = rx.shape[0] == 1
+    c = np.empty((3, 3))
+    for i in range(sat.shape[0]):
+        r = 0 if one_rx else i
+        if i == 0 or not one_rx:
+            lat, lon, _ = _ecef_to_llh_xyz(rx[r, 0], rx[r, 1], rx[r, 2])
+            _fill_dcm_ecef_from_enu_njit(c, lat, lon)
+        dx = sat[i, 0] - rx[r, 0]
+        dy = sat[i, 1] - rx[r, 1]
+        dz = sat[i, 2] - rx[r, 2]
+        # ENU components of the line of sight: C_el^T d
+        de = c[0, 0] * dx + c[1, 0] * dy + c[2, 0] * dz
+        dn = c[0, 1] * dx + c[1, 1] * dy + c[2, 1] * dz
+        du = c[0, 2] * dx + c[1, 2] * dy + c[2, 2] * dz
+        out[i, 0] = math.atan2(du, math.sqrt(de * de + dn * dn))
+        az = math.atan2(de, dn)
+        out[i, 1] = az + 2.0 * math.pi if az < 0.0 else az
+
+
+def elev_azim(rx_pos_e, sat_pos_e):
+    """Elevation and azimuth (rad) of satellite(s) seen from receiver(s): ECEF positions, broadcasting
+    over (..., 3); a scalar pair for one receiver and one satellite.
+
+    Elevation is measured from the local geodetic horizon (the plane perpendicular to the
+    ellipsoid normal at the receiver's :func:`ecef_to_llh` latitude; negative below it); azimuth is
+    clockwise from north in [0, 2π)."""
+    rx = np.asarray(rx_pos_e, dtype=np.float64)
+    sat = np.asarray(sat_pos_e, dtype=np.float64)
+    shape = np.broadcast_shapes(rx.shape, sat.shape)[:-1]
+    rx_rows = rx.reshape(1, 3) if rx.ndim == 1 else np.broadcast_to(rx, shape + (3,)).reshape(-1, 3)
+    sat_rows = np.broadcast_to(sat, shape + (3,)).reshape(-1, 3)
+    out = np.empty((sat_rows.shape[0], 2))
+    _elev_azim_rows(np.ascontiguousarray(rx_rows), np.ascontiguousarray(sat_rows), out)
+    return out[:, 0].reshape(shape)[()], out[:, 1].reshape(shape)[()]
 
 
 # ------------------------------------------------------------------ radii, rates, normal gravity
@@ -126,6 +179,23 @@ def radii(lat):
     rn = WGS84_A / math.sqrt(w2)
     rm = WGS84_A * (1.0 - WGS84_E2) / (w2 * math.sqrt(w2))
     return rm, rn
+
+
+def llh_increment_scale(lat, h, rm, rn):
+    """Metres per unit increment of latitude (rad), longitude (rad) and height (m) at geodetic
+    latitude ``lat`` and height ``h``, in north, east, up order: ``[M + h, (N + h) cos lat, 1]``
+    with ``(rm, rn) = radii(lat)`` (M, N).  A position difference ``(dlat, dlon, dh)`` times this
+    is its north, east, up extent in metres; metres divided by it are increments."""
+    return np.array([rm + h, (rn + h) * np.cos(lat), 1.0])
+
+
+def llh_increment_to_enu(lat, h, rm, rn):
+    """M (3, 3) with ``[east, north, up] metres = M @ [dlat, dlon, dh]``: the scaling of
+    :func:`llh_increment_scale` with the rows in east, north, up order."""
+    s_n, s_e, s_u = llh_increment_scale(lat, h, rm, rn)
+    return np.array([[0.0, s_e, 0.0],
+                     [s_n, 0.0, 0.0],
+                     [0.0, 0.0, s_u]])
 
 
 @njit(cache=True)

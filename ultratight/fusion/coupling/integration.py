@@ -47,7 +47,6 @@ Cores (by name, :data:`CORES`):
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 
@@ -61,7 +60,7 @@ from ultratight.fusion.estimators.guards import symmetrize
 from ultratight.fusion.estimators.robust import ChiSquareNewton, chi2_newton_kf_update, newton_coefficients
 from ultratight.ins import error_model as em
 from ultratight.ins.attitude import dcm_to_rotvec, quat_mult, quat_to_dcm, rotvec_to_quat
-from ultratight.ins.earth import dcm_ecef_from_enu, radii
+from ultratight.ins.earth import dcm_ecef_from_enu, llh_increment_scale, radii
 from ultratight.ins.sins import make_state, sins_run_final, state_pos_vel_e
 from ultratight.signals.synth.obssim import gdop_best4, predict_observables
 
@@ -229,9 +228,10 @@ def make_core(name, P0, Q0, R0, *, window=20, m_sat=4, alpha=0.01, delta=4.0, ak
 
 # --------------------------------------------------------------------------- model functions
 def pos_scale(lat, h):
-    """T_pos (3,): metres (N, E, U) per (dlat, dlon, dh)."""
+    """T_pos (3,): metres (N, E, U) per (dlat, dlon, dh) at (lat, h)
+    (:func:`ultratight.ins.earth.llh_increment_scale` at the radii of ``lat``)."""
     rm, rn = radii(lat)
-    return np.array([rm + h, (rn + h) * math.cos(lat), 1.0])
+    return llh_increment_scale(lat, h, rm, rn)
 
 
 def discrete_model(sins_x, f_b, dt, q_psd, n_states, clock_qd=None, basis=False):

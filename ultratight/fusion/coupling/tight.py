@@ -43,7 +43,10 @@ from ultratight.fusion.estimators.adaptive import IAKF, gdop as gdop_fn
 from ultratight.ins import error_model as em
 from ultratight.ins import imu as imu_mod
 from ultratight.ins.attitude import skew
-from ultratight.ins.earth import radii
+from ultratight.ins.earth import llh_increment_scale, radii
+# M_pos of measurement_matrix (ENU metres = M_pos @ (dlat, dlon, dh)); the engine builds it as
+# tight.pos_error_to_enu(lat, h, rm, rn)
+from ultratight.ins.earth import llh_increment_to_enu as pos_error_to_enu  # noqa: F401
 
 # the 17-state layout is the INS error model's (one definition)
 from ultratight.ins.error_model import ATT, BA, BG, POS, VEL  # noqa: F401  (re-exported)
@@ -58,22 +61,15 @@ STATE_NAMES = ("phi_e", "phi_n", "phi_u", "dv_e", "dv_n", "dv_u", "dlat", "dlon"
 CORES = ("ekf", "ukf", "ckf", "iakf")
 
 
-def pos_error_to_enu(lat, h, rm, rn):
-    """M (3,3): ENU metres = M @ (dlat, dlon, dh)."""
-    return np.array([[0.0, (rn + h) * np.cos(lat), 0.0],
-                     [rm + h, 0.0, 0.0],
-                     [0.0, 0.0, 1.0]])
-
-
 def measurement_matrix(los_l, M_pos, lever=None):
     """H (2m, 17) for pseudorange rows then pseudorange-rate rows.
 
     ``los_l`` (m,3): unit line of sight receiver -> satellite in ENU; ``M_pos`` from
-    :func:`pos_error_to_enu`.  ``lever`` = ``(C_lb, l_l, a_l, w_ie_l)`` when the antenna is not at the
-    IMU (lever arm ``l`` IMU -> antenna, ``l_l = C_lb l``, ``a_l = C_lb (omega_ib_b x l)``, Earth rate
-    ``w_ie_l``, all ENU): the predictions are made at ``r + C_lb l`` and
-    ``v + C_lb (omega_ib_b x l) - w_ie x C_lb l``; with ``C_lb_est = (I - [phi x]) C_lb`` and the
-    residual gyro bias ``bg`` in ``omega_est``::
+    :func:`ultratight.ins.earth.llh_increment_to_enu`.  ``lever`` = ``(C_lb, l_l, a_l, w_ie_l)``
+    when the antenna is not at the IMU (lever arm ``l`` IMU -> antenna, ``l_l = C_lb l``,
+    ``a_l = C_lb (omega_ib_b x l)``, Earth rate ``w_ie_l``, all ENU): the predictions are made at
+    ``r + C_lb l`` and ``v + C_lb (omega_ib_b x l) - w_ie x C_lb l``; with
+    ``C_lb_est = (I - [phi x]) C_lb`` and the residual gyro bias ``bg`` in ``omega_est``::
 
         d r_ant = d r + [l_l x] phi
         d v_ant = d v + ([a_l x] - [w_ie_l x][l_l x]) phi - C_lb [l x] bg
@@ -312,8 +308,9 @@ def initial_covariance(llh, sigmas, imu_errors):
         # a full attitude covariance (rad^2, ENU error angles), e.g. of a Wahba alignment
         P[ATT, ATT] = 0.5 * (np.asarray(sigmas["att_cov_rad2"], float) + np.asarray(sigmas["att_cov_rad2"], float).T)
     P[VEL, VEL] = np.eye(3) * float(sigmas.get("vel_mps", 0.05)) ** 2
-    P[6, 6] = (s_pos / (rm + h)) ** 2
-    P[7, 7] = (s_pos / ((rn + h) * np.cos(lat))) ** 2
+    m_per_lat, m_per_lon, _ = llh_increment_scale(lat, h, rm, rn)
+    P[6, 6] = (s_pos / m_per_lat) ** 2
+    P[7, 7] = (s_pos / m_per_lon) ** 2
     P[8, 8] = s_pos ** 2
     bg = np.maximum(np.abs(np.asarray(imu_errors.gyro_bias, float)), np.deg2rad(0.001) / 3600.0)
     ba = np.maximum(np.abs(np.asarray(imu_errors.accel_bias, float)), 1e-5)

@@ -59,8 +59,9 @@ def _utc(fix, leap_s):
 
 def fix_sentences(fix, leap_s=DEFAULT_LEAP_S):
     """GGA, RMC, GSA and GSV sentences (list of str) of one fix dict of the receiver."""
-    from ultratight.signals.geometry import enu_basis
     import numpy as np
+
+    from ultratight.ins.earth import dcm_ecef_from_enu, ecef_to_llh
 
     t, hms = _utc(fix, leap_s)
     lat, lon, h = fix["llh_deg"]
@@ -68,9 +69,10 @@ def fix_sentences(fix, leap_s=DEFAULT_LEAP_S):
     lo, ew = _lon(lon)
     n_used = int(fix["n_used"])
     out = [sentence(f"GPGGA,{hms},{la},{ns},{lo},{ew},1,{n_used:02d},{fix['hdop']:.2f},{h:.3f},M,0.0,M,,")]
-    east, north, _ = enu_basis(np.asarray(fix["pos_e"], dtype=float))
+    llh = ecef_to_llh(np.asarray(fix["pos_e"], dtype=float))
+    C_el = dcm_ecef_from_enu(llh[0], llh[1])         # columns: east, north, up
     v = np.asarray(fix["vel_e"], dtype=float)
-    ve, vn = float(v @ east), float(v @ north)
+    ve, vn = float(v @ C_el[:, 0]), float(v @ C_el[:, 1])
     speed_kn = math.hypot(ve, vn) * MPS_TO_KNOTS
     course = math.degrees(math.atan2(ve, vn)) % 360.0
     date = f"{t.day:02d}{t.month:02d}{t.year % 100:02d}"

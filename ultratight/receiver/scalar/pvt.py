@@ -35,7 +35,9 @@ import numpy as np
 from scipy.stats import chi2
 
 from ultratight.constants import C, OMEGA_E
-from ultratight.ins.earth import dcm_ecef_from_enu, ecef_to_llh
+from ultratight.ins.earth import dcm_ecef_from_enu, ecef_to_llh, elev_azim
+# the scalar receiver's fix records import the elevation/azimuth function from here by this name
+from ultratight.ins.earth import elev_azim as elevations  # noqa: F401
 
 # state indices of the position solution
 POS = slice(0, 3)
@@ -85,18 +87,6 @@ def rotate_sagnac(sat_pos_e, tau_s):
     out[:, 1] = -s * sat_pos_e[:, 0] + c * sat_pos_e[:, 1]
     out[:, 2] = sat_pos_e[:, 2]
     return out
-
-
-def elevations(rx_pos_e, sat_pos_e):
-    """Elevation and azimuth (rad) of satellites (n,3) seen from rx_pos_e (3,)."""
-    llh = ecef_to_llh(np.asarray(rx_pos_e, dtype=float))
-    C_el = dcm_ecef_from_enu(llh[0], llh[1])
-    d = sat_pos_e - rx_pos_e[None, :]
-    enu = d @ C_el                      # (C_el^T d)^T
-    rng = np.linalg.norm(d, axis=1)
-    elev = np.arcsin(np.clip(enu[:, 2] / rng, -1.0, 1.0))
-    azim = np.arctan2(enu[:, 0], enu[:, 1])
-    return elev, azim
 
 
 def dops(rx_pos_e, los_e):
@@ -205,7 +195,7 @@ def solve_pvt(sat_pos_e, pseudorange_m, sat_vel_e=None, range_rate_mps=None, *,
         if not ok:
             empty.message = "least squares did not converge"
             return empty
-    elev, _ = elevations(x[POS], sat_pos_e)
+    elev, _ = elev_azim(x[POS], sat_pos_e)
     mask = finite & (elev >= np.radians(mask_deg))
     sigma = sig0 / np.maximum(np.sin(elev), SIN_ELEV_FLOOR) if elev_weight else sig0
     pr_raw, d_atm = pr, None
@@ -243,7 +233,7 @@ def solve_pvt(sat_pos_e, pseudorange_m, sat_vel_e=None, range_rate_mps=None, *,
             excluded = [int(j)]
             raim_ok = True
             # residual of the excluded satellite against the new solution, for reporting
-    elev, _ = elevations(x[POS], sat_pos_e)
+    elev, _ = elev_azim(x[POS], sat_pos_e)
     sol = PvtSolution(True, x[POS].copy(), float(x[CLK]), cov, ecef_to_llh(x[POS].copy()), mask.copy(),
                       resid, elev, dops(x[POS], los[mask]), raim_stat=stat, raim_threshold=thr,
                       raim_ok=bool(raim_ok), excluded=excluded, delays_m=d_atm, n_iter=n_iter)
@@ -301,7 +291,7 @@ def atmosphere_delays(model, tow_s, parts=None):
     (a dict) is given, the last evaluation's ``iono_m`` and ``tropo_m`` arrays are stored in it."""
     def f(rx_pos_e, sat_pos_e):
         llh = ecef_to_llh(np.asarray(rx_pos_e, dtype=float).copy())
-        el, az = elevations(np.asarray(rx_pos_e, dtype=float), sat_pos_e)
+        el, az = elev_azim(rx_pos_e, sat_pos_e)
         iono, tropo = model.delays_m(llh[0], llh[1], llh[2], el, az, tow_s)
         if parts is not None:
             parts["iono_m"], parts["tropo_m"] = iono, tropo
