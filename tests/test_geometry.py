@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from ultratight.ins.earth import llh_to_ecef
+from ultratight.ins.earth import elev_azim, llh_to_ecef
 from ultratight.signals.constellation import nominal_ephemerides
 from ultratight.signals.ephemeris import sat_state
-from ultratight.signals.geometry import elev_azim, light_time, visible_prns
+from ultratight.signals.geometry import light_time, visible_prns
 from ultratight.signals.rinex import read_rinex_nav
 
 C = 299792458.0

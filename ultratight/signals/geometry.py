@@ -1,4 +1,8 @@
-"""Receiver–satellite geometry: elevation/azimuth, visibility, and the light-time solution.
+"""Receiver–satellite geometry: visibility and the package's one home of the light-time solution —
+per satellite over many receive times (:func:`light_time`, the exact broadcast ephemeris) and for
+all channels at one receive time (:class:`MultiLightTime`, tabulated satellite states; the outer
+loop's 100 Hz predictions).  Elevation/azimuth and the ENU frame come from
+:mod:`ultratight.ins.earth`.
 
 Conventions (all times are GPS system time, seconds of week, unless named otherwise):
 
@@ -31,6 +35,13 @@ Conventions (all times are GPS system time, seconds of week, unless named otherw
   ``F_L1·(t_sv_tx − t_rcv)`` (no ionosphere, so no code–carrier divergence).  Hence
   ``d(carrier_phase_cycles)/dt = doppler_hz`` exactly.  A generator producing complex baseband
   uses ``exp(j·2π·carrier_phase_cycles)``.
+
+All-channel form (:class:`MultiLightTime`, same equations: the fixed-point step and the
+observables are the same compiled functions as :func:`light_time`'s).  Speed: each satellite's
+ephemeris state is tabulated once per run on a 0.5 s grid (:class:`SatTable`, one vectorised
+``sat_state`` call per PRN) and evaluated by cubic Hermite interpolation (position+velocity,
+error < 1 µm), and the iteration starts from the previous call's travel time (2 iterations by
+default).  tests/test_engine.py checks it against :func:`light_time`.
 """
 
 import math
@@ -38,68 +49,26 @@ import math
 import numpy as np
 from numba import njit
 
-from ultratight.constants import C, CA_LEN, F_CA, LAMBDA_L1, OMEGA_E, WGS84_A, WGS84_B, WGS84_E2
+from ultratight.constants import C, CA_LEN, F_CA, LAMBDA_L1, OMEGA_E, WGS84_A, WGS84_B
+from ultratight.errors import ConfigError
+from ultratight.ins.earth import ecef_to_llh_batch, elev_azim
 from ultratight.signals.ephemeris import eph_params, sat_state, state_scalar
+from ultratight.signals.signal import GPS_L1CA
 
 LIGHT_TIME_MAX_ITER = 8      # max fixed-point iterations of the light-time equation
 LIGHT_TIME_TOL_S = 1e-12     # stop when the update is below this (next update ~1e-5 smaller)
 NOMINAL_TAU_S = 0.075        # starting guess of the signal travel time, s
-
-
-def _geodetic_lat_lon(pos_e):
-    """Vectorised geodetic latitude/longitude (rad) of ECEF points (n,3)."""
-    x, y, z = pos_e[..., 0], pos_e[..., 1], pos_e[..., 2]
-    p = np.hypot(x, y)
-    lon = np.arctan2(y, x)
-    lat = np.arctan2(z, p * (1.0 - WGS84_E2))
-    for _ in range(6):
-        s = np.sin(lat)
-        rn = WGS84_A / np.sqrt(1.0 - WGS84_E2 * s * s)
-        c_lat = np.cos(lat)
-        h = np.where(np.abs(c_lat) > 1e-9, p / np.where(np.abs(c_lat) > 1e-9, c_lat, 1.0) - rn,
-                     np.abs(z) - rn * (1.0 - WGS84_E2))
-        lat = np.arctan2(z, p * (1.0 - WGS84_E2 * rn / (rn + h)))
-    return lat, lon
+SAT_GRID_S = 0.5             # MultiLightTime: satellite-state tabulation step, s
+MULTI_LT_ITER = 2            # MultiLightTime: fixed-point iterations per call (warm-started)
 
 
 def geodetic_llh(pos_e):
-    """Vectorised geodetic latitude, longitude (rad) and ellipsoidal height (m) of ECEF points."""
+    """Geodetic latitude, longitude (rad) and ellipsoidal height (m) of ECEF points (..., 3) as three
+    arrays: :func:`ultratight.ins.earth.ecef_to_llh_batch` by column (the form the signal plan of
+    :mod:`ultratight.signals.synth.synthesis` imports from here)."""
     pos = np.asarray(pos_e, dtype=np.float64)
-    lat, lon = _geodetic_lat_lon(pos)
-    p = np.hypot(pos[..., 0], pos[..., 1])
-    s = np.sin(lat)
-    rn = WGS84_A / np.sqrt(1.0 - WGS84_E2 * s * s)
-    c_lat = np.cos(lat)
-    h = np.where(np.abs(c_lat) > 1e-9, p / np.where(np.abs(c_lat) > 1e-9, c_lat, 1.0) - rn,
-                 np.abs(pos[..., 2]) - rn * (1.0 - WGS84_E2))
-    return lat, lon, h
-
-
-def enu_basis(rx_pos_e):
-    """Local east, north, up unit vectors (each (n,3) or (3,)) at ECEF position(s)."""
-    rx = np.asarray(rx_pos_e, dtype=np.float64)
-    lat, lon = _geodetic_lat_lon(rx)
-    sl, cl, so, co = np.sin(lat), np.cos(lat), np.sin(lon), np.cos(lon)
-    east = np.stack((-so, co, np.zeros_like(so)), axis=-1)
-    north = np.stack((-sl * co, -sl * so, cl), axis=-1)
-    up = np.stack((cl * co, cl * so, sl), axis=-1)
-    return east, north, up
-
-
-def elev_azim(rx_pos_e, sat_pos_e):
-    """Elevation and azimuth (rad) of satellite(s) seen from receiver(s); broadcasting (…,3).
-
-    Elevation is measured from the local geodetic horizon (negative below it); azimuth is
-    clockwise from north in [0, 2π)."""
-    rx = np.asarray(rx_pos_e, dtype=np.float64)
-    d = np.asarray(sat_pos_e, dtype=np.float64) - rx
-    east, north, up = enu_basis(rx)
-    de = np.sum(d * east, axis=-1)
-    dn = np.sum(d * north, axis=-1)
-    du = np.sum(d * up, axis=-1)
-    elev = np.arctan2(du, np.hypot(de, dn))
-    az = np.mod(np.arctan2(de, dn), 2.0 * np.pi)
-    return elev, az
+    llh = ecef_to_llh_batch(np.ascontiguousarray(pos.reshape(-1, 3))).reshape(pos.shape)
+    return llh[..., 0], llh[..., 1], llh[..., 2]
 
 
 def _ephs_items(ephs):
@@ -125,7 +94,7 @@ def visible_prns(ephs, rx_pos_e, week, tow_s, mask_deg, max_count=None, return_e
         pos = sat_state(eph, tow_s - NOMINAL_TAU_S)[0][0]
         el, _ = elev_azim(rx, pos)
         el_deg = float(np.degrees(el))
-        if el_deg >= mask_deg and _earth_clear(rx, pos):
+        if el_deg >= mask_deg and los_clears_earth(rx, pos):
             out.append((int(prn), el_deg))
     out.sort(key=lambda pe: -pe[1])
     if max_count is not None:
@@ -133,7 +102,7 @@ def visible_prns(ephs, rx_pos_e, week, tow_s, mask_deg, max_count=None, return_e
     return out if return_elev else [p for p, _ in out]
 
 
-def _earth_clear(rx, sat):
+def los_clears_earth(rx, sat):
     """False when the straight segment receiver→satellite passes through the WGS-84 ellipsoid
     (tested exactly by scaling z by a/b, which maps the ellipsoid onto a sphere of radius a)."""
     k = np.array([1.0, 1.0, WGS84_A / WGS84_B])
@@ -144,30 +113,79 @@ def _earth_clear(rx, sat):
     return np.linalg.norm(r0 + t * d) >= WGS84_A - 1.0     # 1 m slack for receivers on the surface
 
 
-WGS84_EP2 = WGS84_E2 / (1.0 - WGS84_E2)     # second eccentricity squared
+# ------------------------------------------------------------------ the light-time equations
+# Layout of a satellite state at transmission: [x, y, z, vx, vy, vz, clk_s, clk_drift] (ECEF of the
+# transmission epoch).  OBS_* index the observables written by _observables.
+OBS_PR, OBS_PR_DOT, OBS_T_SV, OBS_T_TX, OBS_RANGE = 0, 1, 2, 3, 4
+OBS_POS = 5                  # satellite position (3), ECEF of the reception epoch
+OBS_VEL = 8                  # satellite velocity (3), same frame
+OBS_LOS = 11                 # unit line of sight receiver -> satellite (3)
+N_OBS = 14
 
 
 @njit(cache=True)
-def _geodetic_sincos(x, y, z):
-    """sin/cos of geodetic latitude and longitude (Bowring's closed form: latitude error
-    < 1e-9 rad up to LEO heights — ample for elevation angles).  Poles give lon = 0."""
-    p = math.sqrt(x * x + y * y)
-    if p < 1e-3:
-        return (1.0 if z >= 0.0 else -1.0), 0.0, 0.0, 1.0
-    so = y / p
-    co = x / p
-    th = math.atan2(z * WGS84_A, p * WGS84_B)
-    st = math.sin(th)
-    ct = math.cos(th)
-    num = z + WGS84_EP2 * WGS84_B * st * st * st
-    den = p - WGS84_E2 * WGS84_A * ct * ct * ct
-    hyp = math.sqrt(num * num + den * den)
-    return num / hyp, den / hyp, so, co
+def _travel_time(x, y, z, tau, rx0, rx1, rx2):
+    """One fixed-point step of the light-time equation: ``|R3(Ω_E·τ)·r_sat − r_rx| / c`` for the
+    satellite position (x, y, z) at the transmission time t_rx − τ."""
+    th = OMEGA_E * tau
+    c = math.cos(th)
+    s = math.sin(th)
+    dx = c * x + s * y - rx0
+    dy = -s * x + c * y - rx1
+    dz = z - rx2
+    return math.sqrt(dx * dx + dy * dy + dz * dz) / C
 
 
 @njit(cache=True)
-def _light_time_kernel(p, rx, rv, t_rx, bias_m, drift_mps, out, out3):
-    """Per-sample light-time solution; see :func:`light_time` (columns documented there)."""
+def _observables(sat, tau, t_rx, rx0, rx1, rx2, rv0, rv1, rv2, bias_m, drift_mps, obs):
+    """Observables (OBS_* layout) at the true reception time ``t_rx`` of the signal that left the
+    satellite, whose state at t_rx − τ is ``sat``, for a receiver at (rx, rv) with clock bias /
+    drift (m, m/s): Sagnac rotation into the reception frame, range, exact range rate (Sagnac rate
+    included), pseudorange and its rate (satellite clock drift scaled by dt_tx/dt_rx)."""
+    t_tx = t_rx - tau
+    th = OMEGA_E * tau
+    c = math.cos(th)
+    s = math.sin(th)
+    x, y, z = sat[0], sat[1], sat[2]
+    px = c * x + s * y
+    py = -s * x + c * y
+    vx = c * sat[3] + s * sat[4]
+    vy = -s * sat[3] + c * sat[4]
+    vz = sat[5]
+    dx = px - rx0
+    dy = py - rx1
+    dz = z - rx2
+    rng = math.sqrt(dx * dx + dy * dy + dz * dz)
+    ux = dx / rng
+    uy = dy / rng
+    uz = dz / rng
+    # d/dθ R3(θ)·r = R3(θ)·(y, −x, 0)
+    gx = c * y - s * x
+    gy = -s * y - c * x
+    a_term = ux * (vx - rv0) + uy * (vy - rv1) + uz * (vz - rv2)
+    b_term = ux * (vx - OMEGA_E * gx) + uy * (vy - OMEGA_E * gy) + uz * vz
+    rng_dot = a_term / (1.0 + b_term / C)
+    clk = sat[6]
+    clk_dot = sat[7]
+    obs[OBS_PR] = rng + bias_m - C * clk
+    obs[OBS_PR_DOT] = rng_dot + drift_mps - C * clk_dot * (1.0 - rng_dot / C)
+    obs[OBS_T_SV] = t_tx + clk
+    obs[OBS_T_TX] = t_tx
+    obs[OBS_RANGE] = rng
+    obs[OBS_POS] = px
+    obs[OBS_POS + 1] = py
+    obs[OBS_POS + 2] = z
+    obs[OBS_VEL] = vx
+    obs[OBS_VEL + 1] = vy
+    obs[OBS_VEL + 2] = vz
+    obs[OBS_LOS] = ux
+    obs[OBS_LOS + 1] = uy
+    obs[OBS_LOS + 2] = uz
+
+
+@njit(cache=True)
+def _light_time_kernel(p, rx, rv, t_rx, bias_m, drift_mps, tau_out, clk_out, obs_out):
+    """Per-sample light-time solution with the exact ephemeris ``p``; see :func:`light_time`."""
     buf = np.empty(8)
     tau = NOMINAL_TAU_S
     for k in range(t_rx.shape[0]):
@@ -176,13 +194,7 @@ def _light_time_kernel(p, rx, rv, t_rx, bias_m, drift_mps, out, out3):
             tau = NOMINAL_TAU_S
         for _ in range(LIGHT_TIME_MAX_ITER):
             state_scalar(p, t_rx[k] - tau, buf)
-            th = OMEGA_E * tau
-            c = math.cos(th)
-            s = math.sin(th)
-            dx = c * buf[0] + s * buf[1] - rx[k, 0]
-            dy = -s * buf[0] + c * buf[1] - rx[k, 1]
-            dz = buf[2] - rx[k, 2]
-            tau_new = math.sqrt(dx * dx + dy * dy + dz * dz) / C
+            tau_new = _travel_time(buf[0], buf[1], buf[2], tau, rx[k, 0], rx[k, 1], rx[k, 2])
             delta = tau - tau_new
             tau = tau_new
             if abs(delta) < LIGHT_TIME_TOL_S:
@@ -192,58 +204,11 @@ def _light_time_kernel(p, rx, rv, t_rx, bias_m, drift_mps, out, out3):
         for j in range(3):
             buf[j] += buf[3 + j] * delta
         buf[6] += buf[7] * delta
-        t_tx = t_rx[k] - tau
-        th = OMEGA_E * tau
-        c = math.cos(th)
-        s = math.sin(th)
-        x, y, z = buf[0], buf[1], buf[2]
-        px = c * x + s * y
-        py = -s * x + c * y
-        vx = c * buf[3] + s * buf[4]
-        vy = -s * buf[3] + c * buf[4]
-        vz = buf[5]
-        dx = px - rx[k, 0]
-        dy = py - rx[k, 1]
-        dz = z - rx[k, 2]
-        rng = math.sqrt(dx * dx + dy * dy + dz * dz)
-        ux = dx / rng
-        uy = dy / rng
-        uz = dz / rng
-        # d/dθ R3(θ)·r = R3(θ)·(y, −x, 0)
-        gx = c * y - s * x
-        gy = -s * y - c * x
-        a_term = ux * (vx - rv[k, 0]) + uy * (vy - rv[k, 1]) + uz * (vz - rv[k, 2])
-        b_term = ux * (vx - OMEGA_E * gx) + uy * (vy - OMEGA_E * gy) + uz * vz
-        rng_dot = a_term / (1.0 + b_term / C)
-        clk = buf[6]
-        clk_dot = buf[7]
-        pr = rng + bias_m[k] - C * clk
-        pr_dot = rng_dot + drift_mps[k] - C * clk_dot * (1.0 - rng_dot / C)
-        t_sv = t_tx + clk
-        sl, cl, so, co = _geodetic_sincos(rx[k, 0], rx[k, 1], rx[k, 2])
-        de = -so * dx + co * dy
-        dn = -sl * co * dx - sl * so * dy + cl * dz
-        du = cl * co * dx + cl * so * dy + sl * dz
-        out[k, 0] = pr
-        out[k, 1] = pr_dot
-        out[k, 2] = t_sv
-        out[k, 3] = t_tx
-        out[k, 4] = tau
-        out[k, 5] = rng
-        out[k, 6] = clk
-        out[k, 7] = clk_dot
-        out[k, 8] = math.atan2(du, math.sqrt(de * de + dn * dn))
-        az = math.atan2(de, dn)
-        out[k, 9] = az + 2.0 * math.pi if az < 0.0 else az
-        out3[k, 0, 0] = px
-        out3[k, 0, 1] = py
-        out3[k, 0, 2] = z
-        out3[k, 1, 0] = vx
-        out3[k, 1, 1] = vy
-        out3[k, 1, 2] = vz
-        out3[k, 2, 0] = ux
-        out3[k, 2, 1] = uy
-        out3[k, 2, 2] = uz
+        _observables(buf, tau, t_rx[k], rx[k, 0], rx[k, 1], rx[k, 2], rv[k, 0], rv[k, 1], rv[k, 2],
+                     bias_m[k], drift_mps[k], obs_out[k])
+        tau_out[k] = tau
+        clk_out[k, 0] = buf[6]
+        clk_out[k, 1] = buf[7]
 
 
 def light_time(eph, rx_pos_e, rx_vel_e, week, t_rx_tow, rx_clk_bias_m=0.0, rx_clk_drift_mps=0.0):
@@ -256,7 +221,8 @@ def light_time(eph, rx_pos_e, rx_vel_e, week, t_rx_tow, rx_clk_bias_m=0.0, rx_cl
     pseudorange_m, range_rate_mps, doppler_hz, code_phase_chips, carrier_phase_cycles, t_tx_tow,
     t_tx_gps, tau_s, range_m, sat_pos_e (rotated into the ECEF frame of t_rx), sat_vel_e (same),
     sat_clk_bias_s, sat_clk_drift, los_e (unit receiver→satellite), elev_rad, azim_rad.
-    Numba kernel: about 0.1 µs… 0.3 µs per evaluation.
+    Numba kernels: the light-time solution, then :func:`ultratight.ins.earth.elev_azim` (one
+    geodetic latitude per receiver position), which adds about a third to its cost.
     """
     t_rx = np.ascontiguousarray(np.atleast_1d(np.asarray(t_rx_tow, dtype=np.float64)))
     n = t_rx.shape[0]
@@ -265,12 +231,15 @@ def light_time(eph, rx_pos_e, rx_vel_e, week, t_rx_tow, rx_clk_bias_m=0.0, rx_cl
     bias = np.ascontiguousarray(np.broadcast_to(np.asarray(rx_clk_bias_m, dtype=np.float64), (n,)))
     drift = np.ascontiguousarray(np.broadcast_to(np.asarray(rx_clk_drift_mps, dtype=np.float64), (n,)))
     p = eph if isinstance(eph, np.ndarray) else eph_params(eph)
-    out = np.empty((n, 10))
-    out3 = np.empty((n, 3, 3))
-    _light_time_kernel(p, rx, rv, t_rx, bias, drift, out, out3)
-    pr = out[:, 0]
-    pr_dot = out[:, 1]
-    t_sv = out[:, 2]
+    tau = np.empty(n)
+    clk = np.empty((n, 2))
+    obs = np.empty((n, N_OBS))
+    _light_time_kernel(p, rx, rv, t_rx, bias, drift, tau, clk, obs)
+    pr = obs[:, OBS_PR]
+    pr_dot = obs[:, OBS_PR_DOT]
+    t_sv = obs[:, OBS_T_SV]
+    sat_pos = obs[:, OBS_POS:OBS_POS + 3]
+    elev, azim = elev_azim(rx_pos_e, sat_pos)
     return {
         "pseudorange_m": pr,
         "range_rate_mps": pr_dot,
@@ -278,14 +247,138 @@ def light_time(eph, rx_pos_e, rx_vel_e, week, t_rx_tow, rx_clk_bias_m=0.0, rx_cl
         "code_phase_chips": np.mod(t_sv * F_CA, float(CA_LEN)),
         "carrier_phase_cycles": -pr / LAMBDA_L1,
         "t_tx_tow": t_sv,
-        "t_tx_gps": out[:, 3],
-        "tau_s": out[:, 4],
-        "range_m": out[:, 5],
-        "sat_pos_e": out3[:, 0, :],
-        "sat_vel_e": out3[:, 1, :],
-        "sat_clk_bias_s": out[:, 6],
-        "sat_clk_drift": out[:, 7],
-        "los_e": out3[:, 2, :],
-        "elev_rad": out[:, 8],
-        "azim_rad": out[:, 9],
+        "t_tx_gps": obs[:, OBS_T_TX],
+        "tau_s": tau,
+        "range_m": obs[:, OBS_RANGE],
+        "sat_pos_e": sat_pos,
+        "sat_vel_e": obs[:, OBS_VEL:OBS_VEL + 3],
+        "sat_clk_bias_s": clk[:, 0],
+        "sat_clk_drift": clk[:, 1],
+        "los_e": obs[:, OBS_LOS:OBS_LOS + 3],
+        "elev_rad": elev,
+        "azim_rad": azim,
     }
+
+
+# ------------------------------------------------------------------ all channels at one receive time
+
+class SatTable:
+    """Satellite states of several PRNs tabulated on a ``step_s`` grid over [tow_start_s, tow_end_s]
+    (plus margins), for :class:`MultiLightTime`."""
+
+    def __init__(self, ephs, prns, tow_start_s, tow_end_s, step_s=SAT_GRID_S):
+        self.prns = list(prns)
+        self.t0 = float(tow_start_s) - 2.0 * step_s - 0.2
+        n = int(np.ceil((float(tow_end_s) + 0.2 + 2.0 * step_s - self.t0) / step_s)) + 2
+        self.h = float(step_s)
+        t = self.t0 + np.arange(n) * self.h
+        nch = len(self.prns)
+        self.pos = np.empty((nch, n, 3))
+        self.vel = np.empty((nch, n, 3))
+        self.clk = np.empty((nch, n))
+        self.clk_dot = np.empty((nch, n))
+        for i, prn in enumerate(self.prns):
+            if prn not in ephs:
+                raise ConfigError(f"outer loop: no ephemeris for PRN {prn}")
+            p, v, b, d = sat_state(ephs[prn], t)
+            self.pos[i], self.vel[i], self.clk[i], self.clk_dot[i] = p, v, b, d
+        self.n = n
+
+
+@njit(cache=True)
+def _hermite_pos_vel(tab_p, tab_v, i, k, s, h, out):
+    """Cubic Hermite position/velocity of table row i at node k, fraction s, into out[0:6]."""
+    s2 = s * s
+    s3 = s2 * s
+    h00 = 2 * s3 - 3 * s2 + 1
+    h10 = s3 - 2 * s2 + s
+    h01 = -2 * s3 + 3 * s2
+    h11 = s3 - s2
+    d00 = 6 * s2 - 6 * s
+    d10 = 3 * s2 - 4 * s + 1
+    d11 = 3 * s2 - 2 * s
+    for a in range(3):
+        p0 = tab_p[i, k, a]
+        p1 = tab_p[i, k + 1, a]
+        v0 = tab_v[i, k, a] * h
+        v1 = tab_v[i, k + 1, a] * h
+        out[a] = h00 * p0 + h10 * v0 + h01 * p1 + h11 * v1
+        out[3 + a] = (d00 * p0 + d10 * v0 - d00 * p1 + d11 * v1) / h
+
+
+@njit(cache=True)
+def _table_node(t, t0, h, n):
+    """(node k, fraction s) of time t on the table grid, k clamped to [0, n − 2]."""
+    u = (t - t0) / h
+    k = int(math.floor(u))
+    if k < 0:
+        k = 0
+    if k > n - 2:
+        k = n - 2
+    return k, u - k
+
+
+@njit(cache=True)
+def _multi_light_time_kernel(t0, h, n, pos, vel, clk, clkd, rx, rv, t_rx, bias, drift, iters, tau,
+                             out_pr, out_prdot, out_cp, out_ttx, out_los, chip_rate, code_len):
+    """Light-time solution for every row of the table at one receive time (the equations of
+    :func:`light_time`); code phases for a code of ``code_len`` chips at ``chip_rate`` chips/s."""
+    sat = np.empty(8)
+    obs = np.empty(N_OBS)
+    for i in range(pos.shape[0]):
+        ta = tau[i]
+        for _ in range(iters):
+            k, s = _table_node(t_rx - ta, t0, h, n)
+            _hermite_pos_vel(pos, vel, i, k, s, h, sat)
+            ta = _travel_time(sat[0], sat[1], sat[2], ta, rx[0], rx[1], rx[2])
+        tau[i] = ta
+        k, s = _table_node(t_rx - ta, t0, h, n)
+        _hermite_pos_vel(pos, vel, i, k, s, h, sat)
+        # clock (Hermite with the drift)
+        s2 = s * s
+        s3 = s2 * s
+        sat[6] = (2 * s3 - 3 * s2 + 1) * clk[i, k] + (s3 - 2 * s2 + s) * clkd[i, k] * h \
+            + (-2 * s3 + 3 * s2) * clk[i, k + 1] + (s3 - s2) * clkd[i, k + 1] * h
+        sat[7] = ((6 * s2 - 6 * s) * clk[i, k] + (3 * s2 - 4 * s + 1) * clkd[i, k] * h
+                  - (6 * s2 - 6 * s) * clk[i, k + 1] + (3 * s2 - 2 * s) * clkd[i, k + 1] * h) / h
+        _observables(sat, ta, t_rx, rx[0], rx[1], rx[2], rv[0], rv[1], rv[2], bias, drift, obs)
+        out_pr[i] = obs[OBS_PR]
+        out_prdot[i] = obs[OBS_PR_DOT]
+        out_ttx[i] = obs[OBS_T_SV]
+        out_cp[i] = (obs[OBS_T_SV] * chip_rate) % code_len
+        out_los[i, 0] = obs[OBS_LOS]
+        out_los[i, 1] = obs[OBS_LOS + 1]
+        out_los[i, 2] = obs[OBS_LOS + 2]
+
+
+class MultiLightTime:
+    """All-channel light-time solution on a :class:`SatTable` (see the module docstring); keeps each
+    channel's travel time between calls as the next call's starting point."""
+
+    def __init__(self, table, signal=GPS_L1CA):
+        self.table = table
+        self.signal = signal
+        self.tau = np.full(len(table.prns), NOMINAL_TAU_S)
+        n = len(table.prns)
+        self._pr = np.empty(n)
+        self._prd = np.empty(n)
+        self._cp = np.empty(n)
+        self._ttx = np.empty(n)
+        self._los = np.empty((n, 3))
+
+    def solve(self, rx_pos_e, rx_vel_e, t_rx_true_tow, clk_bias_m=0.0, clk_drift_mps=0.0, iters=MULTI_LT_ITER):
+        """Observables of every channel at the true receive time ``t_rx_true_tow``: pseudorange_m,
+        range_rate_mps, doppler_hz, code_phase_chips, code_rate_cps, t_tx_tow, los_e."""
+        tb = self.table
+        _multi_light_time_kernel(tb.t0, tb.h, tb.n, tb.pos, tb.vel, tb.clk, tb.clk_dot,
+                                 np.ascontiguousarray(rx_pos_e, dtype=np.float64),
+                                 np.ascontiguousarray(rx_vel_e, dtype=np.float64), float(t_rx_true_tow),
+                                 float(clk_bias_m), float(clk_drift_mps), int(iters), self.tau,
+                                 self._pr, self._prd, self._cp, self._ttx, self._los,
+                                 float(self.signal.chip_rate_hz), float(self.signal.code_length))
+        doppler = -self._prd / self.signal.wavelength_m
+        return {
+            "pseudorange_m": self._pr.copy(), "range_rate_mps": self._prd.copy(), "doppler_hz": doppler,
+            "code_phase_chips": self._cp.copy(), "code_rate_cps": self.signal.code_rate_cps(doppler),
+            "t_tx_tow": self._ttx.copy(), "los_e": self._los.copy(),
+        }

@@ -36,7 +36,7 @@ import numpy as np
 from ultratight.constants import C
 from ultratight.errors import ConfigError
 from ultratight.ins.earth import dcm_ecef_from_enu_vec, ecef_to_llh_batch
-from ultratight.signals.geometry import _earth_clear, light_time
+from ultratight.signals.geometry import light_time, los_clears_earth
 
 GROSS_MODES = ("scale", "add")
 
@@ -175,7 +175,7 @@ def simulate_observables(ephs, week, tow0_s, t, pos_e, vel_e, clk_bias_m, clk_dr
     visible = elev >= math.radians(mask_deg)
     if mask_deg < 0.0:       # below the local horizon: the line of sight must clear the Earth
         for i, j in zip(*np.nonzero(visible)):
-            visible[i, j] = _earth_clear(pos_e[i], spos[i, j])
+            visible[i, j] = los_clears_earth(pos_e[i], spos[i, j])
     npr = rng.standard_normal(shape) * sigma_pr_m
     nprr = rng.standard_normal(shape) * sigma_prr_mps
     if gross is not None and gross.factor != 1.0:
