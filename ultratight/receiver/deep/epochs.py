@@ -31,6 +31,7 @@ from numba import njit, prange
 from ultratight.fusion.channel.innerloop import feedback_one
 from ultratight.fusion.channel.pbkf import pbkf_channel_epoch, pbkf_note_correction_one
 from ultratight.fusion.channel.prefilter import N_W1, N_W2, NZ, bank_channel_epoch
+from ultratight.fusion.channel.prefilter_model import CNT_EPOCH, ISEG_COUNTERS, packed_int_offsets
 from ultratight.receiver.dsp.burst import burst_one
 from ultratight.receiver.dsp.correlator import correlate_one, step_bank, tap_fixed_point
 from ultratight.receiver.dsp.wipeoff import wipe_channel
@@ -244,13 +245,13 @@ def _bank_epoch_count(bank, n):
     """The tracking bank's epoch counter (the prefilter's correction phase counts from it)."""
     if bank.bank_type == BANK_PBKF:
         return 0
-    return bank.ibuf[3 * n + 3]
+    return bank.ibuf[packed_int_offsets(n)[ISEG_COUNTERS] + CNT_EPOCH]
 
 
 @njit(cache=True)
 def _bank_epoch_advance(bank, n, k):
     if bank.bank_type != BANK_PBKF:
-        bank.ibuf[3 * n + 3] += k
+        bank.ibuf[packed_int_offsets(n)[ISEG_COUNTERS] + CNT_EPOCH] += k
 
 
 @njit(cache=True)
