@@ -238,10 +238,11 @@ def test_cw_interference_is_excised():
 def test_generator_scenario_truth(tmp_path, frontend):
     """The project's IF generator (2-bit, all visible satellites at 40 dB-Hz): the detected set is the
     truth set and Doppler / code phase match the logged truth at sample 0."""
-    h5py = pytest.importorskip("h5py")
-    scen = pytest.importorskip("ultratight.receiver.cli.scenario_config")
-    gen = pytest.importorskip("ultratight.signals.synth.generator")
-    iffile = pytest.importorskip("ultratight.signals.recording.iffile")
+    import h5py
+
+    from ultratight.receiver.cli import scenario_config as scen
+    from ultratight.signals.recording import iffile
+    from ultratight.signals.synth import generator as gen
     cfg = scen.load_scenario("static-open-sky", {"duration_s": 0.012, "satellites.cn0_dbhz": 40.0, **frontend})
     paths = gen.generate(cfg, tmp_path, "acq", seed=3, progress=False)
     res = acquire(iffile.open_if(paths["if"]))

@@ -463,7 +463,6 @@ def test_disk_full(work, case):
 
 
 def test_sigint_during_scenario_plotting_is_not_swallowed(tmp_path):
-    pytest.importorskip("matplotlib")
     out = tmp_path / "out"
     rc, err = _run_and_signal(["scenario", "vehicle-turns", "--duration", "0.5", "--fs-hz", "2.046e6", "--methods",
                                "dlb-rackf,pb-kf-utc", "--quiet", "--out", str(out)], tmp_path, signal.SIGINT,

@@ -85,7 +85,7 @@ def test_pocketsdr_iq_prn18_is_real(shared_data):
 
 def test_acquire_from_if_source(shared_data):
     """The same detections through ultratight.signals.recording.iffile.open_if (IfSource input, iq_conj)."""
-    iffile = pytest.importorskip("ultratight.signals.recording.iffile")
+    from ultratight.signals.recording import iffile
     p = shared_data / "real-if" / "pocketsdr" / "L1_20211202_084700_4MHz_IQ.bin"
     if not p.is_file():
         pytest.skip(f"real IF file not found: {p}")
