@@ -24,7 +24,7 @@ def _rx():
 
 
 def test_multichannel_light_time_matches_geometry(ephs):
-    from ultratight.receiver.deep.outer_loop import MultiLightTime, SatTable
+    from ultratight.signals.geometry import MultiLightTime, SatTable
     from ultratight.signals.geometry import light_time
     tab = SatTable(ephs, PRNS, TOW - 1.0, TOW + 70.0)
     ml = MultiLightTime(tab)

@@ -51,7 +51,7 @@ from numba import njit
 
 from ultratight.constants import C, CA_LEN, F_CA, LAMBDA_L1, OMEGA_E, WGS84_A, WGS84_B
 from ultratight.errors import ConfigError
-from ultratight.ins.earth import ecef_to_llh_batch, elev_azim
+from ultratight.ins.earth import elev_azim
 from ultratight.signals.ephemeris import eph_params, sat_state, state_scalar
 from ultratight.signals.signal import GPS_L1CA
 
@@ -60,15 +60,6 @@ LIGHT_TIME_TOL_S = 1e-12     # stop when the update is below this (next update ~
 NOMINAL_TAU_S = 0.075        # starting guess of the signal travel time, s
 SAT_GRID_S = 0.5             # MultiLightTime: satellite-state tabulation step, s
 MULTI_LT_ITER = 2            # MultiLightTime: fixed-point iterations per call (warm-started)
-
-
-def geodetic_llh(pos_e):
-    """Geodetic latitude, longitude (rad) and ellipsoidal height (m) of ECEF points (..., 3) as three
-    arrays: :func:`ultratight.ins.earth.ecef_to_llh_batch` by column (the form the signal plan of
-    :mod:`ultratight.signals.synth.synthesis` imports from here)."""
-    pos = np.asarray(pos_e, dtype=np.float64)
-    llh = ecef_to_llh_batch(np.ascontiguousarray(pos.reshape(-1, 3))).reshape(pos.shape)
-    return llh[..., 0], llh[..., 1], llh[..., 2]
 
 
 def _ephs_items(ephs):

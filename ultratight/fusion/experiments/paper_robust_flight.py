@@ -32,7 +32,7 @@ import numpy as np
 from ultratight.errors import ConfigError
 from ultratight.fusion.coupling import integration as I
 from ultratight.ins import error_model as em
-from ultratight.ins.earth import radii
+from ultratight.ins.earth import llh_increment_scale, radii
 from ultratight.ins.trajectory import build_trajectory
 from ultratight.fusion.experiments import sins_gnss as C
 from ultratight.fusion.experiments.paper_static_iakf import ephemerides
@@ -192,8 +192,9 @@ def noise_model(cfg, llh0):
     q = I.imu_psd(math.radians(im["gyro_arw_dprh"]) / 60.0, im["accel_vrw_g_rhz"] * C.G0, n_states=em.N15)
     rm, rn = radii(float(llh0[0]))
     h = float(llh0[2])
-    sn = math.radians(g["sigma_lat_deg"]) * (rm + h)
-    se = math.radians(g["sigma_lon_deg"]) * (rn + h) * math.cos(float(llh0[0]))
+    s_n, s_e, _ = llh_increment_scale(float(llh0[0]), h, rm, rn)
+    sn = math.radians(g["sigma_lat_deg"]) * s_n
+    se = math.radians(g["sigma_lon_deg"]) * s_e
     R = np.diag([sn ** 2, se ** 2, g["sigma_h_m"] ** 2] + [g["sigma_vel_mps"] ** 2] * 3)
     P0 = C.initial_P(em.N15, np.radians(np.broadcast_to(np.asarray(ie["att_deg"], float), (3,))), ie["vel_mps"],
                      ie["pos_m"], im["gyro_bias_dph"] * C.DPH, im["accel_bias_g"] * C.G0)

@@ -59,7 +59,7 @@ from ultratight.fusion.coupling import tight as tightmod
 from ultratight.fusion.channel.innerloop import InnerLoop
 from ultratight.fusion.channel.prefilter import IF as PREFILTER_IF
 from ultratight.fusion.coupling.rateconv import ResidualDecimator
-from ultratight.ins.earth import radii
+from ultratight.ins.earth import llh_increment_to_enu, radii
 from ultratight.receiver.deep import epochs
 from ultratight.receiver.dsp.blockstream import BlockStream, NoiseFloor
 from ultratight.receiver.dsp.burst import burst_all, make_burst
@@ -261,7 +261,7 @@ class UltratightEngine:
         n_ch = len(self.prns)
         lat, _, h = self.ins.llh
         rm, rn = radii(lat)
-        M_pos = tightmod.pos_error_to_enu(lat, h, rm, rn)
+        M_pos = llh_increment_to_enu(lat, h, rm, rn)
         sig_code_chips = tightmod.code_sigma_m(self.tf.P, los_l, M_pos) / sgl.chip_m
         if self.cp_given.any():
             sig_code_chips = np.where(self.cp_given, float(self.init_state.get("code_sigma_m", 3.0)) / sgl.chip_m,
@@ -391,7 +391,7 @@ class UltratightEngine:
         _, _, C_el = ins.pos_vel_e()
         lat, _, h = ins.llh
         rm, rn = radii(lat)
-        M_pos = tightmod.pos_error_to_enu(lat, h, rm, rn)
+        M_pos = llh_increment_to_enu(lat, h, rm, rn)
         los_l = self.follow.los_e() @ C_el
         Phi, Qd = tightmod.phi_q(ins, self.dec.step_s, self.imu_noise, opt.clock_q_drift)
         self.tf.predict(Phi, Qd)

@@ -8,7 +8,7 @@ import numpy as np
 
 from ultratight.fusion.coupling.tight import ATT, CLK_B, CLK_D, POS, VEL
 from ultratight.ins.attitude import quat_to_euler
-from ultratight.ins.earth import radii
+from ultratight.ins.earth import llh_increment_scale, radii
 
 
 
@@ -61,9 +61,10 @@ class EpochRecorder:
         d = np.sqrt(np.maximum(np.diag(P), 0.0))
         p = d[POS]
         s = np.empty(11)
-        s[0] = p[1] * (rn + h) * np.cos(lat)
-        s[1] = p[0] * (rm + h)
-        s[2] = p[2]
+        s_n, s_e, s_u = llh_increment_scale(lat, h, rm, rn)
+        s[0] = p[1] * s_e
+        s[1] = p[0] * s_n
+        s[2] = p[2] * s_u
         s[3:6] = d[VEL]
         s[6:9] = d[ATT]
         s[9] = d[CLK_B]

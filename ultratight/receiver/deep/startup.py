@@ -22,7 +22,7 @@ import numpy as np
 
 from ultratight.constants import C
 from ultratight.ins.attitude import quat_mult, quat_normalize, rotvec_to_quat
-from ultratight.ins.earth import radii
+from ultratight.ins.earth import llh_increment_scale, radii
 from ultratight.signals.geometry import light_time
 from ultratight.signals.lnav import nav_bits
 from ultratight.signals.signal import GPS_L1CA
@@ -62,8 +62,8 @@ def perturb_state(truth0, errors, rng):
     d_d = rng.normal(0.0, errors.clk_drift_mps)
     lat, lon, h = (float(v) for v in truth0["llh"])
     rm, rn = radii(lat)
-    llh = np.array([lat + d_pos_l[1] / (rm + h), lon + d_pos_l[0] / ((rn + h) * np.cos(lat)),
-                    h + d_pos_l[2]])
+    s_n, s_e, s_u = llh_increment_scale(lat, h, rm, rn)
+    llh = np.array([lat + d_pos_l[1] / s_n, lon + d_pos_l[0] / s_e, h + d_pos_l[2] / s_u])
     q_true = np.asarray(truth0["q_lb"], dtype=float)
     q_est = np.asarray(quat_normalize(quat_mult(rotvec_to_quat(-d_att), q_true)))
     return {

@@ -15,7 +15,8 @@ import numpy as np
 from ultratight.constants import C
 from ultratight.receiver.dsp.tracking_layout import FL_BIT_DONE, FL_BIT_SYNC, R_BIT, R_IP, RI_EPOCH, RI_FLAGS, RI_PTR
 from ultratight.receiver.scalar.observables import observe, pseudorange
-from ultratight.receiver.scalar.pvt import atmosphere_delays, elevations, solve_pvt
+from ultratight.ins.earth import elev_azim
+from ultratight.receiver.scalar.pvt import atmosphere_delays, solve_pvt
 from ultratight.signals.atmosphere import AtmosphereModel
 from ultratight.signals.ephemeris import sat_state
 
@@ -240,7 +241,7 @@ class PvtStage:
         fin = np.all(np.isfinite(sp), axis=1)
         el_all, az_all = np.full(n, np.nan), np.full(n, np.nan)
         if fin.any():
-            el_all[fin], az_all[fin] = elevations(sol.pos_e, sp[fin])
+            el_all[fin], az_all[fin] = elev_azim(sol.pos_e, sp[fin])
         sv_list = [{"prn": self.prns[j], "elev_deg": math.degrees(el_all[j]),
                     "azim_deg": math.degrees(az_all[j]) % 360.0, "cn0_dbhz": float(row["cn0_dbhz"][j]),
                     "used": bool(sol.used[j])} for j in np.flatnonzero(fin)]

@@ -37,7 +37,6 @@ from scipy.stats import chi2
 from ultratight.constants import C, OMEGA_E
 from ultratight.ins.earth import dcm_ecef_from_enu, ecef_to_llh, elev_azim
 # the scalar receiver's fix records import the elevation/azimuth function from here by this name
-from ultratight.ins.earth import elev_azim as elevations  # noqa: F401
 
 # state indices of the position solution
 POS = slice(0, 3)

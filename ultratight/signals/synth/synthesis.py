@@ -46,7 +46,8 @@ from numba import njit, prange
 from ultratight.constants import C, CA_LEN, F_CA, LAMBDA_L1, T_CA
 from ultratight.signals.ca_code import ca_code
 from ultratight.signals.corr_model import signal_amplitude
-from ultratight.signals.geometry import geodetic_llh, light_time
+from ultratight.ins.earth import ecef_to_llh_batch
+from ultratight.signals.geometry import light_time
 
 LUT_BITS = 11
 LUT_N = 1 << LUT_BITS
@@ -199,7 +200,9 @@ class SignalPlan:
     def _apply_atmosphere(self, geo, pos, t_true, e):
         """Add the ionospheric and tropospheric delays to the light-time solutions (module doc)."""
 
-        lat, lon, h = geodetic_llh(pos)
+        pos = np.asarray(pos, dtype=np.float64)
+        llh = ecef_to_llh_batch(np.ascontiguousarray(pos.reshape(-1, 3))).reshape(pos.shape)
+        lat, lon, h = llh[..., 0], llh[..., 1], llh[..., 2]
         for g in geo:
             iono, tropo = self.atmosphere.delays_m(lat, lon, h, g["elev_rad"], g["azim_rad"], t_true)
             d_code = iono + tropo
