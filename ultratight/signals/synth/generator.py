@@ -45,14 +45,13 @@ from ultratight.ins.imu_data import write_imu_h5
 from ultratight.ins.trajectory import build_trajectory
 from ultratight.io_guard import StagedFile, describe_os_error, os_errno
 from ultratight.signals.atmosphere import AtmosphereModel
-from ultratight.signals.constellation import nominal_ephemerides
+from ultratight.signals.constellation import ephemerides_for
 from ultratight.signals.synth.frontend import FrontEnd
 from ultratight.signals.synth.synthesis import COS_LUT, SIN_LUT, SignalPlan, _synth_complex, _synth_real
 from ultratight.signals.geometry import visible_prns
 from ultratight.signals.recording.iffile import IfWriter, check_bits_for_format, get_format
 from ultratight.signals.lnav import nav_bits, nav_bits_mode
 from ultratight.signals.lnav_message import IonoUtc, quantise_iono
-from ultratight.signals.rinex import read_rinex_nav
 
 BLOCK_INTERVALS = 100             # intervals per generated block (fixed: reproducibility)
 
@@ -64,20 +63,8 @@ def _ephemerides(cfg, rx_pos0_e):
     sat = cfg.get("satellites", {})
     week, tow = int(cfg["time"]["week"]), float(cfg["time"]["tow_s"])
     source = sat.get("source", "nominal")
-    if source == "nominal":
-
-        ephs = nominal_ephemerides(week, tow)
-    elif source == "rinex":
-
-        nav = read_rinex_nav(sat["rinex_path"] if "rinex_path" in sat else sat["rinex"])
-        ephs = {}
-        for prn in sorted(nav.ephemerides):
-            try:
-                e = nav.select(prn, week, tow)
-            except Exception:      # no usable ephemeris for this PRN at this time
-                continue
-            if e is not None:
-                ephs[prn] = e
+    if source in ("nominal", "rinex"):
+        ephs = ephemerides_for(cfg)
     else:
         raise ConfigError(f"satellites.source must be 'nominal' or 'rinex', got {source!r}")
     prns = list(sat.get("prns", []) or [])
