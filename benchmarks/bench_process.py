@@ -36,8 +36,13 @@ from _common import add_baseline_arg, add_common_args, baseline_env, finish
 CHILD = r"""
 import json, resource, sys, time
 import numpy as np, h5py
-from ultratight.receiver.scalar.receiver import ProcessConfig, process
-from ultratight.signals.recording.iffile import open_if
+try:
+    from ultratight.receiver.scalar.process_config import ProcessConfig
+    from ultratight.receiver.scalar.receiver import process
+    from ultratight.signals.recording.iffile import open_if
+except ImportError:   # a --baseline commit from before the package was split by role
+    from ultratight.receiver.process import ProcessConfig, process
+    from ultratight.signals.iffile import open_if
 path, truth, dur, out = sys.argv[1], sys.argv[2], float(sys.argv[3]), sys.argv[4]
 opts = {"one": {"parallel": False}, "default": {}}[sys.argv[5]]
 t0 = time.perf_counter()
