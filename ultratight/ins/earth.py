@@ -123,15 +123,30 @@ def dcm_ecef_from_enu_vec(lat, lon):
 # ------------------------------------------------------------------ elevation and azimuth
 
 @njit(cache=True)
-def _elev_azim_rows(rx, sat, out):
-    """out[i] = (elevation, azimuth) of sat[i] seen from rx[i] (from rx[0] when rx has one row)."""
+def _enu_frames_rows(rx, out):
+    """out[i] = C_el at the geodetic latitude and longitude of the ECEF point rx[i]."""
+    for i in range(rx.shape[0]):
+        lat, lon, _ = _ecef_to_llh_xyz(rx[i, 0], rx[i, 1], rx[i, 2])
+        _fill_dcm_ecef_from_enu_njit(out[i], lat, lon)
+
+
+def enu_frames(rx_pos_e):
+    """C_el (n, 3, 3) at each of the ECEF points (n, 3) — or (1, 3, 3) for one point: the receiver
+    frames :func:`elev_azim` needs, computed once when several satellites share the receivers."""
+    rx = np.ascontiguousarray(np.asarray(rx_pos_e, dtype=np.float64).reshape(-1, 3))
+    out = np.empty((rx.shape[0], 3, 3))
+    _enu_frames_rows(rx, out)
+    return out
+
+
+@njit(cache=True)
+def _elev_azim_rows(frames, rx, sat, out):
+    """out[i] = (elevation, azimuth) of sat[i] seen from rx[i] in the frame frames[i] (row 0 of rx
+    and frames when they have one row)."""
     one_rx = rx.shape[0] == 1
-    c = np.empty((3, 3))
     for i in range(sat.shape[0]):
         r = 0 if one_rx else i
-        if i == 0 or not one_rx:
-            lat, lon, _ = _ecef_to_llh_xyz(rx[r, 0], rx[r, 1], rx[r, 2])
-            _fill_dcm_ecef_from_enu_njit(c, lat, lon)
+        c = frames[r]
         dx = sat[i, 0] - rx[r, 0]
         dy = sat[i, 1] - rx[r, 1]
         dz = sat[i, 2] - rx[r, 2]
@@ -144,20 +159,26 @@ def _elev_azim_rows(rx, sat, out):
         out[i, 1] = az + 2.0 * math.pi if az < 0.0 else az
 
 
-def elev_azim(rx_pos_e, sat_pos_e):
+def elev_azim(rx_pos_e, sat_pos_e, frames=None):
     """Elevation and azimuth (rad) of satellite(s) seen from receiver(s): ECEF positions, broadcasting
     over (..., 3); a scalar pair for one receiver and one satellite.
 
     Elevation is measured from the local geodetic horizon (the plane perpendicular to the
     ellipsoid normal at the receiver's :func:`ecef_to_llh` latitude; negative below it); azimuth is
-    clockwise from north in [0, 2π)."""
+    clockwise from north in [0, 2π).  ``frames``: the receivers' :func:`enu_frames`, when the caller
+    already has them (one row per receiver row); computed here otherwise."""
     rx = np.asarray(rx_pos_e, dtype=np.float64)
     sat = np.asarray(sat_pos_e, dtype=np.float64)
     shape = np.broadcast_shapes(rx.shape, sat.shape)[:-1]
     rx_rows = rx.reshape(1, 3) if rx.ndim == 1 else np.broadcast_to(rx, shape + (3,)).reshape(-1, 3)
+    rx_rows = np.ascontiguousarray(rx_rows)
     sat_rows = np.broadcast_to(sat, shape + (3,)).reshape(-1, 3)
+    if frames is None:
+        frames = enu_frames(rx_rows)
+    elif frames.shape[0] != rx_rows.shape[0]:
+        raise ValueError(f"elev_azim: {frames.shape[0]} frames for {rx_rows.shape[0]} receiver rows")
     out = np.empty((sat_rows.shape[0], 2))
-    _elev_azim_rows(np.ascontiguousarray(rx_rows), np.ascontiguousarray(sat_rows), out)
+    _elev_azim_rows(np.ascontiguousarray(frames), rx_rows, np.ascontiguousarray(sat_rows), out)
     return out[:, 0].reshape(shape)[()], out[:, 1].reshape(shape)[()]
 
 

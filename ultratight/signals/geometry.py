@@ -202,7 +202,8 @@ def _light_time_kernel(p, rx, rv, t_rx, bias_m, drift_mps, tau_out, clk_out, obs
         clk_out[k, 1] = buf[7]
 
 
-def light_time(eph, rx_pos_e, rx_vel_e, week, t_rx_tow, rx_clk_bias_m=0.0, rx_clk_drift_mps=0.0):
+def light_time(eph, rx_pos_e, rx_vel_e, week, t_rx_tow, rx_clk_bias_m=0.0, rx_clk_drift_mps=0.0,
+               rx_frames=None):
     """Signal observables of satellite ``eph`` at receiver positions/velocities for n receive times.
 
     ``rx_pos_e``, ``rx_vel_e``: (n,3) or (3,) ECEF at the true receive times ``t_rx_tow`` (n,)
@@ -213,7 +214,9 @@ def light_time(eph, rx_pos_e, rx_vel_e, week, t_rx_tow, rx_clk_bias_m=0.0, rx_cl
     t_tx_gps, tau_s, range_m, sat_pos_e (rotated into the ECEF frame of t_rx), sat_vel_e (same),
     sat_clk_bias_s, sat_clk_drift, los_e (unit receiver→satellite), elev_rad, azim_rad.
     Numba kernels: the light-time solution, then :func:`ultratight.ins.earth.elev_azim` (one
-    geodetic latitude per receiver position), which adds about a third to its cost.
+    geodetic latitude per receiver position), which adds about a third to its cost — unless the
+    caller passes the receivers' ``rx_frames`` (:func:`ultratight.ins.earth.enu_frames` of
+    ``rx_pos_e``), computed once for all satellites.
     """
     t_rx = np.ascontiguousarray(np.atleast_1d(np.asarray(t_rx_tow, dtype=np.float64)))
     n = t_rx.shape[0]
@@ -230,7 +233,7 @@ def light_time(eph, rx_pos_e, rx_vel_e, week, t_rx_tow, rx_clk_bias_m=0.0, rx_cl
     pr_dot = obs[:, OBS_PR_DOT]
     t_sv = obs[:, OBS_T_SV]
     sat_pos = obs[:, OBS_POS:OBS_POS + 3]
-    elev, azim = elev_azim(rx_pos_e, sat_pos)
+    elev, azim = elev_azim(rx_pos_e, sat_pos, rx_frames)
     return {
         "pseudorange_m": pr,
         "range_rate_mps": pr_dot,

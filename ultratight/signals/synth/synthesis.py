@@ -46,7 +46,7 @@ from numba import njit, prange
 from ultratight.constants import C, CA_LEN, F_CA, LAMBDA_L1, T_CA
 from ultratight.signals.ca_code import ca_code
 from ultratight.signals.corr_model import signal_amplitude
-from ultratight.ins.earth import ecef_to_llh_batch
+from ultratight.ins.earth import ecef_to_llh_batch, enu_frames
 from ultratight.signals.geometry import light_time
 
 LUT_BITS = 11
@@ -192,7 +192,8 @@ class SignalPlan:
         tau_traj = e - (b - self.b0) / C
         pos, vel = self.traj.pos_vel_e(np.maximum(tau_traj, 0.0))
         t_true = self.tow0 + e - b / C
-        out = [light_time(eph, pos, vel, self.week, t_true, b, self.drift) for eph in self.ephs]
+        frames = enu_frames(pos)
+        out = [light_time(eph, pos, vel, self.week, t_true, b, self.drift, frames) for eph in self.ephs]
         if self.atmosphere is not None:
             self._apply_atmosphere(out, pos, t_true, e)
         return out, {"pos_e": pos, "vel_e": vel, "clk_bias_m": b, "t_true": t_true, "e": e}
