@@ -35,7 +35,7 @@ import numpy as np
 
 from ultratight.constants import C
 from ultratight.errors import ConfigError
-from ultratight.ins.earth import dcm_ecef_from_enu_vec, ecef_to_llh_batch
+from ultratight.ins.earth import dcm_ecef_from_enu_vec, ecef_to_llh_batch, enu_frames
 from ultratight.signals.geometry import light_time, los_clears_earth
 
 GROSS_MODES = ("scale", "add")
@@ -159,8 +159,9 @@ def simulate_observables(ephs, week, tow0_s, t, pos_e, vel_e, clk_bias_m, clk_dr
     pr, prr, elev, sclk, sdrift = (np.empty((k, n)) for _ in range(5))
     spos, svel, los = (np.empty((k, n, 3)) for _ in range(3))
     tow = tow0_s + t
+    frames = enu_frames(pos_e) if np.shape(pos_e) == (n, 3) else None     # shared by every satellite
     for j, prn in enumerate(prns):
-        o = light_time(eph_by[int(prn)], pos_e, vel_e, week, tow, clk_bias_m, clk_drift_mps)
+        o = light_time(eph_by[int(prn)], pos_e, vel_e, week, tow, clk_bias_m, clk_drift_mps, frames)
         pr[j] = o["pseudorange_m"]
         prr[j] = o["range_rate_mps"]
         elev[j] = o["elev_rad"]
