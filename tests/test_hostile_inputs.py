@@ -113,6 +113,9 @@ def base(tmp_path_factory):
     with h5py.File(d / "shift.imu.h5", "r+") as f:
         f["t"][...] = f["t"][()] + 10.0
     (d / "binary.csv").write_bytes(bytes(range(256)) * 4)
+    (d / "b.csv").write_text("prn,week,tow_s,bit\n1,2000,0.00,1\n")
+    shutil.copyfile(d / "v.imu.h5", d / "d.imu.h5")          # an IMU with a declaration sidecar
+    (d / "d.imu.h5.json").write_text('{"axes": "FLU"}')
     rows = ["t_s,dthx_rad,dthy_rad,dthz_rad,dvx_mps,dvy_mps,dvz_mps"] + \
         [f"{0.01 * (k + 1):.2f},0,0,0,0,0,0.0980665" for k in range(50)]
     (d / "bom.csv").write_bytes(b"\xef\xbb\xbf" + ("\n".join(rows) + "\n").encode())
@@ -167,6 +170,12 @@ CASES = [
     ("out-is-sidecar", P + ["v.ci8", "--out", "v.ci8.json"], 2, "refusing to overwrite an input"),
     ("kml-is-recording", P + ["c.bin", *CI8, "--kml", "c.bin"], 2, "refusing to overwrite"),
     ("save-imu-is-source", ["ins", "v.imu.h5", "--save-imu", "v.imu.h5"], 2, "refusing to overwrite"),
+    ("csv-is-bit-file", P + ["v.ci8", "--mode", "ultratight", "--imu", "v.imu.h5", "--bits", "b.csv", "--csv", "b.csv"],
+     2, "refusing to overwrite an input"),
+    ("rinex-obs-is-bit-file", P + ["v.ci8", "--mode", "ultratight", "--imu", "v.imu.h5", "--bits", "b.csv",
+                                   "--rinex-obs", "b.csv"], 2, "refusing to overwrite an input"),
+    ("nmea-is-imu-sidecar", P + ["v.ci8", "--mode", "ultratight", "--imu", "d.imu.h5", "--nmea", "d.imu.h5.json"],
+     2, "refusing to overwrite an input"),
     # 2. outputs found bad only after the run
     ("ut-out-missing-dir", P + ["v.ci8", "--mode", "ultratight", "--imu", "v.imu.h5", "--out", "nodir/u.h5"], 2,
      "does not exist"),
@@ -212,6 +221,10 @@ CASES = [
     ("imu-rate-string", ["ins", "ratestr.imu.h5", "--init-llh", "41", "2", "50"], 2, "rate_hz"),
     ("imu-meta-broken", ["ins", "meta.imu.h5", "--init-llh", "41", "2", "50"], 2, "meta_json"),
     ("imu-csv-binary", ["ins", "binary.csv", "--init-llh", "41", "2", "50"], 2, "not a text csv"),
+    ("bits-binary", P + ["v.ci8", "--mode", "ultratight", "--imu", "v.imu.h5", "--bits", "binary.csv"], 2,
+     "not a bit file"),
+    ("bits-is-hdf5", P + ["v.ci8", "--mode", "ultratight", "--imu", "v.imu.h5", "--bits", "v.truth.h5"], 2,
+     "not a bit file"),
     ("generate-seed-negative", ["generate", "static-open-sky", "--seed", "-3", "--out", "g/"], 2, "seed"),
     ("ins-seed-negative", ["ins", "static-open-sky", "--seed", "-3", "--duration", "1"], 2, "seed"),
     # 9. wrong or vague messages

@@ -32,6 +32,7 @@ import numpy as np
 
 from ultratight.constants import SECONDS_PER_WEEK
 from ultratight.errors import ConfigError, InputFileError
+from ultratight.io_guard import read_text_input
 from ultratight.receiver.deep.startup import BitWipeoff
 from ultratight.receiver.dsp.wipeoff import BIT_ASSISTED, BIT_BLIND, BIT_DECODED, BIT_FILE, BIT_NONE  # noqa: F401
 from ultratight.signals.lnav import SUBFRAME_BITS, WORD_BITS, decode_bits
@@ -118,34 +119,30 @@ def read_bits_csv(path):
     line for anything that is not the format."""
     path = Path(path)
     out = {}
-    try:
-        fh = open(path, newline="")
-    except OSError as exc:
-        raise InputFileError(f"{path}: cannot read bit file ({exc.strerror})") from None
-    with fh:
-        rows = (ln for ln in fh if ln.strip() and not ln.lstrip().startswith("#"))
-        reader = csv.reader(rows)
-        header = next(reader, None)
-        if header is None or tuple(h.strip() for h in header) != BITS_FILE_HEADER:
-            raise InputFileError(f"{path}: bit file header must be {','.join(BITS_FILE_HEADER)}, got "
-                                 f"{None if header is None else ','.join(header)!r}")
-        t_bit = GPS_L1CA.bit_period_s
-        for n, row in enumerate(reader, start=2):
-            try:
-                prn, week, tow, bit = int(row[0]), int(row[1]), float(row[2]), int(row[3])
-            except (ValueError, IndexError):
-                raise InputFileError(f"{path}: data row {n}: expected prn,week,tow_s,bit, got {','.join(row)!r}") \
-                    from None
-            if not 1 <= prn <= 63 or week < 0 or not 0.0 <= tow < SECONDS_PER_WEEK or bit not in (-1, 0, 1):
-                raise InputFileError(f"{path}: data row {n}: PRN 1..63, week >= 0, 0 <= tow_s < 604800, bit in "
-                                     f"-1/0/1 expected, got {','.join(row)!r}")
-            if abs(tow / t_bit - round(tow / t_bit)) > 1e-6:
-                raise InputFileError(f"{path}: data row {n}: tow_s {tow!r} is not a bit edge (multiple of "
-                                     f"{t_bit * 1e3:g} ms)")
-            out.setdefault(prn, ([], [], []))
-            out[prn][0].append(week)
-            out[prn][1].append(tow)
-            out[prn][2].append(bit)
+    text = read_text_input(path, "bit file", kind="bit file (CSV text)")
+    rows = (ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#"))
+    reader = csv.reader(rows)
+    header = next(reader, None)
+    if header is None or tuple(h.strip() for h in header) != BITS_FILE_HEADER:
+        raise InputFileError(f"{path}: bit file header must be {','.join(BITS_FILE_HEADER)}, got "
+                             f"{None if header is None else ','.join(header)!r}")
+    t_bit = GPS_L1CA.bit_period_s
+    for n, row in enumerate(reader, start=2):
+        try:
+            prn, week, tow, bit = int(row[0]), int(row[1]), float(row[2]), int(row[3])
+        except (ValueError, IndexError):
+            raise InputFileError(f"{path}: data row {n}: expected prn,week,tow_s,bit, got {','.join(row)!r}") \
+                from None
+        if not 1 <= prn <= 63 or week < 0 or not 0.0 <= tow < SECONDS_PER_WEEK or bit not in (-1, 0, 1):
+            raise InputFileError(f"{path}: data row {n}: PRN 1..63, week >= 0, 0 <= tow_s < 604800, bit in "
+                                 f"-1/0/1 expected, got {','.join(row)!r}")
+        if abs(tow / t_bit - round(tow / t_bit)) > 1e-6:
+            raise InputFileError(f"{path}: data row {n}: tow_s {tow!r} is not a bit edge (multiple of "
+                                 f"{t_bit * 1e3:g} ms)")
+        out.setdefault(prn, ([], [], []))
+        out[prn][0].append(week)
+        out[prn][1].append(tow)
+        out[prn][2].append(bit)
     return {p: tuple(np.asarray(v) for v in cols) for p, cols in out.items()}
 
 

@@ -120,6 +120,7 @@ OUTPUT_FLAGS = (("--out", "out"), ("--csv", "csv"), ("--kml", "kml"), ("--rinex-
 def _check_paths(args):
     """Inputs readable, outputs writable and distinct from every input (io_guard.check_io)."""
     from ultratight import io_guard
+    from ultratight.ins import imu_decl
     from ultratight.signals.recording.iffile import sidecar_path
     io_guard.check_input_file(args.iffile, "IF file")
     inputs = [("IFFILE", args.iffile), ("sidecar", str(sidecar_path(args.iffile)))]
@@ -127,6 +128,13 @@ def _check_paths(args):
         if p is not None:
             io_guard.check_input_file(p, f"{flag} file")
             inputs.append((flag, p))
+    if getattr(args, "imu", None) is not None:
+        inputs.append(("IMU sidecar", str(imu_decl.sidecar_path(args.imu))))
+    bits = getattr(args, "bits", None)
+    if bits:
+        from ultratight.receiver.deep.bitsources import STRATEGIES
+        if bits not in STRATEGIES:
+            inputs.append(("--bits", bits))
     io_guard.check_io(inputs, [(flag, getattr(args, dest, None)) for flag, dest in OUTPUT_FLAGS])
 
 
