@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from scipy.stats import chi2
 
 from ultratight.constants import C, OMEGA_E
 from ultratight.ins.earth import elev_azim as elevations, llh_to_ecef
@@ -128,10 +129,48 @@ def test_raim_excludes_one_bad_satellite():
     sol = solve_pvt(sp, pr, mask_deg=0.0, sigma_pr_m=1.0, elev_weight=False)
     assert sol.excluded == [5]
     assert not sol.used[5]
-    assert np.linalg.norm(sol.pos_e - rx) < 10.0
+    # after the exclusion the error is the 1 m noise through the 7-satellite geometry:
+    # e ~ N(0, sigma^2 Q), Q = (H^T H)^-1 from the line-of-sight vectors computed here, so
+    # e^T Q^-1 e / sigma^2 ~ chi2(3); 99.99 % quantile 21.1 (this draw: 0.64; |e| 1.1 m, PDOP 2.84)
+    Q = _pos_dop_matrix(rx, sp[np.arange(sp.shape[0]) != 5])
+    e = sol.pos_e - rx
+    assert e @ np.linalg.solve(Q, e) < chi2.ppf(1.0 - 1e-4, 3), (e, np.sqrt(np.trace(Q)))
     bad = solve_pvt(sp, pr, mask_deg=0.0, sigma_pr_m=1.0, elev_weight=False, raim=False)
     assert not bad.raim_ok
     assert np.linalg.norm(bad.pos_e - rx) > np.linalg.norm(sol.pos_e - rx)
+
+
+def _pos_dop_matrix(rx, sat_pos_e):
+    """Position block of (H^T H)^-1, H = [-u_i, 1] from the unit vectors receiver -> satellite."""
+    d = sat_pos_e - rx
+    u = d / np.linalg.norm(d, axis=1)[:, None]
+    H = np.hstack([-u, np.ones((u.shape[0], 1))])
+    return np.linalg.inv(H.T @ H)[:3, :3]
+
+
+def test_raim_position_rms_is_pdop_times_sigma():
+    """100 noise draws with a 150 m fault on satellite 5: RAIM excludes it every time and the RMS
+    position error is the closed form sigma * PDOP of the remaining 7 (2.84 m at sigma = 1 m).
+    |e|^2 / sigma^2 is a sum of chi2(1) weighted by the eigenvalues of Q; with the Satterthwaite
+    approximation (scale tr Q, nu = (tr Q)^2 / tr Q^2 per draw, 100 nu over the draws) the mean
+    square lies in the 99.9 % chi-square interval: RMS in [2.36, 3.34] m.  Measured: seed 11
+    2.63 m, seeds 1-5 2.55-2.87 m; a doubled error (5.7 m) or a missed exclusion breaks it."""
+    rx, con, sats = _scene(4, n_want=8)
+    pr0, rr, sp, sv = _measurements(rx, con, sats)
+    Q = _pos_dop_matrix(rx, sp[np.arange(sp.shape[0]) != 5])
+    rng = np.random.default_rng(11)
+    n, sigma = 100, 1.0
+    e2 = []
+    for _ in range(n):
+        pr = pr0 + rng.normal(0, sigma, pr0.size)
+        pr[5] += 150.0
+        sol = solve_pvt(sp, pr, mask_deg=0.0, sigma_pr_m=sigma, elev_weight=False)
+        assert sol.excluded == [5]
+        e2.append(np.sum((sol.pos_e - rx) ** 2))
+    c = np.trace(Q)
+    nu = n * c ** 2 / np.trace(Q @ Q)
+    lo, hi = (sigma * np.sqrt(c * chi2.ppf(p, nu) / nu) for p in (1e-3, 1.0 - 1e-3))
+    assert lo < np.sqrt(np.mean(e2)) < hi, (np.sqrt(np.mean(e2)), lo, hi)
 
 
 def test_elevation_mask_and_too_few():
@@ -154,11 +193,20 @@ def test_dops_closed_form():
     los = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, np.sin(2 * np.pi / 3), np.cos(2 * np.pi / 3)],
                     [0, np.sin(4 * np.pi / 3), np.cos(4 * np.pi / 3)]])
     d = dops(rx, los)
-    # H = [[-e_i, 1]]; closed form by hand via numpy on the ENU geometry
-    H = np.array([[0, 0, -1, 1], [0, -1, 0, 1], [-np.sin(2 * np.pi / 3), -np.cos(2 * np.pi / 3), 0, 1],
-                  [-np.sin(4 * np.pi / 3), -np.cos(4 * np.pi / 3), 0, 1]])
-    Q = np.linalg.inv(H.T @ H)
-    assert d["hdop"] == pytest.approx(np.sqrt(Q[0, 0] + Q[1, 1]))
-    assert d["vdop"] == pytest.approx(np.sqrt(Q[2, 2]))
-    # symmetric horizontal geometry: east and north variances equal
-    assert Q[0, 0] == pytest.approx(Q[1, 1])
+    # by hand, H = [-e_i, 1] with ENU unit vectors up, north, and azimuth 120 / 240 deg on the horizon:
+    # H^T H = [[3/2, 0, 0, 0], [0, 3/2, 0, 0], [0, 0, 1, -1], [0, 0, -1, 4]]
+    # -> (H^T H)^-1 diagonal 2/3, 2/3, 4/3, 1/3: HDOP = VDOP = sqrt(4/3), PDOP = sqrt(8/3),
+    # TDOP = sqrt(1/3), GDOP = sqrt(3)
+    want = {"hdop": np.sqrt(4 / 3), "vdop": np.sqrt(4 / 3), "pdop": np.sqrt(8 / 3), "tdop": np.sqrt(1 / 3),
+            "gdop": np.sqrt(3.0)}
+    for k, v in want.items():
+        assert d[k] == pytest.approx(v, rel=1e-12), k
+    # the same geometry at another place (40 N, 100 W): the ENU rotation inside dops must not matter
+    lat, lon = np.radians(40.0), np.radians(-100.0)
+    sl, cl, so, co = np.sin(lat), np.cos(lat), np.sin(lon), np.cos(lon)
+    C_el = np.array([[-so, -sl * co, cl * co], [co, -sl * so, cl * so], [0.0, cl, sl]])   # columns E, N, U
+    enu = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [np.sin(2 * np.pi / 3), np.cos(2 * np.pi / 3), 0.0],
+                    [np.sin(4 * np.pi / 3), np.cos(4 * np.pi / 3), 0.0]])
+    d2 = dops(llh_to_ecef(lat, lon, 300.0), enu @ C_el.T)
+    for k, v in want.items():
+        assert d2[k] == pytest.approx(v, rel=1e-9), k
