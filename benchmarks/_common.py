@@ -11,6 +11,7 @@ on ``sys.path``).
 
 import json
 import os
+import tempfile
 from pathlib import Path
 
 
@@ -62,11 +63,26 @@ def add_baseline_arg(ap):
     return ap
 
 
+def baseline_root(tmp):
+    """Where baseline exports live: ``$ULTRATIGHT_BENCH_BASELINES``, else ``~/.cache/ultratight/baselines``
+    (kept between runs: an export of a commit never changes, and its numba cache then survives, so a
+    baseline compiles once, not at every benchmark run), else ``tmp`` when neither can be created."""
+    root = os.environ.get("ULTRATIGHT_BENCH_BASELINES") or str(Path.home() / ".cache" / "ultratight" / "baselines")
+    try:
+        Path(root).mkdir(parents=True, exist_ok=True)
+        return Path(root)
+    except OSError:
+        return Path(tmp)
+
+
 def baseline_env(rev, tmp, folders=("ultratight",)):
     """Environment that runs ``python -m ultratight...`` from commit ``rev`` of this repository: the
-    commit's ``folders`` are exported (``git archive``) into ``tmp`` and the package put first on
-    ``PYTHONPATH``. Returns ``(env, description)`` — the export's folder is ``env["ULTRATIGHT_BASELINE_DIR"]``
-    — or ``(None, reason)`` when there is no git checkout or no such commit."""
+    commit's ``folders`` are exported (``git archive``) into a folder of :func:`baseline_root` (each
+    folder extracted beside it and renamed into place, so an interrupted export is never used) and the
+    package put first on ``PYTHONPATH``. Returns ``(env, description)`` — the export's folder is
+    ``env["ULTRATIGHT_BASELINE_DIR"]`` — or ``(None, reason)`` when there is no git checkout or no such
+    commit."""
+    import shutil
     import subprocess
     import tarfile
 
@@ -74,15 +90,19 @@ def baseline_env(rev, tmp, folders=("ultratight",)):
     try:
         full = subprocess.run(["git", "-C", str(root), "rev-parse", "--verify", f"{rev}^{{commit}}"],
                               capture_output=True, text=True, check=True).stdout.strip()
-        dest = Path(tmp) / f"baseline-{full[:12]}"
-        if not all((dest / f).is_dir() for f in folders):
-            dest.mkdir(parents=True, exist_ok=True)
-            arch = Path(tmp) / f"baseline-{full[:12]}.tar"
-            subprocess.run(["git", "-C", str(root), "archive", "--format=tar", "-o", str(arch), full, *folders],
+        dest = baseline_root(tmp) / f"baseline-{full[:12]}"
+        dest.mkdir(parents=True, exist_ok=True)
+        for folder in folders:
+            if (dest / folder).is_dir():
+                continue
+            stage = Path(tempfile.mkdtemp(prefix=f".{folder}-", dir=dest))
+            arch = stage / "export.tar"
+            subprocess.run(["git", "-C", str(root), "archive", "--format=tar", "-o", str(arch), full, folder],
                            capture_output=True, check=True)
             with tarfile.open(arch) as tf:
-                tf.extractall(dest, filter="data")
-            arch.unlink()
+                tf.extractall(stage, filter="data")
+            os.replace(stage / folder, dest / folder)
+            shutil.rmtree(stage, ignore_errors=True)
     except (OSError, subprocess.CalledProcessError) as exc:
         return None, f"baseline {rev} not available ({exc.__class__.__name__})"
     env = dict(os.environ)

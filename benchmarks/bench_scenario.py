@@ -10,7 +10,10 @@ before it was rebuilt from stages, run from an export of that commit). It report
 time, the CPU time of the process and its children and the peak resident set size of the largest
 process, and the ratios of the wall times ``default / baseline`` and ``default / one core``. Every
 code version first runs a 2 s cut (numba compilation or cache loading stays out of the figures).
-``--quick``: a 10 s cut at 2.046 MHz, no baseline.
+``--repeat N`` times the default and the baseline N times each, alternately, and compares the median
+runs (the wall time of one run varies by up to about 10 % on a shared 2-core VM). Baseline exports are
+kept (``_common.baseline_root``), so a baseline compiles once. ``--quick``: a 10 s cut at 2.046 MHz, no
+baseline.
 """
 
 import argparse
@@ -47,7 +50,12 @@ def _run(args, cwd, env=None):
 def main(argv=None):
     ap = add_baseline_arg(add_common_args(argparse.ArgumentParser(description=__doc__.splitlines()[0])))
     ap.add_argument("--duration", type=float, default=None, help="cut length, s (default: the scenario's 60 s)")
+    ap.add_argument("--repeat", type=int, default=1, metavar="N",
+                    help="time the default and the baseline N times each, alternately, and compare their "
+                         "medians (the one-core reference runs once); default 1")
     a = ap.parse_args(argv)
+    if a.repeat < 1:
+        ap.error(f"--repeat must be >= 1, got {a.repeat}")
     extra = []
     if a.quick:
         extra = ["--duration", str(a.duration or 10.0), "--fs-hz", "2.046e6"]
@@ -69,12 +77,21 @@ def main(argv=None):
         for name, flags, env in versions:
             # compile (or load the numba cache of) this code version outside the timing
             _run(base + ["--duration", "2", "--out", str(Path(tmp) / f"warm-{name}")] + flags, tmp, env)
-        for name, flags, env in versions:
-            out = Path(tmp) / name
-            res[name] = _run(base + extra + ["--out", str(out)] + flags, tmp, env)
-            print(f"{name:20s} wall {res[name]['wall_s']:6.1f} s, CPU {res[name]['cpu_s']:6.1f} s, "
-                  f"peak RSS {res[name]['maxrss_mb']:.0f} MB", flush=True)
-    rep = {"scenario": "paper-highdyn", "args": extra, "runs": res, "quick": a.quick}
+        # alternate the versions (default, baseline, default, ...) so a change of the machine's load
+        # during the run falls on both; the one-core reference once, at the end
+        order = [v for _ in range(max(1, a.repeat)) for v in versions if v[0] != "reference_one_core"]
+        order += [v for v in versions if v[0] == "reference_one_core"]
+        samples = {}
+        for k, (name, flags, env) in enumerate(order):
+            out = Path(tmp) / f"{name}-{k}"
+            r = _run(base + extra + ["--out", str(out)] + flags, tmp, env)
+            samples.setdefault(name, []).append(r)
+            print(f"{name:20s} wall {r['wall_s']:6.1f} s, CPU {r['cpu_s']:6.1f} s, "
+                  f"peak RSS {r['maxrss_mb']:.0f} MB", flush=True)
+        for name, rs in samples.items():
+            mid = sorted(rs, key=lambda r: r["wall_s"])[(len(rs) - 1) // 2]     # the median run
+            res[name] = dict(mid, walls_s=[r["wall_s"] for r in rs])
+    rep = {"scenario": "paper-highdyn", "args": extra, "runs": res, "quick": a.quick, "repeat": a.repeat}
     rep["wall_ratio"] = res["default"]["wall_s"] / res["reference_one_core"]["wall_s"]
     print(f"default / one core: {rep['wall_ratio']:.2f} of the wall time")
     if baseline:
