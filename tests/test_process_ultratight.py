@@ -3,6 +3,7 @@
 import json
 import subprocess
 import sys
+import time
 
 import h5py
 import numpy as np
@@ -40,8 +41,10 @@ def cut(tmp_path_factory):
 
 def test_ultratight_mode_json_and_output_against_truth(cut, tmp_path, capsys):
     out = tmp_path / "res.h5"
+    t_wall = time.perf_counter()
     rc = main(["process", str(cut["if"]), "--mode", "ultratight", "--imu", str(cut["imu"]), "--json",
                "--out", str(out)])
+    t_wall = time.perf_counter() - t_wall
     assert rc == 0
     summ = json.loads(capsys.readouterr().out)
     side = json.loads((cut["if"].parent / "ph.ci16.json").read_text())
@@ -49,8 +52,10 @@ def test_ultratight_mode_json_and_output_against_truth(cut, tmp_path, capsys):
     assert summ["prns"] == side["prn"] and len(summ["prns"]) == 13
     assert summ["duration_s"] == pytest.approx(DURATION_S, abs=2e-3)
     assert summ["n_epochs"] == pytest.approx(1000 * DURATION_S, abs=2)
-    assert summ["runtime_s"] > 0
-    assert summ["realtime_factor"] == pytest.approx(summ["runtime_s"] / summ["duration_s"])
+    # the run time is wall-clock seconds of the run inside this call: the wall time measured here around
+    # the call bounds it, and the real-time factor (wall s per signal s) times the signal duration
+    assert 0 < summ["runtime_s"] <= t_wall, (summ["runtime_s"], t_wall)
+    assert 0 < summ["realtime_factor"] * DURATION_S <= t_wall, (summ["realtime_factor"], t_wall)
     assert summ["lock_losses"] == 0           # 20 dB-Hz, no noise event in the first 3 s
     assert summ["startup"] == "truth-perturbed" and summ["lock_lost_channels"] == []   # generated file: as before
     assert summ["n_tight_updates"] >= 20
@@ -64,15 +69,24 @@ def test_ultratight_mode_json_and_output_against_truth(cut, tmp_path, capsys):
         tt = g["t"][()]
         pos = np.stack([np.interp(t, tt, g["pos_e"][:, i]) for i in range(3)], axis=1)
         vel = np.stack([np.interp(t, tt, g["vel_e"][:, i]) for i in range(3)], axis=1)
-        assert np.max(np.linalg.norm(f["nav_pos_e"][()] - pos, axis=1)) < 10.0
-        assert np.max(np.linalg.norm(f["nav_vel_e"][()] - vel, axis=1)) < 0.5
+        # the generated file starts from the truth perturbed by the hot-start errors of docs/ultratight.md
+        # "Assisted hot start" (1 sigma per axis 0.5 m, 0.02 m/s); over 3 s the tight filter keeps the
+        # solution at that start error.  Bound: the 99.9 % chi-square(3) radius of those sigmas,
+        # 0.5 m x 4.03 = 2.0 m and 0.02 m/s x 4.03 = 0.081 m/s.  Measured (seeds 1-4 of the file; the
+        # start draw is the engine's own seed): max 0.54-0.57 m and 0.040 m/s
+        assert np.max(np.linalg.norm(f["nav_pos_e"][()] - pos, axis=1)) < 2.0
+        assert np.max(np.linalg.norm(f["nav_vel_e"][()] - vel, axis=1)) < 0.081
         # per-channel Doppler estimate against the logged truth (1 ms truth grid, epoch mid-points)
         t_mid = f["t_start_s"][()] + 0.5e-3
         d_est = f["doppler_hz"][()]
         d_true = np.stack([np.interp(t_mid[:, c], tr["t_s"][()], tr["doppler_hz"][:, c])
                            for c in range(d_est.shape[1])], axis=1)
         late = t_mid[:, 0] > 1.0
-        assert np.sqrt(np.mean((d_est[late] - d_true[late]) ** 2)) < 5.0
+        # docs/ultratight.md acceptance table: dlb-rackf Doppler RMS 0.0866 Hz over 0-5 s (before the
+        # burst; 4 MHz, 5 seeds; README 0.0917 Hz over 0-20 s).  At 2.046 MHz the correlators' SNR is
+        # the same C/N0 T.  This run (seed 1, 1-3 s): 0.055 Hz; seeds 1-4: 0.055-0.078 Hz.
+        # Bound 0.11 Hz = documented x 1.27 (a doubling of this run's figure breaks it)
+        assert np.sqrt(np.mean((d_est[late] - d_true[late]) ** 2)) < 0.11
 
 
 def test_ultratight_human_summary_other_method(cut, capsys):
