@@ -28,6 +28,9 @@ def static(shared_data):
     return cfg, SI.simulate(cfg, 1)
 
 
+IAKF_POS_RMS_3D_M = float(np.linalg.norm([1.00, 0.63, 1.36]))   # README: IAKF lat / lon / h RMS, 1000 s
+
+
 def _rms(res, block, t_from=0.0):
     sel = res["t"] >= t_from
     return np.sqrt(np.mean(res["err"][sel][:, block] ** 2, axis=0))
@@ -137,7 +140,12 @@ def test_tight_akf0_consistent_and_akf_with_wrong_noise_worse(static):
     assert np.all(v0 < 0.1), v0
     assert _in_band(akf0, 17) >= 0.90
     assert np.all(_rms(akf, em.VEL, t_from=100.0) > 5.0 * v0), (_rms(akf, em.VEL, t_from=100.0), v0)
-    assert np.all(np.isfinite(iakf["err"])) and np.all(_rms(iakf, em.POS) < 15.0)
+    # README / docs/integration-experiments.md "paper-static-iakf": IAKF position RMS lat/lon/h
+    # 1.00 / 0.63 / 1.36 m (1000 s, mean of 10 seeds; 3-D 1.80 m).  This fixture is 400 s, where the
+    # start-up transient weighs 2.5x more: seed 1 1.29 / 1.07 / 1.20 m (3-D 2.05 m; 1000 s: 0.73 /
+    # 0.60 / 0.93 m); seeds 1-5 at 400 s 3-D 1.96-2.98 m.  Bound = 2 x the documented 3-D figure
+    assert np.all(np.isfinite(iakf["err"]))
+    assert np.linalg.norm(_rms(iakf, em.POS)) < 2.0 * IAKF_POS_RMS_3D_M, _rms(iakf, em.POS)
     vi = _rms(iakf, em.VEL, t_from=100.0)
     assert np.linalg.norm(vi) < 1.5 * np.linalg.norm(v0), (vi, v0)
     assert np.all(_rms(akf, em.VEL, t_from=100.0)[:2] > 5.0 * vi[:2]), (_rms(akf, em.VEL, t_from=100.0), vi)
@@ -180,7 +188,11 @@ def test_discrete_model_basis_spans_its_q(static):
                                                       [q[em.NOISE_DRIFT] / 2, q[em.NOISE_DRIFT]]])
     cfg2 = {**cfg, "filter": {**cfg["filter"], "iakf_q_structure": "model"}}
     core_res = SI.run_method(cfg2, "iakf", inp, obs)
-    assert np.all(np.isfinite(core_res["err"])) and np.all(_rms(core_res, em.POS) < 15.0)
+    # docs/integration-experiments.md variants table, `iakf_q_structure = "model"`: 1.00 / 0.63 / 1.37 m
+    # (1000 s, 10 seeds); 400 s seed 1: 1.28 / 1.07 / 1.19 m, seeds 1-5 within 0.02 m of the default
+    # core; bound as above, 2 x the documented 3-D figure
+    assert np.all(np.isfinite(core_res["err"]))
+    assert np.linalg.norm(_rms(core_res, em.POS)) < 2.0 * np.linalg.norm([1.00, 0.63, 1.37]), _rms(core_res, em.POS)
 
 
 def test_kf_range_distance_is_zero_on_the_papers_extents():
