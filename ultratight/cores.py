@@ -1,59 +1,57 @@
-"""How many cores a command uses: the cores free now, the worker processes for a number of jobs,
-the threads of the compiled stages, and the check of ``--workers`` — one policy for the scenario
-runner, the campaign runner and both receivers.
+"""How many cores a command uses — one policy for the scenario runner, the campaign runner and both
+receivers: worker processes and threads per worker from the size of the work and the cores this
+process may run on (its CPU affinity), never from the machine's momentary load. ``--workers`` and
+``--threads`` override it.
+
+The load is left out on purpose: a decision that follows the load average (or ``/proc/stat``)
+changes from one run to the next with whatever else runs, so the same command took different code
+paths (threaded or not, in worker processes or not) and gave different run times on the same
+machine. Waiting numba threads sleep instead of spinning (``OMP_WAIT_POLICY=PASSIVE``, set in
+:mod:`ultratight`), so a thread per allowed core costs little when another process takes a core.
 """
 
-import math
 import os
-import time
+from dataclasses import dataclass
 
 from ultratight.errors import ConfigError
 
 MAX_WORKERS = 1024             # --workers: beyond this a typo, not a cluster
 
 
-def _cpu_times():
-    """(available, total) jiffies of all CPUs from /proc/stat — available: idle, waiting for I/O or
-    running niced work (which yields to ours) — or None where there is none."""
+def allowed_cores():
+    """Cores this process may run on: its CPU affinity (``os.sched_getaffinity(0)``, which also
+    reflects ``taskset`` and container CPU sets), else ``os.cpu_count()``; at least 1."""
     try:
-        with open("/proc/stat") as f:
-            v = [int(x) for x in f.readline().split()[1:]]
-    except (OSError, ValueError):
-        return None
-    return v[1] + v[3] + (v[4] if len(v) > 4 else 0), sum(v[:8])
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):          # no affinity call on this platform
+        return max(1, os.cpu_count() or 1)
 
 
-_FREE = {"t": -1e9, "v": 0.0}     # last measurement (reused for a few seconds: many short runs)
+@dataclass(frozen=True)
+class CorePlan:
+    """Worker processes for a command's independent jobs, and threads of the compiled stages per
+    worker (or in this process when ``workers`` is 1)."""
+    workers: int
+    threads: int
 
 
-def free_cores(window_s=0.2, max_age_s=5.0):
-    """Available cores now: the share of all CPUs idle or running niced work over ``window_s``
-    (``/proc/stat``) times the core count; where that is not available, the cores not busy by the 1-minute load average. (The load
-    average alone lags by a minute: right after a heavy job it still counts that job.)"""
-    n = os.cpu_count() or 1
-    now = time.monotonic()
-    if now - _FREE["t"] < max_age_s:
-        return _FREE["v"]
-    a = _cpu_times()
-    if a is not None:
-        time.sleep(window_s)
-        b = _cpu_times()
-        if b is not None and b[1] > a[1]:
-            _FREE.update(t=time.monotonic(), v=n * (b[0] - a[0]) / (b[1] - a[1]))
-            return _FREE["v"]
-    try:
-        load = os.getloadavg()[0]
-    except OSError:
-        load = 0.0
-    return max(0.0, n - load)
+def plan(n_jobs=1, n_items=None, workers=None, threads=None):
+    """The policy: ``n_jobs`` independent jobs (runs, methods) each spreading ``n_items`` items
+    (channels; None: no limit) over threads, on :func:`allowed_cores` cores.
 
-
-def default_workers(n_jobs):
-    """Worker processes for ``n_jobs`` jobs: one per available core (a core counts when at least a
-    quarter of it is available), at most one per job; 1 (run in this process) when fewer than about
-    1.25 cores are available."""
-    k = int(math.floor(free_cores() + 0.75))
-    return max(1, min(int(n_jobs), k))
+    * workers: ``workers`` when given (an integer >= 1, ``--workers``), else one per allowed core;
+      never more than the jobs;
+    * threads per worker: ``threads`` when given and > 0 (``--threads``), else the allowed cores
+      shared between the workers (at least 1); never more than the items.
+    """
+    n_jobs = max(1, int(n_jobs))
+    cores = allowed_cores()
+    w = cores if workers is None else int(workers)
+    w = max(1, min(w, n_jobs))
+    t = int(threads) if threads is not None and int(threads) > 0 else max(1, cores // w)
+    if n_items is not None:
+        t = min(t, max(1, int(n_items)))
+    return CorePlan(workers=w, threads=max(1, t))
 
 
 def check_workers(workers, flag="--workers"):
@@ -65,14 +63,12 @@ def check_workers(workers, flag="--workers"):
     return workers
 
 
-def stage_threads(requested):
-    """Threads for the compiled stages that spread channels over numba's thread pool: ``requested``
-    when > 0 (capped by the pool), else every thread of the pool when at least 1.25 cores are
-    available (:func:`free_cores`), and one otherwise — on a busy machine the threads wait for each
-    other at every synchronisation and lose more than they gain."""
+def stage_threads(requested, n_items=None):
+    """Threads for the compiled stages of this process that spread ``n_items`` channels over numba's
+    thread pool: :func:`plan` for one job (``requested`` when > 0, else every allowed core), capped by
+    the pool (``NUMBA_NUM_THREADS``, fixed when numba loads: one thread in a worker process started
+    for one thread)."""
     import numba      # lazy: the command line imports this module before it needs numba
 
     pool = numba.config.NUMBA_NUM_THREADS
-    if requested and requested > 0:
-        return max(1, min(int(requested), pool))
-    return pool if pool > 1 and free_cores() >= 1.25 else 1
+    return max(1, min(plan(1, n_items, threads=requested).threads, pool))

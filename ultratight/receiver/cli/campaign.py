@@ -30,7 +30,6 @@ resumed campaign and an uninterrupted one sum the same numbers in the same order
 import hashlib
 import json
 import logging
-import os
 import sys
 import time
 from pathlib import Path
@@ -43,7 +42,7 @@ from scipy.stats import t as student_t
 from tqdm import tqdm
 
 from ultratight import __version__, io_guard
-from ultratight.cores import check_workers, default_workers
+from ultratight.cores import allowed_cores, check_workers, plan
 from ultratight.errors import ConfigError
 from ultratight.io_guard import json_clean, json_dumps, note_complete, write_h5_atomic, write_text_atomic
 from ultratight.receiver.cli import experiments
@@ -261,9 +260,25 @@ WORKER_ENV = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_TH
               "MKL_NUM_THREADS": "1"}
 
 
-def start_client(workers=None, scheduler=None, timeout_s=SCHEDULER_TIMEOUT_S):
-    """(client, cluster or None, description): a LocalCluster of ``workers`` single-threaded worker
-    processes (default: one per free core, :func:`ultratight.cores.default_workers`), or a connection to ``scheduler``."""
+def local_workers(workers, n_runs, log=None):
+    """LocalCluster worker processes for ``n_runs`` runs: ``workers`` (``--workers``) or one per allowed
+    core (:func:`ultratight.cores.plan`), never more than the runs nor the allowed cores (one line
+    through ``log`` when ``--workers`` is capped)."""
+    n_runs = max(1, int(n_runs))
+    cores = allowed_cores()
+    k = plan(n_runs).workers if workers is None else int(workers)
+    cap = min(n_runs, cores)
+    if k > cap:
+        if log is not None:
+            log(f"campaign: --workers {k} capped at {cap} ({n_runs} run(s) to compute, {cores} allowed core(s))")
+        k = cap
+    return k
+
+
+def start_client(workers=None, scheduler=None, timeout_s=SCHEDULER_TIMEOUT_S, n_runs=None, log=None):
+    """(client, cluster or None, description): a LocalCluster of single-threaded worker processes
+    (:func:`local_workers` for ``n_runs`` runs; default: one per allowed core), or a connection to
+    ``scheduler``."""
     if scheduler is not None:
         try:
             client = Client(scheduler, timeout=timeout_s)
@@ -271,7 +286,7 @@ def start_client(workers=None, scheduler=None, timeout_s=SCHEDULER_TIMEOUT_S):
             raise ConfigError(f"--scheduler {scheduler}: cannot connect within {timeout_s:g} s "
                               f"({' '.join(str(exc).split()) or type(exc).__name__})") from None
         return client, None, f"scheduler {scheduler}"
-    k = default_workers(os.cpu_count() or 1) if workers is None else workers
+    k = local_workers(workers, allowed_cores() if n_runs is None else n_runs, log)
     cluster = LocalCluster(n_workers=k, threads_per_worker=1, processes=True, dashboard_address=":0",
                            silence_logs=logging.ERROR, env=dict(WORKER_ENV))
     return Client(cluster), cluster, f"LocalCluster of {k} worker(s) x 1 thread"
@@ -337,7 +352,7 @@ def run_campaign(scenario, *, runs, methods=None, seed=None, workers=None, sched
         own = client is None
         cluster = None
         if own:
-            client, cluster, where = start_client(workers, scheduler, connect_timeout_s)
+            client, cluster, where = start_client(workers, scheduler, connect_timeout_s, len(todo), log)
         else:
             where = "given client"
         try:

@@ -50,7 +50,8 @@ from ultratight.receiver.deep.methods import method_spec
 from ultratight.receiver.deep.scalar_reference import run_scalar  # noqa: F401 (public here too)
 from ultratight.receiver.cli.scenario_config import IMU_DEFAULTS, load_scenario
 from ultratight.receiver.deep.startup import StartupErrors, perturb_state
-from ultratight.receiver.cli.workers import WorkerPool, check_workers, default_workers, fix_mmap_threshold, release_heap
+from ultratight.cores import plan
+from ultratight.receiver.cli.workers import WorkerPool, check_workers, fix_mmap_threshold, release_heap
 from ultratight.signals.constellation import ephemerides_for
 from ultratight.signals.synth.generator import generate, generation_estimate
 from ultratight.signals.recording.iffile import open_if
@@ -308,9 +309,10 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
     return _report(name, cfg, methods, int(runs), base_seed, out, channel, plots, options, per, raw)
 
 
-def _method_job(paths, cfg, method, seed, options):
-    """One method on one run's data in a worker process (one numba thread: the workers share the cores)."""
-    opt = dataclasses.replace(engine_options_for(cfg, options), threads=1)
+def _method_job(paths, cfg, method, seed, options, threads=1):
+    """One method on one run's data in a worker process, on ``threads`` numba threads (the plan's
+    threads per worker: the workers share the allowed cores)."""
+    opt = dataclasses.replace(engine_options_for(cfg, options), threads=int(threads))
     res, _truth = run_method(paths, cfg, method, seed, options=opt)
     release_heap()
     return res
@@ -320,8 +322,8 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
     """Every method on every run's data: per-run summaries and raw (result, errors) per (run, method).
 
     The data of every run are prepared first, here (``cache``: with the IF files); then the (run, method)
-    jobs run in worker processes (:mod:`ultratight.receiver.cli.workers`), one per free core and one when
-    no core is free, so this process, which collects every method's results and writes the outputs,
+    jobs run in worker processes (:mod:`ultratight.receiver.cli.workers`), as many as
+    :func:`ultratight.cores.plan` gives for the jobs and the allowed cores (at least one), so this process, which collects every method's results and writes the outputs,
     never holds an engine's working memory as well; ``workers`` = 1 runs them here, one after the
     other. Streamed with the default workers and several methods, a run's IF is generated once, here,
     into a ring the run's methods read at the same time, one worker process each
@@ -329,10 +331,9 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
     not depend on where a job ran nor on where its samples came from."""
     n_jobs = runs * len(methods)
     shared = not cache and workers is None and len(methods) > 1
-    if shared:
-        n_workers = len(methods)
-    else:
-        n_workers = default_workers(n_jobs) if workers is None else min(int(workers), n_jobs)
+    cores = plan(len(methods) if shared else n_jobs, workers=len(methods) if shared else workers,
+                 threads=getattr(options, "threads", None))
+    n_workers, threads = cores.workers, cores.threads
     here = workers is not None and int(workers) == 1
     per_job = {}
     keys = [(r, m) for r in range(runs) for m in methods]
@@ -351,13 +352,14 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
                   f"{res.runtime_s:.1f} s (real-time factor {summ['realtime_factor']:.3f})", flush=True)
 
     # the workers start (and import the engine) while this process generates the data
-    with WorkerPool(n_workers, preload=(__name__,), processes=not here) as pool:
+    with WorkerPool(n_workers, preload=(__name__,), processes=not here, threads=threads) as pool:
         all_paths = [_prepare_run(cfg, r, runs, base_seed + r, out, channel, progress, cache, shared)
                      for r in range(runs)]
-        jobs = [(all_paths[r], cfg, m, base_seed + r, options) for r, m in keys]
+        jobs = [(all_paths[r], cfg, m, base_seed + r, options) + (() if here else (threads,)) for r, m in keys]
         if progress and not here:
             how = ", the IF generated once per run and shared" if shared else ""
-            print(f"{len(jobs)} method run(s) in {n_workers} worker process(es){how}", flush=True)
+            print(f"{len(jobs)} method run(s) in {n_workers} worker process(es) of {threads} thread(s){how}",
+                  flush=True)
         if shared:
             _map_shared(pool, cfg, methods, runs, base_seed, jobs, done)
         else:

@@ -1,20 +1,27 @@
 """Independent jobs of one command (the methods of a scenario run, the runs of ``--runs N``) in
-separate processes when more than one core is free.
+separate processes, as many as :func:`ultratight.cores.plan` gives for the jobs and the allowed cores.
 
 Each job runs in a worker process started with ``spawn`` (no state shared with the parent: numba's
-thread pool, open files and signal handlers start fresh), one numba thread per worker, so two
-workers use two cores without competing for them. The results come back in the order of the jobs;
-the first failure cancels the jobs not yet started and is raised in the parent.
+thread pool, open files and signal handlers start fresh) with the plan's threads per worker (one when
+there are as many workers as cores), so the workers use the cores without competing for them. The
+results come back in the order of the jobs; the first failure cancels the jobs not yet started and
+is raised in the parent.
+
+A worker's numba pool is sized by ``NUMBA_NUM_THREADS`` before numba loads there
+(:func:`limit_numba_threads`). The variable is never changed once numba is loaded: numba reads its
+environment again at every compilation and refuses a new ``NUMBA_NUM_THREADS`` once its threads run
+("Cannot set NUMBA_NUM_THREADS to a different value once the threads have been launched") — which is
+what happened when the worker's main module had imported numba before the worker set the variable.
 """
 
 import ctypes
 import importlib
 import multiprocessing
 import os
+import sys
 from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
 
-
-from ultratight.cores import check_workers, default_workers, free_cores  # noqa: F401 (used by the runners)
+from ultratight.cores import check_workers, plan  # noqa: F401 (check_workers: used by the runners)
 
 
 M_MMAP_THRESHOLD = -3          # glibc mallopt parameters
@@ -67,8 +74,23 @@ def release_heap():
     return bool(lib.malloc_trim(0)) if lib else False
 
 
-def _init_worker(preload):
-    os.environ["NUMBA_NUM_THREADS"] = "1"
+def limit_numba_threads(threads):
+    """At most ``threads`` numba threads in this process. Before numba loads: its pool is sized so
+    (``NUMBA_NUM_THREADS``). Once loaded, the variable is left as it is (changed, numba's next
+    compilation raises once the pool runs) and this thread uses at most ``threads`` of the pool
+    (``numba.set_num_threads``). Returns the threads this thread may use."""
+    threads = max(1, int(threads))
+    if "numba" not in sys.modules:
+        os.environ["NUMBA_NUM_THREADS"] = str(threads)
+        return threads
+    import numba
+    threads = min(threads, numba.config.NUMBA_NUM_THREADS)
+    numba.set_num_threads(threads)
+    return threads
+
+
+def _init_worker(preload, threads=1):
+    limit_numba_threads(threads)
     fix_mmap_threshold(streaming=True)
     for name in preload:              # import the job's modules now, while the parent still works
         importlib.import_module(name)
@@ -79,13 +101,14 @@ def _ready():
 
 
 class WorkerPool:
-    """``workers`` spawned worker processes (none when ``workers`` <= 1: jobs then run in this
-    process; ``processes=True`` spawns one then too). Started on entering the ``with`` block, with the
-    modules of ``preload`` imported by every worker at once — so their start-up overlaps what the
-    parent does before :meth:`map`."""
+    """``workers`` spawned worker processes of ``threads`` numba threads each (none when ``workers``
+    <= 1: jobs then run in this process; ``processes=True`` spawns one then too). Started on entering
+    the ``with`` block, with the modules of ``preload`` imported by every worker at once — so their
+    start-up overlaps what the parent does before :meth:`map`."""
 
-    def __init__(self, workers, preload=(), processes=None):
+    def __init__(self, workers, preload=(), processes=None, threads=1):
         self.workers = max(1, int(workers))
+        self.threads = max(1, int(threads))
         self.preload = tuple(preload)
         self.processes = self.workers > 1 if processes is None else bool(processes)
         self._pool = None
@@ -94,7 +117,7 @@ class WorkerPool:
         if self.processes:
             ctx = multiprocessing.get_context("spawn")
             self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx, initializer=_init_worker,
-                                             initargs=(self.preload,))
+                                             initargs=(self.preload, self.threads))
             self._warm = [self._pool.submit(_ready) for _ in range(self.workers)]   # spawns them all now
         return self
 
@@ -134,9 +157,9 @@ class WorkerPool:
 
 
 def run_jobs(fn, jobs, workers=None, on_done=None):
-    """``[fn(*job) for job in jobs]``, in worker processes when ``workers`` (default
-    :func:`default_workers`) is above 1 (:class:`WorkerPool`)."""
+    """``[fn(*job) for job in jobs]``, in worker processes when ``workers`` (default: the plan's,
+    :func:`ultratight.cores.plan`) is above 1 (:class:`WorkerPool`, the plan's threads each)."""
     jobs = list(jobs)
-    workers = default_workers(len(jobs)) if workers is None else min(int(workers), max(1, len(jobs)))
-    with WorkerPool(workers if len(jobs) > 1 else 1) as pool:
+    p = plan(len(jobs), workers=workers)
+    with WorkerPool(p.workers, threads=p.threads) as pool:
         return pool.map(fn, jobs, on_done)

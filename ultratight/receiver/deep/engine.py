@@ -292,7 +292,7 @@ class UltratightEngine:
         self.n_total = int(min(self.src.n_samples, round(self.duration_s * self.fs)))
         self.stream = BlockStream(self.src, blk, floor=NoiseFloor(opt.noise_tau_s, blk / self.fs))
         per_max = int(math.ceil(self.fs * sgl.code_period_s * 1.001)) + 4
-        self.threads = epoch_threads(opt.threads)
+        self.threads = epoch_threads(opt.threads, n_ch)
         if self.threads > 1:
             numba.set_num_threads(self.threads)
         c = self.corr

@@ -91,7 +91,7 @@ class EngineOptions:
     noise_events: list = field(default_factory=list)
     noise_seed: int = 0
     startup: dict = field(default_factory=dict)   # StartupErrors overrides
-    threads: int = 0                     # epoch-stage threads: 0 = auto (epoch_threads), 1 = one, k = k
+    threads: int = 0                     # epoch-stage threads: 0 = the allowed cores (epoch_threads), 1 = one, k = k
     # navigation-data bits (receiver.deep.bitsources): assisted | decoded | blind | path of a bit file
     bits: str = "assisted"
 
@@ -99,6 +99,7 @@ class EngineOptions:
         return asdict(self)
 
 
-def epoch_threads(requested):
-    """Threads for the compiled epoch stages (:func:`ultratight.cores.stage_threads`)."""
-    return stage_threads(requested)
+def epoch_threads(requested, n_channels=None):
+    """Threads for the compiled epoch stages (:func:`ultratight.cores.stage_threads`: ``requested``
+    when > 0, else the allowed cores; at most one per channel and the size of numba's pool)."""
+    return stage_threads(requested, n_channels)

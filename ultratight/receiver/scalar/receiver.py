@@ -134,13 +134,13 @@ class ScalarReceiver:
         self.block_len = int(round(cfg.block_ms * 1e-3 * fs))
         self.margin = int(math.ceil(2.2e-3 * fs))
         self.stream = BlockStream(src, self.block_len, on_zero=1.0)
-        if cfg.threads is not None:
-            n_thr = stage_threads(cfg.threads)
+        if cfg.threads is not None or cfg.parallel is None:
+            n_thr = stage_threads(cfg.threads or 0, n_ch)
             parallel = n_thr > 1
             if parallel:
                 numba.set_num_threads(n_thr)
         else:
-            parallel = (stage_threads(0) > 1) if cfg.parallel is None else bool(cfg.parallel)
+            parallel = bool(cfg.parallel)
         self.tracker = ScalarTracker(n_ch, fs, src.if_hz, src.is_complex, cfg.tracking,
                                      max_rows=int(cfg.block_ms * 1.1) + 8, parallel=parallel, signal=sig)
         self.chinfo = []

@@ -188,7 +188,8 @@ def _add_receiver_arguments(p):
                    help="tracking channels (default: all in view - every satellite acquired is tracked and the "
                         "others are searched again every 15 s; with N, the N strongest, no periodic search)")
     p.add_argument("--threads", type=int, default=None, metavar="K",
-                   help="threads of the channel stages (default: all cores when idle, else 1)")
+                   help="threads of the channel stages (default: one per core this process may use, "
+                        "at most one per channel)")
     p.add_argument("--duration", type=float, metavar="S", help="process only the first S seconds")
     p.add_argument("--start", type=float, default=0.0, metavar="S", help="skip the first S seconds")
     p.add_argument("--obs-rate", type=float, default=10.0, metavar="HZ",

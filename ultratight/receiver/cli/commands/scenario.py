@@ -43,10 +43,11 @@ def add_arguments(parser):
                         help="navigation-data bits of the ultra-tight methods: assisted, decoded, decoded-scalar, "
                              "blind or a bit file (default: the scenario's [engine] bits, else assisted)")
     parser.add_argument("--workers", type=int, default=None, metavar="K",
-                        help="worker processes for the methods and runs (default: one per free core; 1: all in "
-                             "this process)")
+                        help="worker processes for the methods and runs (default: one per core this process may "
+                             "use, at most one per job; 1: all in this process)")
     parser.add_argument("--threads", type=int, default=None, metavar="K",
-                        help="threads of one run's channel stages (default: all cores when idle, else 1)")
+                        help="threads of one run's channel stages (default: the allowed cores shared between the "
+                             "workers)")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
     parser.add_argument("--no-plots", action="store_true", help="do not write PNG figures")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
