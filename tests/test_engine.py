@@ -132,17 +132,24 @@ def test_engine_tracks_paper_highdyn_start(short_run):
     paths, cfg, res, (de, ce) = short_run
     assert res.doppler_hz.shape[1] == 13 and res.info["wipeoff_mode"] == "assisted-bits"
     seg = ((1.0, 3.0),)
-    assert M.segment_rms(res.t_start, de, seg)[0] < 0.3          # Hz, after the 1 s pull-in
+    # Hz, after the 1 s pull-in. docs/ultratight.md acceptance table: dlb-ckf 0-5 s (before the burst)
+    # 0.0850 Hz (4 MHz, 5 seeds).  This run (seed 11, 1-3 s): 0.062 Hz; seeds 1-3: 0.055-0.069 Hz.
+    # Bound 0.11 Hz = documented x 1.29 (a doubling of this run's figure breaks it)
+    assert M.segment_rms(res.t_start, de, seg)[0] < 0.11
     assert M.segment_rms(res.t_start, ce, seg)[0] < 0.01         # chips
     assert np.all(np.isnan(M.loss_of_lock(res.t_start, de, ce)))
     assert set(np.unique(res.mode)) <= {0, 1, 3}
     assert res.info["n_tight_updates"] >= 25
-    # the 10 Hz solution stays near the truth trajectory (hot start 0.5 m, tight feedback)
+    # the 10 Hz solution stays near the truth trajectory: it starts from the hot-start draw of
+    # docs/ultratight.md "Assisted hot start" (1 sigma per axis 0.5 m, 0.02 m/s) and over 3 s the
+    # tight feedback keeps it at that error.  Bound: the 99.9 % chi-square(3) radius of those sigmas,
+    # 0.5 m x 4.03 = 2.0 m and 0.02 m/s x 4.03 = 0.081 m/s.  Measured max: seed 11 0.64 m / 0.044 m/s;
+    # seeds 1-3 (their own start draws) 0.85-1.50 m / 0.032-0.057 m/s
     from ultratight.ins.trajectory import build_trajectory
     traj = build_trajectory(cfg["trajectory"], cfg["receiver"], cfg["duration_s"])
     pos_t, vel_t = traj.pos_vel_e(res.nav_t)
-    assert np.max(np.linalg.norm(res.nav_pos_e - pos_t, axis=1)) < 5.0
-    assert np.max(np.linalg.norm(res.nav_vel_e - vel_t, axis=1)) < 0.2
+    assert np.max(np.linalg.norm(res.nav_pos_e - pos_t, axis=1)) < 2.0
+    assert np.max(np.linalg.norm(res.nav_vel_e - vel_t, axis=1)) < 0.081
 
 
 def test_run_on_files_and_bad_inputs(short_run, tmp_path):

@@ -142,7 +142,12 @@ def test_navigation_solution_against_truth(rec):
         e_pos = np.linalg.norm(pos - _truth_at(g, t, "pos_e"), axis=1)
         e_vel = np.linalg.norm(vel - _truth_at(g, t, "vel_l"), axis=1)
     rms_p, rms_v = float(np.sqrt(np.mean(e_pos ** 2))), float(np.sqrt(np.mean(e_vel ** 2)))
-    assert rms_v <= 0.1, rms_v
+    # docs/ultratight.md "Start-up without truth", measured table, row "no noise burst, 20 s":
+    # velocity 0.014 m/s RMS; this run (seed 1) 0.0096 m/s; seeds 1-3 0.0096-0.0183 m/s; bound =
+    # documented x 1.5 (a doubling breaks it)
+    assert rms_v <= 1.5 * 0.014, rms_v
+    # same row: position 1.85 m RMS; this run 1.49 m; seeds 1.11-1.49 m; bound = the 2 m
+    # acceptance figure (documented x 1.08)
     assert rms_p <= 2.0, rms_p
 
 
@@ -161,8 +166,12 @@ def test_no_channel_lost_against_truth(rec):
     assert np.all(np.isnan(lost)), dict(zip(prns, lost))
     late = (t_mid > t_mid[0, 0] + 1.0) & np.isfinite(d_err) & np.isfinite(code_err)   # truth ends at 20 s
     assert late.sum() > 0.9 * late.size
-    assert np.sqrt(np.mean(d_err[late] ** 2)) < 1.0
-    assert np.sqrt(np.mean(code_err[late] ** 2)) < 0.02          # chips (6 m)
+    # docs/ultratight.md "Start-up without truth": tracking on the first row against the truth,
+    # Doppler 0.015 Hz and code 0.0056 chip RMS (from 1 s after the hand-over). This run (seed 1):
+    # 0.0140 Hz, 0.0046 chip; seeds 1-3: 0.0140-0.0209 Hz, 0.0031-0.0046 chip.
+    # Bounds = documented x 1.5: above every seed, and a doubled figure breaks them
+    assert np.sqrt(np.mean(d_err[late] ** 2)) < 1.5 * 0.015
+    assert np.sqrt(np.mean(code_err[late] ** 2)) < 1.5 * 0.0056          # chips
 
 
 def test_csv_kml_nmea_rinex_outputs(rec):
