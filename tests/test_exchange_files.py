@@ -143,9 +143,10 @@ def rtklib_differences(sol, fixes):
 
 
 def test_rtklib_reads_and_positions_our_rinex(run12, tmp_path):
-    """Both solutions on the 12 s file: RTKLIB solves every epoch we solve from our RINEX alone.
-    (Their agreement is measured on the 60 s run below: in the first seconds after acquisition
-    the code has ~1 m transients, which the two weightings map into different positions.)"""
+    """Both solutions on the 12 s file: RTKLIB solves every epoch we solve from our RINEX alone,
+    and both agree with the truth and with each other at the level docs/process.md states for this
+    file: in the first seconds after acquisition the code has ~1 m transients, which the two
+    weightings map into positions up to 1.0 m apart (the 60 s run below: 0.25 m)."""
     res, out, files = run12
     sol = rtklib_spp(out["obs"], out["nav"], tmp_path / "rtk.pos")
     d = rtklib_differences(sol, res.fixes)
@@ -154,8 +155,16 @@ def test_rtklib_reads_and_positions_our_rinex(run12, tmp_path):
         tp = f["pos_e"][0]
     err_rtk = np.linalg.norm(sol[:, 2:5] - tp, axis=1)
     err_ours = np.array([np.linalg.norm(np.asarray(f["pos_e"]) - tp) for f in res.fixes])
-    print(f"\n12 s: RTKLIB vs truth RMS {np.sqrt(np.mean(err_rtk ** 2)):.3f} m, ours "
-          f"{np.sqrt(np.mean(err_ours ** 2)):.3f} m, |RTKLIB - ours| max {d.max():.3f} m")
+    rms_rtk, rms_ours = np.sqrt(np.mean(err_rtk ** 2)), np.sqrt(np.mean(err_ours ** 2))
+    print(f"\n12 s: RTKLIB vs truth RMS {rms_rtk:.3f} m, ours {rms_ours:.3f} m, |RTKLIB - ours| max {d.max():.3f} m")
+    # docs/process.md (RTKLIB row): on this 12 s file the two solutions are up to 1.0 m apart.
+    # Seed 1 (this file): 0.998 m; seeds 1-4: 1.00-1.07 m (RMS 0.73-0.80 m). Bound 1.5 x 1.0 m.
+    assert d.max() <= 1.5, d.max()
+    # against the truth, both at the ~1 m of the code transients docs/process.md states for this
+    # file. Seed 1: RTKLIB 1.01 m, ours 1.46 m; seeds 1-4: RTKLIB 0.50-1.01 m, ours 1.03-1.46 m.
+    # Bounds 1.5 x 1 m (RTKLIB) and 2 x 1 m (ours, whose Hatch filter is only seconds old here)
+    assert rms_rtk <= 1.5, rms_rtk
+    assert rms_ours <= 2.0, rms_ours
 
 
 @pytest.mark.slow

@@ -3,6 +3,7 @@ dlb-rackf and dlb-ckf with the paper's double loop (no engine-level signal monit
 the generator truth, JSON/HDF5 outputs, the data cache, the AGC variant, and user errors."""
 
 import json
+import time
 
 import pytest
 
@@ -26,9 +27,11 @@ def test_paper_highdyn_20s_rackf_rides_through_the_burst_and_beats_ckf(scenario_
     int16 front end and start-up noise floor).  Measured (docs/ultratight.md): RACKF keeps all 26
     channel-runs, burst Doppler RMS ~0.13 Hz, 0-20 s ~0.09 Hz; CKF loses lock on 9-11 of 13 channels
     per run in the burst (~5 Hz burst RMS)."""
+    t_wall = time.perf_counter()
     rc, out, err = _run(capsys, "scenario", "paper-highdyn", "--duration", "20", "--runs", "2",
                         "--methods", "dlb-rackf,dlb-ckf", "--seed", "1", "--json", "--no-plots",
                         "--out", str(scenario_20s))
+    t_wall = time.perf_counter() - t_wall
     assert rc == 0, err
     js = json.loads(out)
     assert js["scenario"] == "paper-highdyn" and js["seed"] == 1 and js["runs"] == 2
@@ -49,8 +52,13 @@ def test_paper_highdyn_20s_rackf_rides_through_the_burst_and_beats_ckf(scenario_
     assert r["doppler_rms_hz"][0] < 0.10 and r["code_rms_chips"][0] < 0.005
     assert rb["code_rms_chips"] < 0.005
     assert r["doppler_rms_hz"][1] is None          # 20-40 s not in a 20 s cut
-    # real-time factor = wall-clock s per signal s (as `ultratight process`; < 1 = faster)
-    assert r["runtime_s"] > 0 and r["realtime_factor"] == pytest.approx(r["runtime_s"] / 20.0, rel=0.01)
+    # run times are wall-clock seconds of runs inside this call (each figure the mean over the 2 runs; the
+    # runs may share the call's time on worker processes): the wall time measured here around the call
+    # bounds each; the real-time factor (wall s per signal s, as `ultratight process`) times the 20 s
+    # of signal is such a run time, so it is bounded the same way
+    for m in (r, c):
+        assert 0 < m["runtime_s"] <= t_wall, (m["runtime_s"], t_wall)
+        assert 0 < m["realtime_factor"] * 20.0 <= t_wall, (m["realtime_factor"], t_wall)
     assert (scenario_20s / "metrics.json").is_file() and (scenario_20s / "results.h5").is_file()
     import h5py
     with h5py.File(scenario_20s / "results.h5") as f:
