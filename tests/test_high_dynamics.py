@@ -123,7 +123,8 @@ def test_highdyn_30dbhz_scalar_handover(tmp_path_factory):
     """The scalar pass of the ultra-tight start-up at 30 dB-Hz under 10 g (--dynamics high): all 13
     satellites acquired and tracked to the end of the 12 s window (Doppler within 5 Hz RMS of the
     truth over its last second), a hand-over fix (3 consecutive fixes, >= 5 satellites) inside
-    the window, and the fixes within 3 stated sigmas (and 30 m / 1 m/s) of the true trajectory."""
+    the window, and the fixes within 3 stated sigmas of the true trajectory, their RMS at the
+    figures docs/process.md measures on this recording."""
     from ultratight.receiver.deep.handover import HandoverConfig, pick_fix, scalar_pass
     from ultratight.signals.constellation import nominal_ephemerides
     from ultratight.signals.recording.iffile import open_if
@@ -154,7 +155,11 @@ def test_highdyn_30dbhz_scalar_handover(tmp_path_factory):
     sp, sv = np.array([x["sigma_pos_m"] for x in f]), np.array([x["sigma_vel_mps"] for x in f])
     assert np.all(e_p < 3.0 * sp), (e_p.max(), sp.min())
     assert np.all(e_v < 3.0 * sv), (e_v.max(), sv.min())
-    assert np.sqrt(np.mean(e_p ** 2)) < 30.0 and np.sqrt(np.mean(e_v ** 2)) < 1.0
+    # docs/process.md "High dynamics", measured table, 30 dB-Hz row: fix errors vs truth position 5.0 m
+    # RMS, velocity 0.13 m/s RMS (47 fixes).  This run (seed 1): 5.04 m, 0.130 m/s; seeds 1-3: 5.0-7.5 m,
+    # 0.130-0.153 m/s.  Bounds = documented x 1.8 (9.0 m, 0.234 m/s): above every seed, a doubling breaks them
+    assert np.sqrt(np.mean(e_p ** 2)) < 1.8 * 5.0, np.sqrt(np.mean(e_p ** 2))
+    assert np.sqrt(np.mean(e_v ** 2)) < 1.8 * 0.13, np.sqrt(np.mean(e_v ** 2))
 
 
 def _energy_sync(ip, cpb=20):
