@@ -351,7 +351,12 @@ def test_acceptance_static_60s_everything_from_the_signal(tmp_path):
           f"{len(res.fixes)} fixes, position RMS {pos_rms:.3f} m, velocity RMS {vel_rms:.4f} m/s, "
           f"real-time factor {res.realtime_factor:.3f}")
     assert res.first_fix_s <= t_eph + 2.0
-    assert pos_rms <= 2.0 and vel_rms <= 0.05
+    # docs/process.md "Measured" table, row "static 60 s (4 MHz), nothing but the signal": 3D position
+    # RMS 0.27 m, velocity RMS 0.028 m/s.  This run (seed 1): 0.162 m, 0.0230 m/s; seeds 1-3 0.16-0.56 m
+    # (60 s of slowly varying code errors: few independent samples) and 0.0228-0.0232 m/s.
+    # Bounds = documented x 1.5 (0.405 m, 0.042 m/s): a doubling of the documented figures breaks them
+    assert pos_rms <= 1.5 * 0.27, pos_rms
+    assert vel_rms <= 1.5 * 0.028, vel_rms
 
 
 @pytest.mark.slow
@@ -371,7 +376,12 @@ def test_acceptance_vehicle_turns(tmp_path):
     assert len(res.channels) == len(truth.attrs["prn"])
     assert all(c["losses"] == 0 and c["reacquisitions"] == 0 for c in res.channels)
     assert worst == 1.0
-    assert pos_rms <= 5.0
+    # docs/process.md "Measured" table, row "vehicle-turns": position RMS 0.30 m, velocity RMS 0.049 m/s.
+    # This run (seed 2, the scenario's): 0.295 m, 0.0487 m/s; seeds 1-3 0.30-0.60 m and 0.0483-0.0487 m/s.
+    # Bounds = documented x 1.5 (0.45 m, 0.074 m/s): a doubling of either breaks them (the position's
+    # seed spread reaches 2x, so another seed's file may need its own figure)
+    assert pos_rms <= 1.5 * 0.30, pos_rms
+    assert vel_rms <= 1.5 * 0.049, vel_rms
 
 
 @pytest.mark.parametrize("cn0", [28.0])
