@@ -131,6 +131,9 @@ def base(tmp_path_factory):
     with open(d / "trunc.ci8", "r+b") as f:
         f.truncate(os.path.getsize(d / "v.ci8") // 2)
     os.mkdir(d / "adir")
+    (d / "camp" / "runs").mkdir(parents=True)      # another scenario's campaign
+    (d / "camp" / "campaign.json").write_text('{"scenario": "paper-afm-noise", "runs": 1}')
+    (d / "camp" / "runs" / "run-00000.h5").write_bytes(b"run of paper-afm-noise")
     (d / "bench").mkdir()
     (d / "bench" / "bench_noop.py").write_text(
         "import json, sys\njson.dump({'ok': 1}, open(sys.argv[sys.argv.index('--json') + 1], 'w'))\n")
@@ -234,6 +237,25 @@ CASES = [
     ("if-nan", P + ["c.bin", *CI8, "--if", "nan"], 2, "--if"),
     ("sidecar-if-nan", P + ["ifnan.bin"], 2, "if_hz"),
     ("sidecar-negative-n", P + ["negn.bin"], 2, "n_samples"),
+    ("fs-beside-sidecar", P + ["v.ci8", "--fs", "4e6"], 2,
+     "--fs 4e+06 Hz conflicts with the sidecar v.ci8.json, which states fs_hz = 2.046e+06 Hz"),
+    ("if-beside-sidecar", P + ["v.ci8", "--if", "1e9"], 2,
+     "--if 1e+09 Hz conflicts with the sidecar v.ci8.json, which states if_hz = 0 Hz"),
+    # 11. out-of-range numbers accepted, clamped or cut short
+    ("mask-above-90", P + ["v.ci8", "--mask", "95"], 2, "--mask must be an elevation in [0, 90) deg, got 95"),
+    ("mask-negative", P + ["v.ci8", "--mask=-10"], 2, "--mask must be an elevation in [0, 90) deg, got -10"),
+    # the limit at fs = 2.046 MHz: 0.45 fs = 920.7 kHz
+    ("doppler-range-huge", P + ["v.ci8", "--doppler-range", "1e9"], 2, "--doppler-range must be in (0, 920700] Hz"),
+    ("afm-duration-before-jump", ["scenario", "paper-afm-jump", "--duration", "20", "--out", "g/"], 2,
+     "ends before the attitude-jump at fault.t_s = 30 s"),
+    # campaign: another scenario's campaign under --resume; malformed and unreachable schedulers
+    ("campaign-resume-other-scenario", ["campaign", "static-open-sky", "--runs", "1", "--resume", "--out", "camp"],
+     2, "camp holds the campaign of scenario 'paper-afm-noise', not 'static-open-sky'"),
+    ("campaign-scheduler-malformed", ["campaign", "static-open-sky", "--runs", "1", "--scheduler", "foo://bar:x",
+                                      "--out", "g/"], 2, "unknown protocol 'foo'"),
+    ("campaign-scheduler-unreachable", ["campaign", "static-open-sky", "--runs", "1", "--scheduler",
+                                        "tcp://127.0.0.1:1", "--connect-timeout", "1", "--out", "g/"], 2,
+     "cannot connect within 1 s"),
 ]
 
 
@@ -286,6 +308,37 @@ def test_truncated_recording_is_processed_with_a_warning(work):
     assert snapshot(work) == before
     if res.returncode == 0:
         _strict_json(res.stdout)
+
+
+def test_rinex_obs_without_observation_epochs_is_a_warning(work):
+    """11. --rinex-obs with no observation epoch (1 s of signal): no file, one warning line, status 0
+    (the other outputs are complete; docs/process.md)."""
+    before = snapshot(work)
+    res = cli(P + ["v.ci8", "--prn", "11,14", "--rinex-obs", "o.obs", "--out", "o.h5", "--no-progress"], work)
+    assert_clean_failure(res, 0, "warning: --rinex-obs o.obs not written", before, work)
+    assert not (work / "o.obs").exists()
+    with h5py.File(work / "o.h5", "r") as f:
+        assert f.attrs["complete"]
+
+
+def test_generated_sidecar_is_strict_json(work):
+    """11. paper-highdyn's [engine] noise_tau_s = inf: the generator's sidecar is strict JSON (null)."""
+    res = cli(["generate", "paper-highdyn", "--duration", "0.1", "--out", "g/hd", "--no-progress"], work)
+    assert res.returncode == 0, res.stderr
+    side = _strict_json((work / "g" / "hd.ci16.json").read_text())
+    assert side["generator"]["engine"]["noise_tau_s"] is None
+    assert side["fs_hz"] == 4e6 and side["format"] == "ci16"
+
+
+def test_campaign_workers_capped_at_runs_and_cores(work):
+    """11. --workers far above the runs and the allowed cores: capped, said in one line."""
+    res = cli(["campaign", "static-open-sky", "--methods", "scalar", "--duration", "1", "--runs", "1",
+               "--workers", "64", "--out", "cw", "--quiet", "--json"], work)
+    assert res.returncode == 0, res.stderr
+    assert res.stderr.strip().splitlines() == [
+        f"campaign: --workers 64 capped at 1 (1 run(s) to compute, {len(os.sched_getaffinity(0))} allowed core(s))"]
+    js = _strict_json(res.stdout)
+    assert js["timing"]["where"] == "LocalCluster of 1 worker(s) x 1 thread" and js["runs"] == 1
 
 
 def test_imu_csv_with_bom_is_read(work):

@@ -145,6 +145,9 @@ def load(path, raw, overrides):
     _num(fault["roll_pitch_deg"], "fault.roll_pitch_deg", -90, 90)
     _num(fault["gyro_var_factor"], "fault.gyro_var_factor", lo=0, lo_open=True)
     _num(fault["accel_var_factor"], "fault.accel_var_factor", lo=0, lo_open=True)
+    if fault["kind"] != "none" and not float(fault["t_s"]) < cfg["duration_s"]:
+        raise ConfigError(f"duration_s (--duration) {cfg['duration_s']:g} s ends before the {fault['kind']} at "
+                          f"fault.t_s = {fault['t_s']:g} s: the metrics after it need a duration > {fault['t_s']:g} s")
     cfg["fault"] = fault
     flt = _merge(raw, "filter")
     check_known_keys(flt, _FILTER, "filter")
@@ -289,6 +292,8 @@ def recovery_time(t, err, t_fault, tol):
     """Seconds after ``t_fault`` from which |roll| and |pitch| errors stay ≤ tol (nan if never)."""
     bad = (np.abs(err[:, 0]) > tol) | (np.abs(err[:, 1]) > tol)
     after = t >= t_fault
+    if not after.any():
+        return float("nan")
     idx = np.flatnonzero(bad & after)
     if idx.size == 0:
         return 0.0
@@ -313,10 +318,10 @@ def run_one(cfg, methods, seed, progress=False):
     for m in methods:
         r = run_filter(m, cfg, sim, nom0, P0, Q, R, progress)
         t, e = r["t"], r["att_err"]
-        post = t >= t_fault
+        post = e[t >= t_fault] if np.any(t >= t_fault) else np.full((1, 3), np.nan)   # nan: no fault in the run
         res = {"att_err_mean_deg": np.degrees(e.mean(axis=0)), "att_err_std_deg": np.degrees(e.std(axis=0)),
-               "att_err_mean_after_deg": np.degrees(e[post].mean(axis=0)),
-               "att_err_std_after_deg": np.degrees(e[post].std(axis=0)),
+               "att_err_mean_after_deg": np.degrees(post.mean(axis=0)),
+               "att_err_std_after_deg": np.degrees(post.std(axis=0)),
                "runtime_s": r["runtime_s"], "t": t, "att_err_deg": np.degrees(e),
                "att_sigma_deg": np.degrees(r["att_sigma"]), "fade_max": r["fade_max"],
                "chart_guard_epochs": r["chart_guard_epochs"],

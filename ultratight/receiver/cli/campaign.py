@@ -329,11 +329,16 @@ def run_campaign(scenario, *, runs, methods=None, seed=None, workers=None, sched
         raise ConfigError(f"--cache: only for IF-level scenarios (this one runs experiment {name!r})")
     out = Path(out_dir)
     _check_out(out)
+    if resume:
+        _check_resume_scenario(out, cfg.get("name", name))
+    if scheduler is not None and client is None:
+        check_scheduler_address(scheduler)
     seeds = run_seeds(base_seed, runs)
     keys = [run_key(cfg, methods, s) for s in seeds]
     if getattr(module, "USES_DATA_DIR", False):
         # where the runs keep generated data, and whether the IF files too (not part of a run's key)
         cfg = module.with_data_dir(cfg, out, cache=bool(cache))
+    created = [d for d in (out, out / "runs") if not d.exists()]
     try:
         (out / "runs").mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -352,7 +357,12 @@ def run_campaign(scenario, *, runs, methods=None, seed=None, workers=None, sched
         own = client is None
         cluster = None
         if own:
-            client, cluster, where = start_client(workers, scheduler, connect_timeout_s, len(todo), log)
+            try:
+                client, cluster, where = start_client(workers, scheduler, connect_timeout_s, len(todo), log)
+            except BaseException:
+                for d in reversed(created):         # no cluster, no run: leave no empty OUT/runs behind
+                    _remove_empty_dir(d)
+                raise
         else:
             where = "given client"
         try:
@@ -387,6 +397,46 @@ def _resolve(scenario, methods, seed, overrides):
     if base_seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {base_seed}")
     return module, name, cfg, methods, base_seed
+
+
+def _remove_empty_dir(d):
+    try:
+        d.rmdir()
+    except OSError:          # not empty (or gone): kept
+        pass
+
+
+def check_scheduler_address(address):
+    """``--scheduler``: a Dask address ``[PROTOCOL://]HOST:PORT`` with a protocol this installation
+    knows and, for tcp/tls/ws/wss, a host and a port in 1..65535 (ConfigError otherwise)."""
+    from distributed.comm.addressing import parse_address, parse_host_port
+    from distributed.comm.registry import backends
+    try:
+        scheme, loc = parse_address(str(address), strict=False)
+    except (ValueError, TypeError):
+        raise ConfigError(f"--scheduler {address}: not an address (expected e.g. tcp://127.0.0.1:8786)") from None
+    if scheme not in backends:
+        raise ConfigError(f"--scheduler {address}: unknown protocol {scheme!r} (known: {', '.join(sorted(backends))})")
+    if scheme in ("tcp", "tls", "ws", "wss"):
+        try:
+            host, port = parse_host_port(loc)
+            ok = bool(host) and isinstance(port, int) and 1 <= port <= 65535
+        except (ValueError, TypeError):
+            ok = False
+        if not ok:
+            raise ConfigError(f"--scheduler {address}: expected {scheme}://HOST:PORT with a port in 1..65535")
+
+
+def _check_resume_scenario(out, scenario):
+    """``--resume`` into an OUT whose campaign.json belongs to another scenario: refused."""
+    cpath = out / "campaign.json"
+    try:
+        other = json.loads(cpath.read_text(encoding="utf-8")).get("scenario")
+    except (OSError, ValueError, AttributeError):
+        return                      # no readable campaign.json: the run files' keys decide what is kept
+    if other is not None and other != scenario:
+        raise ConfigError(f"--resume: {out} holds the campaign of scenario {other!r}, not {scenario!r}; give "
+                          f"another --out for {scenario!r}")
 
 
 def _check_out(out):

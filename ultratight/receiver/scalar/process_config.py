@@ -20,6 +20,9 @@ class NoSignalError(UltratightError):
     """No satellite acquired in the file (wrong parameters, wrong I/Q convention, no signal)."""
 
 
+MAX_DOPPLER_FRACTION = 0.45     # --doppler-range: at most this fraction of the sampling rate
+
+
 @dataclass
 class ProcessConfig:
     """Options of a scalar-receiver run (``ultratight process``; docs/process.md)."""
@@ -83,8 +86,13 @@ class ProcessConfig:
             raise ConfigError(f"tropospheric mapping must be one of {', '.join(MAPPINGS)}, got {self.tropo_mapping!r}")
         if self.doppler_window_s * self.obs_rate_hz > 0.5 + 1e-9:
             self.doppler_window_s = 0.5 / self.obs_rate_hz
-        if self.doppler_range_hz >= 0.5 * source.fs_hz:
-            self.doppler_range_hz = 0.45 * source.fs_hz
+        top = MAX_DOPPLER_FRACTION * source.fs_hz
+        if not 0 < self.doppler_range_hz <= top:
+            raise ConfigError(f"--doppler-range must be in (0, {top:.6g}] Hz at fs = {source.fs_hz:.6g} Hz (at most "
+                              f"{MAX_DOPPLER_FRACTION:g} fs: the search stays inside the sampled band), "
+                              f"got {self.doppler_range_hz:.6g}")
+        if not 0.0 <= self.mask_deg < 90.0:
+            raise ConfigError(f"--mask must be an elevation in [0, 90) deg, got {self.mask_deg:g}")
         self.tracking.validate()
 
 

@@ -386,6 +386,12 @@ class ScalarReceiver:
                 write_kml(kml_path, self.fixes, options=result.corrections)
             write_exchange_files(result, self.cfg, self.navs, self.ephemerides, self.pvt.used_ephs,
                                   self.pvt.iono, self.recorder.rinex_obs, rinex_nav_path, nmea_path)
+            rinex = self.recorder.rinex_obs
+            if rinex is not None and rinex.first is None:
+                n = len(self.observations)
+                why = "the run formed no observation epoch" if n == 0 else \
+                    f"none of its {n} observation epoch(s) has a known GPS week and time of week"
+                result.warnings.append(f"--rinex-obs {rinex.path} not written: {why}")
 
 
 def _progress_bar(n_samples, fs):

@@ -53,7 +53,6 @@ and the chunk ``endian`` (not applied to packed samples, which are read byte-wis
 to the XML when ``path`` is None.
 """
 
-import json
 import mmap
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -62,7 +61,7 @@ import numpy as np
 
 from ultratight import __version__
 from ultratight.errors import FormatError, InputFileError
-from ultratight.io_guard import StagedFile, check_input_file, check_interrupted
+from ultratight.io_guard import StagedFile, check_input_file, check_interrupted, json_dumps
 from ultratight.signals.recording.metadata_check import check_sidecar, load_json_metadata
 from ultratight.signals.recording.packing import ION_ENCODINGS
 # the format registry lives in sampleformat (metadata_check and sigmf_io need it without this module);
@@ -464,7 +463,7 @@ class IfWriter:
         self._f.close()
         self.sidecar["n_samples"] = int(self.n_samples)
         with open(self._side.tmp, "w") as f:
-            json.dump(self.sidecar, f, indent=1, default=_json_default)
+            f.write(json_dumps(self.sidecar, indent=1))     # strict JSON: a non-finite value is null
         self._data.commit()
         self._side.commit()
         self._closed = True
@@ -478,16 +477,6 @@ class IfWriter:
             self._data.discard()
             self._side.discard()
             self._closed = True
-
-
-def _json_default(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
 def write_if(path, samples, fmt, fs_hz, if_hz=0.0, **kw):

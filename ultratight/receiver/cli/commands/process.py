@@ -106,6 +106,8 @@ def _check_numbers(args):
         raise ConfigError(f"--threads must be an integer >= 1, got {args.threads}")
     if not args.doppler_range > 0:
         raise ConfigError(f"--doppler-range must be > 0 Hz, got {args.doppler_range}")
+    if not 0.0 <= args.mask < 90.0:
+        raise ConfigError(f"--mask must be an elevation in [0, 90) deg, got {args.mask:g}")
     if not 1 <= args.acq_coherent <= 10:
         raise ConfigError(f"--acq-coherent must be in 1..10 ms, got {args.acq_coherent}")
     if not 1 <= args.acq_noncoherent <= 1000:
@@ -115,6 +117,40 @@ def _check_numbers(args):
 # every output flag of this command (flag, argparse dest): checked before any work
 OUTPUT_FLAGS = (("--out", "out"), ("--csv", "csv"), ("--kml", "kml"), ("--rinex-obs", "rinex_obs"),
                 ("--rinex-nav", "rinex_nav"), ("--nmea", "nmea"))
+
+
+def _check_file_flags(args):
+    """``--fs/--if/--format`` against the file's JSON sidecar (or a ``--meta`` JSON file): without one,
+    ``--fs`` and ``--format`` go together; beside one, a flag may only repeat the value it states
+    (a different value is a conflict between two descriptions of the same recording)."""
+    from ultratight.errors import ConfigError
+    from ultratight.signals.recording.iffile import read_sidecar, sidecar_path
+    from ultratight.signals.recording.metadata_check import load_json_metadata
+    if args.meta is None:
+        side, name = read_sidecar(args.iffile), f"sidecar {sidecar_path(args.iffile).name}"
+    elif str(args.meta).lower().endswith(".json"):
+        side, name = load_json_metadata(args.meta), f"--meta file {args.meta}"
+    else:
+        side, name = None, None
+    if side is None and args.meta is None and (args.fs is None) != (args.fmt is None):
+        raise ConfigError("give both --fs and --format (and --if, default 0) when the file has no sidecar")
+    side = side or {}
+    num = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool)  # noqa: E731
+    for flag, given, key in (("--fs", args.fs, "fs_hz"), ("--if", args.if_hz, "if_hz"), ("--format", args.fmt, "format")):
+        stated = side.get(key)
+        if given is None or stated is None:
+            continue
+        if key == "format":
+            if str(given) != str(stated):
+                raise ConfigError(f"--format {given} conflicts with the {name}, which states format = {stated}: "
+                                  f"drop --format or correct the {name.split()[0]}")
+        elif num(stated) and not math.isclose(float(given), float(stated), rel_tol=1e-12, abs_tol=1e-6):
+            raise ConfigError(f"{flag} {given:g} Hz conflicts with the {name}, which states {key} = {stated:g} Hz: "
+                              f"drop {flag} or correct the {name.split()[0]}")
+    fs, where = (args.fs, "--fs") if args.fs is not None else (side.get("fs_hz"), f"fs_hz of the {name}")
+    if args.if_hz is not None and num(fs) and abs(args.if_hz) >= fs:
+        raise ConfigError(f"--if {args.if_hz:g} Hz must be smaller in magnitude than the sampling rate "
+                          f"({where}: {fs:g} Hz)")
 
 
 def _check_paths(args):
@@ -275,11 +311,7 @@ def run(args):
     from ultratight.receiver.scalar.process_config import NoSignalError, ProcessConfig
     from ultratight.receiver.scalar.receiver import process
 
-    if args.meta is None and (args.fs is not None or args.fmt is not None):
-        if args.fs is None or args.fmt is None:
-            raise ConfigError("give both --fs and --format (and --if, default 0) when the file has no sidecar")
-    if args.if_hz is not None and args.fs is not None and abs(args.if_hz) >= args.fs:
-        raise ConfigError(f"--if {args.if_hz} Hz must be smaller in magnitude than --fs {args.fs} Hz")
+    _check_file_flags(args)
     packing = {k: v for k, v in (("order", args.packing), ("encoding", args.encoding),
                                  ("word_bytes", args.word_size), ("endian", args.endian)) if v is not None}
     source = open_if(args.iffile, meta=args.meta, fs_hz=args.fs, if_hz=args.if_hz, fmt=args.fmt, packing=packing,
