@@ -323,7 +323,8 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
 
     The data of every run are prepared first, here (``cache``: with the IF files); then the (run, method)
     jobs run in worker processes (:mod:`ultratight.receiver.cli.workers`), as many as
-    :func:`ultratight.cores.plan` gives for the jobs and the allowed cores (at least one), so this process, which collects every method's results and writes the outputs,
+    :func:`ultratight.cores.plan` gives for the jobs and the allowed cores (at least one), so this
+    process, which collects every method's results and writes the outputs,
     never holds an engine's working memory as well; ``workers`` = 1 runs them here, one after the
     other. Streamed with the default workers and several methods, a run's IF is generated once, here,
     into a ring the run's methods read at the same time, one worker process each

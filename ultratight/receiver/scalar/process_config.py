@@ -51,7 +51,7 @@ class ProcessConfig:
     tropo: str = "saastamoinen"         # saastamoinen | off
     tropo_mapping: str = "cosz"         # mapping function of the Saastamoinen model
     record_epochs: bool = False
-    parallel: bool | None = None        # spread channels over numba threads (None: when more than one core is allowed, cores.plan)
+    parallel: bool | None = None        # spread channels over numba threads (None: cores.plan, > 1 allowed core)
     threads: int | None = None          # threads for that (None: numba's pool); 1 = parallel False
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     dynamics: str = "normal"            # normal | high: Doppler-rate search after every acquisition (docs/process.md)

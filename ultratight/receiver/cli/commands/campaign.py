@@ -11,7 +11,8 @@ def add_arguments(parser):
                         help="base seed (default: the scenario's); run i uses SeedSequence(seed).spawn(runs)[i]")
     where = parser.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int, default=None,
-                       help="LocalCluster worker processes, one thread each (default: one per allowed core; at most one per run and per allowed core)")
+                       help="LocalCluster worker processes, one thread each (default: one per allowed core; "
+                            "at most one per run and per allowed core)")
     where.add_argument("--scheduler", default=None, metavar="ADDRESS",
                        help="run on an existing Dask scheduler (e.g. tcp://127.0.0.1:8786)")
     parser.add_argument("--connect-timeout", type=float, default=10.0, metavar="S",

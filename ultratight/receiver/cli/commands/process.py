@@ -136,7 +136,8 @@ def _check_file_flags(args):
         raise ConfigError("give both --fs and --format (and --if, default 0) when the file has no sidecar")
     side = side or {}
     num = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool)  # noqa: E731
-    for flag, given, key in (("--fs", args.fs, "fs_hz"), ("--if", args.if_hz, "if_hz"), ("--format", args.fmt, "format")):
+    for flag, given, key in (("--fs", args.fs, "fs_hz"), ("--if", args.if_hz, "if_hz"),
+                             ("--format", args.fmt, "format")):
         stated = side.get(key)
         if given is None or stated is None:
             continue
