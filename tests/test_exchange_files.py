@@ -168,6 +168,7 @@ def test_rtklib_reads_and_positions_our_rinex(run12, tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.ci
 def test_rtklib_agrees_with_our_pvt_60s(tmp_path):
     """Acceptance: the 60 s static-open-sky-atmosphere run (45 dB-Hz, seed 1, everything from
     the signal): RTKLIB on our RINEX obs+nav agrees with our PVT within 0.3 m at every epoch."""

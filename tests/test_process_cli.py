@@ -339,6 +339,7 @@ def _fix_errors(res, truth):
 
 
 @pytest.mark.slow
+@pytest.mark.ci
 def test_acceptance_static_60s_everything_from_the_signal(tmp_path):
     from ultratight.receiver.scalar.receiver import ProcessConfig, process
     from ultratight.signals.recording.iffile import open_if
@@ -360,6 +361,7 @@ def test_acceptance_static_60s_everything_from_the_signal(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.ci
 def test_acceptance_vehicle_turns(tmp_path):
     from ultratight.receiver.scalar.receiver import ProcessConfig, process
     from ultratight.receiver.dsp.tracking_layout import FL_PLL_LOCK
