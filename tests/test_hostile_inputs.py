@@ -108,7 +108,22 @@ def base(tmp_path_factory):
     imu_h5("norate.imu.h5", drop_rate=True)
     imu_h5("ratestr.imu.h5", rate="fast")
     imu_h5("meta.imu.h5", meta="{broken")
+    # the generated IMU cut to its first half (every per-sample dataset)
+    def cut_half(src, dst, n_all):
+        for k, v in src.attrs.items():
+            dst.attrs[k] = v
+        for k, item in src.items():
+            if isinstance(item, h5py.Group):
+                cut_half(item, dst.create_group(k), n_all)
+                continue
+            x = item[()]
+            dst[k] = x[: n_all // 2] if getattr(x, "ndim", 0) >= 1 and x.shape[0] == n_all else x
+            for a, v in item.attrs.items():
+                dst[k].attrs[a] = v
+    with h5py.File(d / "v.imu.h5", "r") as src, h5py.File(d / "short.imu.h5", "w") as dst:
+        cut_half(src, dst, src["t"].shape[0])
     # the generated IMU with every stamp shifted by +10 s (t0 attribute left at 0)
+
     shutil.copyfile(d / "v.imu.h5", d / "shift.imu.h5")
     with h5py.File(d / "shift.imu.h5", "r+") as f:
         f["t"][...] = f["t"][()] + 10.0
@@ -308,6 +323,23 @@ def test_truncated_recording_is_processed_with_a_warning(work):
     assert snapshot(work) == before
     if res.returncode == 0:
         _strict_json(res.stdout)
+
+
+def test_imu_shorter_than_the_recording_is_a_warning(work):
+    """12. an IMU that ends half-way through the IF file: the span both cover is processed and one
+    warning line says where the IMU ends; status 0, inputs untouched."""
+    before = snapshot(work)
+    res = cli(P + ["v.ci8", "--mode", "ultratight", "--imu", "short.imu.h5", "--json"], work)
+    assert "Traceback" not in res.stderr
+    assert res.returncode == 0, res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and "IMU data end at" in lines[0] and "only the first" in lines[0], res.stderr
+    summ = _strict_json(res.stdout)
+    with h5py.File(work / "short.imu.h5", "r") as f:
+        t_end = float(f["t"][-1])
+    assert summ["duration_s"] <= t_end + 1e-9 and summ["duration_s"] > 0.5 * t_end, (summ["duration_s"], t_end)
+    assert summ["warnings"] == [lines[0].split("warning: ", 1)[1]]
+    assert snapshot(work) == before
 
 
 def test_rinex_obs_without_observation_epochs_is_a_warning(work):

@@ -130,7 +130,7 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
                           f"--mode ultratight")
     if startup not in ("auto", ho.STARTUP_SCALAR, ho.STARTUP_TRUTH):
         raise ConfigError(f"unknown start-up {startup!r}; expected auto, {ho.STARTUP_SCALAR} or {ho.STARTUP_TRUTH}")
-    src, imu, imu_path, dur = _open_recording(if_path, imu_path, meta, imu_declaration, duration_s)
+    src, imu, imu_path, dur, warnings = _open_recording(if_path, imu_path, meta, imu_declaration, duration_s)
     side = src.meta or {}
     gen_cfg = side.get("generator") if isinstance(side.get("generator"), dict) else None
     week, tow0 = int(src.start_week), float(src.start_tow_s)
@@ -156,6 +156,7 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
     eng = UltratightEngine(src, imu, ephs, [int(p) for p in prns], week, tow0, method=method,
                            options=options, init_state=init_state, rng=rng, duration_s=dur - t_h)
     res = eng.run()
+    res.info["warnings"] = list(warnings)
     _note_start(res, t_h, source, hand, file_start)
     t_mid = file_start["tow_s"] + t_h + 0.5 * res.duration_s
     res.info["sat_pos_e"] = [np.asarray(sat_state(ephs[int(p)], np.array([t_mid]))[0][0]).tolist() for p in prns]
@@ -163,8 +164,9 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
 
 
 def _open_recording(if_path, imu_path, meta, imu_declaration, duration_s):
-    """``(src, imu, imu_path, duration)``: the IF file (its start time required), the IMU file read in
-    its declared conventions and cut to the IF start, and the duration both cover."""
+    """``(src, imu, imu_path, duration, warnings)``: the IF file (its start time required), the IMU file
+    read in its declared conventions and cut to the IF start, the duration both cover, and a warning
+    line when the IMU ends before the IF span asked for."""
     src = open_if(if_path, meta=meta)
     if src.start_tow_s is None or src.start_week is None:
         raise InputFileError(f"{if_path}: the IF start time (start_week, start_tow_s) is unknown; "
@@ -175,7 +177,12 @@ def _open_recording(if_path, imu_path, meta, imu_declaration, duration_s):
     imu = imu_decl.align_to_gps_start(imu, src.start_week, src.start_tow_s, imu_path)
     usable = check_imu_if_alignment(src, imu, if_path, imu_path)
     dur = usable if duration_s is None else min(float(duration_s), usable)
-    return src, imu, imu_path, dur
+    wanted = src.duration_s if duration_s is None else min(float(duration_s), src.duration_s)
+    warnings = []
+    if dur < wanted - 1.0 / float(imu.rate_hz):
+        warnings.append(f"{imu_path.name}: the IMU data end at t = {dur:.3f} s, before the {wanted:.3f} s of "
+                        f"{Path(if_path).name} asked for: only the first {dur:.3f} s are processed")
+    return src, imu, imu_path, dur, warnings
 
 
 def _note_start(res, t_h, source, hand, file_start):

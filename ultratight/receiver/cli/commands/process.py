@@ -419,6 +419,8 @@ def _run_ultratight(args):
     except OSError as exc:
         _raise_output_error(exc, args)
     summ = _ultratight_summary(res, args)
+    for w in summ["warnings"]:
+        print(f"ultratight process: warning: {w}", file=sys.stderr)
     if args.json:
         print(json_dumps(summ))
     else:
@@ -452,6 +454,7 @@ def _ultratight_summary(res, args):
         "nav": ut_outputs.nav_summary(res),
         "bit_strategy": (info.get("bits") or {}).get("strategy"),
         "blind_fraction": _blind_fraction(res),
+        "warnings": list(info.get("warnings") or []),
         "out": args.out,
         "files": {k: v for k, v in (("csv", args.csv), ("kml", args.kml), ("nmea", args.nmea),
                                     ("rinex_obs", args.rinex_obs)) if v},
