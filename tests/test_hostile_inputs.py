@@ -129,6 +129,10 @@ def base(tmp_path_factory):
         f["t"][...] = f["t"][()] + 10.0
     (d / "binary.csv").write_bytes(bytes(range(256)) * 4)
     (d / "b.csv").write_text("prn,week,tow_s,bit\n1,2000,0.00,1\n")
+    # the recording with a sidecar that lists no PRNs (the start-up must find them)
+    shutil.copyfile(d / "v.ci8", d / "noprn.ci8")
+    (d / "noprn.ci8.json").write_text(json.dumps({k: v for k, v in json.loads((d / "v.ci8.json").read_text()).items()
+                                                  if k != "prn"}))
     shutil.copyfile(d / "v.imu.h5", d / "d.imu.h5")          # an IMU with a declaration sidecar
     (d / "d.imu.h5.json").write_text('{"axes": "FLU"}')
     rows = ["t_s,dthx_rad,dthy_rad,dthz_rad,dvx_mps,dvy_mps,dvz_mps"] + \
@@ -210,6 +214,8 @@ CASES = [
     ("toml-duration-huge", ["generate", "huge.toml", "--out", "g/"], 2, "needs about"),
     # 7. silent acceptance of bad numbers
     ("imu-nan", ["ins", "nan.imu.h5", "--json", "--init-llh", "41", "2", "50"], 2, "not a finite number"),
+    ("sidecar-without-prns", P + ["noprn.ci8", "--mode", "ultratight", "--imu", "v.imu.h5"], 2,
+     "the scalar pass over 12 s"),
     ("imu-stamps-shifted", P + ["v.ci8", "--mode", "ultratight", "--imu", "shift.imu.h5"], 2, "time offset"),
     ("ut-iono-flag", P + ["v.ci8", "--mode", "ultratight", "--imu", "v.imu.h5", "--iono", "off"], 2,
      "--iono/--tropo not supported with --mode ultratight"),
@@ -339,6 +345,29 @@ def test_imu_shorter_than_the_recording_is_a_warning(work):
         t_end = float(f["t"][-1])
     assert summ["duration_s"] <= t_end + 1e-9 and summ["duration_s"] > 0.5 * t_end, (summ["duration_s"], t_end)
     assert summ["warnings"] == [lines[0].split("warning: ", 1)[1]]
+    assert snapshot(work) == before
+
+
+def test_unhealthy_satellite_is_skipped_with_a_warning(work):
+    """13. a navigation file that marks one of the sidecar's PRNs unhealthy (SV health 63): that
+    satellite is skipped with one warning line naming its health, the others are tracked."""
+    import dataclasses
+
+    from ultratight.receiver.io.rinex_out import write_rinex_nav
+    from ultratight.signals.constellation import nominal_ephemerides
+    side = json.loads((work / "v.ci8.json").read_text())
+    ephs = nominal_ephemerides(side["start_week"], side["start_tow_s"])
+    sick = int(side["prn"][0])
+    write_rinex_nav(work / "sick.rnx", [dataclasses.replace(e, sv_health=63) if p == sick else e
+                                        for p, e in ephs.items()])
+    before = snapshot(work)
+    res = cli(P + ["v.ci8", "--mode", "ultratight", "--imu", "v.imu.h5", "--ephemeris", "sick.rnx", "--json"], work)
+    assert "Traceback" not in res.stderr
+    assert res.returncode == 0, res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and f"PRN {sick} (SV health 63)" in lines[0], res.stderr
+    summ = _strict_json(res.stdout)
+    assert sick not in summ["prns"] and sorted(summ["prns"]) == sorted(int(p) for p in side["prn"][1:])
     assert snapshot(work) == before
 
 

@@ -108,7 +108,7 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
         (``init-flags``);
       - the IMU file's truth at t0 perturbed by ``startup_errors`` (seeded by ``seed``; the hot
         start never uses the truth itself) — the default (``auto``) for generator files with
-        truth and ``start_s`` = 0 (``truth-perturbed``);
+        truth, a PRN list and ``start_s`` = 0 (``truth-perturbed``);
       - otherwise the scalar receiver's first fixes from ``start_s`` on (``scalar-fix``,
         :func:`ultratight.receiver.deep.handover.scalar_handover`, configured by ``handover``), the
         flags in ``init_overrides`` replacing their part.
@@ -137,6 +137,7 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
     nav, ephs = _file_ephemerides(if_path, nav_path, gen_cfg, week, tow0)
     if prns is None:
         prns = side.get("prn")
+    prns = _drop_unhealthy(nav, prns, week, tow0, warnings)
     start_s = float(start_s or 0.0)
     if not 0.0 <= start_s < dur:
         raise ConfigError(f"--start {start_s:g} s is outside the usable record (0 .. {dur:.3f} s)")
@@ -145,10 +146,12 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
         src, imu, imu_path, nav if nav is not None else ephs, ephs, prns, startup, init_state,
         dict(init_overrides or {}), start_s, handover, gen_cfg, startup_errors, rng)
     if not prns:
-        raise ConfigError(f"{if_path}: no PRN list in the sidecar: give the PRNs to track (--prn)")
+        raise ConfigError(f"{if_path}: no PRNs to track: the sidecar lists none and the start-up found none "
+                          "(give them with --prn)")
     missing = [p for p in prns if p not in ephs]
     if missing:
-        raise ConfigError(f"no ephemeris for PRN {missing}")
+        raise ConfigError(f"no ephemeris for PRN {missing} at the IF start (week {week}, TOW {tow0:.3f} s) in "
+                          f"{nav_path if nav_path is not None else 'the nominal constellation'}")
     file_start = {"week": int(week), "tow_s": float(tow0)}
     if t_h > 0.0:
         src, imu, t_h = _from_handover(src, imu, t_h, dur)
@@ -198,6 +201,23 @@ def _note_start(res, t_h, source, hand, file_start):
     res.info["if_file_start"] = file_start          # the result's times count from this receiver time
 
 
+def _drop_unhealthy(nav, prns, week, tow0, warnings):
+    """``prns`` without the satellites whose only ephemerides at the start the navigation file marks
+    unhealthy (one warning line naming each and its 6-bit SV health); ``prns`` as given otherwise."""
+    if nav is None or not prns:
+        return prns
+    sick = {}
+    for p in prns:
+        if nav.select(int(p), week, tow0, True) is None:
+            e = nav.select(int(p), week, tow0, False)
+            if e is not None:
+                sick[int(p)] = int(e.sv_health)
+    if sick:
+        warnings.append("skipped as unhealthy in the navigation file: " +
+                        ", ".join(f"PRN {p} (SV health {h})" for p, h in sick.items()))
+    return [p for p in prns if int(p) not in sick]
+
+
 def _file_ephemerides(if_path, nav_path, gen_cfg, week, tow0):
     """``(nav, ephs)`` of a recording: the RINEX file's ephemerides valid at the start (``nav`` the
     parsed file) or, for a generator file on the nominal constellation, the nominal ones (``nav``
@@ -226,7 +246,8 @@ def _startup(src, imu, imu_path, nav_or_ephs, ephs, prns, startup, init_state, o
     elif all(k in overrides for k in ("llh", "vel_l", "q_lb")):
         hand = ho.flags_state(overrides, start_s)
         source = ho.STARTUP_FLAGS
-    elif startup == ho.STARTUP_TRUTH or (startup == "auto" and has_truth and start_s == 0.0 and not overrides):
+    elif startup == ho.STARTUP_TRUTH or (startup == "auto" and has_truth and start_s == 0.0 and not overrides
+                                         and prns):
         if not has_truth:
             raise ConfigError(f"{imu_path}: start-up {ho.STARTUP_TRUTH} needs the truth in the IMU file (none here)")
         if start_s != 0.0:
