@@ -104,8 +104,10 @@ def test_spline_follows_the_closed_form_circle(circle_traj):
 
 def test_spline_is_c2_at_the_knots(circle_traj):
     knots = circle_traj.breakpoints()
-    assert knots.size == 599                    # interior samples of a 10 Hz, 60 s file
-    tk = knots[100:110]
+    # interior samples of a 10 Hz, 60 s file (599), each interval halved by the 0.05 s grid of the
+    # attitude along the velocity (docs/trajectory-files.md)
+    assert knots.size == 1199 and np.allclose(knots[1::2], np.arange(1, 600) * 0.1, atol=1e-9)
+    tk = knots[1::2][100:110]
     lo = circle_traj.local_motion(tk - 1e-7)
     hi = circle_traj.local_motion(tk + 1e-7)
     assert np.max(np.abs(hi[2] - lo[2])) < 1e-5          # acceleration continuous

@@ -34,7 +34,10 @@ Trajectory kinds (``[trajectory]`` table of a scenario, see docs/ins.md):
   ``smoothing_hz`` (default 1 Hz; 0 = interpolating); see :mod:`ultratight.ins.trajfile` and
   docs/trajectory-files.md.  The start point is the file's first position (``[receiver]``
   lat/lon/h are not used); attitude ``"file"`` (the file's Euler angles, the default when it
-  has them) or ``"velocity"`` (the default otherwise) or ``"fixed"``.
+  has them) or ``"velocity"`` (the default otherwise) or ``"fixed"``.  Along the velocity the
+  attitude is held at rest: the velocity gives it only above ``hold_speed_mps`` (default 0.5 m/s),
+  the changes between held and along the velocity are slews limited by ``slew_rate_dps`` and
+  ``slew_accel_dps2`` (:func:`ultratight.ins.trajfile.held_velocity_attitude`).
 * ``"turns"``: horizontal ground/air vehicle.  ``speed0_mps``, ``heading0_deg``
   (clockwise from north); ``segments = [{t0, turn_rate_dps, acc_mps2 | speed_mps}]``:
   constant turn rate (positive = turning right, heading increasing) and
@@ -74,7 +77,7 @@ from ultratight.ins.earth import (dcm_ecef_from_enu, dcm_ecef_from_enu_vec, ecef
 KINDS = ("static", "segments", "turns", "swing", "file")
 ATTITUDE_MODES = ("velocity", "fixed", "rates", "swing", "file")
 # keys of the [trajectory] table beyond the scenario schema's own list (kind = "file")
-CONFIG_KEYS = ("path", "frame", "smoothing_hz")
+CONFIG_KEYS = ("path", "frame", "smoothing_hz", "hold_speed_mps", "slew_rate_dps", "slew_accel_dps2")
 # swinging-base defaults (a choice of this project; Sun et al. 2012 give none): [roll, pitch, yaw]
 SWING_AMP_DEG = (10.0, 8.0, 5.0)
 SWING_PERIOD_S = (8.0, 6.0, 10.0)
@@ -142,8 +145,12 @@ class Trajectory:
         self.swing_amp = np.zeros(3)
         self.swing_w = np.zeros(3)
         self.swing_phase = np.zeros(3)
-        # file kind: the smoothed position log (ultratight.ins.trajfile.FileMotion)
+        # file kind: the smoothed position log (ultratight.ins.trajfile.FileMotion) and, along the
+        # velocity, the spline of the held / slewed Euler angles w.r.t. l0 and its knots
         self.file_motion = None
+        self.held_att = None
+        self.held_att_rate = None
+        self.held_att_knots = np.zeros(0)
 
     # ------------------------------------------------------------------ local-frame motion
     def _seg_index(self, t, t0s):
@@ -216,6 +223,9 @@ class Trajectory:
             return self._swing_attitude(t)
         if self.attitude_mode == "file":
             return self._file_attitude(t, motion)
+        if self.held_att is not None:
+            tt = np.clip(t, 0.0, self.file_motion.duration_s)
+            return _euler_attitude(self.held_att(tt), self.held_att_rate(tt))
         if self.attitude_mode == "rates":
             i = self._seg_index(t, self.rate_t0)
             dt = (t - self.rate_t0[i])[:, None]
@@ -332,7 +342,7 @@ class Trajectory:
         """Times (s) where acceleration or angular rate may be discontinuous."""
         if self.kind == "file":
             # C2 spline: acceleration continuous, jerk steps at the knots
-            k = self.file_motion.knots
+            k = np.union1d(self.file_motion.knots, self.held_att_knots)
             return k[(k > 0.0) & (k < self.duration_s)].copy()
         tb = list(self.seg_t0[1:])
         if self.attitude_mode == "rates":
@@ -435,6 +445,8 @@ def build_trajectory(traj_cfg, receiver_cfg, duration_s):
     if kind == "file":
         tr.file_motion = fmotion
         tr.seg_t0 = np.zeros(1)
+        if mode == "velocity":
+            _set_held_attitude(tr, traj_cfg)
     elif kind == "static":
         if mode == "velocity":
             tr.attitude_mode = "fixed"
@@ -489,6 +501,23 @@ def _attitude_mode(kind, traj_cfg, fmotion):
     if mode not in ATTITUDE_MODES:
         raise ConfigError(f"trajectory.attitude must be one of {', '.join(ATTITUDE_MODES)}; got {mode!r}")
     return mode
+
+
+def _set_held_attitude(tr, traj_cfg):
+    """Attitude along the file's velocity with holds at rest (``hold_speed_mps``, ``slew_rate_dps``,
+    ``slew_accel_dps2``); before the first motion ``att0_deg`` when the table gives it."""
+    from ultratight.ins import trajfile as tf
+
+    lim = {}
+    for key, default in (("hold_speed_mps", tf.DEFAULT_HOLD_SPEED_MPS), ("slew_rate_dps", tf.DEFAULT_SLEW_RATE_DPS),
+                         ("slew_accel_dps2", tf.DEFAULT_SLEW_ACCEL_DPS2)):
+        lim[key] = _num(traj_cfg.get(key, default), key)
+        if not lim[key] > 0.0:
+            raise ConfigError(f"trajectory.{key} must be > 0, got {lim[key]}")
+    att0 = tr.att0 if "att0_deg" in traj_cfg else None
+    spline, grid = tf.held_velocity_attitude(tr.file_motion, att0, lim["hold_speed_mps"], lim["slew_rate_dps"],
+                                             lim["slew_accel_dps2"])
+    tr.held_att, tr.held_att_rate, tr.held_att_knots = spline, spline.derivative(1), grid
 
 
 def _set_swing(tr, traj_cfg):

@@ -15,7 +15,15 @@ Formats (``[trajectory] kind = "file"``, docs/trajectory-files.md):
 
 Checks (one-line :class:`ultratight.errors.InputFileError` naming the file and line): numbers
 finite, times strictly increasing, at least 4 points, intervals at most 1 s (>= 1 Hz), positions
-plausible (|r| between 6.0e6 and 5.0e7 m, latitude within +-90 deg).
+plausible (|r| between 6.0e6 and 5.0e7 m, latitude within +-90 deg), physics: no speed between two
+positions above :data:`MAX_SPEED_MPS` (20 km/s, the limit of ``ultratight ins --init-vel``) and no
+acceleration of the smoothed path above :data:`MAX_ACCEL_MPS2` (100 g).
+
+Attitude along the velocity (``attitude = "velocity"``, :func:`held_velocity_attitude`): the
+velocity gives the attitude only above ``hold_speed_mps`` (horizontal speed for the yaw); below it
+the attitude is held, and the changes between "held" and "along the velocity" are rate- and
+acceleration-limited (``slew_rate_dps``, ``slew_accel_dps2``), so a vehicle at rest, or a parked
+one whose positions jitter, keeps a steady attitude and bounded, continuous body rates.
 
 Smoothing: each l0 (ENU at the first point) coordinate, and each given Euler angle (yaw
 unwrapped), is fitted by the cubic smoothing spline of :func:`scipy.interpolate.make_smoothing_spline`
@@ -42,6 +50,14 @@ DEFAULT_SMOOTHING_HZ = 1.0
 MAX_INTERVAL_S = 1.0          # >= 1 Hz
 MIN_POINTS = 4
 R_MIN_M, R_MAX_M = 6.0e6, 5.0e7
+MAX_SPEED_MPS = 20000.0       # no vehicle (nor ultratight ins --init-vel) goes faster
+MAX_ACCEL_MPS2 = 100.0 * 9.80665
+# attitude along the velocity: the hold threshold and the limits of the slews in and out of a hold
+DEFAULT_HOLD_SPEED_MPS = 0.5
+DEFAULT_SLEW_RATE_DPS = 20.0
+DEFAULT_SLEW_ACCEL_DPS2 = 40.0
+ATTITUDE_STEP_S = 0.05        # grid of the attitude profile (the file's knots, subdivided)
+_SLEW_BANDWIDTH = 1.0         # rad/s: linear region of the slew servo (critically damped, poles -2)
 
 _HEADER_NAMES = {
     "t": ("t", "t_s", "time", "time_s"),
@@ -222,7 +238,14 @@ def read_position_log(path, frame="ecef"):
         i = int(badr[0])
         raise _err(path, lines[i], f"position {pos_e[i].tolist()} m is {r[i] / 1e3:.1f} km from the Earth's "
                    f"centre (expected {R_MIN_M / 1e3:.0f}..{R_MAX_M / 1e3:.0f} km: wrong frame or units?)")
-    return PositionLog(path, t - t[0], np.asarray(pos_e, float), euler, float(t[0]), lines, fmt)
+    pos_e = np.asarray(pos_e, float)
+    speed = np.linalg.norm(np.diff(pos_e, axis=0), axis=1) / d
+    fast = np.flatnonzero(speed > MAX_SPEED_MPS)
+    if fast.size:
+        i = int(fast[0]) + 1
+        raise _err(path, lines[i], f"speed {speed[i - 1]:.6g} m/s from t = {t[i - 1]:.9g} s to t = {t[i]:.9g} s is "
+                   f"above {MAX_SPEED_MPS:g} m/s (no vehicle moves that fast: a jump in the positions?)")
+    return PositionLog(path, t - t[0], pos_e, euler, float(t[0]), lines, fmt)
 
 
 def smoothing_lam(t, smoothing_hz):
@@ -268,6 +291,21 @@ class FileMotion:
             self.att_rate = self.att.derivative(1)
         self.duration_s = float(log.t[-1])
         self.knots = np.asarray(log.t, float)
+        self._check_acceleration()
+
+    def _check_acceleration(self):
+        """InputFileError when the smoothed path accelerates beyond :data:`MAX_ACCEL_MPS2` (at the
+        knots and half-way between them, where a cubic's acceleration peaks are caught)."""
+        k = self.knots
+        tq = np.sort(np.concatenate([k, 0.5 * (k[1:] + k[:-1])]))
+        acc = np.linalg.norm(self.derivs[1](tq), axis=1)
+        bad = np.flatnonzero(acc > MAX_ACCEL_MPS2)
+        if bad.size:
+            i = int(bad[0])
+            j = int(np.argmin(np.abs(k - tq[i])))
+            raise _err(self.log.path, self.log.lines[j],
+                       f"acceleration {acc[i]:.6g} m/s^2 ({acc[i] / 9.80665:.4g} g) of the smoothed path at t = "
+                       f"{tq[i]:.6g} s is above {MAX_ACCEL_MPS2 / 9.80665:g} g (no vehicle accelerates so hard)")
 
     def motion(self, t):
         t = np.clip(np.atleast_1d(np.asarray(t, float)), 0.0, self.duration_s)
@@ -276,3 +314,98 @@ class FileMotion:
     def euler(self, t):
         t = np.clip(np.atleast_1d(np.asarray(t, float)), 0.0, self.duration_s)
         return self.att(t), self.att_rate(t)
+
+
+def velocity_euler(v, a):
+    """Euler angles [0, pitch, yaw] (rad) of the direction of ``v`` (l0, (n, 3)) and their rates with
+    ``a`` = dv/dt, plus the speed and the horizontal speed (n,).  Undefined directions give 0."""
+    vh = np.hypot(v[:, 0], v[:, 1])
+    speed = np.linalg.norm(v, axis=1)
+    vh_s = np.where(vh > 0.0, vh, 1.0)
+    sp_s = np.where(speed > 0.0, speed, 1.0)
+    e = np.zeros_like(v)
+    de = np.zeros_like(v)
+    e[:, 1] = np.arctan2(v[:, 2], vh)
+    e[:, 2] = np.arctan2(v[:, 0], v[:, 1])
+    vh_dot = np.where(vh > 0.0, (v[:, 0] * a[:, 0] + v[:, 1] * a[:, 1]) / vh_s, 0.0)
+    de[:, 1] = np.where(speed > 0.0, (vh * a[:, 2] - v[:, 2] * vh_dot) / sp_s ** 2, 0.0)
+    de[:, 2] = np.where(vh > 0.0, (v[:, 1] * a[:, 0] - v[:, 0] * a[:, 1]) / vh_s ** 2, 0.0)
+    return e, de, speed, vh
+
+
+def attitude_grid(knots, step=ATTITUDE_STEP_S):
+    """The knots with every interval longer than ``step`` cut into equal parts no longer than it."""
+    d = np.diff(knots)
+    m = np.maximum(1, np.ceil(d / step - 1e-9).astype(int))
+    i = np.repeat(np.arange(d.size), m)
+    j = np.arange(i.size) - np.repeat(np.cumsum(m) - m, m)
+    return np.append(knots[:-1][i] + d[i] * j / m[i], knots[-1])
+
+
+def _slew(t, tgt, dtgt, moving, hold0, wrap, rate, acc):
+    """One Euler angle along ``t``: the target ``tgt`` (rate ``dtgt``) where ``moving``, else the
+    held value (``hold0`` before the first motion, then the angle at the last stop).  The angle is
+    target + c; c jumps at a switch so that angle and rate stay continuous, then returns to 0 with
+    |dc/dt| <= max(rate, its value at the switch) and |d2c/dt2| <= acc.  Returns angle and rate."""
+    n = t.size
+    E, dE = np.empty(n), np.empty(n)
+    k_gain = 4.0 * _SLEW_BANDWIDTH
+    mov = bool(moving[0])
+    h, off = float(hold0), 0.0
+    if mov and wrap:
+        off = 2.0 * math.pi * round((h - tgt[0]) / (2.0 * math.pi))
+    T, dT = (tgt[0] + off, dtgt[0]) if mov else (h, 0.0)
+    c = dc = 0.0
+    E[0], dE[0] = T, dT
+    for k in range(n - 1):
+        if c != 0.0 or dc != 0.0:
+            dt = t[k + 1] - t[k]
+            want = min(max(-_SLEW_BANDWIDTH * c, -rate), rate)
+            dc += min(max(k_gain * (want - dc), -acc), acc) * dt
+            c += dc * dt
+            if abs(c) < 1e-12 and abs(dc) < 1e-12:
+                c = dc = 0.0
+        if mov:
+            Tn = tgt[k + 1] + off
+            if wrap and abs(Tn - T) > math.pi:
+                off += 2.0 * math.pi * round((T - Tn) / (2.0 * math.pi))
+                Tn = tgt[k + 1] + off
+            T, dT = Tn, dtgt[k + 1]
+        if bool(moving[k + 1]) != mov:
+            En, dEn = T + c, dT + dc
+            mov = not mov
+            if mov:
+                off = 2.0 * math.pi * round((En - tgt[k + 1]) / (2.0 * math.pi)) if wrap else 0.0
+                T, dT = tgt[k + 1] + off, dtgt[k + 1]
+            else:
+                h = En
+                T, dT = h, 0.0
+            c, dc = En - T, dEn - dT
+        E[k + 1], dE[k + 1] = T + c, dT + dc
+    return E, dE
+
+
+def held_velocity_attitude(fm, att0=None, hold_speed=DEFAULT_HOLD_SPEED_MPS, slew_rate_dps=DEFAULT_SLEW_RATE_DPS,
+                           slew_accel_dps2=DEFAULT_SLEW_ACCEL_DPS2):
+    """Euler angles [roll, pitch, yaw] w.r.t. l0 of a :class:`FileMotion` "along the velocity" with
+    holds at rest (module doc), as a C2 cubic spline on :func:`attitude_grid` of the file's knots.
+
+    Pitch and roll follow the velocity above ``hold_speed`` (m/s), yaw above ``hold_speed`` of
+    horizontal speed (a vertical climb keeps its yaw); roll is 0 along the velocity.  Before the
+    first motion the angles are ``att0`` (rad) when given, else those of the first motion.
+    Returns the spline (its ``derivative()`` gives the rates) and the grid."""
+    grid = attitude_grid(fm.knots)
+    _, v, a, _ = fm.motion(grid)
+    tgt, dtgt, speed, vh = velocity_euler(v, a)
+    moving = np.stack([speed > hold_speed, speed > hold_speed, vh > hold_speed], axis=1)
+    rate, acc = math.radians(slew_rate_dps), math.radians(slew_accel_dps2)
+    E, dE = np.empty_like(tgt), np.empty_like(tgt)
+    for j in range(3):
+        if att0 is not None:
+            h0 = float(att0[j])
+        else:
+            first = np.flatnonzero(moving[:, j])
+            h0 = float(tgt[first[0], j]) if first.size else 0.0
+        E[:, j], dE[:, j] = _slew(grid, tgt[:, j], dtgt[:, j], moving[:, j], h0, j == 2, rate, acc)
+    spline = make_interp_spline(grid, E, k=3, bc_type=([(1, dE[0])], [(1, dE[-1])]))
+    return spline, grid
