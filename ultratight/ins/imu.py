@@ -11,7 +11,9 @@ Ideal increments are computed from the analytic trajectory by 8-point
 Gauss-Legendre quadrature per interval (split at the trajectory's segment
 breakpoints), with the specific force ``f_b = C_bl (C_le a_e + 2 omega_ie x v_l - g_l)``
 using the same normal gravity :func:`ultratight.ins.earth.gravity_l` as the
-mechanisation, so an error-free SINS reproduces the trajectory.
+mechanisation, so an error-free SINS reproduces the trajectory.  The ideal increments are checked
+against the sensor range (:func:`check_limits`: ``gyro_range_dps``, ``accel_range_g``,
+``angular_accel_max_dps2`` of the ``[imu]`` table, defaults 2000 deg/s, 50 g, 5e4 deg/s^2).
 
 Sensor error model per axis (all in SI inside, see :class:`ImuErrors`)::
 
@@ -67,6 +69,10 @@ class ImuErrors:
     gyro_quant: float = 0.0                                                   # rad per LSB of dtheta
     accel_quant: float = 0.0                                                  # m/s per LSB of dv
     preset: str = "custom"
+    # sensor range (check_limits): angular rate (rad/s), specific force (m/s^2), angular acceleration
+    gyro_range: float = math.radians(2000.0)
+    accel_range: float = 50.0 * 9.80665
+    angular_accel_max: float = math.radians(5.0e4)
 
     def is_ideal(self):
         arrs = [self.gyro_bias, self.accel_bias, self.gyro_arw, self.accel_vrw, self.gyro_gm_sigma,
@@ -108,8 +114,11 @@ CONFIG_KEYS = {
     "preset", "rate_hz", "gyro_bias_dph", "accel_bias_ug", "gyro_noise_dph", "gyro_arw_dprh",
     "accel_noise_ug", "accel_vrw_ugrhz", "gyro_bi_dph", "gyro_bi_tau_s", "accel_bi_ug", "accel_bi_tau_s",
     "gyro_sf_ppm", "accel_sf_ppm", "gyro_misalign_mrad", "accel_misalign_mrad", "gyro_quant_urad",
-    "accel_quant_mmps", "seed", "file", "lever_arm_m",
+    "accel_quant_mmps", "seed", "file", "lever_arm_m", "gyro_range_dps", "accel_range_g", "angular_accel_max_dps2",
 }
+# sensor range defaults (datasheet units): a MEMS gyro's +-2000 deg/s, a +-50 g accelerometer, and an
+# angular acceleration no vehicle body reaches (the rate steps of the "turns" kind at 100 Hz: ~4e3)
+RANGE_DEFAULTS = {"gyro_range_dps": 2000.0, "accel_range_g": 50.0, "angular_accel_max_dps2": 5.0e4}
 
 
 def _axes(value, key):
@@ -188,7 +197,39 @@ def imu_errors_from_config(imu_cfg):
     e.accel_quant = float(cfg.get("accel_quant_mmps", 0.0)) * 1e-3
     if e.gyro_quant < 0 or e.accel_quant < 0:
         raise ConfigError("imu: quantisation steps must be >= 0")
+    rng_cfg = {k: cfg.get(k, v) for k, v in RANGE_DEFAULTS.items()}
+    for k, v in rng_cfg.items():
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
+            raise ConfigError(f"imu.{k} must be a number > 0, got {v!r}")
+    e.gyro_range = math.radians(float(rng_cfg["gyro_range_dps"]))
+    e.accel_range = float(rng_cfg["accel_range_g"]) * G0
+    e.angular_accel_max = math.radians(float(rng_cfg["angular_accel_max_dps2"]))
     return e
+
+
+def check_limits(dtheta, dv, rate_hz, errors=None):
+    """ConfigError (one line: the time and the value) when ideal increments at ``rate_hz`` exceed the
+    sensor range of ``errors`` (defaults of :class:`ImuErrors` when None): the mean angular rate
+    or specific force of an interval on a body axis, or the change of the mean rate between two
+    intervals per second (angular acceleration).  A trajectory beyond them is no vehicle's."""
+    lim = errors if errors is not None else ImuErrors()
+    w = np.asarray(dtheta) * rate_hz
+    f = np.asarray(dv) * rate_hz
+    alpha = np.diff(w, axis=0) * rate_hz
+    checks = (("angular rate", w, lim.gyro_range, math.degrees(1.0), "deg/s", "gyro range", "gyro_range_dps"),
+              ("specific force", f, lim.accel_range, 1.0 / G0, "g", "accelerometer range", "accel_range_g"),
+              ("angular acceleration", alpha, lim.angular_accel_max, math.degrees(1.0), "deg/s^2",
+               "angular acceleration limit", "angular_accel_max_dps2"))
+    for name, x, top, unit, uname, what, key in checks:
+        if x.size == 0:
+            continue
+        over = np.flatnonzero(np.max(np.abs(x), axis=1) > top)
+        if over.size:
+            k = int(over[0])
+            ax = int(np.argmax(np.abs(x[k])))
+            raise ConfigError(f"IMU {name} {x[k, ax] * unit:.6g} {uname} on body axis {'xyz'[ax]} at t = "
+                              f"{(k + 1) / rate_hz:.6g} s is beyond the {what} {top * unit:.6g} {uname} "
+                              f"(imu.{key}): the trajectory is no vehicle's")
 
 
 # ------------------------------------------------------------------ synthesis
@@ -323,7 +364,8 @@ def apply_errors(dtheta, dv, errors, rng, dt):
 def synthesize_imu(traj, rate_hz, errors=None, rng=None, duration_s=None, with_truth=True, lever_arm_b=None):
     """IMU increments along ``traj`` at ``rate_hz`` with ``errors`` (None = ideal).
 
-    ``rng``: numpy Generator (required when the errors are random).  Returns :class:`ImuData`
+    ``rng``: numpy Generator (required when the errors are random).  The ideal increments are checked
+    against the sensor range of ``errors`` (:func:`check_limits`, ConfigError beyond it).  Returns :class:`ImuData`
     whose ``truth`` holds t, llh, vel_l, q_lb at the interval edges (t0 = 0 and every t[k]).
     ``lever_arm_b`` (FLU, m): the IMU sits at ``antenna - C_eb l`` where ``traj`` is the
     antenna's path; the increments and ``truth`` (llh, vel_l, q_lb) are then the IMU point's,
@@ -342,6 +384,7 @@ def synthesize_imu(traj, rate_hz, errors=None, rng=None, duration_s=None, with_t
         raise ConfigError(f"IMU run of {duration} s at {rate_hz} Hz has no samples")
     edges = np.arange(n + 1) / rate_hz
     dth, dv = ideal_increments(traj, edges, lever)
+    check_limits(dth, dv, rate_hz, errors)
     if errors is not None and not errors.is_ideal():
         dth, dv = apply_errors(dth, dv, errors, rng, 1.0 / rate_hz)
     truth = None
