@@ -458,8 +458,14 @@ def long_rec(tmp_path_factory):
 
 def _run_and_signal(argv, cwd, sig, ready, max_wait=120.0):
     """Start the CLI, wait until ``ready(pid)`` (work under way), send ``sig``; returns (rc, stderr)."""
+    def default_sighup():
+        # a test run started under nohup passes SIGHUP on as ignored, and the CLI then keeps ignoring
+        # it (as it should): the child gets a terminal's default disposition
+        if hasattr(signal, "SIGHUP"):
+            signal.signal(signal.SIGHUP, signal.SIG_DFL)
     p = subprocess.Popen([sys.executable, "-m", "ultratight.receiver.cli", *argv], cwd=cwd,
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=default_sighup if hasattr(os, "fork") else None)
     t0 = time.monotonic()
     while p.poll() is None and not ready(p.pid) and time.monotonic() - t0 < max_wait:
         time.sleep(0.05)
