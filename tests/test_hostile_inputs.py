@@ -522,6 +522,27 @@ def test_sigterm_during_scalar_process_leaves_a_marked_partial_output(long_rec, 
     assert snapshot(long_rec) == before
 
 
+@pytest.mark.parametrize("where", ["opening the RINEX writer", "before the run loop"])
+def test_interruption_while_the_outputs_open_leaves_no_temporary_file(work, monkeypatch, where):
+    """An interruption that lands after the HDF5 stream's temporary file exists but before the run
+    loop's cleanup takes over (the window a SIGTERM hit once): the temporary files go."""
+    from ultratight.receiver.scalar import receiver as rx_mod
+    from ultratight.receiver.scalar import recording
+
+    def interrupt(*a, **k):
+        raise KeyboardInterrupt
+    if where == "opening the RINEX writer":
+        monkeypatch.setattr(recording, "RinexObsWriter", interrupt)
+    else:
+        monkeypatch.setattr(rx_mod, "_progress_bar", interrupt)
+    before = snapshot(work)
+    with pytest.raises(KeyboardInterrupt):
+        rx_mod.process(str(work / "v.ci8"), out_path=work / "p.h5", rinex_obs_path=work / "p.obs", progress=True)
+    assert not leftovers(work), leftovers(work)
+    assert not (work / "p.h5").exists() and not (work / "p.obs").exists()
+    assert snapshot(work) == before
+
+
 @pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="needs /proc/PID/maps")
 def test_sighup_and_sigterm_during_ultratight_process(long_rec, tmp_path):
     for f in ("v.ci8", "v.ci8.json", "v.imu.h5"):

@@ -32,14 +32,19 @@ class H5Stream:
             raise InputFileError(f"output directory does not exist: {self.path.parent}")
         self._staged = StagedFile(self.path)
         self.tmp = self._staged.tmp
+        self.f = None
         try:
             # no raw-data chunk cache: rows are appended once and never re-read, and HDF5's cache
             # otherwise keeps ~the written volume resident (measured: +64 MB for 80 MB written)
             self.f = h5py.File(self.tmp, "w", rdcc_nbytes=0)
-        except OSError as exc:
-            raise InputFileError(f"cannot create output {self.path}: {exc}") from None
-        self.f.attrs["version"] = __version__
-        self.f.attrs["complete"] = False
+            self.f.attrs["version"] = __version__
+            self.f.attrs["complete"] = False
+        except BaseException as exc:
+            # also an interruption that lands here: the temporary file never outlives the constructor
+            self.abort()
+            if isinstance(exc, OSError):
+                raise InputFileError(f"cannot create output {self.path}: {exc}") from None
+            raise
         self._pending = {}
         self._pending_rows = {}
         self._ds = {}
@@ -102,8 +107,10 @@ class H5Stream:
         self._staged.commit()
 
     def abort(self):
+        """Close and remove the temporary file (the target is left as it was)."""
         try:
-            self.f.close()
+            if self.f is not None:
+                self.f.close()
         except Exception:   # noqa: BLE001 - best effort cleanup
             pass
         self._staged.discard()

@@ -72,12 +72,12 @@ class RinexObsWriter:
         self.interval_s = float(interval_s)
         self.comments = list(comments)
         self.marker = marker
-        self.body = tmp_name(self.path.with_name(self.path.name + ".body"))   # the epochs, before the header
-        self.f = open(self.body, "w")
         self.first = None
         self.last = None
         self.n_epochs = 0
         self.locked = {}          # prn -> phase continuously locked up to the previous epoch
+        self.body = tmp_name(self.path.with_name(self.path.name + ".body"))   # the epochs, before the header
+        self.f = open(self.body, "w")          # last: nothing after it can leave the file behind
 
     def add_epoch(self, week, tow_s, sats):
         """One epoch: ``sats`` = list of dicts prn, pr_m, phase_cycles, doppler_hz, cn0_dbhz,

@@ -314,13 +314,23 @@ class ScalarReceiver:
         """Run the pipeline over the file; arguments as :func:`process`."""
         t_wall0 = time.perf_counter()
         self.acq = acquire_signals(self.source, self.cfg, self.start_sample, assist, self.signal)
-        self._build(self.acq, out_path, rinex_obs_path)
-        self.fixes, self.observations = [], []
-        self.n_blocks_done = 0
-        result = ProcessResult(self.input_info, self.acq, [], self.fixes, self.observations,
-                               out_path=str(out_path) if out_path else None, epochs=self.recorder.epochs)
-        result.corrections = self.pvt.corrections
-        bar = _progress_bar(self.stop - self.start_sample, self.fs) if progress else None
+        self.recorder = None
+        bar = None
+        try:
+            self._build(self.acq, out_path, rinex_obs_path)
+            self.fixes, self.observations = [], []
+            self.n_blocks_done = 0
+            result = ProcessResult(self.input_info, self.acq, [], self.fixes, self.observations,
+                                   out_path=str(out_path) if out_path else None, epochs=self.recorder.epochs)
+            result.corrections = self.pvt.corrections
+            bar = _progress_bar(self.stop - self.start_sample, self.fs) if progress else None
+        except BaseException:
+            # an error or an interruption before the run loop: the outputs opened so far go
+            if self.recorder is not None:
+                self.recorder.abort()
+            if bar is not None:
+                bar.close()
+            raise
         done_s = 0.0
         complete = False
         try:

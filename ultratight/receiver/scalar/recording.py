@@ -39,10 +39,24 @@ class Recorder:
 
     def __init__(self, out_path, rinex_obs_path, cfg, source, prns):
         self.n_ch = len(prns)
+        self.writer = None
+        self.rinex_obs = None
+        try:
+            self._open(out_path, rinex_obs_path, cfg, source, prns)
+        except BaseException:
+            self.abort()        # an error or an interruption while opening: no temporary file stays
+            raise
+
+    def abort(self):
+        """Remove the outputs' temporary files (the targets are left as they were)."""
+        for w in (self.writer, self.rinex_obs):
+            if w is not None:
+                w.abort()
+
+    def _open(self, out_path, rinex_obs_path, cfg, source, prns):
         self.writer = H5Stream(out_path) if out_path else None
         self.epochs = {p: {k: [] for k in self.EPOCH_KEYS} for p in prns} if cfg.record_epochs else {}
         self.restarts = [0] * len(prns)        # re-acquisitions per channel at the previous RINEX epoch
-        self.rinex_obs = None
         if rinex_obs_path:
             self.rinex_obs = RinexObsWriter(rinex_obs_path, 1.0 / cfg.obs_rate_hz, comments=[
                 f"ultratight {__version__} process: iono={cfg.iono} tropo={cfg.tropo} "
