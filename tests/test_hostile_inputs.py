@@ -196,6 +196,8 @@ CASES = [
      2, "refusing to overwrite an input"),
     ("rinex-obs-is-bit-file", P + ["v.ci8", "--mode", "ultratight", "--imu", "v.imu.h5", "--bits", "b.csv",
                                    "--rinex-obs", "b.csv"], 2, "refusing to overwrite an input"),
+    ("csv-is-absent-imu-sidecar", P + ["v.ci8", "--mode", "ultratight", "--imu", "v.imu.h5", "--csv",
+                                       "v.imu.h5.json"], 2, "refusing to write an output there"),
     ("nmea-is-imu-sidecar", P + ["v.ci8", "--mode", "ultratight", "--imu", "d.imu.h5", "--nmea", "d.imu.h5.json"],
      2, "refusing to overwrite an input"),
     # 2. outputs found bad only after the run

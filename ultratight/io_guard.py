@@ -318,9 +318,10 @@ def check_output_path(path, flag="--out", create_parent=False):
     return p
 
 
-def check_io(inputs=(), outputs=(), create_parents=False):
+def check_io(inputs=(), outputs=(), create_parents=False, companions=()):
     """Check a command's paths before it starts (module doc). ``inputs``/``outputs``: iterables of
-    ``(flag, path)``; ``None`` paths are skipped. Outputs may not equal an input or each other."""
+    ``(flag, path)``; ``None`` paths are skipped. Outputs may not equal an input or each other, nor a
+    companion file the command reads when present (``companions``: a sidecar), even while it is absent."""
     ins = [(f, p) for f, p in inputs if p is not None]
     outs = [(f, p) for f, p in outputs if p is not None]
     for flag, p in outs:
@@ -329,6 +330,10 @@ def check_io(inputs=(), outputs=(), create_parents=False):
         for iflag, ip in ins:
             if Path(ip).exists() and _same(p, ip):
                 raise ConfigError(f"{flag} {p} is the input {iflag} {ip}; refusing to overwrite an input file")
+    for flag, p in outs:
+        for cflag, cp in companions:
+            if cp is not None and os.path.realpath(p) == os.path.realpath(cp):
+                raise ConfigError(f"{flag} {p} is the path of the {cflag}; refusing to write an output there")
     for i, (fa, pa) in enumerate(outs):
         for fb, pb in outs[i + 1:]:
             if _same(pa, pb):

@@ -165,14 +165,17 @@ def _check_paths(args):
         if p is not None:
             io_guard.check_input_file(p, f"{flag} file")
             inputs.append((flag, p))
+    companions = [("sidecar", str(sidecar_path(args.iffile)))]
     if getattr(args, "imu", None) is not None:
         inputs.append(("IMU sidecar", str(imu_decl.sidecar_path(args.imu))))
+        companions.append(("IMU sidecar", str(imu_decl.sidecar_path(args.imu))))
     bits = getattr(args, "bits", None)
     if bits:
         from ultratight.receiver.deep.bitsources import STRATEGIES
         if bits not in STRATEGIES:
             inputs.append(("--bits", bits))
-    io_guard.check_io(inputs, [(flag, getattr(args, dest, None)) for flag, dest in OUTPUT_FLAGS])
+    io_guard.check_io(inputs, [(flag, getattr(args, dest, None)) for flag, dest in OUTPUT_FLAGS],
+                      companions=companions)
 
 
 def add_arguments(p):
