@@ -27,7 +27,7 @@ TOP_LEVEL = {"errors", "constants", "config", "cores", "io_guard"}
 INNER = {
     "signals": {"": set(), "recording": {""}, "synth": {"", "recording"}},
     "fusion": {"": set(), "estimators": set(), "channel": {"estimators"}, "coupling": {"estimators"},
-               "experiments": {"estimators", "coupling"}},
+               "experiments": {"estimators", "coupling"}, "gins": {"estimators", "coupling"}},
     "receiver": {"": set(), "io": set(), "dsp": set(), "scalar": {"io", "dsp"}, "deep": {"io", "dsp", "scalar"},
                  "cli": {"io", "dsp", "scalar", "deep"}},
 }

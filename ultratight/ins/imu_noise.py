@@ -1,0 +1,102 @@
+"""An IMU's declared noise: what a filter is tuned from when it integrates a recorded log.
+
+:class:`ImuNoise` holds the four random processes of the usual inertial error model (Groves 2013
+§4.4; IEEE Std 952 names) in SI units, plus the initial uncertainty of the turn-on biases:
+
+==================  =============================  =========================================
+field               SI unit                        datasheet unit (CLI, sidecar)
+==================  =============================  =========================================
+gyro_arw            rad/s/√Hz (= rad/√s)           °/s/√Hz   (``gyro_noise_dps_rthz``)
+accel_vrw           m/s²/√Hz (= m/s/√s)            µg/√Hz    (``accel_noise_ug_rthz``)
+gyro_bias_rw        rad/s²/√Hz (= rad/s/√s)        °/s²/√Hz  (``gyro_bias_rw_dps2_rthz``)
+accel_bias_rw       m/s³/√Hz (= m/s²/√s)           µg/s/√Hz  (``accel_bias_rw_ug_rthz``)
+gyro_bias_sigma     rad/s                          °/s       (``gyro_bias_dps``)
+accel_bias_sigma    m/s²                           m/s²      (``accel_bias_mps2``)
+==================  =============================  =========================================
+
+A grade (:data:`GRADES`) gives every field; declared values replace the grade's one by one.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+from ultratight.errors import ConfigError
+
+G0 = 9.80665
+DEG = math.pi / 180.0
+UG = 1e-6 * G0
+
+# datasheet key -> (field, factor to SI)
+DATASHEET_KEYS = {
+    "gyro_noise_dps_rthz": ("gyro_arw", DEG),
+    "accel_noise_ug_rthz": ("accel_vrw", UG),
+    "gyro_bias_rw_dps2_rthz": ("gyro_bias_rw", DEG),
+    "accel_bias_rw_ug_rthz": ("accel_bias_rw", UG),
+    "gyro_bias_dps": ("gyro_bias_sigma", DEG),
+    "accel_bias_mps2": ("accel_bias_sigma", 1.0),
+}
+
+# typical figures per grade, datasheet units (Groves 2013 Table 4.1 orders of magnitude)
+GRADES = {
+    "navigation": {"gyro_noise_dps_rthz": 0.002 / 60.0, "accel_noise_ug_rthz": 10.0,
+                   "gyro_bias_rw_dps2_rthz": 1e-7, "accel_bias_rw_ug_rthz": 0.1,
+                   "gyro_bias_dps": 0.01 / 3600.0, "accel_bias_mps2": 50e-6 * G0},
+    "tactical": {"gyro_noise_dps_rthz": 0.1 / 60.0, "accel_noise_ug_rthz": 60.0,
+                 "gyro_bias_rw_dps2_rthz": 1e-5, "accel_bias_rw_ug_rthz": 5.0,
+                 "gyro_bias_dps": 5.0 / 3600.0, "accel_bias_mps2": 1e-3 * G0},
+    "mems": {"gyro_noise_dps_rthz": 0.5 / 60.0, "accel_noise_ug_rthz": 150.0,
+             "gyro_bias_rw_dps2_rthz": 1e-4, "accel_bias_rw_ug_rthz": 20.0,
+             "gyro_bias_dps": 200.0 / 3600.0, "accel_bias_mps2": 1e-2 * G0},
+    "consumer": {"gyro_noise_dps_rthz": 0.01, "accel_noise_ug_rthz": 150.0,
+                 "gyro_bias_rw_dps2_rthz": 1e-4, "accel_bias_rw_ug_rthz": 20.0,
+                 "gyro_bias_dps": 0.5, "accel_bias_mps2": 0.3},
+}
+
+
+@dataclass(frozen=True)
+class ImuNoise:
+    """Declared IMU noise in SI units (see the module table)."""
+    gyro_arw: float
+    accel_vrw: float
+    gyro_bias_rw: float
+    accel_bias_rw: float
+    gyro_bias_sigma: float
+    accel_bias_sigma: float
+    source: str = ""
+
+    def to_datasheet(self):
+        """dict of the datasheet keys (the sidecar's ``noise`` table) and ``source``."""
+        d = asdict(self)
+        out = {key: d[name] / f for key, (name, f) in DATASHEET_KEYS.items()}
+        out["source"] = self.source
+        return out
+
+
+def imu_noise(grade=None, **declared):
+    """:class:`ImuNoise` of ``grade`` with the declared datasheet values (keys of
+    :data:`DATASHEET_KEYS`, None = not declared) put over it.  Without a grade every key must be
+    declared.  ConfigError names a wrong grade, an unknown key or a value that is not a positive
+    finite number."""
+    unknown = sorted(set(declared) - set(DATASHEET_KEYS))
+    if unknown:
+        raise ConfigError(f"IMU noise: unknown key(s) {', '.join(unknown)}; known: {', '.join(DATASHEET_KEYS)}")
+    given = {k: v for k, v in declared.items() if v is not None}
+    for k, v in given.items():
+        try:
+            ok = math.isfinite(float(v)) and float(v) > 0.0
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise ConfigError(f"IMU noise {k} must be a positive number, got {v!r}")
+    if grade is not None and grade not in GRADES:
+        raise ConfigError(f"IMU grade must be one of {', '.join(GRADES)}, got {grade!r}")
+    base = dict(GRADES[grade]) if grade else {}
+    missing = sorted(set(DATASHEET_KEYS) - set(base) - set(given))
+    if missing:
+        raise ConfigError(f"IMU noise: declare {', '.join(missing)} or give a grade ({', '.join(GRADES)})")
+    base.update({k: float(v) for k, v in given.items()})
+    si = {name: base[key] * f for key, (name, f) in DATASHEET_KEYS.items()}
+    parts = ([f"grade {grade}"] if grade else []) + ([f"declared {', '.join(sorted(given))}"] if given else [])
+    return ImuNoise(source="; ".join(parts), **si)
