@@ -20,7 +20,7 @@ import warnings
 from ultratight import __version__
 from ultratight.errors import UltratightError
 
-SUBCOMMANDS = ("generate", "process", "ins", "scenario", "campaign", "bench")
+SUBCOMMANDS = ("generate", "process", "ins", "scenario", "campaign", "bench", "spp")
 
 
 def _load(name):
