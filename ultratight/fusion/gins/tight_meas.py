@@ -67,6 +67,7 @@ from ultratight.constants import C, LAMBDA_L1, OMEGA_E
 from ultratight.errors import ConfigError, FilterError
 from ultratight.ins.earth import ecef_to_llh, elev_azim, enu_frames
 from ultratight.signals.atmosphere import AtmosphereModel
+from ultratight.signals.obs_geometry import sat_states
 from ultratight.signals.observations import week_tow
 
 ATMO_RATE_DT_S = 1.0          # forward-difference step of the atmospheric delay rates, s
@@ -173,11 +174,6 @@ def _vec3(x, what):
 
 def _load_states(raw, nav, states):
     if states is None:
-        try:
-            from ultratight.signals.obs_geometry import sat_states
-        except ImportError:
-            raise ConfigError("tight measurements: satellite states need ultratight.signals.obs_geometry "
-                              "(not available) or a precomputed states object") from None
         states = sat_states(raw, nav)
     m = int(raw.prn.shape[0])
     shapes = {"pos_e": (m, 3), "vel_e": (m, 3), "clk_m": (m,), "drift_mps": (m,), "valid": (m,)}
