@@ -18,7 +18,12 @@ ultratight`` and ``ins``), which override the sidecar key by key::
      "gps_week": 2190,             # with "gps_tow" (optional)
      "time_offset_s": 0.0,         # added to every stamp (the IMU clock's offset to the declared reference)
      "lever_arm_m": [0.0, 0.0, 0.0],  # IMU -> antenna, in the file's (declared) axes, m
-     "check": true}                # run the stationary sanity check
+     "check": true,                # run the stationary sanity check
+     "noise": {"grade": "mems",    # the declared noise (optional): a grade of ultratight.ins.imu_noise
+               "gyro_noise_dps_rthz": 0.0038}}   # and/or its datasheet keys (they replace the grade's)
+
+The noise declaration (:func:`resolve_noise`) is resolved as CLI flags over the sidecar's ``noise``
+table over the grade (the flag's grade over the sidecar's).
 
 Column units in the CSV header (``gx_dps`` ...) still work; a header without unit suffixes
 (``gx, gy, gz, ax, ay, az`` or ``dthx ... dvz``) takes the declared units; both given and in
@@ -56,6 +61,7 @@ import numpy as np
 
 from ultratight.constants import OMEGA_E
 from ultratight.errors import ConfigError, InputFileError
+from ultratight.ins.imu_noise import DATASHEET_KEYS, GRADES, imu_noise
 
 SIDECAR_FORMAT = "ultratight-imu-sidecar"
 SIDECAR_VERSION = 1
@@ -71,7 +77,8 @@ ACCEL_UNITS = {"m/s^2": (1.0, "rates"), "g": (G0, "rates"), "m/s": (1.0, "increm
 _UNIT_ALIASES = {"m/s2": "m/s^2", "m/s²": "m/s^2", "mps2": "m/s^2", "dps": "deg/s", "radps": "rad/s",
                  "mps": "m/s"}
 KEYS = ("format", "version", "kind", "axes", "gyro_unit", "accel_unit", "rate_hz", "time_ref", "gps_week",
-        "time_offset_s", "lever_arm_m", "check")
+        "time_offset_s", "lever_arm_m", "check", "noise")
+NOISE_KEYS = ("grade",) + tuple(DATASHEET_KEYS)
 # preference when naming the likely axes (most common first)
 COMMON_AXES = ("FLU", "FRD", "RFU", "LFD", "RBD", "BRU", "LBU", "BLD")
 STILL_WINDOW_S = 1.0
@@ -95,6 +102,7 @@ class ImuDeclaration:
     lever_arm_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
     check: bool = True
     source: str = "default"
+    noise: dict | None = None         # the sidecar's noise table (grade and datasheet keys), as given
 
     @property
     def M(self):
@@ -110,7 +118,8 @@ class ImuDeclaration:
         return {"format": SIDECAR_FORMAT, "version": SIDECAR_VERSION, "kind": self.kind, "axes": ax,
                 "gyro_unit": self.gyro_unit, "accel_unit": self.accel_unit, "rate_hz": self.rate_hz,
                 "time_ref": self.time_ref, "gps_week": self.gps_week, "time_offset_s": self.time_offset_s,
-                "lever_arm_m": np.asarray(self.lever_arm_m, float).tolist(), "check": self.check}
+                "lever_arm_m": np.asarray(self.lever_arm_m, float).tolist(), "check": self.check,
+                **({"noise": dict(self.noise)} if self.noise is not None else {})}
 
 
 def axes_matrix(axes):
@@ -239,7 +248,38 @@ def _declaration_from_dict(d, where):
     if not isinstance(chk, bool):
         raise ConfigError(f"check must be true or false, got {chk!r}")
     dec.check = chk
+    if d.get("noise") is not None:
+        dec.noise = _noise_table(d["noise"])
     return dec
+
+
+def _noise_table(nz):
+    """The sidecar's ``noise`` table checked key by key (ConfigError naming the key)."""
+    if not isinstance(nz, dict):
+        raise ConfigError(f"noise must be a table of {', '.join(NOISE_KEYS)}, got {nz!r}")
+    for k, v in nz.items():
+        if k not in NOISE_KEYS:
+            near = difflib.get_close_matches(k, NOISE_KEYS, n=1)
+            raise ConfigError(f"noise: unknown key {k!r}" + (f" (did you mean {near[0]!r}?)" if near else
+                                                             f"; known: {', '.join(NOISE_KEYS)}"))
+        if k == "grade":
+            if v not in GRADES:
+                raise ConfigError(f"noise grade must be one of {', '.join(GRADES)}, got {v!r}")
+        elif isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+            raise ConfigError(f"noise {k} must be a positive number, got {v!r}")
+    return dict(nz)
+
+
+def resolve_noise(declaration=None, grade=None, **flags):
+    """The declared :class:`ultratight.ins.imu_noise.ImuNoise`: the datasheet values of ``flags``
+    (keys of ``DATASHEET_KEYS``, None = not given) over the ``noise`` table of ``declaration``
+    (an :class:`ImuDeclaration` or None) over the grade (``grade``, else the table's).  ConfigError
+    when a value is missing and no grade is given."""
+    table = dict((declaration.noise or {}) if declaration is not None else {})
+    g = grade if grade is not None else table.pop("grade", None)
+    table.pop("grade", None)
+    table.update({k: v for k, v in flags.items() if v is not None})
+    return imu_noise(g, **table)
 
 
 def _number(v, name):
