@@ -21,6 +21,7 @@ linearly in time (IMU rate) to the reference epochs; errors are ENU at the refer
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -84,11 +85,11 @@ def outage_windows(t_first, t_last, outages=(), every=None):
         while t0 + length <= t_last:
             wins.append((t0, t0 + length))
             t0 += e
-        if not any(True for _ in wins):
+        if not wins:
             raise ConfigError(f"--outages {e:g}:{length:g}: no window fits between the filter's start and the "
                               f"last GNSS epoch ({t_last - t_first:.1f} s)")
     wins.sort()
-    for (a0, a1), (b0, _) in zip(wins, wins[1:]):
+    for (a0, a1), (b0, _) in itertools.pairwise(wins):
         if b0 < a1:
             raise ConfigError(f"outage windows overlap (seconds of week {week_tow(a0)[1]:.2f}–"
                               f"{week_tow(a1)[1]:.2f} and {week_tow(b0)[1]:.2f})")
