@@ -252,3 +252,23 @@ def test_date_rollover_from_first_rmc_backwards(tmp_path):
     f = read_nmea(tmp_path / "r.nmea")
     d0 = datetime(2023, 12, 31, 23, 59, 59)
     np.testing.assert_allclose(f.t, [_gps_s(d0) + 18, _gps_s(d0 + timedelta(seconds=2)) + 18], atol=1e-6)
+
+
+@needs_walk
+def test_nav_pvt_frames_in_a_cut_and_corrupted_log(tmp_path):
+    """Only whole NAV-PVT frames with a right checksum are read: a log cut inside a frame and with a
+    flipped byte in one NAV-PVT frame gives what pyubx2's own stream reader gives."""
+    from pyubx2 import UBX_PROTOCOL, UBXReader
+    raw = bytearray((WALK / "gnss_1730.ubx").read_bytes()[:150001])
+    k = raw.find(b"\xb5\x62\x01\x07", 40000)
+    raw[k + 20] ^= 0xFF
+    p = tmp_path / "cut.ubx"
+    p.write_bytes(b"$GPTXT,garbage\r\n" + bytes(raw))
+    ref = []
+    with open(p, "rb") as fh:
+        for _r, m in UBXReader(fh, protfilter=UBX_PROTOCOL, quitonerror=0):
+            if m is not None and m.identity == "NAV-PVT":
+                ref.append(m.iTOW / 1000.0)
+    f = read_gnss(p)
+    assert 0 < f.n == len(ref)
+    np.testing.assert_allclose(f.t % 604800.0, ref, atol=1e-9)

@@ -441,6 +441,32 @@ def _pvt_quality(m):
     return Q_DGPS if int(getattr(m, "diffSoln", 0)) else Q_SINGLE
 
 
+def _ubx_frames(raw, cls, mid):
+    """The whole UBX frames (sync to checksum) of class ``cls`` and id ``mid`` in ``raw`` with a right
+    Fletcher checksum; other bytes (other messages, NMEA text, a cut frame) are passed over.  Only
+    these frames are handed to pyubx2, which keeps a log of raw measurements quick to read."""
+    i, n = 0, len(raw)
+    while True:
+        i = raw.find(b"\xb5\x62", i)
+        if i < 0 or i + 8 > n:
+            return
+        end = i + 8 + (raw[i + 4] | (raw[i + 5] << 8))
+        if end <= n and _ubx_checksum_ok(raw, i, end):
+            if raw[i + 2] == cls and raw[i + 3] == mid:
+                yield raw[i:end]
+            i = end                 # a whole frame: its payload is not searched for sync bytes
+            continue
+        i += 2
+
+
+def _ubx_checksum_ok(raw, i, end):
+    a = b = 0
+    for x in raw[i + 2:end - 2]:
+        a = (a + x) & 0xFF
+        b = (b + a) & 0xFF
+    return raw[end - 2] == a and raw[end - 1] == b
+
+
 def read_ubx_pvt(path, gps_week=None):
     """u-blox UBX-NAV-PVT messages of a binary log (pyubx2) -> :class:`GnssFixes`.
 
@@ -449,32 +475,31 @@ def read_ubx_pvt(path, gps_week=None):
     is a horizontal accuracy, split as hAcc/√2 on east and north; vAcc on up; sAcc (speed, 3-D)
     as sAcc/√3 per axis.  Q from fixType / gnssFixOk / carrSoln / diffSoln (:func:`_pvt_quality`);
     messages without a usable fix are left out (``meta["skipped"]``)."""
-    from pyubx2 import UBX_PROTOCOL, UBXReader
+    from pyubx2 import UBXReader
 
     path = Path(path)
     rows, skipped = [], 0
     try:
-        with open(path, "rb") as fh:
-            for _raw, m in UBXReader(fh, protfilter=UBX_PROTOCOL, quitonerror=0):
-                if m is None or getattr(m, "identity", "") != "NAV-PVT":
-                    continue
-                q = _pvt_quality(m)
-                if q is None:
-                    skipped += 1
-                    continue
-                tow = int(m.iTOW) / 1000.0
-                week = gps_week
-                if week is None:
-                    if not int(m.validDate):
-                        raise ConfigError(f"{path}: NAV-PVT at iTOW {tow:.3f} s has no valid date: give the GPS week")
-                    utc = _gps_seconds_of(datetime(int(m.year), int(m.month), int(m.day), int(m.hour),
-                                                   int(m.min), min(int(m.second), 59)))
-                    week = int(round((utc + DEFAULT_LEAP_S - tow) / 604800.0))
-                hs = int(m.hAcc) / 1000.0 / math.sqrt(2.0)
-                ss = int(m.sAcc) / 1000.0 / math.sqrt(3.0)
-                rows.append((week * 604800.0 + tow, float(m.lat) * DEG, float(m.lon) * DEG, int(m.height) / 1000.0,
-                             int(m.velE) / 1000.0, int(m.velN) / 1000.0, -int(m.velD) / 1000.0,
-                             hs, hs, int(m.vAcc) / 1000.0, ss, ss, ss, q, int(m.numSV)))
+        raw = path.read_bytes()
+        for frame in _ubx_frames(raw, 0x01, 0x07):
+            m = UBXReader.parse(frame)
+            q = _pvt_quality(m)
+            if q is None:
+                skipped += 1
+                continue
+            tow = int(m.iTOW) / 1000.0
+            week = gps_week
+            if week is None:
+                if not int(m.validDate):
+                    raise ConfigError(f"{path}: NAV-PVT at iTOW {tow:.3f} s has no valid date: give the GPS week")
+                utc = _gps_seconds_of(datetime(int(m.year), int(m.month), int(m.day), int(m.hour),
+                                               int(m.min), min(int(m.second), 59)))
+                week = int(round((utc + DEFAULT_LEAP_S - tow) / 604800.0))
+            hs = int(m.hAcc) / 1000.0 / math.sqrt(2.0)
+            ss = int(m.sAcc) / 1000.0 / math.sqrt(3.0)
+            rows.append((week * 604800.0 + tow, float(m.lat) * DEG, float(m.lon) * DEG, int(m.height) / 1000.0,
+                         int(m.velE) / 1000.0, int(m.velN) / 1000.0, -int(m.velD) / 1000.0,
+                         hs, hs, int(m.vAcc) / 1000.0, ss, ss, ss, q, int(m.numSV)))
     except OSError as exc:
         raise InputFileError(f"{path}: cannot read u-blox log ({exc.strerror or exc})") from None
     except (ValueError, TypeError, AttributeError) as exc:
