@@ -292,6 +292,8 @@ def test_spp_recovers_the_truth(sim):
         assert fix.clk_m == pytest.approx(truth["clk"][k], abs=1e-3)
         assert fix.drift_mps == pytest.approx(truth["drift"][k], abs=1e-3)
         assert 1.0 < fix.pdop < 10.0 and fix.rms_pr_m < 1e-3
+    three = TightMeasurements(raw, nav, states=states, sats=list(np.unique(raw.prn))[:3]).spp(0)
+    assert not three.ok and "need 4" in three.reason and np.all(np.isnan(three.pos_e))
 
 
 def test_bad_input_is_one_clear_error(sim):
@@ -446,3 +448,15 @@ def test_real_ublox_residuals_at_rtk_positions(walk):
     mean_d = np.array([np.mean(d[a:c + 1]) for a, c in zip(i, j[i])])
     assert i.size > 100 and np.ptp(d) > 10.0
     assert rms(slope - mean_d) < 0.075
+
+
+def test_missing_klobuchar_coefficients_are_reported(sim):
+    raw, nav, states, truth = sim
+    bare_nav = NavData(path="test", version=3.04, ephemerides=nav.ephemerides)
+    meas = TightMeasurements(raw, bare_nav, states=states)
+    assert any("Klobuchar" in w for w in meas.warnings)
+    assert not TightMeasurements(raw, nav, states=states).warnings
+    k = 1
+    r = meas.rows(k, truth["pos"][k], truth["vel"][k], truth["clk"][k], truth["drift"][k])
+    assert np.all(r.iono_m == 0.0) and np.all(r.tropo_m > 2.0)
+    assert np.allclose(r.dz_pr, -truth["iono"][r.row], atol=1e-3)

@@ -193,7 +193,9 @@ class TightMeasurements:
     "saastamoinen" or "off"; ``sigma_pr_m``/``sigma_rr_mps``: constant σ replacing the model;
     ``cn0_min_dbhz``: rows below it are dropped; ``sats``: PRNs to use (None: all); ``noise``: a
     :class:`TightNoise`; ``states``: satellite states with the fields of
-    ``obs_geometry.SatStates`` (default: computed from ``raw`` and ``nav``)."""
+    ``obs_geometry.SatStates`` (default: computed from ``raw`` and ``nav``).  ``warnings``: lines
+    the caller should show the user (e.g. no Klobuchar coefficients in the navigation data, so no
+    ionosphere model); ``info``: the settings and row counts."""
 
     def __init__(self, raw, nav, *, mask_deg=10.0, iono="klobuchar", tropo="saastamoinen",
                  sigma_pr_m=None, sigma_rr_mps=None, cn0_min_dbhz=None, sats=None, noise=None, states=None):
@@ -228,6 +230,11 @@ class TightMeasurements:
         self.usable = usable
         self.rr_meas = -LAMBDA_L1 * np.asarray(raw.doppler_hz, dtype=float)
         self.rr_meas[~np.all(np.isfinite(self.states.vel_e), axis=1)] = np.nan
+        self.warnings = []
+        if iono == "klobuchar" and not self.atmo.iono_active:
+            self.warnings.append("the navigation data hold no Klobuchar coefficients: ionosphere not modelled")
+        if not usable.any():
+            self.warnings.append("no observation row has a valid satellite state and a pseudorange")
         self.info = {"mask_deg": float(mask_deg), "atmosphere": self.atmo.describe(),
                      "rows": int(prn.shape[0]), "usable_rows": int(usable.sum())}
 
@@ -362,6 +369,12 @@ class TightMeasurements:
         pos = np.zeros(3) if pos0_e is None else _vec3(pos0_e, "pos0_e")
         if idx.size < MIN_SATS_FIX:
             return _no_fix(pos, f"{idx.size} usable pseudoranges (need {MIN_SATS_FIX})")
+        try:
+            return self._spp(k, idx, pos)
+        except np.linalg.LinAlgError:
+            return _no_fix(pos, "singular satellite geometry")
+
+    def _spp(self, k, idx, pos):
         pr = np.asarray(self.raw.pr_m, dtype=float)
         clk = 0.0
         for _ in range(SPP_MAX_ITER):                  # coarse: geometry and clocks only
