@@ -328,3 +328,17 @@ def test_noise_cli_flags():
     np.testing.assert_allclose(imu_flags.lever_arm_flu(a), [0.0, -0.05, 0.0])
     assert "lever_arm_m" not in imu_flags.overrides(a, lever_arm=False)
     assert imu_flags.overrides(a)["lever_arm_m"] == [0.0, 0.05, 0.0]
+
+
+def test_project_h5_in_gps_time_with_a_declared_offset(tmp_path):
+    from ultratight.ins.imu_data import ImuData, write_imu_h5
+    t = 0.01 * np.arange(1, 101)
+    imu = ImuData(t=t, dtheta_b=np.full((100, 3), 1e-6), dv_b=np.full((100, 3), 0.098), rate_hz=100.0, t0=0.0,
+                  meta={"start_tow_s": 5000.0, "start_week": 2190})
+    write_imu_h5(tmp_path / "a.h5", imu)
+    got = read_imu_log(tmp_path / "a.h5", declaration_overrides={"time_offset_s": 0.02}, mount_deg=(180, 0, 0))
+    np.testing.assert_allclose(got.t, 2190 * 604800.0 + 5000.0 + t + 0.02, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(got.dv_b[0], [0.098, -0.098, -0.098])       # roll 180 about x (FLU too)
+    write_imu_h5(tmp_path / "run.h5", ImuData(t=t, dtheta_b=imu.dtheta_b, dv_b=imu.dv_b, rate_hz=100.0))
+    with pytest.raises(ConfigError, match="GPS time"):
+        read_imu_log(tmp_path / "run.h5")

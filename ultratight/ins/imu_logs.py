@@ -486,9 +486,14 @@ def _read_project_file(path, fmt, overrides, gps_week):
         dec = imu_decl.resolve_declaration(path, ov)
         imu = imu_decl.read_imu_file(path, ov)
     else:
-        dec = imu_decl.resolve_declaration(None, {k: v for k, v in (overrides or {}).items()
-                                                  if k in ("lever_arm_m", "check")})
-        imu = imu_decl.read_imu_file(path, overrides)
+        # HDF5 is in the internal convention: a time offset and the GPS week may still be declared
+        ov = {k: v for k, v in (overrides or {}).items() if v is not None}
+        shift = float(ov.pop("time_offset_s", 0.0))
+        week_decl = ov.pop("gps_week", None)
+        gps_week = gps_week if gps_week is not None else week_decl
+        dec = imu_decl.resolve_declaration(None, {k: v for k, v in ov.items() if k in ("lever_arm_m", "check")})
+        imu = imu_decl.read_imu_file(path, ov)
+        imu.t, imu.t0 = imu.t + shift, float(imu.t0) + shift
     meta = imu.meta or {}
     if meta.get("time_scale") == "gps":
         return imu, dec
