@@ -332,3 +332,60 @@ def test_not_an_observation_file(tmp_path):
     p.write_text("hello\n")
     with pytest.raises(InputFileError, match=r"line 1: missing 'RINEX VERSION / TYPE'"):
         read_rinex_obs(p)
+
+
+def test_rinex2_type_list_over_nine_continues(tmp_path):
+    """Ten observation types: the '# / TYPES OF OBSERV' record continues on a second line and every
+    satellite record takes two lines; C1 is the tenth type here."""
+    types = ["L1", "D1", "S1", "P1", "P2", "L2", "C2", "S2", "D2", "C1"]
+    lines = [_hdr("     2.10           OBSERVATION DATA    G (GPS)", "RINEX VERSION / TYPE"),
+             _hdr(f"{len(types):6d}" + "".join(f"{t:>6}" for t in types[:9]), "# / TYPES OF OBSERV"),
+             _hdr(" " * 6 + "".join(f"{t:>6}" for t in types[9:]), "# / TYPES OF OBSERV"),
+             _hdr("", "END OF HEADER")]
+    lines += _rinex2_epoch(2010, 6, 30, 12, 0, 0.0, 0, ["G 9", "G31"])
+    vals = {9: [1.1e8, -123.5, 45.0, 2.1e7, 2.1e7, 8.6e7, 2.1e7, 40.0, -96.25, 20987654.321],
+            31: [1.2e8, 2000.25, 38.0, 2.2e7, 2.2e7, 9.1e7, 2.2e7, 33.0, 1559.0, 22345678.901]}
+    for p in (9, 31):
+        lines += _obs2(vals[p])
+    path = tmp_path / "ten.10o"
+    path.write_text("\n".join(lines) + "\n")
+    raw = read_rinex_obs(path)
+    assert raw.meta["obs_types"] == types and raw.n_epochs == 1
+    assert raw.prn.tolist() == [9, 31]
+    for j, p in enumerate((9, 31)):
+        v = vals[p]
+        assert [raw.pr_m[j], raw.phase_cyc[j], raw.doppler_hz[j], raw.cn0_dbhz[j]] == [v[9], v[0], v[1], v[2]]
+
+
+def test_rinex3_of_the_process_writer_read_back(tmp_path):
+    """The RINEX 3.04 file ``ultratight process --rinex-obs`` writes (receiver/io/rinex_out) read back:
+    every value to the file's three decimals, the phase blank where the writer had no lock."""
+    from ultratight.receiver.io.rinex_out import RinexObsWriter
+    rng = np.random.default_rng(11)
+    path = tmp_path / "p.obs"
+    w = RinexObsWriter(path, 0.1)
+    written = []
+    for k in range(5):
+        sats = []
+        for prn in (4, 9, 17, 28):
+            s = {"prn": prn, "pr_m": 2.0e7 + rng.uniform(0, 5e6), "phase_cycles": rng.uniform(-1e8, 1e8),
+                 "doppler_hz": rng.uniform(-4000, 4000), "cn0_dbhz": rng.uniform(30, 50),
+                 "lock": not (k == 2 and prn == 9), "continuous": True}
+            sats.append(s)
+        w.add_epoch(2300, 345600.0 + 0.1 * k, sats)
+        written.append(sats)
+    assert w.finish((-2694685.473, -4293642.366, 3857878.924))
+    raw = read_rinex_obs(path)
+    assert raw.n_epochs == 5 and raw.meta["interval_s"] == 0.1
+    assert np.allclose(raw.meta["approx_position_xyz"], (-2694685.473, -4293642.366, 3857878.924), atol=1e-4)
+    assert np.allclose(raw.t - gps_seconds(2300, 345600.0), 0.1 * np.arange(5), atol=1e-7)
+    for k, sats in enumerate(written):
+        sl = raw.epoch(k)
+        assert raw.prn[sl].tolist() == [4, 9, 17, 28]
+        for j, s in enumerate(sats):
+            assert abs(raw.pr_m[sl][j] - s["pr_m"]) <= 5e-4 and abs(raw.doppler_hz[sl][j] - s["doppler_hz"]) <= 5e-4
+            assert abs(raw.cn0_dbhz[sl][j] - s["cn0_dbhz"]) <= 5e-4
+            if s["lock"]:
+                assert abs(raw.phase_cyc[sl][j] - s["phase_cycles"]) <= 5e-4
+            else:
+                assert math.isnan(raw.phase_cyc[sl][j])
