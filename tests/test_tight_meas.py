@@ -460,3 +460,22 @@ def test_missing_klobuchar_coefficients_are_reported(sim):
     r = meas.rows(k, truth["pos"][k], truth["vel"][k], truth["clk"][k], truth["drift"][k])
     assert np.all(r.iono_m == 0.0) and np.all(r.tropo_m > 2.0)
     assert np.allclose(r.dz_pr, -truth["iono"][r.row], atol=1e-3)
+
+
+def test_rows_serve_a_cold_least_squares_start(sim):
+    """From the Earth's centre (no horizon: every row, NaN elevation, no atmosphere) a Gauss–Newton
+    iteration on the rows alone converges to the truth."""
+    raw, nav, states, truth = sim
+    meas = TightMeasurements(raw, nav, states=states)
+    k = 8
+    r = meas.rows(k, np.zeros(3), np.zeros(3), 0.0, 0.0)
+    sl = raw.epoch(k)
+    assert r.n == sl.stop - sl.start and np.all(np.isnan(r.elev_rad)) and np.all(r.iono_m == 0.0)
+    assert np.all(np.isfinite(r.sigma_pr)) and np.all(np.isfinite(r.dz_pr))
+    pos, clk = np.zeros(3), 0.0
+    for _ in range(10):
+        r = meas.rows(k, pos, truth["vel"][k], clk, truth["drift"][k])
+        A = np.hstack([-r.los_e, np.ones((r.n, 1))])
+        d = np.linalg.lstsq(A, r.dz_pr, rcond=None)[0]
+        pos, clk = pos - d[:3], clk - d[3]
+    assert np.linalg.norm(pos - truth["pos"][k]) < 1e-3 and clk == pytest.approx(truth["clk"][k], abs=1e-3)

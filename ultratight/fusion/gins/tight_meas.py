@@ -36,7 +36,9 @@ do not depend on it (their transmit time comes from the pseudorange itself).
 
 Rows dropped by :meth:`TightMeasurements.rows`: no valid satellite state (ephemeris missing,
 unhealthy, outside its fit interval), no pseudorange, a PRN outside ``sats``, C/N0 below
-``cn0_min_dbhz`` (rows without C/N0 are kept), elevation below ``mask_deg``.  A row whose Doppler
+``cn0_min_dbhz`` (rows without C/N0 are kept), elevation below ``mask_deg``.  A position less than
+5000 km from the Earth's centre (the start of a least-squares iteration from zero) has no horizon:
+every row is returned with a NaN elevation, no atmosphere and the zenith σ.  A row whose Doppler
 is missing keeps its pseudorange: ``dz_rr`` is NaN, ``sigma_rr`` is ``inf`` and ``rr_ok`` is False
 (use ``rr_ok`` to select the rate rows).
 
@@ -73,6 +75,7 @@ from ultratight.signals.observations import week_tow
 ATMO_RATE_DT_S = 1.0          # forward-difference step of the atmospheric delay rates, s
 SAGNAC_ITER = 2               # fixed-point steps of the travel time (each gains a factor ~1e-5)
 SIN_EL_FLOOR = 0.05           # sin E floor of the noise model (about 2.9°; masks below it are rare)
+HORIZON_MIN_RADIUS_M = 5.0e6  # closer to the Earth's centre: no horizon (mask and atmosphere skipped)
 SPP_MAX_ITER = 12
 SPP_TOL_M = 1e-4
 MIN_SATS_FIX = 4
@@ -273,7 +276,11 @@ class TightMeasurements:
         return rng, u, rng_dot, sr, vr
 
     def _atmosphere(self, pos, vel, sr, vr, tow):
-        """(elev, azim, iono_m, tropo_m, carrier-phase delay rate m/s) for the receiver at pos."""
+        """(elev, azim, iono_m, tropo_m, carrier-phase delay rate m/s) for the receiver at pos; NaN
+        elevations and no delays deep inside the Earth (a cold least-squares start)."""
+        if np.linalg.norm(pos) < HORIZON_MIN_RADIUS_M:
+            z = np.zeros(sr.shape[0])
+            return np.full_like(z, np.nan), np.full_like(z, np.nan), z, z, z
         frames = enu_frames(pos)
         el, az = elev_azim(pos, sr, frames)
         el, az = np.atleast_1d(el), np.atleast_1d(az)
@@ -281,12 +288,14 @@ class TightMeasurements:
             z = np.zeros_like(el)
             return el, az, z, z, z
         lat, lon, h = ecef_to_llh(pos)
-        iono, tropo = self.atmo.delays_m(lat, lon, h, el, az, tow)
         dt = ATMO_RATE_DT_S
         pos2 = pos + vel * dt
         el2, az2 = elev_azim(pos2, sr + vr * dt)
         lat2, lon2, h2 = ecef_to_llh(pos2)
-        iono2, tropo2 = self.atmo.delays_m(lat2, lon2, h2, np.atleast_1d(el2), np.atleast_1d(az2), tow + dt)
+        # the troposphere is 0 outside its standard atmosphere's heights (evaluated, then discarded)
+        with np.errstate(invalid="ignore"):
+            iono, tropo = self.atmo.delays_m(lat, lon, h, el, az, tow)
+            iono2, tropo2 = self.atmo.delays_m(lat2, lon2, h2, np.atleast_1d(el2), np.atleast_1d(az2), tow + dt)
         rate = (-(iono2 - iono) + (tropo2 - tropo)) / dt
         return el, az, np.atleast_1d(iono), np.atleast_1d(tropo), np.atleast_1d(rate)
 
@@ -327,14 +336,16 @@ class TightMeasurements:
         if idx.size == 0:
             return self._empty()
         p = self._predict(k, idx, pos, vel)
-        sel = p["elev"] >= self.mask_rad
+        cold = bool(np.isnan(p["elev"]).all())
+        sel = np.ones(idx.size, dtype=bool) if cold else p["elev"] >= self.mask_rad
         if keep is not None and int(sel.sum()) > int(keep):
             order = np.argsort(-np.where(sel, p["elev"], -np.inf), kind="stable")
             sel = np.zeros_like(sel)
             sel[order[: int(keep)]] = True
         idx = idx[sel]
         p = {key: v[sel] for key, v in p.items()}
-        sig_pr, sig_rr, cn0 = self._sigmas(idx, p["elev"], p["iono"])
+        sig_pr, sig_rr, cn0 = self._sigmas(idx, np.where(np.isnan(p["elev"]), 0.5 * math.pi, p["elev"]),
+                                           p["iono"])
         dz_pr = p["pr"] + float(clk_m) - np.asarray(self.raw.pr_m, dtype=float)[idx]
         dz_rr = p["rr"] + float(drift_mps) - self.rr_meas[idx]
         rr_ok = np.isfinite(dz_rr)
