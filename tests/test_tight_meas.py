@@ -302,6 +302,10 @@ def test_bad_input_is_one_clear_error(sim):
         TightMeasurements(raw, nav, states=states, iono="nequick")
     with pytest.raises(ConfigError, match="mask_deg"):
         TightMeasurements(raw, nav, states=states, mask_deg=float("nan"))
+    with pytest.raises(ConfigError, match="mask_deg"):
+        TightMeasurements(raw, nav, states=states, mask_deg=None)
+    with pytest.raises(ConfigError, match="cn0_min_dbhz"):
+        TightMeasurements(raw, nav, states=states, cn0_min_dbhz="high")
     with pytest.raises(ConfigError, match="sigma_pr_m"):
         TightMeasurements(raw, nav, states=states, sigma_pr_m=-1.0)
     with pytest.raises(ConfigError, match="pr_b_m"):

@@ -61,6 +61,7 @@ Without a C/N0 the C/N0 terms take their value at C0.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -96,7 +97,7 @@ class TightNoise:
     def __post_init__(self):
         for f in fields(self):
             v = getattr(self, f.name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0.0):
+            if not (_is_number(v) and v >= 0.0):
                 raise ConfigError(f"tight measurement noise: {f.name} must be a finite number >= 0, got {v!r}")
 
     def cn0_factor(self, cn0_dbhz):
@@ -168,6 +169,10 @@ def sagnac_rotate(vec_e, tau_s):
     return out
 
 
+def _is_number(v):
+    return isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
+
+
 def _vec3(x, what):
     v = np.asarray(x, dtype=float).reshape(-1)
     if v.shape != (3,) or not np.all(np.isfinite(v)):
@@ -202,13 +207,12 @@ class TightMeasurements:
 
     def __init__(self, raw, nav, *, mask_deg=10.0, iono="klobuchar", tropo="saastamoinen",
                  sigma_pr_m=None, sigma_rr_mps=None, cn0_min_dbhz=None, sats=None, noise=None, states=None):
-        for name, v in (("mask_deg", mask_deg), ("cn0_min_dbhz", cn0_min_dbhz)):
-            if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v)):
-                raise ConfigError(f"tight measurements: {name} must be a finite number, got {v!r}")
-        if not -90.0 <= mask_deg <= 90.0:
-            raise ConfigError(f"tight measurements: mask_deg must be within [-90, 90], got {mask_deg}")
+        if not (_is_number(mask_deg) and -90.0 <= mask_deg <= 90.0):
+            raise ConfigError(f"tight measurements: mask_deg must be a number within [-90, 90], got {mask_deg!r}")
+        if cn0_min_dbhz is not None and not _is_number(cn0_min_dbhz):
+            raise ConfigError(f"tight measurements: cn0_min_dbhz must be a finite number, got {cn0_min_dbhz!r}")
         for name, v in (("sigma_pr_m", sigma_pr_m), ("sigma_rr_mps", sigma_rr_mps)):
-            if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0.0):
+            if v is not None and not (_is_number(v) and v > 0.0):
                 raise ConfigError(f"tight measurements: {name} must be a finite number > 0, got {v!r}")
         self.raw = raw
         self.nav = nav
