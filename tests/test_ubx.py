@@ -1,6 +1,7 @@
 """u-blox log reading (ultratight.signals.ubx) on the walk_0827 recording: the RXM-RAWX epochs, the
-LNAV subframes of RXM-SFRBX (bit layout, parity, ephemerides) and positions / velocities from the
-decoded ephemerides against the receiver's own NAV-PVT solution in the same file."""
+LNAV subframes of RXM-SFRBX (bit layout, parity, ephemerides, which RTKLIB's u-blox decoder decodes
+alike) and positions / velocities from the decoded ephemerides against the receiver's own NAV-PVT
+solution in the same file."""
 
 import math
 from pathlib import Path
@@ -245,3 +246,34 @@ def test_damaged_messages_are_skipped_and_counted(tmp_path):
     assert b.counts["checksum_errors"] >= 30
     assert 0 < b.raw.n_epochs < a.raw.n_epochs
     assert np.all(np.diff(b.raw.t) > 0)
+
+
+def test_decoded_ephemerides_equal_rtklibs_decoding(log):
+    """RTKLIB's own u-blox decoder (pyrtklib input_ubxf) on the same log: the same four GPS ephemerides,
+    every field equal to within float rounding, and no ionospheric parameters either."""
+    p = pytest.importorskip("pyrtklib", reason="pyrtklib (RTKLIB binding, test dependency) not installed")
+    raw = p.raw_t()
+    assert p.init_raw(raw, p.STRFMT_UBX) == 1
+    fw = p.FileWrapper(str(WALK_UBX), "rb")
+    theirs = {}
+    for _ in range(10 ** 6):
+        r = p.input_ubxf(raw, fw)
+        if r == -2:                             # end of file
+            break
+        if r == 2 and raw.ephsat <= 32:         # RTKLIB satellite numbers 1..32 are GPS
+            e = raw.nav.eph[raw.ephsat - 1]
+            theirs[e.sat] = e
+    assert sorted(theirs) == sorted(log.nav.ephemerides) == [10, 23, 27, 32]
+    pairs = (("sqrt_a", lambda e: math.sqrt(e.A)), ("e", "e"), ("i0", "i0"), ("omega0", "OMG0"), ("omega", "omg"),
+             ("m0", "M0"), ("delta_n", "deln"), ("omega_dot", "OMGd"), ("idot", "idot"), ("crc", "crc"),
+             ("crs", "crs"), ("cuc", "cuc"), ("cus", "cus"), ("cic", "cic"), ("cis", "cis"), ("af0", "f0"),
+             ("af1", "f1"), ("af2", "f2"), ("tgd", lambda e: e.tgd[0]), ("toe", "toes"), ("week", "week"),
+             ("iode", "iode"), ("iodc", "iodc"), ("sv_health", "svh"), ("ura_index", "sva"))
+    for prn, lst in log.nav.ephemerides.items():
+        ours, ref = lst[0], theirs[prn]
+        for mine, other in pairs:
+            b = other(ref) if callable(other) else getattr(ref, other)
+            a = getattr(ours, mine)
+            assert a == pytest.approx(b, rel=1e-12, abs=1e-20), (prn, mine, a, b)
+    assert all(v == 0.0 for v in list(raw.nav.ion_gps)[:8])
+    p.free_raw(raw)
