@@ -5,7 +5,8 @@ own fixes, parsed with pyubx2.
   - ``raw``: :class:`RawEpochs` from UBX-RXM-RAWX, GPS L1 C/A only (gnssId 0, sigId 0): time
     ``week·604800 + rcvTow`` (receiver clock, continuous GPS seconds), ``prMes`` where the tracking
     status says the pseudorange is valid (``prValid``), ``cpMes`` where the carrier phase is
-    (``cpValid``), ``doMes`` (Hz, positive while approaching, the RINEX sign) and ``cno`` (dB-Hz);
+    (``cpValid``; cycles as the receiver gives them, no half-cycle correction), ``doMes`` (Hz,
+    positive while approaching, the RINEX sign) and ``cno`` (dB-Hz);
   - ``nav``: :class:`ultratight.signals.rinex.NavData` of the ephemerides and Klobuchar coefficients
     decoded from UBX-RXM-SFRBX GPS L1 C/A subframes by :class:`ultratight.signals.lnav.LnavDecoder`;
   - ``nav_pvt``: the parsed UBX-NAV-PVT messages (pyubx2 objects, in file order).

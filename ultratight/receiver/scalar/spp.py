@@ -90,6 +90,9 @@ def run_spp(raw, nav, cfg=None):
             continue
         last_x = np.r_[sol.pos_e, sol.clk_bias_m]
         fixes.append(_fix(raw, k, t0, sol, raw.prn[sl][ok], raw.cn0_dbhz[sl][ok], model, cfg))
+    if n_states and not fixes:
+        warn.append(f"no fix: no epoch has a solution with four satellites (valid ephemeris and pseudorange) "
+                    f"above the {cfg.mask_deg:g} deg mask")
     return SppResult(fixes, raw.n_epochs, n_states, {**model.describe(), "mask_deg": cfg.mask_deg,
                                                      "raim": cfg.raim}, warn)
 
