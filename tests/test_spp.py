@@ -288,3 +288,36 @@ def test_with_rtklibs_weights_our_solution_is_rtklibs(tmp_path):
     print(f"\n0759 with RTKLIB's weights: |ours - RTKLIB| RMS {1e3 * np.sqrt(np.mean(diff ** 2)):.3f} mm, "
           f"max {1e3 * diff.max():.3f} mm over {diff.size} epochs")
     assert diff.size == 120 and diff.max() < 0.01
+
+
+def test_spp_on_a_ubx_log_without_nav(capsys, tmp_path):
+    """A u-blox log alone: the ephemerides come from its RXM-SFRBX subframes; the missing ionospheric
+    coefficients are one warning line; velocities from the Doppler are in the CSV."""
+    ubx = DATA / "real-imu-gnss" / "walk_0827" / "gnss_1730.ubx"
+    _need(ubx)
+    pytest.importorskip("pyubx2", reason="pyubx2 not installed")
+    out_csv = tmp_path / "walk.csv"
+    rc, out, err = _run(["spp", str(ubx), "--json", "--csv", str(out_csv)], capsys)
+    assert rc == 0, err
+    s = json.loads(out)
+    assert s["obs_format"] == "ubx" and s["nav"] == "RXM-SFRBX"
+    assert s["satellites_with_ephemeris"] == [10, 23, 27, 32] and s["epochs"] == 536 and s["fixes"] >= 500
+    assert s["corrections"]["iono"] == "klobuchar (no parameters)"
+    warning = ("ultratight spp: warning: no ionospheric coefficients (alpha/beta) in the navigation data: "
+               "ionosphere not corrected")
+    assert err.strip().splitlines() == [warning]
+    rows = _csv_rows(out_csv)
+    assert len(rows) == s["fixes"] and rows[0]["iono"] == "off"
+    speed = np.array([math.hypot(float(r["vx_mps"]), float(r["vy_mps"])) for r in rows])
+    assert np.all(np.isfinite(speed))
+    rc, out, err = _run(["spp", str(ubx), "--code", "P1"], capsys)
+    assert rc == 2 and "--code applies to RINEX observations" in err
+
+
+def test_spp_without_a_fix_warns(capsys):
+    _need(OBS, NAV)
+    rc, out, err = _run(["spp", str(OBS), str(NAV), "--json", "--mask", "80"], capsys)
+    assert rc == 0
+    s = json.loads(out)
+    assert s["fixes"] == 0 and s["epochs_with_ephemeris"] == 120 and s["mean_position_ecef_m"] is None
+    assert "no fix: no epoch has a solution with four satellites" in err and len(err.strip().splitlines()) == 1
