@@ -148,7 +148,12 @@ def check_options(o, fixes=None, tight=None):
     if o.gate_p is not None and not (0.0 < float(o.gate_p) < 1.0):
         raise ConfigError(f"gins: gate_p must lie in (0, 1) or be None, got {o.gate_p!r}")
     if o.heading_deg is not None:
-        _positive("heading_deg (as a finite number)", abs(float(o.heading_deg)) + 1.0)
+        try:
+            ok = math.isfinite(float(o.heading_deg))
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise ConfigError(f"gins: heading_deg must be a finite number (degrees from north), got {o.heading_deg!r}")
     if int(o.akf_window) < 1 or int(o.gate_release) < 1 or int(o.outage_keep_sats) < 0:
         raise ConfigError("gins: akf_window and gate_release must be >= 1 and outage_keep_sats >= 0")
     try:
