@@ -8,17 +8,65 @@ own Python process (so peak-memory figures are per benchmark) as
     python benchmarks/bench_NAME.py [--quick] --json OUT.json
 
 and must write its figures as a JSON object to OUT.json.  The report gathers
-them with the machine description and the total wall time.
+them, each script's printed lines, the machine description and the total wall
+time.
+
+``--acceptance`` adds the acceptance runs of :data:`ACCEPTANCE`: the scripts
+``benchmarks/acceptance_*.py`` and ``benchmarks/study_highdyn.py`` with the
+arguments that reproduce the documented acceptance figures, and
+``benchmarks/acceptance_reproductions.py``, which runs the test suite's slow
+reproductions (``pytest -m slow``) and reports each node's outcome and printed
+figures.  They take minutes to hours (the study: hours); ``--only NAME`` runs
+one of them without the flag.  Their generated data go to ``--data DIR``
+(default: a temporary folder removed at the end; pass a folder to keep the
+data and let the study resume).
 """
 
 HELP = "run all benchmarks (correlator, generator, acquisition, prefilters, SINS, end-to-end) and write a JSON report"
+
+# The acceptance runs: name -> (script, arguments of the documented run, arguments under --quick,
+# whether the script writes --json).  "{data}" is the run's own folder under --data.  The commands
+# are the ones the documents state (README "Results", docs/ultratight.md "Measured",
+# docs/prefilter.md, docs/process.md, docs/claims.md "Running the checks").
+ACCEPTANCE = {
+    "acceptance_ultratight": (
+        "acceptance_ultratight.py",
+        ["--seeds", "1,2,3,4,5", "--duration", "60", "--monitor", "off", "--frontend-gain", "fixed",
+         "--format", "ci16", "--noise-tau", "inf", "--data", "{data}"],
+        ["--quick", "--data", "{data}"], True),
+    "acceptance_ultratight_agc": (
+        "acceptance_ultratight.py",
+        ["--seeds", "1,2,3,4,5", "--duration", "60", "--monitor", "off", "--frontend-gain", "agc",
+         "--format", "ci8", "--noise-tau", "0", "--data", "{data}"],
+        ["--quick", "--frontend-gain", "agc", "--format", "ci8", "--noise-tau", "0", "--data", "{data}"], True),
+    "acceptance_prefilter": ("acceptance_prefilter.py", ["--seeds", "5"], ["--seeds", "1"], True),
+    "acceptance_bits": ("acceptance_bits.py", ["check", "--data", "{data}"],
+                        ["check", "--seeds", "1", "--data", "{data}"], True),
+    "acceptance_atmosphere": ("acceptance_atmosphere.py", [], ["--quick"], True),
+    "acceptance_all_in_view": ("acceptance_all_in_view.py", [], ["--quick"], True),
+    "acceptance_reproductions": ("acceptance_reproductions.py", [], ["--quick"], True),
+    "study_highdyn": (
+        "study_highdyn.py",
+        ["--runs", "10", "--cache", "--out", "{data}", "--only",
+         "if-x20,if-x4.47,corr-x4.47,filter-r-x4.47,if-x10,if-x20-coast,corr-x4.47-coast"],
+        ["--runs", "2", "--duration", "12", "--fs-hz", "2.046e6", "--out", "{data}", "--only", "if-x20"], False),
+    "study_highdyn_20s": (
+        "study_highdyn.py",
+        ["--runs", "10", "--cache", "--duration", "20", "--out", "{data}", "--only",
+         "corr-x20,corr-x10,filter-r-x20,if-x3,if-x2,corr-x3,corr-x2"],
+        ["--runs", "2", "--duration", "12", "--fs-hz", "2.046e6", "--out", "{data}", "--only", "corr-x20"], False),
+}
 
 
 def add_arguments(p):
     p.add_argument("--quick", action="store_true", help="shorter runs (smoke-level figures)")
     p.add_argument("--json", metavar="PATH", default="bench.json", help="report path (default: bench.json)")
     p.add_argument("--only", metavar="LIST", default=None,
-                   help="comma-separated benchmark names (e.g. correlator,prefilter)")
+                   help="comma-separated benchmark names (e.g. correlator,prefilter, or an acceptance run)")
+    p.add_argument("--acceptance", action="store_true",
+                   help="also run the acceptance scripts, the study and the slow test reproductions (long)")
+    p.add_argument("--data", metavar="DIR", default=None,
+                   help="folder for the acceptance runs' generated data (default: a temporary folder)")
     p.add_argument("--dir", metavar="DIR", default=None, help="benchmarks folder (default: the checkout's benchmarks/)")
 
 
@@ -60,48 +108,93 @@ def machine_info():
     }
 
 
-def run(args):
+def select(d, only=None, acceptance=False):
+    """The runs to do, in order: a list of ``(name, script path, kind)`` with kind ``"bench"`` or
+    ``"acceptance"``.  The default set is every ``bench_*.py`` of ``d``; ``acceptance`` adds the
+    entries of :data:`ACCEPTANCE` whose script is in ``d``; ``only`` (names, comma-separated) picks
+    from both sets.  An unknown name raises ``ConfigError``."""
+    from ultratight.errors import ConfigError
+
+    runs = [(s.stem[len("bench_"):], s, "bench") for s in sorted(d.glob("bench_*.py"))]
+    extra = [(n, d / spec[0], "acceptance") for n, spec in ACCEPTANCE.items() if (d / spec[0]).is_file()]
+    if only:
+        wanted = [w.strip() for w in only.split(",") if w.strip()]
+        known = [r[0] for r in runs + extra]
+        unknown = sorted(set(wanted) - set(known))
+        if unknown:
+            raise ConfigError(f"unknown benchmark(s) {', '.join(unknown)}; known: {', '.join(known)}")
+        return [r for r in runs + extra if r[0] in wanted]
+    return runs + extra if acceptance else runs
+
+
+def command(name, script, kind, out, quick, data_dir):
+    """The command line of one run (``out``: its JSON report; ``data_dir``: the --data folder)."""
+    import os
+    import sys
+
+    if kind == "bench":
+        return [sys.executable, str(script), "--json", out] + (["--quick"] if quick else [])
+    _, full, short, writes_json = ACCEPTANCE[name]
+    data = os.path.join(data_dir, name)
+    args = [a.replace("{data}", data) for a in (short if quick else full)]
+    return [sys.executable, str(script)] + args + (["--json", out] if writes_json else [])
+
+
+def run_one(cmd, out, cwd):
+    """Run one script; its report entry (wall time, status, figures, printed lines)."""
     import json
     import os
     import subprocess
+    import time
+
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=cwd)
+    entry = {"wall_s": round(time.perf_counter() - t0, 3), "returncode": proc.returncode,
+             "command": cmd[1:], "output": proc.stdout.splitlines()}
+    if proc.returncode != 0:
+        entry["error"] = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
+    elif "--json" not in cmd:
+        entry["results"] = {}
+    elif os.path.exists(out):
+        try:
+            with open(out) as fh:
+                entry["results"] = json.load(fh)
+        except (OSError, ValueError) as exc:
+            entry["error"] = f"unreadable report ({exc})"
+    else:
+        entry["error"] = "no report written"
+    return entry
+
+
+def run(args):
+    import os
     import sys
     import tempfile
     import time
 
-    from ultratight import __version__
+    from ultratight import __version__, io_guard
+
     from ultratight.errors import ConfigError
 
-    from ultratight import io_guard
     io_guard.check_io([], [("--json", args.json)])
+    if args.data is not None and os.path.exists(args.data) and not os.path.isdir(args.data):
+        raise ConfigError(f"--data {args.data} is a file, not a folder")
     d = _bench_dir(args.dir)
-    scripts = sorted(d.glob("bench_*.py"))
-    names = [s.stem[len("bench_"):] for s in scripts]
-    if args.only:
-        wanted = [w.strip() for w in args.only.split(",") if w.strip()]
-        unknown = sorted(set(wanted) - set(names))
-        if unknown:
-            raise ConfigError(f"unknown benchmark(s) {', '.join(unknown)}; known: {', '.join(names)}")
-        scripts = [s for s, n in zip(scripts, names) if n in wanted]
-    report = {"version": __version__, "machine": machine_info(), "quick": bool(args.quick), "benchmarks": {}}
+    runs = select(d, args.only, args.acceptance)
+    report = {"version": __version__, "machine": machine_info(), "quick": bool(args.quick),
+              "acceptance": bool(args.acceptance), "benchmarks": {}}
     t_all = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
-        for script in scripts:
-            name = script.stem[len("bench_"):]
+        data_dir = os.path.abspath(args.data) if args.data else os.path.join(tmp, "data")
+        for name, script, kind in runs:
             out = os.path.join(tmp, f"{name}.json")
-            cmd = [sys.executable, str(script), "--json", out] + (["--quick"] if args.quick else [])
+            cmd = command(name, script, kind, out, args.quick, data_dir)
             print(f"[bench] {name} ...", file=sys.stderr, flush=True)
-            t0 = time.perf_counter()
-            proc = subprocess.run(cmd, capture_output=True, text=True)
-            entry = {"wall_s": round(time.perf_counter() - t0, 3), "returncode": proc.returncode}
-            if proc.returncode == 0 and os.path.exists(out):
-                try:
-                    with open(out) as fh:
-                        entry["results"] = json.load(fh)
-                except (OSError, ValueError) as exc:
-                    entry["error"] = f"unreadable report ({exc})"
-            else:
-                entry["error"] = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
+            entry = run_one(cmd, out, cwd=os.getcwd())
             report["benchmarks"][name] = entry
+            if kind == "acceptance":
+                for line in entry["output"]:
+                    print(f"[{name}] {line}", file=sys.stderr)
             status = "ok" if "results" in entry else f"FAILED: {entry['error']}"
             print(f"[bench] {name}: {status} ({entry['wall_s']:.1f} s)", file=sys.stderr, flush=True)
     report["total_wall_s"] = round(time.perf_counter() - t_all, 3)
