@@ -69,6 +69,9 @@ def test_acceptance_flag_adds_every_acceptance_run_with_its_documented_arguments
     assert rep["acceptance_ultratight_agc"]["results"]["argv"][7:12] == ["agc", "--format", "ci8", "--noise-tau", "0"]
     assert rep["acceptance_prefilter"]["results"]["argv"][:2] == ["--seeds", "5"]
     assert rep["acceptance_bits"]["results"]["argv"][0] == "check"
+    assert rep["acceptance_bits_sweep"]["results"]["argv"][:2] == ["sweep", "--data"]
+    assert rep["acceptance_bits_sweep_lnav"]["results"]["argv"][:5] == ["sweep", "--nav-data", "lnav",
+                                                                        "--strategies", "assisted"]
     assert rep["acceptance_reproductions"]["results"]["argv"][0] == "--json"
     # the study writes no JSON: its printed tables are the figures
     study = rep["study_highdyn"]
