@@ -36,7 +36,9 @@ error state after the feedback.  ``prior_used`` is the prior covariance of the l
     P′ is the covariance propagated without process noise since the last update, Ω from the
     per-innovation χ²₁ test at ``afm_alpha`` (eqs. 5–6), S = (H′ᵀH′)⁻¹ H′ᵀ Ω H′ on the measured
     columns (position, velocity and clock states, eqs. 7–10), P⁻_f = S ⊙ P′ + (P⁻ − P′) (eq. 13),
-    then the Kalman update with P⁻_f
+    then the Kalman update with P⁻_f; an epoch with fewer rows than measured columns (a tight
+    epoch with few satellites) does not determine S (eq. 9) and is not faded (the scalar factor
+    λ of eq. 1 compounds epoch after epoch there: tried, σ of hundreds of metres in 15 s)
     (:func:`ultratight.fusion.estimators.adaptive.fading_matrix`, :func:`apply_fading`).
 """
 
@@ -189,8 +191,9 @@ class AfmCore(KfCore):
         y = z - H @ self.x
         A = symmetrize(H @ self.Pn @ H.T)
         B = symmetrize(H @ self.P @ H.T + R) - A
-        S = fading_matrix(y, A, B, H, self.threshold, nonzero_cols=self._measured_cols())
-        self.P = apply_fading(self.P, self.Pn, S)
+        cols = self._measured_cols()
+        if z.shape[0] >= len(cols):     # fewer rows than measured states do not determine S (eq. 9)
+            self.P = apply_fading(self.P, self.Pn, fading_matrix(y, A, B, H, self.threshold, nonzero_cols=cols))
         self.prior_used = self.P
         out = self._kf(z, H, R)
         self.Pn = self.P.copy()

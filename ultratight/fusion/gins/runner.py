@@ -109,7 +109,8 @@ class GinsRun:
             P0[:em.N15, :em.N15] = al.P0
             P0[em.CLK, em.CLK], P0[em.DRIFT, em.DRIFT] = np.asarray(opts.clock_sigma0, float) ** 2
             pos_e = np.asarray(llh_to_ecef(*self.x[7:10]), float)
-            self.clk[:] = src.initial_clock(al.info["epoch"], pos_e, dcm_ecef_from_enu(self.x[7], self.x[8]) @ self.x[4:7])
+            clk0 = src.initial_clock(al.info["epoch"], pos_e, dcm_ecef_from_enu(self.x[7], self.x[8]) @ self.x[4:7])
+            self.clk[:] = np.where(np.isfinite(clk0), clk0, 0.0)
         m_gnss = 6 if (not self.tight and self._has_velocity()) else 3
         self.core = make_core(opts.filter, P0, opts, m_gnss)
         self.nodes, self.by_node, self.reason = _schedule(imu, al.j0, src, opts)
@@ -118,6 +119,7 @@ class GinsRun:
                              np.eye(self.ns))
         self.next_aid = -np.inf
         self.n_rejected_run = 0
+        self.row_runs = {}
 
     def _has_velocity(self):
         return bool(self.o.use_velocity and np.any(np.all(np.isfinite(self.src.fx.vel_enu), axis=1)))
@@ -181,7 +183,10 @@ class GinsRun:
         z, H, R, quality = rows
         mask, nis, why = updates.gate(z - H @ self.core.x, H, self.core.gate_R(R), self.core.P, self.o.gate_p,
                                       per_row=self.tight)
-        if not mask.all() and self.n_rejected_run >= self.o.gate_release and not self.tight:
+        if self.tight:
+            mask, why = self._release_rows(quality, mask, why)
+            quality = -1
+        elif not mask.all() and self.n_rejected_run >= self.o.gate_release:
             mask[:] = True
             why = f"used after {self.n_rejected_run} rejected epochs ({why})"
         if not mask.any():
@@ -194,12 +199,25 @@ class GinsRun:
         log.epoch(k, t_k, True, z.shape[0], nis, not mask.all(), quality, why)
         return True
 
+    def _release_rows(self, keys, mask, why):
+        """Tight gate release: a row (PRN and kind) rejected in ``gate_release`` consecutive epochs is
+        used in the next one (its count restarts)."""
+        runs = self.row_runs
+        for i, key in enumerate(keys):
+            key = int(key)
+            if mask[i]:
+                runs[key] = 0
+            elif runs.get(key, 0) >= self.o.gate_release:
+                mask[i] = True
+                runs[key] = 0
+                why += f"; row {key} used after {self.o.gate_release} rejections"
+            else:
+                runs[key] = runs.get(key, 0) + 1
+        return mask, why
+
     def _rows(self, k, b, keep):
         if self.tight:
-            r = self.src.rows(k, self.x, self.clk, self.omega_b, self.o.lever_arm_b, keep=keep)
-            if r is None:
-                return None
-            return r[0], r[1], r[2], -1
+            return self.src.rows(k, self.x, self.clk, self.omega_b, self.o.lever_arm_b, keep=keep)
         fix = self.src.fix(k)
         if fix is None:
             return None

@@ -180,31 +180,50 @@ class TightSource:
         self.n = int(self.t.shape[0])
 
     def fix(self, k, iters=8):
-        pos = np.zeros(3)
-        vel = np.zeros(3)
+        """:class:`Fix` of epoch k: the object's own single-point fix (``spp``) when it has one, else
+        Gauss–Newton on the rows from the Earth's centre; None without four satellites."""
+        if hasattr(self.m, "spp"):
+            f = self.m.spp(k)
+            if not f.ok or not np.all(np.isfinite(f.pos_e)):
+                return None
+            pos, vel = np.asarray(f.pos_e, float), np.asarray(f.vel_e, float)
+        else:
+            pos, vel = self._lsq(k, iters)
+            if pos is None:
+                return None
+        llh = np.asarray(ecef_to_llh(pos), float)
+        C_el = dcm_ecef_from_enu(llh[0], llh[1])
+        r = self.m.rows(k, pos, np.nan_to_num(vel), 0.0, 0.0)
+        A = np.hstack([np.asarray(r.los_e, float), np.ones((len(r.dz_pr), 1))])
+        G = np.linalg.pinv(A.T @ A)
+        dop = np.sqrt(np.maximum(np.diag(C_el.T @ G[:3, :3] @ C_el), 0.0))
+        ok = np.isfinite(np.asarray(r.sigma_rr, float))
+        s_rr = float(np.median(np.asarray(r.sigma_rr, float)[ok])) if ok.any() else np.inf
+        v_enu = C_el.T @ vel if np.all(np.isfinite(vel)) else np.full(3, np.nan)
+        return Fix(float(self.t[k]), llh, v_enu, dop * float(np.median(r.sigma_pr)), dop * s_rr, 5)
+
+    def _lsq(self, k, iters):
+        pos, vel = np.zeros(3), np.zeros(3)
         clk = drift = 0.0
         for _ in range(iters):
             r = self.m.rows(k, pos, vel, clk, drift)
             if r is None or len(r.dz_pr) < 4:
-                return None
+                return None, None
             A = np.hstack([-np.asarray(r.los_e), np.ones((len(r.dz_pr), 1))])
             d = np.linalg.lstsq(A, np.asarray(r.dz_pr, float), rcond=None)[0]
-            dv = np.linalg.lstsq(A, np.asarray(r.dz_rr, float), rcond=None)[0]
             pos, clk = pos - d[:3], clk - d[3]
-            vel, drift = vel - dv[:3], drift - dv[3]
-        llh = np.asarray(ecef_to_llh(pos), float)
-        C_el = dcm_ecef_from_enu(llh[0], llh[1])
-        G = np.linalg.inv(A.T @ A)
-        dop = np.sqrt(np.maximum(np.diag(C_el.T @ G[:3, :3] @ C_el), 0.0))
-        s_pr = float(np.median(r.sigma_pr))
-        s_rr = float(np.median(r.sigma_rr))
-        return Fix(float(self.t[k]), llh, C_el.T @ vel, dop * s_pr, dop * s_rr, 5)
+            ok = np.isfinite(np.asarray(r.dz_rr, float))
+            if ok.sum() >= 4:
+                dv = np.linalg.lstsq(A[ok], np.asarray(r.dz_rr, float)[ok], rcond=None)[0]
+                vel, drift = vel - dv[:3], drift - dv[3]
+        return pos, vel
 
     def initial_clock(self, k, pos_e, vel_e):
         return self.m.initial_clock(k, pos_e, vel_e)
 
     def rows(self, k, x, clk, omega_b, lever_b, keep=None):
-        """(z, H, R, prn) of epoch k at the SINS state ``x`` (antenna through the lever arm), or None."""
+        """(z, H, R, keys) of epoch k at the SINS state ``x`` (antenna through the lever arm), or None;
+        ``keys`` name the rows (+PRN pseudorange, −PRN range rate)."""
         C = quat_to_dcm(x[0:4])
         lever_b = np.asarray(lever_b, float)
         l_l = C @ lever_b
@@ -219,5 +238,8 @@ class TightSource:
         w_ie_l = np.array([0.0, OMEGA_E * math.cos(x[7]), OMEGA_E * math.sin(x[7])])
         H = measurement_matrix(los_l, P_NEU_TO_ENU, lever=(C, l_l, a_l, w_ie_l))
         z = np.concatenate([np.asarray(r.dz_pr, float), np.asarray(r.dz_rr, float)])
-        R = np.diag(np.concatenate([np.asarray(r.sigma_pr, float), np.asarray(r.sigma_rr, float)]) ** 2)
-        return z, H, R, np.asarray(r.prn)
+        sig = np.concatenate([np.asarray(r.sigma_pr, float), np.asarray(r.sigma_rr, float)])
+        ok = np.isfinite(z) & np.isfinite(sig)          # a row without Doppler keeps its pseudorange only
+        prn = np.asarray(r.prn, int)
+        keys = np.concatenate([prn, -prn])[ok]          # +PRN pseudorange row, −PRN range-rate row
+        return z[ok], H[ok], np.diag(sig[ok] ** 2), keys
