@@ -12,7 +12,8 @@ error state after the feedback.  ``prior_used`` is the prior covariance of the l
     Joseph-form Kalman update (:func:`ultratight.fusion.estimators.filters.kf_update`).
 ``akf``
     Fang 2017's innovation-based AKF (:class:`ultratight.fusion.estimators.adaptive.AKF`) with R
-    adapted from the window of the last ``akf_window`` GNSS innovations (eq. 8) and Q kept at the
+    adapted from the window of the last ``akf_window`` GNSS innovations (eq. 8; the window restarts
+    after an outage, whose first innovations carry the inertial drift, not R) and Q kept at the
     declaration (the IMU declaration is what Q is tuned from; eq. 14's Q̂ would be estimated at
     the GNSS interval while Q is applied at the covariance rate).  The window needs a fixed
     measurement dimension: an epoch with another number of rows (e.g. no velocity) is a KF update.
@@ -84,6 +85,9 @@ class KfCore:
         """The R this core's GNSS update will use (the χ² gate tests against it)."""
         return R
 
+    def gap(self):
+        """A GNSS epoch was not used (outage): the windowed cores restart their windows."""
+
     def update_gnss(self, z, H, R):
         self.prior_used = self.P
         return self._kf(z, H, R)
@@ -100,6 +104,10 @@ class AkfCore(KfCore):
     def gate_R(self, R):
         f = self.f
         return f.R if f is not None and f.R.shape == R.shape and len(f.eps) >= f.N else R
+
+    def gap(self):
+        if self.f is not None:      # the first innovations after a gap carry the inertial drift, not R
+            self.f.eps.clear()
 
     def update_gnss(self, z, H, R):
         self.prior_used = self.P

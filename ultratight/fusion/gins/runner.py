@@ -172,6 +172,7 @@ class GinsRun:
         out = bool(in_windows([t_k], self.outages)[0])
         keep = None
         if out and (not self.tight or self.o.outage_keep_sats == 0):
+            self.core.gap()
             log.epoch(k, t_k, False, 0, np.nan, False, -1, "outage")
             return False
         if out:
