@@ -152,6 +152,8 @@ def test_zupt_holds_a_still_imu():
     _, dvh = _errors(imu, held)
     m = held.in_outage
     assert held.meta["counts"]["zupt"] > 200
+    assert held.alignment["method"] == "static-level+given-heading"
+    assert math.degrees(held.alignment["yaw"]) == pytest.approx(40.0, abs=0.1)   # carried over 0.2 s at most
     assert np.abs(dvh[m]).max() < 0.05                 # ZUPT σ 0.02 m/s
     assert np.abs(dvf[m]).max() > 5.0 * np.abs(dvh[m]).max()
 

@@ -217,9 +217,10 @@ def align(imu, opts, source):
     bg, sig_bg = _gyro_bias_at_rest(om_mean, T, C0, fix.llh[0], noise)
     C = _carry_attitude(C0, imu.dtheta_b[b:j0 + 1], bg, dts[b:j0 + 1])
     e = dcm_to_euler(C)
-    C = euler_to_dcm(e[0], e[1], yaw)
-    if opts.heading_deg is None:     # the Earth-rate part of the bias with the heading now known
+    if opts.heading_deg is None:     # the course replaces the carried yaw; the Earth-rate part of the bias
+        C = euler_to_dcm(e[0], e[1], yaw)
         bg, sig_bg = _gyro_bias_at_rest(om_mean, T, euler_to_dcm(roll, pitch, yaw - e[2]), fix.llh[0], noise)
+        e[2] = yaw
     lever_l = C @ np.asarray(opts.lever_arm_b, float)
     vel = np.where(np.isfinite(fix.vel_enu), fix.vel_enu, 0.0)
     d_enu = vel * (float(imu.t[j0]) - float(source.t[k])) - lever_l     # to the IMU sample's time and point
@@ -230,7 +231,7 @@ def align(imu, opts, source):
     sig_tilt_noise = noise.accel_vrw / math.sqrt(T) / G0
     P0 = _initial_covariance(C, sig_tilt_noise, sig_yaw, fix.sig_pos, fix.sig_vel, sig_bg, noise)
     info = {"method": method + ("+given-heading" if opts.heading_deg is not None else "+gnss-course"),
-            "t": float(imu.t[j0]), "epoch": int(k), "roll": float(e[0]), "pitch": float(e[1]), "yaw": float(yaw),
+            "t": float(imu.t[j0]), "epoch": int(k), "roll": float(e[0]), "pitch": float(e[1]), "yaw": float(e[2]),
             "level_roll": roll, "level_pitch": pitch, "still_window": (float(imu.t[a] - dts[a]), float(imu.t[b - 1])),
             "sigma_yaw_rad": float(sig_yaw), "gyro_bias0": bg.tolist(), "sigma_gyro_bias0": float(sig_bg),
             "f_mean_minus_g": float(np.linalg.norm(f_mean) - g)}
