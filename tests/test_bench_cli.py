@@ -73,6 +73,10 @@ def test_acceptance_flag_adds_every_acceptance_run_with_its_documented_arguments
     assert rep["acceptance_bits_sweep_lnav"]["results"]["argv"][:5] == ["sweep", "--nav-data", "lnav",
                                                                         "--strategies", "assisted"]
     assert rep["acceptance_reproductions"]["results"]["argv"][0] == "--json"
+    # the papers' tables: the documented scenario commands
+    assert rep["scenario_paper_afm_jump"]["results"]["argv"][:5] == ["paper-afm-jump", "--runs", "10", "--seed", "1"]
+    assert rep["scenario_paper_fads"]["results"]["argv"][:3] == ["paper-fads", "--runs", "100"]
+    assert rep["scenario_paper_static_iakf"]["results"]["argv"][5:7] == ["--methods", "akf0,akf,iakf,kf,kf-true-noise"]
     # the study writes no JSON: its printed tables are the figures
     study = rep["study_highdyn"]
     assert study["results"] == {} and "--json" not in study["output"][0]

@@ -51,6 +51,19 @@ ACCEPTANCE = {
     "acceptance_atmosphere": ("acceptance_atmosphere.py", [], ["--quick"], True),
     "acceptance_all_in_view": ("acceptance_all_in_view.py", [], ["--quick"], True),
     "acceptance_reproductions": ("acceptance_reproductions.py", [], ["--quick"], True),
+}
+# the papers' Monte Carlo tables, printed by ``ultratight scenario`` (docs/paper_afm.md,
+# docs/integration-experiments.md, docs/airdata.md): --quick runs one seed of a shorter cut
+for _name, _runs, _extra, _cut in (("paper-afm-jump", 10, [], 60), ("paper-afm-noise", 10, [], 60),
+                                   ("paper-afm-accel", 10, [], 60),
+                                   ("paper-static-iakf", 10, ["--methods", "akf0,akf,iakf,kf,kf-true-noise"], 200),
+                                   ("paper-robust-flight", 10, [], 100), ("paper-fads", 100, [], 60),
+                                   ("paper-fads-separate", 100, [], 60)):
+    ACCEPTANCE["scenario_" + _name.replace("-", "_")] = (
+        "acceptance_scenario.py", [_name, "--runs", str(_runs), "--seed", "1"] + _extra,
+        [_name, "--runs", "1", "--seed", "1", "--duration", str(_cut)] + _extra, True)
+del _name, _runs, _extra, _cut
+ACCEPTANCE.update({
     "study_highdyn": (
         "study_highdyn.py",
         ["--runs", "10", "--cache", "--out", "{data}", "--only",
@@ -61,7 +74,7 @@ ACCEPTANCE = {
         ["--runs", "10", "--cache", "--duration", "20", "--out", "{data}", "--only",
          "corr-x20,corr-x10,filter-r-x20,if-x3,if-x2,corr-x3,corr-x2"],
         ["--runs", "2", "--duration", "12", "--fs-hz", "2.046e6", "--out", "{data}", "--only", "corr-x20"], False),
-}
+})
 
 
 def add_arguments(p):
