@@ -30,7 +30,9 @@ error state after the feedback.  ``prior_used`` is the prior covariance of the l
     faulty innovations replaced by the Newton extrapolation of the last four used ones divided by
     δ = ``newton_delta`` (eqs. 21–28;
     :func:`ultratight.fusion.estimators.robust.chi2_newton_kf_update`, replacements that fail the
-    test themselves set to zero).
+    test themselves set to zero, and a dimension flagged in ``gate_release`` consecutive epochs used
+    unchanged — a persistent "fault" is the filter's own error, which replacing would hide from it;
+    both are this project's additions to the paper, as in ``ChiSquareNewton``).
 ``afm-aukf``
     Sun et al. 2012's adaptive fading matrix applied to the error-state filter (the model here is
     linear, so the sigma-point equivalents of eqs. 11–12 are the exact H, A = H P′ Hᵀ, B = S − A):
@@ -167,7 +169,8 @@ class Chi2NewtonCore(KfCore):
     def update_gnss(self, z, H, R):
         self.prior_used = self.P
         if self.det is None:
-            self.det = ChiSquareNewton(z.shape[0], alpha=self.o.chi2_alpha, delta=self.o.newton_delta, guard=True)
+            self.det = ChiSquareNewton(z.shape[0], alpha=self.o.chi2_alpha, delta=self.o.newton_delta, guard=True,
+                                       release_after=self.o.gate_release)
         if self.det.m != z.shape[0]:
             return self._kf(z, H, R)
         before = self.det.n_faults
