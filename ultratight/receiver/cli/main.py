@@ -20,7 +20,7 @@ import warnings
 from ultratight import __version__
 from ultratight.errors import UltratightError
 
-SUBCOMMANDS = ("generate", "process", "ins", "scenario", "campaign", "bench", "spp")
+SUBCOMMANDS = ("generate", "process", "ins", "integrate", "spp", "scenario", "campaign", "bench")
 
 
 def _load(name):
