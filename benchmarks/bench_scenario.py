@@ -8,7 +8,8 @@ same code on one core (``--workers 1 --threads 1``: the methods one after the ot
 one thread) and the same command on the baseline commit (``--baseline``, default the receiver
 before it was rebuilt from stages, run from an export of that commit). It reports for each the wall
 time, the CPU time of the process and its children and the peak resident set size of the largest
-process, and the ratios of the wall times ``default / baseline`` and ``default / one core``. Every
+process, the sizes of ``results.h5`` and of the data cache (truth, trajectory, IMU), and the ratios of
+the wall times ``default / baseline`` and ``default / one core``. Every
 code version first runs a 2 s cut (numba compilation or cache loading stays out of the figures).
 ``--repeat N`` times the default and the baseline N times each, alternately, and compares the median
 runs (the wall time of one run varies by up to about 10 % on a shared 2-core VM). Baseline exports are
@@ -45,6 +46,18 @@ def _run(args, cwd, env=None):
         raise RuntimeError(f"{' '.join(args)} failed: {err.strip().splitlines()[-1:]}")
     cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
     return {"wall_s": wall, "cpu_s": cpu, "maxrss_mb": ru.ru_maxrss / 1024.0}   # wait4: the process tree
+
+
+def output_sizes(out):
+    """Sizes (MB = 1e6 bytes) of a run's ``results.h5`` and of its data cache (``OUT/cache``: truth,
+    trajectory, IMU; the IF only with ``--cache``), by file."""
+    out = Path(out)
+    res = out / "results.h5"
+    files = sorted(p for p in (out / "cache").rglob("*") if p.is_file() and p.suffix not in (".lock", ".json")) \
+        if (out / "cache").is_dir() else []
+    by_file = {p.name: p.stat().st_size / 1e6 for p in files}
+    return {"results_h5_mb": res.stat().st_size / 1e6 if res.exists() else 0.0,
+            "cache_mb": sum(by_file.values()), "cache_files_mb": by_file}
 
 
 def main(argv=None):
@@ -85,9 +98,12 @@ def main(argv=None):
         for k, (name, flags, env) in enumerate(order):
             out = Path(tmp) / f"{name}-{k}"
             r = _run(base + extra + ["--out", str(out)] + flags, tmp, env)
+            r.update(output_sizes(out))
             samples.setdefault(name, []).append(r)
             print(f"{name:20s} wall {r['wall_s']:6.1f} s, CPU {r['cpu_s']:6.1f} s, "
                   f"peak RSS {r['maxrss_mb']:.0f} MB", flush=True)
+            print(f"{name:20s} outputs: results.h5 {r['results_h5_mb']:.1f} MB, cache {r['cache_mb']:.1f} MB "
+                  f"({', '.join(f'{k} {v:.1f} MB' for k, v in r['cache_files_mb'].items())})", flush=True)
         for name, rs in samples.items():
             mid = sorted(rs, key=lambda r: r["wall_s"])[(len(rs) - 1) // 2]     # the median run
             res[name] = dict(mid, walls_s=[r["wall_s"] for r in rs])
