@@ -195,6 +195,10 @@ def test_chi2_gate_rejects_a_50_m_outlier(vehicle):
     assert np.abs(dp[near]).max() < 0.3
     ungated = run_gins(imu, _opts(noise, gate_p=None), fixes=bad)
     assert np.abs(_errors(imu, ungated)[0][near]).max() > 1.0
+    # chi2-newton screens the rows itself (no epoch gate in front): the outlier's dimensions replaced
+    cn = run_gins(imu, _opts(noise, filter="chi2-newton"), fixes=bad)
+    assert cn.updates["used"][k] and cn.meta["counts"]["faulty_dims"] >= 1
+    assert np.abs(_errors(imu, cn)[0][near]).max() < 0.3
 
 
 @pytest.mark.parametrize("name", FILTERS)
@@ -208,6 +212,21 @@ def test_every_core_runs(vehicle, name):
     u = res.updates
     usable = (u["t"] > res.t[0]) & ~((u["t"] >= T0 + 70.0) & (u["t"] <= T0 + 75.0))
     assert u["used"].sum() >= 0.9 * usable.sum()
+
+
+@pytest.mark.parametrize("name", ["kf", "akf", "chi2-newton"])
+def test_position_only_fixes(vehicle, name):
+    # a source without velocity (NMEA GGA): 3-row updates, the heading from two positions
+    imu, fx, noise, _, _ = vehicle
+    pos_only = fx.subset(np.arange(fx.n))
+    pos_only.vel_enu[:] = np.nan
+    pos_only.sigma_vel_enu[:] = np.nan
+    res = run_gins(imu, _opts(noise, filter=name), fixes=pos_only)
+    assert set(res.updates["n_rows"][res.updates["used"]]) == {3}
+    assert math.degrees(res.alignment["yaw"]) == pytest.approx(30.0, abs=3.0 * math.degrees(res.alignment["sigma_yaw_rad"]))
+    dp, dv = _errors(imu, res)
+    settled = res.t - T0 > 20.0
+    assert np.abs(dp[settled]).max() < 0.5 and np.abs(dv[settled]).max() < 0.3
 
 
 class StandInTight:

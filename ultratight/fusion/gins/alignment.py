@@ -56,6 +56,7 @@ from ultratight.ins.attitude import (dcm_to_euler, dcm_to_quat, euler_to_dcm, qu
                                      quat_to_dcm, rotvec_to_quat)
 from ultratight.ins.earth import gravity_l, radii
 from ultratight.ins.imu_noise import G0
+from ultratight.fusion.gins.updates import enu_offset
 from ultratight.ins.sins import make_state
 
 
@@ -177,8 +178,21 @@ def _initial_covariance(C_lb, sig_tilt_noise, sig_yaw, fix_sig_pos, fix_sig_vel,
     return P
 
 
+def _fix_velocity(source, k, fix):
+    """(ENU velocity, its σ) of epoch k: the source's, else the difference of the positions of
+    epochs k−1 and k over Δt ≤ 5 s (σ from both positions' σ), else NaN."""
+    v = fix.vel_enu
+    if np.all(np.isfinite(v)):
+        return v, fix.sig_vel
+    prev = source.fix(k - 1) if k > 0 else None
+    dt = float(source.t[k] - source.t[k - 1]) if k > 0 else 0.0
+    if prev is None or not 0.0 < dt <= 5.0:
+        return np.full(3, np.nan), np.full(3, np.inf)
+    return enu_offset(fix.llh, prev.llh) / dt, np.hypot(fix.sig_pos, prev.sig_pos) / dt
+
+
 def _heading_epoch(source, t_after, opts):
-    """(epoch index, heading rad, heading σ rad) of the alignment epoch (step 4)."""
+    """(epoch index, heading rad, heading σ rad, velocity, velocity σ) of the alignment epoch (step 4)."""
     floor = math.radians(opts.heading_sigma_floor_deg)
     for k in range(source.n):
         if source.t[k] < t_after:
@@ -186,13 +200,13 @@ def _heading_epoch(source, t_after, opts):
         fix = source.fix(k)
         if fix is None:
             continue
+        v, sv = _fix_velocity(source, k, fix)
         if opts.heading_deg is not None:
-            return k, math.radians(float(opts.heading_deg)), floor
-        v = fix.vel_enu
+            return k, math.radians(float(opts.heading_deg)), floor, v, sv
         speed = math.hypot(v[0], v[1]) if np.all(np.isfinite(v[:2])) else 0.0
         if speed > opts.heading_speed_mps:
-            svh = math.hypot(fix.sig_vel[0], fix.sig_vel[1])
-            return k, math.atan2(v[0], v[1]), max(svh / speed, floor)
+            svh = math.hypot(sv[0], sv[1])
+            return k, math.atan2(v[0], v[1]), max(svh / speed, floor), v, sv
     raise ConfigError(f"gins: no GNSS epoch after the levelling window with a horizontal speed above "
                       f"{opts.heading_speed_mps:g} m/s to give the heading; give the heading (heading_deg)")
 
@@ -210,7 +224,7 @@ def align(imu, opts, source):
     f_mean = imu.dv_b[a:b].sum(axis=0) / T
     om_mean = imu.dtheta_b[a:b].sum(axis=0) / T
     roll, pitch = level(f_mean)
-    k, yaw, sig_yaw = _heading_epoch(source, float(imu.t[b - 1]), opts)
+    k, yaw, sig_yaw, vel, sig_vel = _heading_epoch(source, float(imu.t[b - 1]), opts)
     fix = source.fix(k)
     j0 = min(max(int(np.argmin(np.abs(imu.t - source.t[k]))), b - 1), imu.n - 2)
     C0 = euler_to_dcm(roll, pitch, 0.0 if opts.heading_deg is None else yaw)
@@ -222,14 +236,15 @@ def align(imu, opts, source):
         bg, sig_bg = _gyro_bias_at_rest(om_mean, T, euler_to_dcm(roll, pitch, yaw - e[2]), fix.llh[0], noise)
         e[2] = yaw
     lever_l = C @ np.asarray(opts.lever_arm_b, float)
-    vel = np.where(np.isfinite(fix.vel_enu), fix.vel_enu, 0.0)
+    vel = np.where(np.isfinite(vel), vel, 0.0)
+    sig_vel = np.where(np.isfinite(sig_vel), sig_vel, max(1.0, opts.heading_speed_mps))
     d_enu = vel * (float(imu.t[j0]) - float(source.t[k])) - lever_l     # to the IMU sample's time and point
     llh = np.asarray(fix.llh, float).copy()
     rm, rn = radii(llh[0])
     llh += np.array([d_enu[1] / (rm + llh[2]), d_enu[0] / ((rn + llh[2]) * math.cos(llh[0])), d_enu[2]])
     x = make_state(dcm_to_quat(C), vel, llh)
     sig_tilt_noise = noise.accel_vrw / math.sqrt(T) / G0
-    P0 = _initial_covariance(C, sig_tilt_noise, sig_yaw, fix.sig_pos, fix.sig_vel, sig_bg, noise)
+    P0 = _initial_covariance(C, sig_tilt_noise, sig_yaw, fix.sig_pos, sig_vel, sig_bg, noise)
     info = {"method": method + ("+given-heading" if opts.heading_deg is not None else "+gnss-course"),
             "t": float(imu.t[j0]), "epoch": int(k), "roll": float(e[0]), "pitch": float(e[1]), "yaw": float(e[2]),
             "level_roll": roll, "level_pitch": pitch, "still_window": (float(imu.t[a] - dts[a]), float(imu.t[b - 1])),

@@ -32,7 +32,9 @@ error state after the feedback.  ``prior_used`` is the prior covariance of the l
     :func:`ultratight.fusion.estimators.robust.chi2_newton_kf_update`, replacements that fail the
     test themselves set to zero, and a dimension flagged in ``gate_release`` consecutive epochs used
     unchanged — a persistent "fault" is the filter's own error, which replacing would hide from it;
-    both are this project's additions to the paper, as in ``ChiSquareNewton``).
+    both are this project's additions to the paper, as in ``ChiSquareNewton``).  Its detection
+    takes the place of the χ² epoch gate, which is not applied in front of it (screening twice
+    rejects whole epochs for what the detector has already replaced).
 ``afm-aukf``
     Sun et al. 2012's adaptive fading matrix applied to the error-state filter (the model here is
     linear, so the sigma-point equivalents of eqs. 11–12 are the exact H, A = H P′ Hᵀ, B = S − A):
@@ -60,6 +62,7 @@ from ultratight.ins import error_model as em
 class KfCore:
     """Joseph-form Kalman filter (``kf``) and the base of the others."""
     name = "kf"
+    own_gate = False        # True: the core screens its GNSS rows itself (no χ² epoch gate in front)
 
     def __init__(self, P0, opts, m_gnss=6):
         self.x = np.zeros(P0.shape[0])
@@ -161,6 +164,7 @@ class IakfCore(KfCore):
 class Chi2NewtonCore(KfCore):
     """Cai et al. 2020 χ² detection + Newton replacement (module docstring)."""
     name = "chi2-newton"
+    own_gate = True
 
     def __init__(self, P0, opts, m_gnss=6):
         super().__init__(P0, opts)

@@ -182,8 +182,8 @@ class GinsRun:
             log.epoch(k, t_k, False, 0, np.nan, False, -1, "no measurement")
             return False
         z, H, R, quality = rows
-        mask, nis, why = updates.gate(z - H @ self.core.x, H, self.core.gate_R(R), self.core.P, self.o.gate_p,
-                                      per_row=self.tight)
+        p = None if self.core.own_gate else self.o.gate_p
+        mask, nis, why = updates.gate(z - H @ self.core.x, H, self.core.gate_R(R), self.core.P, p, per_row=self.tight)
         if self.tight:
             mask, why = self._release_rows(quality, mask, why)
             quality = -1
