@@ -77,6 +77,10 @@ def test_acceptance_flag_adds_every_acceptance_run_with_its_documented_arguments
     assert rep["scenario_paper_afm_jump"]["results"]["argv"][:5] == ["paper-afm-jump", "--runs", "10", "--seed", "1"]
     assert rep["scenario_paper_fads"]["results"]["argv"][:3] == ["paper-fads", "--runs", "100"]
     assert rep["scenario_paper_static_iakf"]["results"]["argv"][5:7] == ["--methods", "akf0,akf,iakf,kf,kf-true-noise"]
+    # the documented variants: the scenario with TOML keys changed
+    assert rep["variant_robust_flight_lsq"]["results"]["argv"][:6] == ["paper-robust-flight", "--runs", "10", "--seed",
+                                                                       "1", "--set"]
+    assert 'fads.altitude_curve="envelope"' in rep["variant_fads_linear_envelope"]["results"]["argv"]
     # the study writes no JSON: its printed tables are the figures
     study = rep["study_highdyn"]
     assert study["results"] == {} and "--json" not in study["output"][0]
@@ -172,3 +176,11 @@ def test_reproductions_report_each_slow_node_and_its_printed_figures(tmp_path):
                         "--nodes", "tests/test_demo.py::test_figure"], capture_output=True, text=True)
     assert r.returncode == 0, r.stdout + r.stderr
     assert "1 nodes (-m 'slow'): 1 passed, 0 failed" in r.stdout
+
+
+@pytest.mark.parametrize("item", ["filter.iakf_start", "=1", 'filter.iakf_start=full-window'])
+def test_scenario_variant_with_a_bad_set_item_is_one_line_error(item):
+    script = ROOT / "benchmarks" / "acceptance_scenario.py"
+    r = subprocess.run([sys.executable, str(script), "paper-static-iakf", "--set", item], capture_output=True, text=True)
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert r.returncode == 2 and len(lines) == 1 and "--set" in lines[0] and r.stdout == ""

@@ -62,7 +62,32 @@ for _name, _runs, _extra, _cut in (("paper-afm-jump", 10, [], 60), ("paper-afm-n
     ACCEPTANCE["scenario_" + _name.replace("-", "_")] = (
         "acceptance_scenario.py", [_name, "--runs", str(_runs), "--seed", "1"] + _extra,
         [_name, "--runs", "1", "--seed", "1", "--duration", str(_cut)] + _extra, True)
-del _name, _runs, _extra, _cut
+# the readings and variants the documents run on "a copy of the TOML with KEY changed"
+# (acceptance_scenario.py --set KEY=VALUE): name -> (scenario, runs, extra arguments, --set items)
+VARIANTS = {
+    "static_iakf_model": ("paper-static-iakf", 10, ["--methods", "iakf"], ['filter.iakf_q_structure="model"']),
+    "static_iakf_no_ceiling": ("paper-static-iakf", 10, ["--methods", "iakf"], ["filter.iakf_q_ceiling=false"]),
+    "static_iakf_keep_q": ("paper-static-iakf", 10, ["--methods", "iakf"], ["filter.iakf_adapt_q=false"]),
+    "static_iakf_full_window": ("paper-static-iakf", 10, ["--methods", "iakf"], ['filter.iakf_start="full-window"']),
+    "static_iakf_as_printed": ("paper-static-iakf", 10, ["--methods", "iakf"],
+                               ['filter.iakf_q_structure="full"', "filter.iakf_q_ceiling=false"]),
+    "static_iakf_earlier_default": ("paper-static-iakf", 10, ["--methods", "iakf"],
+                                    ['filter.iakf_q_structure="full"', "filter.iakf_q_ceiling=false",
+                                     'filter.iakf_start="full-window"']),
+    "static_akf0_literal": ("paper-static-iakf", 3, ["--methods", "akf0"], ["filter.akf0_adaptive=true"]),
+    "robust_flight_scale20": ("paper-robust-flight", 10, [], ['gross.mode="scale"', "gross.factor=20.0"]),
+    "robust_flight_lsq": ("paper-robust-flight", 10, [], ['gnss.mode="lsq"']),
+    "robust_flight_lsq_scale20": ("paper-robust-flight", 10, [],
+                                  ['gnss.mode="lsq"', 'gross.mode="scale"', "gross.factor=20.0"]),
+    "fads_bias": ("paper-fads", 20, [], ['imu.error_model="bias"']),
+    "fads_linear_envelope": ("paper-fads", 100, [], ['fads.altitude_shape="linear"', 'fads.altitude_curve="envelope"']),
+}
+for _name, (_scen, _runs, _extra, _sets) in VARIANTS.items():
+    _set_args = [a for item in _sets for a in ("--set", item)]
+    ACCEPTANCE["variant_" + _name] = (
+        "acceptance_scenario.py", [_scen, "--runs", str(_runs), "--seed", "1"] + _extra + _set_args,
+        [_scen, "--runs", "1", "--seed", "1", "--duration", "60"] + _extra + _set_args, True)
+del _name, _runs, _extra, _cut, _scen, _sets, _set_args
 ACCEPTANCE.update({
     "study_highdyn": (
         "study_highdyn.py",
