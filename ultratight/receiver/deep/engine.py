@@ -40,6 +40,11 @@ A channel uses the combined command (outer prediction + inner correction, ``MODE
 ``sigma_i < arbitration_sigma_hz``, otherwise the inner loop alone (``MODE_INNER``). PB-KF-UTC
 is always ``MODE_OUTER``.
 
+Atmosphere (optional ``atmosphere``, an :class:`ultratight.signals.atmosphere.AtmosphereModel`): the
+outer loop's predictions -- NCO aiding and the references of the tight filter's residuals -- carry the
+ionospheric and tropospheric delays, refreshed at every tight update
+(:mod:`ultratight.receiver.deep.atmosphere_terms`); without one they are geometric.
+
 Tracking estimates recorded per channel per epoch (for the paper's metrics): the Doppler
 ``carr_freq - IF + df/2pi`` and the code phase ``code_phase + dtau`` at the *start* of the
 integration interval (the prefilter state refers to the interval start; see
@@ -54,6 +59,7 @@ from dataclasses import replace
 import numba
 import numpy as np
 
+from ultratight.constants import C
 from ultratight.errors import ConfigError, DivergenceError, FilterError
 from ultratight.fusion.coupling import tight as tightmod
 from ultratight.fusion.channel.innerloop import InnerLoop
@@ -61,6 +67,7 @@ from ultratight.fusion.channel.prefilter import IF as PREFILTER_IF
 from ultratight.fusion.coupling.rateconv import ResidualDecimator
 from ultratight.ins.earth import llh_increment_to_enu, radii
 from ultratight.receiver.deep import epochs
+from ultratight.receiver.deep.atmosphere_terms import inactive_description
 from ultratight.receiver.dsp.blockstream import BlockStream, NoiseFloor
 from ultratight.receiver.dsp.burst import burst_all, make_burst
 from ultratight.receiver.dsp.correlator import CorrelatorBank
@@ -135,8 +142,12 @@ class UltratightEngine:
     """Runs one method over an IF source + IMU data (see module docstring)."""
 
     def __init__(self, source, imu, ephs, prns, week, tow0_s, method=DEFAULT_METHOD, options=None,
-                 init_state=None, rng=None, duration_s=None, signal=GPS_L1CA):
+                 init_state=None, rng=None, duration_s=None, signal=GPS_L1CA, atmosphere=None, iono_source=None):
         self.method = check_method(method)
+        # receiver's ionosphere/troposphere model of the predictions (receiver.deep.atmosphere_terms;
+        # None: geometric predictions) and where its broadcast coefficients came from
+        self.atmosphere = atmosphere
+        self.iono_source = iono_source
         self.signal = signal
         self.spec = method_spec(method)
         self.opt = options or EngineOptions()
@@ -215,10 +226,14 @@ class UltratightEngine:
         if np.any(lever):          # antenna away from the IMU: predictions and H at the antenna
             self.ins.lever_b = lever
             self.ins.w_b = self.imu_dth[0] / float(self.imu_t[0] - t_sins)
+        self.outer = OuterLoop(self.ephs, self.prns, self.week, self.tow0, self.duration_s + 0.5, signal=sgl,
+                               rate_hz=1.0 / self.imu_dt, cic_order=opt.cic_order, atmosphere=self.atmosphere,
+                               iono_source=self.iono_source)
         # hot start predictions (from the perturbed state, not truth)
         pos_e, vel_e, C_el = self.ins.antenna_pos_vel_e()
         pred0 = predict_channels(self.ephs, self.prns, self.week, self.tow0, pos_e, vel_e,
                                  self.ins.clk_b, self.ins.clk_d, signal=sgl)
+        self._delay_pred0(pred0, pos_e, vel_e)
         # a hand-over from tracking channels (ultratight.receiver.deep.handover) gives their code phases
         # at sample 0: the NCOs start there instead of the prediction (no re-acquisition either way)
         cp_given = st.get("code_phase_chips") or {}
@@ -242,8 +257,6 @@ class UltratightEngine:
                                 half_t=0.5 * sgl.code_period_s)
         P0 = tightmod.initial_covariance(self.ins.llh, st.get("sigmas", {}), self.imu_noise)
         self.tf = tightmod.TightFilter(P0, core=opt.tight_core, gate_sigma=opt.gate_sigma)
-        self.outer = OuterLoop(self.ephs, self.prns, self.week, self.tow0, self.duration_s + 0.5, signal=sgl,
-                               rate_hz=1.0 / self.imu_dt, cic_order=opt.cic_order)
         self.follow = SinsFollower(self.outer, self.ins, t_sins, self.imu_dth[0], self.imu_dv[0],
                                    float(self.imu_t[0] - t_sins), sgl.code_period_s)
         los_l = self.follow.first["los_e"] @ C_el
@@ -254,6 +267,18 @@ class UltratightEngine:
         self.rec.set_sigma(self.tf.P, self.ins.llh)
         self.rec.log_sins(t_sins, self.ins.x, self.ins.clk_b, self.ins.clk_d)
         return es
+
+    def _delay_pred0(self, pred0, pos_e, vel_e):
+        """The hot start's code phases and transmit times with the atmospheric code delay (the
+        outer loop's model at the first sample; nothing without one)."""
+        atm = self.outer.atmo
+        if atm is None:
+            return
+        self.outer.refresh_atmosphere(0.0, pos_e, vel_e, self.ins.clk_b, self.ins.clk_d)
+        d = atm.code_m
+        pred0["code_phase_chips"] = np.mod(pred0["code_phase_chips"] - d / self.signal.chip_m,
+                                           float(self.signal.code_length))
+        pred0["t_tx_tow"] = pred0["t_tx_tow"] - d / C
 
     def _build_tracking(self, es, los_l):
         """Tracking bank + inner loop, and the NCOs at the aiding of each channel's first interval."""
@@ -318,7 +343,8 @@ class UltratightEngine:
         t0 = time.perf_counter()
         first = UltratightEngine(self.src, self.imu, self.ephs, self.prns, self.week, self.tow0, method=self.method,
                                  options=replace(self.opt, bits="blind"), init_state=self.init_state, rng=self.rng,
-                                 duration_s=self.duration_s, signal=self.signal)
+                                 duration_s=self.duration_s, signal=self.signal, atmosphere=self.atmosphere,
+                                 iono_source=self.iono_source)
         first.run()
         source = decoded_from_pass(first.wipe, self.prns, self.tow0, self.duration_s + 1.0, self.signal)
         source.info["decoding_pass_s"] = round(time.perf_counter() - t0, 3)
@@ -403,6 +429,7 @@ class UltratightEngine:
             self.tf.reset()
             st.counts["n_feedback"] += 1
             dfp_all = self.follow.apply_correction(sgl.code_length, self.spec.double_loop)
+        self.follow.refresh_atmosphere()        # the delays at the updated SINS, carried to the next update
         st.sig_dopp = tightmod.doppler_sigma_hz(self.tf.P, los_l, sgl.wavelength_m)
         self.rec.set_sigma(self.tf.P, ins.llh)
         self.rec.log_sins(self.follow.t, ins.x, ins.clk_b, ins.clk_d, replace=True)   # the step the feedback landed on
@@ -599,6 +626,8 @@ class UltratightEngine:
             "prefilter_resets": np.asarray(self.pref.n_resets).tolist(),
             "arbitration_rule": "combined when sigma_doppler_i = sqrt(u'Pvv u + Pdd - 2u'Pvd)/lambda < "
                                 f"{opt.arbitration_sigma_hz} Hz (tight filter P), else inner loop alone",
+            "atmosphere": (self.outer.atmo.describe() if self.outer.atmo is not None
+                           else inactive_description(self.atmosphere)),
             "startup": {k: (v.tolist() if isinstance(v, np.ndarray) else v)
                         for k, v in self.init_state.items() if k.startswith("err_") or k == "sigmas"},
         }

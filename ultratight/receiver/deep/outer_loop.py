@@ -18,6 +18,12 @@ D (s).  The value pushed at SINS epoch ``t_s`` is therefore the prediction for
 samples that come out after the push at ``t_s`` cover ``[t_s + 1/rate, t_s + 2/rate)`` —
 strictly causal: the SINS never needs IMU data past the current correlator epoch + one SINS
 step.
+
+Atmosphere.  With an :class:`ultratight.signals.atmosphere.AtmosphereModel` (``atmosphere``), every
+prediction carries the L1 delays of :class:`ultratight.receiver.deep.atmosphere_terms.PredictionDelays`:
+code phase / pseudorange delayed by ``I + T``, Doppler with the carrier's ``d(T - I)/dt``; the delays
+are refreshed by :meth:`OuterLoop.refresh_atmosphere` (at each tight-filter update) and carried
+linearly in between.  Without one the predictions are the geometric ones.
 """
 
 import numpy as np
@@ -25,6 +31,7 @@ import numpy as np
 from ultratight.constants import C
 from ultratight.errors import ConfigError
 from ultratight.fusion.coupling import rateconv
+from ultratight.receiver.deep.atmosphere_terms import REFRESH_S, PredictionDelays
 from ultratight.signals.geometry import MultiLightTime, SatTable
 from ultratight.signals.signal import GPS_L1CA
 
@@ -38,7 +45,7 @@ class OuterLoop:
     """
 
     def __init__(self, ephs, prns, week, tow0_s, duration_s, rate_hz=100.0, out_rate_hz=1000.0,
-                 interp_factory=None, cic_order=3, signal=GPS_L1CA):
+                 interp_factory=None, cic_order=3, signal=GPS_L1CA, atmosphere=None, iono_source=None):
         self.signal = signal
         self._chip_rate = float(signal.chip_rate_hz)
         self.prns = list(prns)
@@ -66,11 +73,28 @@ class OuterLoop:
         # corrections here so that only the SINS *dynamics* reach the NCO increments)
         self.offset_hz = np.zeros(n_ch)
         self.j0 = None
+        self.atmo = (PredictionDelays(atmosphere, n_ch, signal, iono_source)
+                     if atmosphere is not None and atmosphere.active else None)
 
     def predict(self, t, pos_e, vel_e, clk_bias_m, clk_drift_mps):
         """Predictions for all channels at receiver time ``t`` (s since the first sample)."""
         t_true = self.tow0 + t - clk_bias_m / C
-        return self.lt.solve(pos_e, vel_e, t_true, clk_bias_m, clk_drift_mps)
+        pr = self.lt.solve(pos_e, vel_e, t_true, clk_bias_m, clk_drift_mps)
+        if self.atmo is not None:
+            self.atmo.apply(pr, t)
+        return pr
+
+    def refresh_atmosphere(self, t, pos_e, vel_e, clk_bias_m, clk_drift_mps):
+        """Evaluate the atmospheric delays at receiver time ``t`` for the antenna state ``pos_e``,
+        ``vel_e`` (no-op without an atmosphere model)."""
+        if self.atmo is None:
+            return
+        t_true = self.tow0 + t - clk_bias_m / C
+        h = REFRESH_S
+        los = self.lt.solve(pos_e, vel_e, t_true, clk_bias_m, clk_drift_mps)["los_e"].copy()
+        los_next = self.lt.solve(np.asarray(pos_e) + np.asarray(vel_e) * h, vel_e, t_true + h,
+                                 clk_bias_m + clk_drift_mps * h, clk_drift_mps)["los_e"]
+        self.atmo.refresh(t, t_true, pos_e, vel_e, los, los_next)
 
     def aiding_at(self, t):
         """Doppler aiding (Hz) of each channel at its receiver time ``t[c]`` (s since the first
@@ -163,6 +187,7 @@ class SinsFollower:
         self.t = float(t_sins)
         self.ring = PredictionRing(len(outer.prns))
         pos_e, vel_e, _ = ins.antenna_pos_vel_e()
+        outer.refresh_atmosphere(self.t, pos_e, vel_e, ins.clk_b, ins.clk_d)
         self.first = outer.predict(self.t, pos_e, vel_e, ins.clk_b, ins.clk_d)
         acc0_e = (ins.trial_velocity_e(dtheta0, dv0, dt0) - ins.pos_vel_e()[1]) / dt0
         outer.prime(self.t, pos_e, vel_e, acc0_e, ins.clk_b, ins.clk_d)
@@ -190,6 +215,11 @@ class SinsFollower:
         # kinematics at the middle of the last interval -> extrapolate from there
         self.outer.push(t_sins, pos_e, vel_e, acc_e + 0.5 * dt * jerk_e, ins.clk_b, ins.clk_d, jerk_e)
         self.ring.put(t_sins, pr, self.outer.n_filled)
+
+    def refresh_atmosphere(self):
+        """The outer loop's atmospheric delays at the current SINS state (no-op without a model)."""
+        pos_e, vel_e, _ = self.ins.antenna_pos_vel_e()
+        self.outer.refresh_atmosphere(self.t, pos_e, vel_e, self.ins.clk_b, self.ins.clk_d)
 
     def los_e(self):
         """Unit lines of sight (ECEF) at the current SINS state."""

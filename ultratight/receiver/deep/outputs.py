@@ -258,6 +258,9 @@ def write_result_h5(path, res, extra_attrs=None):
         f.attrs["runtime_s"] = float(res.runtime_s)
         f.attrs["duration_s"] = float(res.duration_s)
         f.attrs["info_json"] = json.dumps(res.info, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+        atm = (res.info or {}).get("atmosphere")
+        if atm:
+            f.attrs["atmosphere_json"] = json.dumps(atm)       # the receiver's model (docs/ultratight.md)
         for k, v in (extra_attrs or {}).items():
             f.attrs[k] = v
         for k, v in (res.sins or {}).items():
