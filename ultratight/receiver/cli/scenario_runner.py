@@ -44,6 +44,7 @@ from ultratight.io_guard import atomic_path, json_clean, note_complete, output_e
 from ultratight.receiver.cli import metrics as M
 from ultratight.receiver.dsp.burst import PLACE_IF, event_place
 from ultratight.receiver.deep.options import EngineOptions, monitor_mode
+from ultratight.receiver.deep.atmosphere_terms import scenario_model
 from ultratight.receiver.deep.engine import UltratightEngine
 from ultratight.receiver.deep.methods import check_method
 from ultratight.receiver.deep.methods import method_spec
@@ -251,9 +252,10 @@ def run_method(paths, cfg, method, seed, options=None, startup_errors=None, dura
             res = run_scalar(src, truth["prn"], ephs, truth["week"], truth["tow0_s"], init, duration_s)
         else:
             imu = read_imu_h5(paths["imu"])
+            # the scenario's [atmosphere] as the receiver knows it (broadcast coefficients, no generator truth)
             eng = UltratightEngine(src, imu, ephs, truth["prn"], truth["week"], truth["tow0_s"], method=method,
                                    options=options or EngineOptions(), init_state=init, rng=rng,
-                                   duration_s=duration_s)
+                                   duration_s=duration_s, atmosphere=scenario_model(cfg), iono_source="scenario")
             res = eng.run()
     finally:
         src.close()

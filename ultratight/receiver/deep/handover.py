@@ -6,8 +6,10 @@ initial state. This module builds one (docs/ultratight.md, "Start-up without tru
 * **Position, velocity, clock** from the scalar receiver (:class:`ultratight.receiver.scalar.receiver.
   ScalarReceiver`) run over the first seconds of the same file (``HandoverConfig.window_s`` from the
   start ``start_s``). The hand-over fix is the first of ``settle_fixes`` consecutive fixes with at
-  least ``min_sats`` satellites that has a next fix (for the acceleration). The scalar pass runs
-  without ionospheric / tropospheric corrections, like the tight filter's pseudorange model.
+  least ``min_sats`` satellites that has a next fix (for the acceleration). The scalar pass corrects
+  the ionosphere / troposphere with the engine's model (``atmosphere``: the same Klobuchar
+  coefficients and Saastamoinen troposphere, or none), so that the hand-over fix and the engine's
+  predictions agree.
   The engine's clock bias refers to the IF file's time scale (receiver time of sample ``s`` =
   sidecar start TOW + s/fs): ``b = c (tow0 + t_fix - t_gps,fix)``, the drift is the fix's.
 * **Hand-over time**: the IMU stamp nearest to the fix (the engine's SINS starts on an IMU
@@ -259,15 +261,55 @@ def attitude_at(imu, imu_errors, t_h, llh, vel_l, acc_l, sig_acc, cfg):
 
 
 # ------------------------------------------------------------------ the scalar pass
-def scalar_pass(source, ephemerides, prns, start_s, cfg):
-    """Run the scalar receiver over ``window_s`` from ``start_s``: its :class:`ProcessResult`."""
+class _EphemeridesWithIono:
+    """Ephemerides (a RINEX :class:`NavData` or a PRN -> Ephemeris dict) seen with the Klobuchar
+    coefficients of the engine's model (the scalar receiver reads ``ion_alpha``/``ion_beta``)."""
+
+    def __init__(self, base, alpha, beta):
+        self._base = base
+        self.ion_alpha = tuple(alpha)
+        self.ion_beta = tuple(beta)
+
+    def __getattr__(self, name):
+        return getattr(self._base, name)
+
+    def __getitem__(self, key):
+        return self._base[key]
+
+    def __contains__(self, key):
+        return key in self._base
+
+    def __iter__(self):
+        return iter(self._base)
+
+    def __len__(self):
+        return len(self._base)
+
+
+def _scalar_atmosphere(ephemerides, atmosphere):
+    """``(iono, tropo, mapping, ephemerides)`` of the scalar pass for the engine's model ``atmosphere``
+    (None: no corrections): the ionosphere only with the model's coefficients, which the scalar
+    receiver then reads from the ephemerides object."""
+    if atmosphere is None:
+        return "off", "off", "cosz", ephemerides
+    iono = "klobuchar" if atmosphere.iono_active else "off"
+    if iono != "off" and ephemerides is not None:
+        ephemerides = _EphemeridesWithIono(ephemerides, atmosphere.alpha, atmosphere.beta)
+    return iono, atmosphere.tropo, atmosphere.mapping, ephemerides
+
+
+def scalar_pass(source, ephemerides, prns, start_s, cfg, atmosphere=None):
+    """Run the scalar receiver over ``window_s`` from ``start_s``: its :class:`ProcessResult`
+    (atmospheric corrections of the engine's model ``atmosphere``, none when None)."""
     from ultratight.receiver.scalar.process_config import NoSignalError, ProcessConfig
     from ultratight.receiver.scalar.receiver import process
     from ultratight.receiver.dsp.tracking_config import TrackingConfig
 
     avail = source.n_samples / source.fs_hz - start_s
+    iono, tropo, mapping, ephemerides = _scalar_atmosphere(ephemerides, atmosphere)
     pc = ProcessConfig(prns=list(prns) if prns else None, start_s=float(start_s), record_epochs=True,
-                       duration_s=max(min(cfg.window_s, avail), 1e-3), iono="off", tropo="off",
+                       duration_s=max(min(cfg.window_s, avail), 1e-3), iono=iono, tropo=tropo,
+                       tropo_mapping=mapping,
                        acq_min_cn0_dbhz=cfg.acq_min_cn0_dbhz, acq_noncoherent=cfg.acq_noncoherent,
                        acq_coherent_ms=cfg.acq_coherent_ms, doppler_range_hz=cfg.doppler_range_hz,
                        dynamics=cfg.dynamics, tracking=TrackingConfig.for_dynamics(cfg.dynamics))
@@ -296,7 +338,8 @@ def pick_fix(fixes, obs_step_s, cfg):
     return None
 
 
-def scalar_handover(source, imu, imu_errors, ephemerides, prns, start_s=0.0, cfg=None, overrides=None):
+def scalar_handover(source, imu, imu_errors, ephemerides, prns, start_s=0.0, cfg=None, overrides=None,
+                    atmosphere=None):
     """The hand-over state from the scalar receiver's first fixes (module docstring).
 
     Returns a dict: ``t_s`` (hand-over time, s since the first IF sample, on an IMU stamp),
@@ -306,7 +349,7 @@ def scalar_handover(source, imu, imu_errors, ephemerides, prns, start_s=0.0, cfg
     """
     cfg = cfg or HandoverConfig()
     overrides = overrides or {}
-    res = scalar_pass(source, ephemerides, prns, start_s, cfg)
+    res = scalar_pass(source, ephemerides, prns, start_s, cfg, atmosphere)
     obs_step = 0.1
     k = pick_fix(res.fixes, obs_step, cfg)
     if k is None:
@@ -357,7 +400,8 @@ def scalar_handover(source, imu, imu_errors, ephemerides, prns, start_s=0.0, cfg
         "scalar_pass": {"start_s": float(start_s), "window_s": float(cfg.window_s), "fixes": len(res.fixes),
                         "first_fix_s": None if not res.fixes else float(res.fixes[0]["sample_index"] / fs),
                         "fix_t_s": float(t_fix), "n_used": int(fx["n_used"]), "used_prn": list(fx["used_prn"]),
-                        "tracked": [c["prn"] for c in res.channels if c["tracked"]]},
+                        "tracked": [c["prn"] for c in res.channels if c["tracked"]],
+                        "corrections": dict(getattr(res, "corrections", {}) or {})},
         "attitude_method": att_method, "euler_deg": [float(v) for v in eul],
         "sigmas": {k_: v for k_, v in sigmas.items() if k_ != "att_cov_rad2"},
         "att_sigma_deg": [float(v) for v in np.degrees(np.sqrt(np.diag(P_att)))],

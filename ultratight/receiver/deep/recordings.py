@@ -90,7 +90,7 @@ def check_imu_if_alignment(src, imu, if_path="IF file", imu_path="IMU file", tol
 def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None, nav_path=None, prns=None,
                             init_state=None, options=None, duration_s=None, seed=0, startup_errors=None,
                             imu_declaration=None, startup="auto", init_overrides=None, start_s=0.0,
-                            handover=None):
+                            handover=None, iono="klobuchar", tropo="saastamoinen"):
     """Run the ultra-tight engine on a recorded IF file and an IMU file (HDF5 or CSV).
 
     * ``meta``: sidecar/ION metadata for the IF file (default ``IFFILE.json``); the IF start time
@@ -122,6 +122,8 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
       IMU file's sidecar; a GPS-stamped IMU starting before the IF is cut to the IF start.
     * Time alignment is checked by :func:`check_imu_if_alignment` (gaps, out-of-order stamps,
       IMU/IF offset -> InputFileError).
+    * Atmosphere (``iono``, ``tropo`` as the scalar receiver's flags): the engine's predictions and the
+      scalar start-up carry the same model (:func:`_atmosphere`).
     Returns an :class:`EngineResult`.
     """
     from ultratight.receiver.deep import handover as ho
@@ -138,13 +140,14 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
     if prns is None:
         prns = side.get("prn")
     prns = _drop_unhealthy(nav, prns, week, tow0, warnings)
+    atmo, iono_source = _atmosphere(nav, gen_cfg, iono, tropo)
     start_s = float(start_s or 0.0)
     if not 0.0 <= start_s < dur:
         raise ConfigError(f"--start {start_s:g} s is outside the usable record (0 .. {dur:.3f} s)")
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7]))
     source, hand, t_h, init_state, prns = _startup(
         src, imu, imu_path, nav if nav is not None else ephs, ephs, prns, startup, init_state,
-        dict(init_overrides or {}), start_s, handover, gen_cfg, startup_errors, rng)
+        dict(init_overrides or {}), start_s, handover, gen_cfg, startup_errors, rng, atmo)
     if not prns:
         raise ConfigError(f"{if_path}: no PRNs to track: the sidecar lists none and the start-up found none "
                           "(give them with --prn)")
@@ -156,8 +159,8 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
     if t_h > 0.0:
         src, imu, t_h = _from_handover(src, imu, t_h, dur)
         tow0, week = float(src.start_tow_s), int(src.start_week)
-    eng = UltratightEngine(src, imu, ephs, [int(p) for p in prns], week, tow0, method=method,
-                           options=options, init_state=init_state, rng=rng, duration_s=dur - t_h)
+    eng = UltratightEngine(src, imu, ephs, [int(p) for p in prns], week, tow0, method=method, options=options,
+                           init_state=init_state, rng=rng, duration_s=dur - t_h, atmosphere=atmo, iono_source=iono_source)
     res = eng.run()
     res.info["warnings"] = list(warnings)
     _note_start(res, t_h, source, hand, file_start)
@@ -230,8 +233,25 @@ def _file_ephemerides(if_path, nav_path, gen_cfg, week, tow0):
     raise ConfigError(f"{if_path}: no ephemerides: give a RINEX navigation file (--ephemeris)")
 
 
+def _atmosphere(nav, gen_cfg, iono, tropo):
+    """``(AtmosphereModel, source of alpha/beta)`` of a recording's run (``iono``: klobuchar | off,
+    ``tropo``: saastamoinen | off; :mod:`ultratight.receiver.deep.atmosphere_terms`): the Klobuchar
+    coefficients from the RINEX header of the navigation file or, for a generated file, the broadcast
+    values its sidecar records (:func:`~ultratight.receiver.deep.atmosphere_terms.broadcast_of_generator`);
+    without either the ionosphere stays off (recorded as ``klobuchar (no parameters)``)."""
+    from ultratight.receiver.deep.atmosphere_terms import broadcast_of_generator, receiver_model
+    alpha = beta = source = None
+    if iono != "off":
+        if nav is not None and nav.ion_alpha and nav.ion_beta:
+            alpha, beta, source = tuple(nav.ion_alpha), tuple(nav.ion_beta), "rinex"
+        else:
+            alpha, beta = broadcast_of_generator(gen_cfg)
+            source = "sidecar" if alpha is not None else None
+    return receiver_model(iono=iono, tropo=tropo, alpha=alpha, beta=beta), source
+
+
 def _startup(src, imu, imu_path, nav_or_ephs, ephs, prns, startup, init_state, overrides, start_s, handover,
-             gen_cfg, startup_errors, rng):
+             gen_cfg, startup_errors, rng, atmo=None):
     """The initial state of a recording's run (:func:`run_ultratight_on_files`, "Initial state"):
     ``(source, hand, t_h, init_state, prns)`` — the start-up source's name, the scalar or flags
     hand-over (or None), its time (s since the first sample), the state and the PRNs to track."""
@@ -260,7 +280,7 @@ def _startup(src, imu, imu_path, nav_or_ephs, ephs, prns, startup, init_state, o
         init_state = perturb_state(truth0, startup_errors or StartupErrors(), rng)
     else:
         hand = ho.scalar_handover(src, imu, tightmod.imu_errors_from_meta(imu), nav_or_ephs,
-                                  prns, start_s=start_s, cfg=handover, overrides=overrides)
+                                  prns, start_s=start_s, cfg=handover, overrides=overrides, atmosphere=atmo)
         source = ho.STARTUP_SCALAR
         if not prns:
             # every satellite the scalar pass kept tracking (not only the hand-over fix's)

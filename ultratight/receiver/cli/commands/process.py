@@ -257,9 +257,11 @@ def _add_receiver_arguments(p):
     p.add_argument("--mask", type=float, default=5.0, metavar="DEG", help="elevation mask (default 5 deg)")
     p.add_argument("--iono", choices=("klobuchar", "off"), default=None,
                    help="ionospheric correction: broadcast Klobuchar model (default; applied once alpha/beta "
-                        "are known from subframe 4 page 18 or the --ephemeris RINEX header) or off")
+                        "are known from subframe 4 page 18 or the --ephemeris RINEX header; --mode ultratight: "
+                        "from the RINEX header or a generated file's sidecar) or off")
     p.add_argument("--tropo", choices=("saastamoinen", "off"), default=None,
-                   help="tropospheric correction: Saastamoinen with a standard atmosphere (default) or off")
+                   help="tropospheric correction: Saastamoinen with a standard atmosphere (default) or off "
+                        "(--mode ultratight: in the engine's predictions and its scalar start-up)")
 
 
 def _add_output_arguments(p):
@@ -396,9 +398,8 @@ def _run_ultratight(args):
     if ignored:
         raise ConfigError(f"{', '.join(ignored)} not supported with --mode ultratight (the IF parameters come "
                           "from the sidecar / --meta)")
-    if args.iono is not None or args.tropo is not None:
-        raise ConfigError("--iono/--tropo not supported with --mode ultratight (the tight filter's pseudorange "
-                          "model has no atmosphere terms yet)")
+    args.iono = args.iono or "klobuchar"           # the scalar receiver's defaults (recorded resolved)
+    args.tropo = args.tropo or "saastamoinen"
     prns = _prn_list(args.prn) if args.prn else None
     hcfg = HandoverConfig(acq_min_cn0_dbhz=args.acq_min_cn0, acq_noncoherent=args.acq_noncoherent,
                           acq_coherent_ms=args.acq_coherent, doppler_range_hz=args.doppler_range,
@@ -412,7 +413,8 @@ def _run_ultratight(args):
     res = run_ultratight_on_files(args.iffile, args.imu, method=args.method or DEFAULT_METHOD, meta=args.meta,
                                   nav_path=args.ephemeris, prns=prns, duration_s=args.duration,
                                   startup=args.startup, init_overrides=overrides, start_s=args.start, handover=hcfg,
-                                  imu_declaration=imu_decl, options=EngineOptions(bits=bits, threads=args.threads or 0))
+                                  imu_declaration=imu_decl, options=EngineOptions(bits=bits, threads=args.threads or 0),
+                                  iono=args.iono, tropo=args.tropo)
     from ultratight.receiver.deep import outputs as ut_outputs
     try:
         if args.out:
@@ -457,6 +459,7 @@ def _ultratight_summary(res, args):
         "nav": ut_outputs.nav_summary(res),
         "bit_strategy": (info.get("bits") or {}).get("strategy"),
         "blind_fraction": _blind_fraction(res),
+        "atmosphere": info.get("atmosphere"),
         "warnings": list(info.get("warnings") or []),
         "out": args.out,
         "files": {k: v for k, v in (("csv", args.csv), ("kml", args.kml), ("nmea", args.nmea),
