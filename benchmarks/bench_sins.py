@@ -115,6 +115,19 @@ def accuracy():
             "vel_err_60s_mps": float(np.linalg.norm(dv[-1])),
             "att_err_60s_deg": float(np.degrees(np.linalg.norm(da[-1])))}
 
+    # error-free turning vehicle (2 g turns at 30 m/s, 37.45 deg/s: coning and sculling), 60 s,
+    # largest errors over the run (docs/ins.md "Measured figures")
+    turns = build_trajectory({"kind": "turns", "speed0_mps": 30.0, "heading0_deg": 0.0, "segments": [
+        {"t0": 0.0, "turn_rate_dps": 0.0}, {"t0": 10.0, "turn_rate_dps": 37.45}, {"t0": 20.0, "turn_rate_dps": 0.0},
+        {"t0": 30.0, "turn_rate_dps": -37.45}, {"t0": 40.0, "turn_rate_dps": 0.0, "speed_mps": 20.0}]},
+        {"lat_deg": 45.0, "lon_deg": 7.0, "h_m": 200.0}, 60.0)
+    for rate in (100.0, 200.0):
+        _, (dp, dv, da) = run(synthesize_imu(turns, rate))
+        res[f"turns_error_free_{int(rate)}hz"] = {
+            "max_pos_err_m": float(np.linalg.norm(dp, axis=1).max()),
+            "max_vel_err_mps": float(np.linalg.norm(dv, axis=1).max()),
+            "max_att_err_deg": float(np.degrees(np.linalg.norm(da, axis=1).max()))}
+
     # static Schuler / vertical-channel check (paper biases, no noise, 10 min)
     st = build_trajectory({"kind": "static", "attitude": "fixed"}, PAPER_HIGHDYN_RECEIVER, 600.0)
     imu = synthesize_imu(st, 100.0)
