@@ -139,6 +139,22 @@ def test_quantisation_loss_weak_signal_limit(bits, stated_db, digits):
 
 # --- docs/ins.md ------------------------------------------------------------------------------
 
+def test_paper_flight_up_velocity_and_nose_pitch_at_60_s():
+    """I2: in the current ENU frame the paper-highdyn flight has a 61 m/s up component at 60 s and
+    the nose (level in the start frame l0) is 1.6° up against the current local level."""
+    from ultratight.ins.earth import dcm_ecef_from_enu, ecef_to_llh
+    from ultratight.ins.trajectory import PAPER_HIGHDYN_RECEIVER, PAPER_HIGHDYN_TRAJECTORY, build_trajectory
+
+    tr = build_trajectory(PAPER_HIGHDYN_TRAJECTORY, PAPER_HIGHDYN_RECEIVER, 60.0)
+    p, v = tr.pos_vel_e(np.array([60.0]))
+    llh = ecef_to_llh(p[0])
+    c_en = dcm_ecef_from_enu(llh[0], llh[1])
+    assert round(float((c_en.T @ v[0])[2])) == 61
+    c_l0b, _ = tr.attitude_l0(np.array([60.0]))
+    nose_e = tr.C_el0 @ c_l0b[0] @ np.array([1.0, 0.0, 0.0])
+    assert round(math.degrees(math.asin(float(nose_e @ c_en[:, 2]))), 1) == 1.6
+
+
 def test_normal_gravity_north_component_at_50_km():
     """I6: the normal field's north component −3.4e-4 m/s² at 50 km, 28.2° N."""
     from ultratight.ins.earth import gravity_l
