@@ -52,6 +52,7 @@ ACCEPTANCE = {
     "acceptance_all_in_view": ("acceptance_all_in_view.py", [], ["--quick"], True),
     "acceptance_reproductions": ("acceptance_reproductions.py", [], ["--quick"], True),
     "acceptance_campaign": ("acceptance_campaign.py", [], ["--quick"], True),
+    "acceptance_afm_quiet": ("acceptance_afm_quiet.py", [], ["--quick"], True),
 }
 # the papers' Monte Carlo tables, printed by ``ultratight scenario`` (docs/paper_afm.md,
 # docs/integration-experiments.md, docs/airdata.md): --quick runs one seed of a shorter cut
