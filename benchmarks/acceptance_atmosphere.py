@@ -63,8 +63,13 @@ def run_case(tmp, name, overrides, settings, seed):
         t0 = time.perf_counter()
         res = process(paths["if"], ProcessConfig(iono=iono_opt, tropo=tropo_opt))
         key = f"iono={iono_opt},tropo={tropo_opt}"
+        first = min((c["acquired_s"] for c in res.channels if c.get("acquired_s") is not None), default=None)
         out[key] = {**errors_enu(res.fixes, truth_pos), "wall_s": round(time.perf_counter() - t0, 1),
-                    "corrections": res.corrections, "tracked": len(res.summary()["tracked"])}
+                    "corrections": res.corrections, "tracked": len(res.summary()["tracked"]),
+                    # all in view (docs/process.md): channels acquired at the cold start, periodic searches
+                    "acquired_at_start": sum(1 for c in res.channels if c.get("acquired_s") == first),
+                    "used_max": max((len(f["used_prn"]) for f in res.fixes), default=0),
+                    "searches": res.searches}
     return out
 
 
@@ -84,7 +89,8 @@ def main(argv=None):
             if isinstance(v, dict):
                 e = v["mean_enu_m"]
                 print(f"{case:5s} {k:32s} fixes {v['fixes']:4d} first {v['first_fix_s']} s  used {v['n_used_median']:.0f}"
-                      f"  3D RMS {v['rms_3d_m']:.3f} m  mean E/N/U {e[0]:+.3f} {e[1]:+.3f} {e[2]:+.3f} m")
+                      f"  3D RMS {v['rms_3d_m']:.3f} m  mean E/N/U {e[0]:+.3f} {e[1]:+.3f} {e[2]:+.3f} m"
+                      f"  acquired at the cold start {v['acquired_at_start']}, searches {v['searches']}")
     finish(args, results)
     return 0
 
