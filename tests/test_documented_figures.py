@@ -33,6 +33,20 @@ def test_engine_monitor_and_arbitration_defaults():
     assert (o.reinit_sigma_f_hz, o.reinit_sigma_a_hzps) == (0.3, 0.3)
 
 
+def test_hot_start_doppler_error_and_prefilter_start_sigma():
+    """U21: the hot start's velocity and clock-drift errors (0.02 m/s per axis, 0.02 m/s) give a
+    0.15 Hz 1σ Doppler error per channel at t = 0 (any line of sight: a unit vector keeps the
+    per-axis σ), and the prefilters' start σ (0.3 Hz) is 2× that."""
+    from ultratight.receiver.deep.options import EngineOptions
+    from ultratight.receiver.deep.startup import StartupErrors
+    from ultratight.signals.signal import GPS_L1CA
+
+    e = StartupErrors()
+    sigma_hz = math.hypot(e.vel_mps, e.clk_drift_mps) / GPS_L1CA.wavelength_m
+    assert round(sigma_hz, 2) == 0.15
+    assert round(EngineOptions().reinit_sigma_f_hz / sigma_hz) == 2
+
+
 def test_polarity_rule_constants():
     """U34: pol flips when pol·S < −4√Q after ≥ 20 epochs; the sums restart every 1000 epochs."""
     from ultratight.receiver.dsp import wipeoff

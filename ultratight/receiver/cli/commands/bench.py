@@ -64,6 +64,20 @@ for _name, _runs, _extra, _cut in (("paper-afm-jump", 10, [], 60), ("paper-afm-n
     ACCEPTANCE["scenario_" + _name.replace("-", "_")] = (
         "acceptance_scenario.py", [_name, "--runs", str(_runs), "--seed", "1"] + _extra,
         [_name, "--runs", "1", "--seed", "1", "--duration", str(_cut)] + _extra, True)
+# paper-highdyn with and without the opt-in outer-loop frequency update (docs/ultratight.md, "Why the
+# DLB filters peaked ..."): the 20 s, seeds 1-2 comparison and the 5-seed 60 s run
+_DLB = ["--methods", "dlb-rackf,dlb-ckf,dlb-ukf"]
+_HD_QUICK = ["paper-highdyn", "--runs", "1", "--seed", "1", "--duration", "4", "--fs-hz", "2.046e6",
+             "--methods", "dlb-rackf"]
+ACCEPTANCE.update({
+    "scenario_highdyn_20s": ("acceptance_scenario.py", ["paper-highdyn", "--runs", "2", "--seed", "1", "--duration",
+                                                        "20"] + _DLB, _HD_QUICK, True),
+    "scenario_highdyn_20s_outer_freq": ("acceptance_scenario.py", ["paper-highdyn", "--runs", "2", "--seed", "1",
+                                                                   "--duration", "20"] + _DLB + ["--outer-freq-update"],
+                                        _HD_QUICK + ["--outer-freq-update"], True),
+    "scenario_highdyn_outer_freq": ("acceptance_scenario.py", ["paper-highdyn", "--runs", "5", "--seed", "1"] + _DLB
+                                    + ["--outer-freq-update"], _HD_QUICK + ["--outer-freq-update"], True),
+})
 # the readings and variants the documents run on "a copy of the TOML with KEY changed"
 # (acceptance_scenario.py --set KEY=VALUE): name -> (scenario, runs, extra arguments, --set items)
 VARIANTS = {
@@ -89,7 +103,7 @@ for _name, (_scen, _runs, _extra, _sets) in VARIANTS.items():
     ACCEPTANCE["variant_" + _name] = (
         "acceptance_scenario.py", [_scen, "--runs", str(_runs), "--seed", "1"] + _extra + _set_args,
         [_scen, "--runs", "1", "--seed", "1", "--duration", "60"] + _extra + _set_args, True)
-del _name, _runs, _extra, _cut, _scen, _sets, _set_args
+del _name, _runs, _extra, _cut, _scen, _sets, _set_args, _DLB, _HD_QUICK
 ACCEPTANCE.update({
     "study_highdyn": (
         "study_highdyn.py",
