@@ -94,6 +94,25 @@ def test_paper_highdyn_if_size_and_ring_slots():
     assert slots * block_s == pytest.approx(0.8)
 
 
+def test_paper_highdyn_satellites_and_elevations():
+    """G7 / G7b: paper-highdyn's nominal constellation (week 2190, TOW 518400, mask −2°, 13
+    satellites) from the start point: PRN 31 20 18 28 21 15 1 8 6 2 10 32 22, elevations 68° …
+    −0.9° (``geometry.visible_prns``, the generator's selection)."""
+    from ultratight.ins.earth import llh_to_ecef
+    from ultratight.receiver.cli.scenario_config import load_scenario
+    from ultratight.signals.constellation import ephemerides_for
+    from ultratight.signals.geometry import visible_prns
+
+    cfg = load_scenario("paper-highdyn", {})
+    rx, sat = cfg["receiver"], cfg["satellites"]
+    pos = np.asarray(llh_to_ecef(math.radians(rx["lat_deg"]), math.radians(rx["lon_deg"]), rx["h_m"]))
+    sel = visible_prns(ephemerides_for(cfg), pos, int(cfg["time"]["week"]), float(cfg["time"]["tow_s"]),
+                       sat["mask_deg"], max_count=sat["max_count"], return_elev=True)
+    assert [p for p, _ in sel] == [31, 20, 18, 28, 21, 15, 1, 8, 6, 2, 10, 32, 22]
+    elev = [e for _, e in sel]
+    assert round(max(elev)) == 68 and round(min(elev), 1) == -0.9
+
+
 def test_limb_angle_at_50_km():
     """G7b: the Earth's limb lies 7° below the horizon at 50 km (acos(R / (R + h)))."""
     from ultratight.constants import WGS84_A
