@@ -2,7 +2,7 @@
 ``ultratight bench``.
 
     python benchmarks/acceptance_scenario.py SCENARIO [scenario options ...] [--set KEY=VALUE ...]
-        [--json OUT.json]
+        [--from-s S] [--json OUT.json]
 
 Without ``--set``: runs ``python -m ultratight.receiver.cli scenario SCENARIO [options] --out TMP
 --no-plots`` in a subprocess and prints what it prints (the paper's tables with our figures, per
@@ -11,7 +11,8 @@ commands).  With ``--set KEY=VALUE`` (a dotted key of the scenario TOML, e.g.
 ``filter.iakf_start="full-window"``; the value in TOML syntax; repeatable): the same run with the
 keys changed, as the documents' "a copy of the TOML with KEY changed" variants (in this process,
 through ``experiments.run_experiment``; only ``--runs``, ``--seed``, ``--methods``,
-``--duration`` are understood then).  With ``--json`` the run's ``metrics.json``
+``--duration`` are understood then).  ``--from-s S`` (observable-level runs): also the velocity
+error RMS of every method over t ≥ S, mean over the seeds, from the run's ``results.h5``.  With ``--json`` the run's ``metrics.json``
 (``NAME_metrics.json``) is copied there.  The exit status is the command's.
 """
 
@@ -58,11 +59,33 @@ def run_with_overrides(scenario, rest, overrides, out_dir):
     return 0
 
 
+def rms_from(h5_path, t_from):
+    """Velocity error RMS (E, N, U) of every method over ``t >= t_from``, mean over the seeds, from
+    the per-epoch errors of an observable-level run's ``results.h5`` (``seedNNNNNN/METHOD/err``, the
+    error-state order of ``ins.error_model``): ``{method: [E, N, U]}``."""
+    import h5py
+    import numpy as np
+
+    from ultratight.ins import error_model as em
+
+    per = {}
+    with h5py.File(h5_path, "r") as f:
+        for seed in f:
+            for m in f[seed]:
+                g = f[seed][m]
+                if "err" not in g or "t" not in g:
+                    continue
+                sel = g["t"][()] >= t_from
+                per.setdefault(m, []).append(np.sqrt(np.mean(g["err"][()][sel][:, em.VEL] ** 2, axis=0)))
+    return {m: [float(x) for x in np.mean(v, axis=0)] for m, v in per.items()}
+
+
 def main(argv=None):
     argv = list(sys.argv[1:] if argv is None else argv)
     ap = argparse.ArgumentParser(add_help=False)
     ap.add_argument("--json", default=None)
     ap.add_argument("--set", action="append", default=[])
+    ap.add_argument("--from-s", type=float, default=None)
     known, rest = ap.parse_known_args(argv)
     if not rest or rest[0].startswith("-"):
         print("acceptance_scenario: name a scenario, e.g. paper-afm-jump --runs 10 --seed 1", file=sys.stderr)
@@ -80,6 +103,11 @@ def main(argv=None):
         else:
             cmd = [sys.executable, "-m", "ultratight.receiver.cli", "scenario", *rest, "--out", tmp, "--no-plots"]
             rc = subprocess.run(cmd).returncode
+        if rc == 0 and known.from_s is not None:
+            for h5 in sorted(Path(tmp).glob("*results.h5")):
+                for m, v in rms_from(h5, known.from_s).items():
+                    print(f"from {known.from_s:g} s, mean over seeds: {m:15s} velocity RMS E/N/U "
+                          + " / ".join(f"{x:.4f}" for x in v) + " m/s")
         metrics = sorted(Path(tmp).glob("*metrics.json"))       # metrics.json or NAME_metrics.json
         if rc == 0 and known.json is not None:
             if not metrics:

@@ -58,7 +58,8 @@ ACCEPTANCE = {
 # docs/integration-experiments.md, docs/airdata.md): --quick runs one seed of a shorter cut
 for _name, _runs, _extra, _cut in (("paper-afm-jump", 10, [], 60), ("paper-afm-noise", 10, [], 60),
                                    ("paper-afm-accel", 10, [], 60),
-                                   ("paper-static-iakf", 10, ["--methods", "akf0,akf,iakf,kf,kf-true-noise"], 200),
+                                   ("paper-static-iakf", 10, ["--methods", "akf0,akf,iakf,kf,kf-true-noise",
+                                                              "--from-s", "200"], 300),
                                    ("paper-robust-flight", 10, [], 100), ("paper-fads", 100, [], 60),
                                    ("paper-fads-separate", 100, [], 60)):
     ACCEPTANCE["scenario_" + _name.replace("-", "_")] = (
