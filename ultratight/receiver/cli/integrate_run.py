@@ -32,6 +32,7 @@ def _check_numbers(args):
         raise ConfigError(f"--mount needs three finite angles (deg), got {' '.join(map(str, args.mount))}")
     if args.lever_arm is not None and not all(math.isfinite(v) and abs(v) < 100.0 for v in args.lever_arm):
         raise ConfigError("--lever-arm needs three finite numbers below 100 m")
+    args.gate_p = _gate(args.gate)
     if args.rate < 0.0:
         raise ConfigError(f"--rate must be >= 0 Hz (0: every IMU sample), got {args.rate:g}")
     if args.outage_keep_sats < 0:
@@ -52,6 +53,18 @@ def _check_numbers(args):
         raise ConfigError("--plot draws the error against --reference: give --reference REF.pos")
     if args.nav and args.coupling != "tight":
         raise ConfigError("--nav is the navigation data of raw observations: it needs --coupling tight")
+
+
+def _gate(text):
+    if str(text).strip().lower() in ("off", "none"):
+        return None
+    try:
+        p = float(text)
+    except ValueError:
+        p = math.nan
+    if not 0.0 < p < 1.0:
+        raise ConfigError(f"--gate {text!r}: a false-alarm probability in (0, 1), or off")
+    return p
 
 
 def _imu_tag(args):
@@ -256,7 +269,7 @@ def _options(args, noise, imu, windows):
     from ultratight.fusion.gins.options import GinsOptions
     return GinsOptions(coupling=args.coupling, filter=args.filter, noise=noise,
                        lever_arm_b=np.asarray(imu.lever_arm_b, float), heading_deg=args.heading,
-                       zupt=args.zupt, nhc=args.nhc, smooth=args.smooth, outages=tuple(windows),
+                       zupt=args.zupt, nhc=args.nhc, smooth=args.smooth, gate_p=args.gate_p, outages=tuple(windows),
                        outage_keep_sats=args.outage_keep_sats)
 
 
@@ -277,6 +290,8 @@ def run_integrate(args, out, err):
     noise = _noise(args)
     imu = _read_imu(args)
     fixes, tight, t_gnss, source = _read_gnss(args)
+    for w in getattr(tight, "warnings", None) or []:
+        print(f"ultratight integrate: warning: {w}", file=err)
     _check_overlap(imu, t_gnss, args)
     windows = _windows(args, imu, t_gnss)
     ref = None
@@ -305,7 +320,7 @@ def run_integrate(args, out, err):
         plot_errors(args.plot, series, windows, f"ultratight integrate: {args.coupling}, {args.filter}"
                     + (", smoothed" if res.smoothed else ""))
         written.append(args.plot)
-    summary = _summary(args, imu, noise, source, res, windows, evaluation, written,
+    summary = _summary(args, imu, noise, source, tight, res, windows, evaluation, written,
                        {"read_s": t_read, "filter_s": t_filter, "total_s": time.perf_counter() - t_start})
     if args.json:
         print(json_dumps(summary, indent=1), file=out)
@@ -314,18 +329,21 @@ def run_integrate(args, out, err):
     return 0
 
 
-def _summary(args, imu, noise, source, res, windows, evaluation, written, timing):
+def _summary(args, imu, noise, source, tight, res, windows, evaluation, written, timing):
     from ultratight.signals.observations import week_tow
     upd = res.updates or {}
     used = np.asarray(upd.get("used", []), bool)
     rejected = np.asarray(upd.get("rejected", []), bool)
     return json_clean({
         "command": "integrate", "coupling": args.coupling, "filter": args.filter, "smoothed": bool(res.smoothed),
-        "imu": {"file": str(args.imu), "samples": int(imu.n), "rate_hz": float(imu.rate_hz),
+        "imu": {"file": str(args.imu), "samples": int(imu.n),
+                "rate_hz": float(imu.n / max(float(imu.t[-1] - imu.t0), 1e-9)),
                 "noise": noise.to_datasheet(), "lever_arm_flu_m": np.asarray(imu.lever_arm_b, float).tolist(),
                 "mount_deg": list(args.mount) if args.mount else None},
         "gnss": {"file": str(args.gnss), "source": source, "epochs_used": int(used.sum()),
-                 "epochs_rejected": int(rejected.sum())},
+                 "epochs_rejected": int(rejected.sum()), "warnings": list(getattr(tight, "warnings", None) or [])},
+        "gate_p": args.gate_p, "zupt": bool(args.zupt), "nhc": bool(args.nhc),
+        "reference_geoid_m": args.reference_geoid,
         "start_tow_s": float(week_tow(res.t[0])[1]) if res.n else None,
         "end_tow_s": float(week_tow(res.t[-1])[1]) if res.n else None,
         "alignment": res.alignment, "outage_windows_tow_s": [[float(week_tow(a)[1]), float(b - a)] for a, b in windows],

@@ -50,6 +50,8 @@ def add_arguments(p):
     f.add_argument("--zupt", action="store_true", help="zero-velocity updates while the IMU is still")
     f.add_argument("--nhc", action="store_true", help="non-holonomic constraint (vehicles: no side/up velocity)")
     f.add_argument("--smooth", action="store_true", help="RTS smoother over the whole run (post-processing)")
+    f.add_argument("--gate", default="1e-3", metavar="P|off",
+                   help="chi-square gate of each GNSS epoch at false-alarm probability P (default 1e-3; off: none)")
     e = p.add_argument_group("evaluation")
     e.add_argument("--outage", action="append", default=[], metavar="START:LENGTH",
                    help="remove GNSS from START (GPS seconds of week) for LENGTH s; repeatable")
