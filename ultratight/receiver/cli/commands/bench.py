@@ -53,6 +53,8 @@ ACCEPTANCE = {
     "acceptance_reproductions": ("acceptance_reproductions.py", [], ["--quick"], True),
     "acceptance_campaign": ("acceptance_campaign.py", [], ["--quick"], True),
     "acceptance_afm_quiet": ("acceptance_afm_quiet.py", [], ["--quick"], True),
+    # the real recordings' acquisition table (../shared/data; a missing file is reported as such)
+    "acceptance_acquisition_real": ("bench_acquisition.py", ["--real", "-v"], ["--real", "-v", "--quick"], True),
 }
 # the papers' Monte Carlo tables, printed by ``ultratight scenario`` (docs/paper_afm.md,
 # docs/integration-experiments.md, docs/airdata.md): --quick runs one seed of a shorter cut
