@@ -55,6 +55,8 @@ ACCEPTANCE = {
     "acceptance_afm_quiet": ("acceptance_afm_quiet.py", [], ["--quick"], True),
     # the real recordings' acquisition table (../shared/data; a missing file is reported as such)
     "acceptance_acquisition_real": ("bench_acquisition.py", ["--real", "-v"], ["--real", "-v", "--quick"], True),
+    # the scalar receiver at 4 MHz (docs/process.md "speed": the 0.1 real-time goal)
+    "acceptance_process_4mhz": ("bench_process.py", ["--fs", "4e6"], ["--fs", "4e6", "--quick"], True),
 }
 # the papers' Monte Carlo tables, printed by ``ultratight scenario`` (docs/paper_afm.md,
 # docs/integration-experiments.md, docs/airdata.md): --quick runs one seed of a shorter cut
