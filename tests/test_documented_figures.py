@@ -170,6 +170,25 @@ def test_quantisation_loss_weak_signal_limit(bits, stated_db, digits):
         assert loss_db < 0.01
 
 
+# --- docs/prefilter.md ------------------------------------------------------------------------
+
+def test_pbkf_discriminator_gains_at_20_dbhz():
+    """F4: at 20 dB-Hz (C/N0 T = 0.1, T = 1 ms, known bits, the PB-KF's 1-chip E−L spacing) the
+    normalised envelope DLL keeps ~2 % of its slope and the atan PLL ~43 %
+    (``pbkf.discriminator_calibration``: a fixed-seed Monte Carlo, deterministic; the stated
+    digits are the bound; the high-C/N0 end of the table is the unit slope)."""
+    from ultratight.fusion.channel.pbkf import CAL_DLG, CAL_LG0, PbKfBank, discriminator_calibration
+
+    import inspect
+    spacing = inspect.signature(PbKfBank.__init__).parameters["spacing_chips"].default
+    tab = discriminator_calibration(spacing, 1e-3, True)
+    i = int(round((math.log10(0.1) - CAL_LG0) / CAL_DLG))
+    assert CAL_LG0 + i * CAL_DLG == pytest.approx(-1.0)
+    assert tab[-1, 0] == pytest.approx(1.0, abs=0.01) and tab[-1, 1] == pytest.approx(1.0, abs=0.01)
+    assert round(float(tab[i, 0]), 2) == 0.02
+    assert round(float(tab[i, 1]), 2) == 0.43
+
+
 # --- docs/ins.md ------------------------------------------------------------------------------
 
 def test_paper_flight_up_velocity_and_nose_pitch_at_60_s():
