@@ -129,6 +129,12 @@ def test_all_in_view_search_period():
     assert ProcessConfig.search_every_s == 15.0
 
 
+def test_uncompensated_latency_residual():
+    """F3: an uncompensated 13.5 ms aiding latency under a 2100 Hz/s² Doppler jerk leaves a 28 Hz/s
+    Doppler-rate residual (jerk × latency; 13.5 ms is the CIC's group delay, F9)."""
+    assert round(2100.0 * 13.5e-3) == 28
+
+
 def test_high_dynamics_arithmetic_and_pll_cap():
     """P8: 100 m/s² along the line of sight is ≈ 525 Hz/s; 80 ms (5 ms × 16) move the Doppler by
     42 Hz, inside the ≈ 130 Hz bin of 5 ms (2/(3T)); P10: the high profile caps the weak-signal PLL
@@ -295,6 +301,33 @@ def test_augmented_state_size_and_chart_guard():
 
 
 # --- docs/airdata.md --------------------------------------------------------------------------
+
+def _fads_sigmas(h_m, mach):
+    """1σ of the FADS solution at (h, Mach), α = β = 0, ports 100 Pa: the covariance σ²(JᵀJ)⁻¹ of
+    ``fads.invert`` on the noise-free port pressures, through ``fads.derived``."""
+    from ultratight.airdata import atmosphere, fads
+
+    cone, clock = fads.default_ports()
+    p = float(atmosphere.pressure(h_m))
+    qc = float(fads.impact_ratio(mach)) * p
+    ports = fads.port_pressures(np.zeros(1), np.zeros(1), np.array([qc]), np.array([p]), cone, clock)
+    y, cov = fads.invert(ports, cone, clock, 100.0)
+    d = fads.derived(y, cov)
+    return {"h_m": math.sqrt(d["var_h"][0]), "tas_mps": math.sqrt(d["var_tas"][0]),
+            "alpha_deg": math.degrees(math.sqrt(cov[0, 0, 0])), "p_pa": math.sqrt(cov[0, 3, 3])}
+
+
+def test_fads_accuracy_by_flight_condition():
+    """Q3: p_∞ known to ≈ 160 Pa everywhere, so the FADS pressure altitude is good to ≈ 15 m at
+    1 km, 40 m at 10 km, 185 m at 20 km; airspeed 0.5 m/s at Mach 1 / 1 km, 35 m/s at Mach 8 /
+    20 km; flow angles 0.004° at Mach 5 / 10 km.  Bound: the stated digits (35 m/s: 34.5 within
+    0.6)."""
+    s1, s10, s20 = _fads_sigmas(1e3, 1.0), _fads_sigmas(10e3, 5.0), _fads_sigmas(20e3, 8.0)
+    assert all(round(s["p_pa"], -1) == 160.0 for s in (s1, s10, s20))
+    assert round(s1["h_m"]) == 15 and round(s10["h_m"], -1) == 40 and round(s20["h_m"]) == 185
+    assert round(s1["tas_mps"], 1) == 0.5 and abs(s20["tas_mps"] - 35.0) < 0.6
+    assert round(s10["alpha_deg"], 3) == 0.004
+
 
 def test_prefused_velocity_error_per_tenth_degree_at_mach_8():
     """Q5: |V|·δψ ≈ 4 m/s per 0.1° at Mach 8 (speed of sound of the standard atmosphere, 10–30 km)."""
