@@ -44,7 +44,7 @@ from collections import deque
 
 import numpy as np
 from scipy.optimize import nnls
-from scipy.stats import chi2
+from scipy.special import chdtri      # the χ² inverse survival function (scipy.stats is slow to import)
 
 from ultratight.errors import FilterError
 from ultratight.fusion.estimators.filters import (
@@ -450,7 +450,7 @@ class FadingUKF:
         self.P = check_covariance("P0", P0, self.x.shape[0])
         self.mode = mode
         self.augmented = augmented
-        self.threshold = float(chi2.isf(alpha_chi2, 1))
+        self.threshold = float(chdtri(1, alpha_chi2))
         self.ut = (alpha, beta, kappa)
 
     def _measure(self, x, P, h, R, m):
@@ -509,7 +509,7 @@ def aukf_fading_step(x, P, z, f, h, Q, R, mode=None, threshold: float | None = N
     q, m = Q.shape[0], R.shape[0]
     if mode not in (None, "aff", "afm"):
         raise FilterError(f"mode: expected None, 'aff' or 'afm', got {mode!r}")
-    T = float(chi2.isf(0.01, 1)) if threshold is None else float(threshold)
+    T = float(chdtri(1, 0.01)) if threshold is None else float(threshold)
     La = np.zeros((n + q + m, n + q + m))
     La[:n, :n] = cholesky_lower(P, "P")
     La[n:n + q, n:n + q] = cholesky_lower(Q, "Q")

@@ -22,7 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import chdtri      # the χ² inverse survival function (scipy.stats is slow to import)
 
 from ultratight.errors import DivergenceError, FilterError
 
@@ -160,7 +160,7 @@ class DivergenceMonitor:
     history: list = field(default_factory=list)
 
     def bound(self, dof: int) -> float:
-        return float(self.factor * chi2.ppf(1.0 - self.p_false, dof))
+        return float(self.factor * chdtri(dof, self.p_false))
 
     def update(self, nis: float, dof: int) -> bool:
         self.history.append(float(nis))

@@ -67,7 +67,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from scipy.stats import chi2
+from scipy.special import chdtri      # the χ² inverse survival function (scipy.stats is slow to import)
 
 from ultratight.constants import OMEGA_E
 from ultratight.errors import FilterError
@@ -331,7 +331,7 @@ class QuatAUKF:
         self.Q = check_covariance("Q", Q, Q_DIM)
         self.R = check_covariance("R", R, M_DIM)
         self.mode = mode
-        self.threshold = float(chi2.isf(chi2_alpha, 1))       # ε_i of eqs. 1 and 6 (Sun et al. 2012)
+        self.threshold = float(chdtri(1, chi2_alpha))       # ε_i of eqs. 1 and 6 (Sun et al. 2012)
         self.ut = (float(alpha), float(beta), float(kappa))
         L = N_ERR + Q_DIM + M_DIM                              # step 1: L = n + q + m
         self.scheme = unscented_scheme(L, *self.ut)           # step 2 weights

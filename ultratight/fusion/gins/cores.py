@@ -50,7 +50,7 @@ error state after the feedback.  ``prior_used`` is the prior covariance of the l
 from __future__ import annotations
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import chdtri      # the χ² inverse survival function (scipy.stats is slow to import)
 
 from ultratight.fusion.estimators.adaptive import AKF, IAKF, apply_fading, fading_matrix
 from ultratight.fusion.estimators.filters import kf_update
@@ -191,7 +191,7 @@ class AfmCore(KfCore):
     def __init__(self, P0, opts, m_gnss=6):
         super().__init__(P0, opts)
         self.Pn = self.P.copy()          # P′: propagated without process noise since the last update
-        self.threshold = float(chi2.isf(opts.afm_alpha, 1))
+        self.threshold = float(chdtri(1, opts.afm_alpha))
 
     def predict(self, Phi, Q, basis=None):
         super().predict(Phi, Q)

@@ -32,7 +32,7 @@ import functools
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import chdtri      # the χ² inverse survival function (scipy.stats is slow to import)
 
 from ultratight.constants import C, OMEGA_E
 from ultratight.ins.earth import dcm_ecef_from_enu, ecef_to_llh, elev_azim
@@ -74,7 +74,7 @@ class PvtSolution:
 
 @functools.lru_cache(maxsize=256)
 def _chi2_threshold(p_fa, dof):
-    return float(chi2.isf(p_fa, dof))
+    return float(chdtri(dof, p_fa))
 
 
 def rotate_sagnac(sat_pos_e, tau_s):
