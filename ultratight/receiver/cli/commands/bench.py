@@ -85,6 +85,8 @@ ACCEPTANCE.update({
 })
 # the readings and variants the documents run on "a copy of the TOML with KEY changed"
 # (acceptance_scenario.py --set KEY=VALUE): name -> (scenario, runs, extra arguments, --set items)
+_NOISIER = ["imu.gyro_arw_dprh=3.0", "imu.accel_vrw_ugrhz=254.9", "filter.gyro_arw_dprh=3.0",
+            "filter.accel_vrw_mps_rh=0.15"]
 VARIANTS = {
     "static_iakf_model": ("paper-static-iakf", 10, ["--methods", "iakf"], ['filter.iakf_q_structure="model"']),
     "static_iakf_no_ceiling": ("paper-static-iakf", 10, ["--methods", "iakf"], ["filter.iakf_q_ceiling=false"]),
@@ -101,6 +103,12 @@ VARIANTS = {
     "robust_flight_lsq_scale20": ("paper-robust-flight", 10, [],
                                   ['gnss.mode="lsq"', 'gross.mode="scale"', "gross.factor=20.0"]),
     "fads_bias": ("paper-fads", 20, [], ['imu.error_model="bias"']),
+    # docs/paper_afm.md "A noisier IMU": gyro ARW 3 deg/sqrt(h), VRW 0.15 m/s/sqrt(h), the filters' Q matched
+    "afm_jump_noisier": ("paper-afm-jump", 2, [], _NOISIER),
+    "afm_noise_noisier": ("paper-afm-noise", 2, [], _NOISIER),
+    "afm_accel_noisier": ("paper-afm-accel", 2, [], _NOISIER),
+    "afm_noise_arw30": ("paper-afm-noise", 2, [], ["imu.gyro_arw_dprh=30.0", "imu.accel_vrw_ugrhz=254.9",
+                                                    "filter.gyro_arw_dprh=30.0", "filter.accel_vrw_mps_rh=0.15"]),
     "fads_linear_envelope": ("paper-fads", 100, [], ['fads.altitude_shape="linear"', 'fads.altitude_curve="envelope"']),
 }
 for _name, (_scen, _runs, _extra, _sets) in VARIANTS.items():
@@ -108,7 +116,7 @@ for _name, (_scen, _runs, _extra, _sets) in VARIANTS.items():
     ACCEPTANCE["variant_" + _name] = (
         "acceptance_scenario.py", [_scen, "--runs", str(_runs), "--seed", "1"] + _extra + _set_args,
         [_scen, "--runs", "1", "--seed", "1", "--duration", "60"] + _extra + _set_args, True)
-del _name, _runs, _extra, _cut, _scen, _sets, _set_args, _DLB, _HD_QUICK
+del _name, _runs, _extra, _cut, _scen, _sets, _set_args, _DLB, _HD_QUICK, _NOISIER
 ACCEPTANCE.update({
     "study_highdyn": (
         "study_highdyn.py",
