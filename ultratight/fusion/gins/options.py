@@ -50,7 +50,7 @@ class GinsOptions:
     outages: tuple = ()                     # ((t_start, t_end), ...) GPS s: GNSS removed inside
     outage_keep_sats: int = 0               # tight only: satellites kept during outages (highest elevation)
     # --- propagation
-    cov_rate_hz: float = 20.0               # covariance propagation rate (Φ accumulated over the IMU samples)
+    cov_rate_hz: float = 10.0               # covariance propagation rate (Φ accumulated over the IMU samples)
     # --- alignment and still detection
     still_window_s: float = 1.0             # window of the still detector and of the static levelling
     still_k: float = 3.0                    # thresholds = still_k x the declared noise of the window statistic

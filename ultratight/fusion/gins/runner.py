@@ -8,7 +8,7 @@ layout, position block in metres north/east/up as in
   the alignment epoch.
 * **Propagation**: the SINS (:func:`ultratight.ins.sins.sins_step`) at every IMU sample with its
   own interval length and the bias estimates removed from the increments; the covariance at
-  ``cov_rate_hz`` (20 Hz): Φ and Q_d over each covariance step from the state at the step's end
+  ``cov_rate_hz`` (10 Hz): Φ and Q_d over each covariance step from the state at the step's end
   and the step's mean specific force
   (:func:`ultratight.fusion.coupling.integration.discrete_model`, second-order Φ, trapezoidal Q_d).
   Covariance steps also end at the IMU sample nearest each GNSS epoch.  Q from ImuNoise only:

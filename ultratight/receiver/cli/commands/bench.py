@@ -57,6 +57,8 @@ ACCEPTANCE = {
     "acceptance_acquisition_real": ("bench_acquisition.py", ["--real", "-v"], ["--real", "-v", "--quick"], True),
     # the scalar receiver at 4 MHz (docs/process.md "speed": the 0.1 real-time goal)
     "acceptance_process_4mhz": ("bench_process.py", ["--fs", "4e6"], ["--fs", "4e6", "--quick"], True),
+    # docs/integrate.md: the walk_0827 table of every core (../shared/data) and the tight run
+    "acceptance_integrate_walk": ("acceptance_integrate_walk.py", [], ["--quick"], True),
 }
 # the papers' Monte Carlo tables, printed by ``ultratight scenario`` (docs/paper_afm.md,
 # docs/integration-experiments.md, docs/airdata.md): --quick runs one seed of a shorter cut

@@ -1,0 +1,79 @@
+"""docs/integrate.md's walk_0827 table: ``ultratight integrate`` with every core, with and without NHC and
+the χ² gate, forward and smoothed, through the authors' two outage windows; plus the tight run.
+
+    python benchmarks/acceptance_integrate_walk.py [--quick] [--json OUT.json]
+
+Reads ../shared/data/real-imu-gnss/walk_0827 in place (``$ULTRATIGHT_DATA`` or the folder beside the
+checkout); prints one markdown row per run, in the order of the document's table.  ``--quick``: the kf
+rows only.  Each run is the command as a user types it (a subprocess), declared with what the
+recording's authors state (tests/test_integrate_cli.py: AUTHORS).
+"""
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from _common import add_common_args, finish
+
+ROOT = Path(__file__).resolve().parents[1]
+AUTHORS = ["--imu-axes", "FRD", "--mount", "180", "0", "-90", "--lever-arm", "0", "-0.05", "0",
+           "--imu-gyro-noise", "0.0038", "--imu-accel-noise", "70", "--imu-accel-bias-rw", "7",
+           "--imu-gyro-bias-rw", "3.8e-5", "--imu-gyro-bias", "0.2", "--imu-accel-bias", "0.2"]
+OUTAGES = ["--outage", "408664.75:14.75", "--outage", "408710.00:14.5"]
+FILTERS = ("kf", "akf", "iakf", "chi2-newton", "afm-aukf")
+
+
+def walk_dir():
+    base = os.environ.get("ULTRATIGHT_DATA") or str(ROOT.parent / "shared" / "data")
+    return Path(base) / "real-imu-gnss" / "walk_0827"
+
+
+def run(args):
+    p = subprocess.run([sys.executable, "-m", "ultratight.receiver.cli", *args, "--json"], capture_output=True,
+                       text=True, check=False)
+    if p.returncode != 0:
+        return {"error": p.stderr.strip()[-300:]}
+    return json.loads(p.stdout)
+
+
+def main():
+    ap = add_common_args(argparse.ArgumentParser(description=__doc__.splitlines()[0]))
+    args = ap.parse_args()
+    w = walk_dir()
+    if not w.is_dir():
+        print(f"walk_0827 not found at {w}: nothing to run")
+        finish(args, {"skipped": str(w)})
+        return
+    ref = ["--reference", str(w / "gnss_1730_sf.pos")]
+    base = ["integrate", "--imu", str(w / "imu_1730.csv"), *AUTHORS]
+    rows = []
+    print("| filter | gate | NHC | forward H / V (m) | 3σ | smoothed H / V (m) | 3σ | outside (m) | used / rejected |")
+    for f in FILTERS[:1] if args.quick else FILTERS:
+        for gate in ("1e-3", "off"):
+            for nhc in ((), ("--nhc",)):
+                s = run(base + ["--gnss", str(w / "gnss_1730_sf.pos"), "--filter", f, "--gate", gate, *nhc,
+                                "--smooth", *OUTAGES, *ref])
+                if "error" in s:
+                    print(f"| {f} | {gate} | {'yes' if nhc else '—'} | failed: {s['error']} |")
+                    continue
+                e, fw = s["evaluation"], s["evaluation"]["forward"]
+                row = {"filter": f, "gate": gate, "nhc": bool(nhc), "forward": fw, "smoothed": e,
+                       "used": s["gnss"]["epochs_used"], "rejected": s["gnss"]["epochs_rejected"]}
+                rows.append(row)
+                print(f"| {f} | {gate} | {'yes' if nhc else '—'} | {fw['outage_max_h_rms_m']:.2f} / "
+                      f"{fw['outage_max_v_rms_m']:.2f} | {100 * fw['within_3sigma']:.0f} % | "
+                      f"{e['outage_max_h_rms_m']:.2f} / {e['outage_max_v_rms_m']:.2f} | {100 * e['within_3sigma']:.0f} % | "
+                      f"{fw['rms_outside_h_m']:.2f} | {row['used']} / {row['rejected']} |", flush=True)
+    tight = run(base + ["--gnss", str(w / "gnss_1730.ubx"), "--coupling", "tight", "--reference-geoid", "-21.39",
+                        *ref])
+    if "error" not in tight:
+        print(f"tight, kf, all satellites: {tight['evaluation']['rms_outside_h_m']:.2f} m horizontal RMS at the "
+              f"{tight['evaluation']['reference_fixed_epochs']} fixed epochs")
+    finish(args, {"walk_loose": rows, "walk_tight": tight.get("evaluation", tight)})
+
+
+if __name__ == "__main__":
+    main()
