@@ -30,7 +30,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.signal import lfilter
 
 from ultratight.constants import OMEGA_E, WGS84_A
 from ultratight.errors import ConfigError
@@ -322,6 +321,7 @@ def lever_arm_truth(k, lever_arm_b):
 
 def _gauss_markov(rng, n, sigma, tau, dt):
     """First-order Gauss-Markov samples (n, 3), stationary start, steady-state std sigma."""
+    from scipy.signal import lfilter      # here: scipy.signal costs ~0.5 s of import for every reader of this module
     out = np.zeros((n, 3))
     if not np.any(sigma) or n == 0:
         return out

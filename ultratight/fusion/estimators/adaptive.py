@@ -43,7 +43,6 @@ from __future__ import annotations
 from collections import deque
 
 import numpy as np
-from scipy.optimize import nnls
 from scipy.special import chdtri      # the χ² inverse survival function (scipy.stats is slow to import)
 
 from ultratight.errors import FilterError
@@ -352,6 +351,7 @@ def project_q(Q_hat, basis, fixed=None, scale=None, diagonal=False, floor=1e-12,
         A, b = np.diagonal(Bn, axis1=1, axis2=2), np.diag(Rn)
     else:
         A, b = Bn.reshape(B.shape[0], -1), Rn.ravel()
+    from scipy.optimize import nnls       # here: scipy.optimize is slow to import and rarely needed
     q, _ = nnls(A.T, b)
     qmin = floor / np.maximum(np.max(np.diagonal(B, axis1=1, axis2=2), axis=1), 1e-300)
     q = np.maximum(q, qmin)
