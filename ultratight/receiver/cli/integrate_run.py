@@ -283,6 +283,17 @@ def _windows(args, imu, t_gnss):
     return ev.outage_windows(t_first, float(np.max(t_gnss)), outages=outs, every=every)
 
 
+def _progress(args, err):
+    """A progress callback writing one updated line on a terminal (None when quiet, --json or no tty)."""
+    if args.quiet or args.json or not getattr(err, "isatty", lambda: False)():
+        return None
+
+    def show(fraction):
+        end = "\n" if fraction >= 1.0 else ""
+        print(f"\rintegrate: filter {100.0 * fraction:5.1f} %", end=end, file=err, flush=True)
+    return show
+
+
 def run_integrate(args, out, err):
     t_start = time.perf_counter()
     _check_numbers(args)
@@ -303,7 +314,7 @@ def run_integrate(args, out, err):
     opts = _options(args, noise, imu, windows)
     from ultratight.fusion.gins.runner import run_gins
     t_read = time.perf_counter() - t_start
-    res = run_gins(imu, opts, fixes=fixes, tight=tight, progress=None)
+    res = run_gins(imu, opts, fixes=fixes, tight=tight, progress=_progress(args, err))
     t_filter = time.perf_counter() - t_start - t_read
     llh_ant = antenna_llh(res, imu.lever_arm_b)
     evaluation = series = None

@@ -78,6 +78,11 @@ def add_arguments(p):
     from ultratight.receiver.cli.commands import imu_flags
     imu_flags.add_arguments(p)
     imu_flags.add_noise_arguments(p)
+    for a in p._actions:        # integrate takes the lever arm in body axes (after --mount), not in the file's
+        if "--lever-arm" in a.option_strings:
+            a.help = "lever arm IMU -> antenna in body axes forward-right-down (after --mount), m"
+        if "--quiet" in a.option_strings:
+            a.help = "no progress line on stderr (it is only shown on a terminal, and not with --json)"
 
 
 def run(args):
