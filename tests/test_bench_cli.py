@@ -88,6 +88,8 @@ def test_acceptance_flag_adds_every_acceptance_run_with_its_documented_arguments
     assert rep["variant_robust_flight_lsq"]["results"]["argv"][:6] == ["paper-robust-flight", "--runs", "10", "--seed",
                                                                        "1", "--set"]
     assert 'fads.altitude_curve="envelope"' in rep["variant_fads_linear_envelope"]["results"]["argv"]
+    argv = rep["variant_fads_curve_loglinear_envelope_20"]["results"]["argv"]
+    assert argv[:5] == ["paper-fads", "--runs", "20", "--seed", "1"] and 'fads.altitude_shape="log-linear"' in argv
     # the study writes no JSON: its printed tables are the figures
     study = rep["study_highdyn"]
     assert study["results"] == {} and "--json" not in study["output"][0]
@@ -140,6 +142,27 @@ def test_failing_acceptance_script_gives_exit_1_and_unknown_names_exit_2(bench_d
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert r.returncode == 2 and len(lines) == 1 and "--data" in lines[0]
     assert data_file.read_text() == "keep" and not (tmp_path / "y.json").exists()
+
+
+# a stand-in benchmark whose work is done by a child process: 0.3 s of CPU with 150 MB touched
+CHILD_WORK = """import subprocess, sys
+code = "import time\\nb = bytearray(150 * 2 ** 20)\\nt = time.process_time()\\nwhile time.process_time() - t < 0.3:\\n    pass"
+subprocess.run([sys.executable, "-c", code], check=True)
+print("child done")
+"""
+
+
+def test_report_counts_the_cpu_time_and_memory_of_the_processes_a_script_waits_for(bench_dir, tmp_path):
+    (bench_dir / "bench_alpha.py").write_text(CHILD_WORK)
+    out = tmp_path / "r.json"
+    r = _run("bench", "--dir", str(bench_dir), "--only", "alpha,beta", "--json", str(out))
+    assert r.returncode == 1, r.stderr                  # alpha writes no report: listed as failed, still measured
+    rep = _report(out)["benchmarks"]
+    assert rep["alpha"]["output"] == ["child done"] and rep["alpha"]["error"] == "no report written"
+    assert rep["alpha"]["cpu_s"] >= 0.3 and rep["alpha"]["max_rss_mb"] >= 150.0
+    assert 0.0 <= rep["beta"]["cpu_s"] < rep["alpha"]["cpu_s"] and rep["beta"]["max_rss_mb"] < 150.0
+    line = [ln for ln in r.stderr.splitlines() if ln.startswith("[bench] alpha:")][0]
+    assert f"{rep['alpha']['cpu_s']:.1f} s CPU, {rep['alpha']['max_rss_mb']:.0f} MB peak RSS)" in line
 
 
 TESTS = '''import pytest

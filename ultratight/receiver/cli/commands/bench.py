@@ -115,6 +115,14 @@ VARIANTS = {
     "afm_noise_arw30": ("paper-afm-noise", 2, [], ["imu.gyro_arw_dprh=30.0", "imu.accel_vrw_ugrhz=254.9",
                                                     "filter.gyro_arw_dprh=30.0", "filter.accel_vrw_mps_rh=0.15"]),
     "fads_linear_envelope": ("paper-fads", 100, [], ['fads.altitude_shape="linear"', 'fads.altitude_curve="envelope"']),
+    # docs/airdata.md "The FADS altitude curve": the four readings on 20 runs each
+    "fads_curve_loglinear_sigma_20": ("paper-fads", 20, [], ['fads.altitude_shape="log-linear"',
+                                                             'fads.altitude_curve="sigma"']),
+    "fads_curve_loglinear_envelope_20": ("paper-fads", 20, [], ['fads.altitude_shape="log-linear"',
+                                                                'fads.altitude_curve="envelope"']),
+    "fads_curve_linear_sigma_20": ("paper-fads", 20, [], ['fads.altitude_shape="linear"', 'fads.altitude_curve="sigma"']),
+    "fads_curve_linear_envelope_20": ("paper-fads", 20, [], ['fads.altitude_shape="linear"',
+                                                             'fads.altitude_curve="envelope"']),
 }
 for _name, (_scen, _runs, _extra, _sets) in VARIANTS.items():
     _set_args = [a for item in _sets for a in ("--set", item)]
@@ -219,18 +227,29 @@ def command(name, script, kind, out, quick, data_dir):
 
 
 def run_one(cmd, out, cwd):
-    """Run one script; its report entry (wall time, status, figures, printed lines)."""
+    """Run one script; its report entry (wall time, CPU time, peak memory, status, figures, printed
+    lines).  ``cpu_s`` is the user + system time of the script and of every process it waited for
+    (a scenario's worker processes included); ``max_rss_mb`` the largest resident set of any one of
+    them (``wait4``'s rusage, Linux: kB)."""
     import json
     import os
     import subprocess
+    import tempfile
     import time
 
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=cwd)
-    entry = {"wall_s": round(time.perf_counter() - t0, 3), "returncode": proc.returncode,
-             "command": cmd[1:], "output": proc.stdout.splitlines()}
+    with tempfile.TemporaryFile("w+") as fo, tempfile.TemporaryFile("w+") as fe:
+        proc = subprocess.Popen(cmd, stdout=fo, stderr=fe, text=True, cwd=cwd)
+        _, status, usage = os.wait4(proc.pid, 0)
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        fo.seek(0)
+        fe.seek(0)
+        stdout, stderr = fo.read(), fe.read()
+    entry = {"wall_s": round(time.perf_counter() - t0, 3), "cpu_s": round(usage.ru_utime + usage.ru_stime, 3),
+             "max_rss_mb": round(usage.ru_maxrss / 1024.0, 1), "returncode": proc.returncode,
+             "command": cmd[1:], "output": stdout.splitlines()}
     if proc.returncode != 0:
-        entry["error"] = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
+        entry["error"] = (stderr.strip().splitlines() or ["(no output)"])[-1]
     elif "--json" not in cmd:
         entry["results"] = {}
     elif os.path.exists(out):
@@ -274,7 +293,8 @@ def run(args):
                 for line in entry["output"]:
                     print(f"[{name}] {line}", file=sys.stderr)
             status = "ok" if "results" in entry else f"FAILED: {entry['error']}"
-            print(f"[bench] {name}: {status} ({entry['wall_s']:.1f} s)", file=sys.stderr, flush=True)
+            print(f"[bench] {name}: {status} ({entry['wall_s']:.1f} s, {entry['cpu_s']:.1f} s CPU, "
+                  f"{entry['max_rss_mb']:.0f} MB peak RSS)", file=sys.stderr, flush=True)
     report["total_wall_s"] = round(time.perf_counter() - t_all, 3)
     io_guard.write_text_atomic(args.json, io_guard.json_dumps(report, indent=2))
     print(io_guard.json_dumps({k: v for k, v in report.items() if k != "benchmarks"}))
