@@ -1,11 +1,12 @@
 """docs/integrate.md's walk_0827 table: ``ultratight integrate`` with every core, with and without NHC and
-the χ² gate, forward and smoothed, through the authors' two outage windows; plus the tight run.
+the χ² gate, forward and smoothed, through the authors' two outage windows; plus the tight runs.
 
     python benchmarks/acceptance_integrate_walk.py [--quick] [--json OUT.json]
 
 Reads ../shared/data/real-imu-gnss/walk_0827 in place (``$ULTRATIGHT_DATA`` or the folder beside the
-checkout); prints one markdown row per run, in the order of the document's table.  ``--quick``: the kf
-rows only.  Each run is the command as a user types it (a subprocess), declared with what the
+checkout); prints one markdown row per run, in the order of the document's table, the tight run's line
+and the 20 s window's lines (tight with three satellites kept, with none, loose).  ``--quick``: the
+kf rows only.  Each run is the command as a user types it (a subprocess), declared with what the
 recording's authors state (tests/test_integrate_cli.py: AUTHORS).
 """
 
@@ -72,7 +73,27 @@ def main():
     if "error" not in tight:
         print(f"tight, kf, all satellites: {tight['evaluation']['rms_outside_h_m']:.2f} m horizontal RMS at the "
               f"{tight['evaluation']['reference_fixed_epochs']} fixed epochs")
-    finish(args, {"walk_loose": rows, "walk_tight": tight.get("evaluation", tight)})
+    window = window_runs(base, w, ref)
+    finish(args, {"walk_loose": rows, "walk_tight": tight.get("evaluation", tight), "walk_window": window})
+
+
+def window_runs(base, w, ref):
+    """docs/integrate.md: a 20 s window at 408710 s (kf, NHC) with three satellites kept in the tight
+    run, with none, and loose coupling (no gate) on the RTK solution; the largest horizontal error in it."""
+    tight = ["--gnss", str(w / "gnss_1730.ubx"), "--coupling", "tight", "--reference-geoid", "-21.39"]
+    out = {}
+    for label, extra in (("tight, 3 satellites kept", tight + ["--outage-keep-sats", "3"]),
+                         ("tight, none kept", tight),
+                         ("loose, no gate, none kept", ["--gnss", str(w / "gnss_1730_sf.pos"), "--gate", "off"])):
+        s = run(base + extra + ["--outage", "408710:20", "--filter", "kf", "--nhc", *ref])
+        if "error" in s:
+            print(f"20 s window at 408710 s, kf, NHC, {label}: failed: {s['error']}")
+            continue
+        o = s["evaluation"]["outages"][0]
+        out[label] = o
+        print(f"20 s window at 408710 s, kf, NHC, {label}: largest horizontal error {o['max_h_m']:.2f} m "
+              f"({o['reference_epochs']} reference epochs)", flush=True)
+    return out
 
 
 if __name__ == "__main__":

@@ -155,6 +155,25 @@ def test_high_dynamics_arithmetic_and_pll_cap():
     assert abs(jitter_deg - 7.0) < 0.7
 
 
+
+def test_tracked_means_phase_locked_half_the_epochs_or_locked_at_the_end():
+    """P14: `tracked` in the --json summary = phase-locked in ≥ 50 % of the channel's epochs, or
+    still in track at the end (the receiver's channel summaries on hand-made channel records)."""
+    from types import SimpleNamespace
+
+    from ultratight.receiver.dsp.tracking_layout import MODE_LOST, MODE_TRACK, S_MODE
+    from ultratight.receiver.scalar.receiver import ScalarReceiver
+
+    si = np.zeros((4, S_MODE + 1), dtype=np.int64)
+    si[:, S_MODE] = [MODE_LOST, MODE_LOST, MODE_TRACK, MODE_TRACK]
+    state = SimpleNamespace(si=si, cn0_dbhz=lambda ch: float("nan"))
+    stub = SimpleNamespace(tracker=SimpleNamespace(active=[False, False, True, False], state=state),
+                           chinfo=[{"locked_epochs": k, "epochs": 1000} for k in (500, 499, 10, 10)])
+    info = ScalarReceiver._channel_summaries(stub)
+    assert [c["tracked"] for c in info] == [True, False, True, False]
+    assert [c["locked_fraction"] for c in info] == [0.5, 0.499, 0.01, 0.01]
+
+
 # --- docs/generator.md ------------------------------------------------------------------------
 
 @pytest.mark.parametrize("bits,stated_db,digits", [(1, 1.96, 2), (2, 0.55, 2), (4, 0.1, 1), (16, 0.0, 2)])
@@ -357,3 +376,57 @@ def test_declared_rate_checked_against_the_stamps_to_one_percent(tmp_path, decla
     else:
         with pytest.raises(InputFileError, match=f"declared rate {declared:g} Hz"):
             read_imu_csv(p, declaration=dec)
+
+
+@pytest.mark.parametrize("shape,curve,table", [("log-linear", "sigma", (8.9, 25.6, 80.1)),
+                                               ("log-linear", "envelope", (3.3, 10.3, 32.4)),
+                                               ("linear", "sigma", (18.6, 20.1, 22.0)),
+                                               ("linear", "envelope", (12.9, 16.9, 21.2))])
+def test_prefused_altitude_sigma_closed_form(shape, curve, table):
+    """Q12, Q14: h_GF's σ at 10 / 15 / 20 km with eq. 4's weights frozen at the 10 km variances,
+    σ² = c_F² σ_F(h)² + (1 − c_F)² R_G with c_F = R_G / (R_G + R_F2), for each FADS altitude curve
+    reading (docs/airdata.md's closed-form column; the default's 80 m in cruise), and R_kmin at
+    10 km = R_G R_F2 / (R_G + R_F2) ≈ (8.9 m)² for the default (`fused_variance`).  Bound: the
+    table's one decimal."""
+    from ultratight.fusion.coupling.airdata import fused_variance
+    from ultratight.receiver.cli import experiments
+
+    path, raw, mod = experiments.resolve("paper-fads")
+    cfg = mod.load(path, raw, {"fads.altitude_shape": shape, "fads.altitude_curve": curve})
+    r_g = cfg["gnss"]["alt_sigma_m"] ** 2
+    r_f2 = mod.direct_altitude_sigma(cfg, 10000.0) ** 2
+    c_f = r_g / (r_g + r_f2)
+    got = [math.sqrt(c_f ** 2 * mod.direct_altitude_sigma(cfg, h) ** 2 + (1.0 - c_f) ** 2 * r_g)
+           for h in (10000.0, 15000.0, 20000.0)]
+    assert [round(g, 1) for g in got] == list(table)
+    if (shape, curve) == ("log-linear", "sigma"):
+        r_f1 = mod.direct_altitude_sigma(cfg, 1000.0) ** 2
+        assert round(math.sqrt(float(fused_variance(10000.0, r_g, r_f1, r_f2))), 1) == 8.9
+        assert round(got[2]) == 80
+
+
+def test_bias_reading_heading_drift_and_tilt():
+    """Q13: a 1σ gyro bias of Table 1's 0.01 °/s (36 °/h) left unobserved over the 400 s cruise
+    (t_climb 300 s to t_descent 700 s) turns the heading by 4°; a 5 mg accelerometer bias tilts the
+    attitude by b/g ≈ 0.3°.  Bound: the stated digits."""
+    toml = _scenario_toml("paper-fads")
+    imu, flight = toml["imu"], toml["flight"]
+    cruise_s = flight["t_descent_s"] - flight["t_climb_s"]
+    assert cruise_s == 400.0 and imu["gyro_sigma_dps"] * 3600.0 == pytest.approx(36.0)
+    assert round(imu["gyro_sigma_dps"] * cruise_s, 6) == 4.0
+    assert round(imu["accel_sigma_mps2"] / 9.80665e-3) == 5
+    assert round(math.degrees(math.atan(imu["accel_sigma_mps2"] / 9.80665)), 1) == 0.3
+
+
+def test_random_walk_process_noise_for_a_17_m_steady_state_std():
+    """Q14: a scalar random-walk Kalman filter with R = (20 m)² settles at a 17 m (updated) std only
+    with a process noise of ≈ 750 m² per step: the steady state of P⁻ = P⁺ + Q, P⁺ = P⁻R/(P⁻ + R),
+    solved for Q, and the recursion iterated from that Q back to 17 m.  Bound: the stated digits."""
+    r, p_post = 20.0 ** 2, 17.0 ** 2
+    q = p_post * r / (r - p_post) - p_post
+    assert round(q, -1) == 750.0
+    p = r
+    for _ in range(200):
+        p_prior = p + q
+        p = p_prior * r / (p_prior + r)
+    assert math.sqrt(p) == pytest.approx(17.0, abs=1e-9)
