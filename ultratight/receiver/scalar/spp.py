@@ -22,12 +22,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ultratight.constants import LAMBDA_L1, C
+from ultratight.constants import C
 from ultratight.ins.earth import dcm_ecef_from_enu, ecef_to_llh
 from ultratight.receiver.scalar.pvt import atmosphere_delays, solve_pvt
 from ultratight.signals.atmosphere import AtmosphereModel
 from ultratight.signals.obs_geometry import sat_states
 from ultratight.signals.observations import SECONDS_PER_WEEK, week_tow
+from ultratight.signals.signal import GPS_L1CA
 
 SIGMA_PR_M = 3.0
 SIGMA_RR_MPS = 0.1
@@ -71,7 +72,7 @@ def run_spp(raw, nav, cfg=None):
     states = sat_states(raw, nav)
     model, warn = atmosphere_for(nav, cfg)
     prc = np.where(states.valid, raw.pr_m + states.clk_m, np.nan)
-    rr = np.where(states.valid, -LAMBDA_L1 * raw.doppler_hz + states.drift_mps, np.nan)
+    rr = np.where(states.valid, -GPS_L1CA.wavelength_m * raw.doppler_hz + states.drift_mps, np.nan)
     fixes, last_x, n_states = [], None, 0
     t0 = float(raw.t[0]) if raw.n_epochs else 0.0
     for k in range(raw.n_epochs):
