@@ -266,7 +266,7 @@ def test_cli_process_ultratight_blind(unknown, tmp_path, capsys):
     _, paths, _, _ = unknown
     out = tmp_path / "r.h5"
     assert main(["process", str(paths["if"]), "--mode", "ultratight", "--imu", str(paths["imu"]), "--bits", "blind",
-                 "--duration", "3", "--json", "--out", str(out)]) == 0
+                 "--duration", "3", "--json", "--out", str(out), "--startup", "truth-perturbed"]) == 0
     summ = json.loads(capsys.readouterr().out)
     assert summ["bit_strategy"] == "blind" and summ["bits"] == {str(p): "blind" for p in summ["prns"]}
     assert summ["blind_fraction"] == [1.0, 1.0, 1.0]

@@ -42,8 +42,9 @@ def pad(tmp_path_factory):
 
 def _run(pad, capsys, name, *flags):
     out = pad["dir"] / f"{name}.h5"
+    named = [] if "--startup" in flags else ["--startup", "truth-perturbed"]    # the assisted start, named
     rc = main(["process", str(pad["if"]), "--mode", "ultratight", "--imu", str(pad["imu"]), "--json",
-               "--out", str(out), *flags])
+               "--out", str(out), "--bits", "assisted", *named, *flags])
     assert rc == 0
     summ = json.loads(capsys.readouterr().out)
     with h5py.File(out) as f, h5py.File(pad["traj"]) as g:

@@ -42,8 +42,9 @@ def cut(tmp_path_factory):
 def test_ultratight_mode_json_and_output_against_truth(cut, tmp_path, capsys):
     out = tmp_path / "res.h5"
     t_wall = time.perf_counter()
+    # the named assisted start (truth-perturbed, bits re-encoded): a 3 s cut leaves no time for a scalar fix
     rc = main(["process", str(cut["if"]), "--mode", "ultratight", "--imu", str(cut["imu"]), "--json",
-               "--out", str(out)])
+               "--out", str(out), "--startup", "truth-perturbed", "--bits", "assisted"])
     t_wall = time.perf_counter() - t_wall
     assert rc == 0
     summ = json.loads(capsys.readouterr().out)
@@ -57,12 +58,14 @@ def test_ultratight_mode_json_and_output_against_truth(cut, tmp_path, capsys):
     assert 0 < summ["runtime_s"] <= t_wall, (summ["runtime_s"], t_wall)
     assert 0 < summ["realtime_factor"] * DURATION_S <= t_wall, (summ["realtime_factor"], t_wall)
     assert summ["lock_losses"] == 0           # 20 dB-Hz, no noise event in the first 3 s
-    assert summ["startup"] == "truth-perturbed" and summ["lock_lost_channels"] == []   # generated file: as before
+    assert summ["startup"] == "truth-perturbed" and summ["lock_lost_channels"] == []
+    assert len(summ["assisted"]) == 2 and "truth-perturbed" in summ["assisted"][0]
     assert summ["n_tight_updates"] >= 20
     assert summ["out"] == str(out)
     # the result file: navigation solution against the generator's trajectory truth
     with h5py.File(out) as f, h5py.File(cut["traj"]) as g, h5py.File(cut["truth"]) as tr:
         assert f.attrs["method"] == "dlb-rackf"
+        assert "truth-perturbed" in f.attrs["assisted"] and "--bits assisted" in f.attrs["assisted"]
         assert list(f.attrs["prn"]) == summ["prns"]
         t = f["nav_t_s"][()]
         assert t.size >= summ["n_tight_updates"] and np.allclose(np.diff(t), t[1] - t[0])
@@ -91,10 +94,12 @@ def test_ultratight_mode_json_and_output_against_truth(cut, tmp_path, capsys):
 
 def test_ultratight_human_summary_other_method(cut, capsys):
     rc = main(["process", str(cut["if"]), "--mode", "ultratight", "--imu", str(cut["imu"]), "--method",
-               "dlb-ckf", "--duration", "1", "--prn", "31,20,18,28,21,15"])
+               "dlb-ckf", "--duration", "1", "--prn", "31,20,18,28,21,15", "--startup", "truth-perturbed",
+               "--bits", "assisted"])
     assert rc == 0
     out = capsys.readouterr().out
-    assert out.startswith("ultratight dlb-ckf: PRN 31, 20, 18, 28, 21, 15\n")
+    assert out.startswith("ASSISTED run: start-up from the IMU file's truth (truth-perturbed); data bits re-encoded "
+                          "from the ephemeris (--bits assisted)\nultratight dlb-ckf: PRN 31, 20, 18, 28, 21, 15\n")
     assert "signal 1.00 s in " in out and "lock losses: 0" in out
 
 

@@ -67,7 +67,8 @@ def test_circle_csv_generate_scalar_and_ultratight(tmp_path, capsys):
     rms_scalar = _rms_against(csv[:, 0], csv[:, 1:], fx["t_s"], np.stack([fx["x_m"], fx["y_m"], fx["z_m"]], 1))
     # ultra-tight engine with the generator's IMU (hot start from the IMU file's truth, perturbed)
     assert main(["process", str(tmp_path / "circ.ci8"), "--mode", "ultratight", "--imu",
-                 str(tmp_path / "circ.imu.h5"), "--out", str(tmp_path / "ut.h5"), "--json"]) == 0
+                 str(tmp_path / "circ.imu.h5"), "--out", str(tmp_path / "ut.h5"), "--json",
+                 "--startup", "truth-perturbed", "--bits", "assisted"]) == 0
     ut = json.loads(capsys.readouterr().out)
     with h5py.File(tmp_path / "ut.h5") as f:
         rms_ut = _rms_against(csv[:, 0], csv[:, 1:], f["nav_t_s"][()], f["nav_pos_e"][()])

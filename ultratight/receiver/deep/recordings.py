@@ -22,6 +22,7 @@ from ultratight.signals.recording.iffile import open_if
 from ultratight.signals.rinex import read_rinex_nav
 
 IMU_IF_TOLERANCE_S = 1e-3      # largest accepted IMU/IF start-time mismatch
+PREDICTED_MASK_DEG = 5.0       # elevation mask of the satellites tracked after a start without scalar pass
 
 
 def _imu_start_tow(imu):
@@ -96,8 +97,10 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
     * ``meta``: sidecar/ION metadata for the IF file (default ``IFFILE.json``); the IF start time
       (``start_week``/``start_tow_s``) is required.
     * Ephemerides: ``nav_path`` (RINEX) or, for generator files, the sidecar's scenario
-      (nominal constellation).  PRNs: ``prns``, the sidecar's list or, after a scalar start-up,
-      the satellites of the hand-over fix.
+      (nominal constellation).  PRNs: ``prns`` (``--prn``) or the satellites the start-up finds:
+      every one the scalar pass kept tracking, or, without a scalar pass, those the ephemerides put
+      above 5° at the initial position; satellites the navigation file marks unhealthy or has no
+      ephemeris for are skipped with one warning line each.
     * Initial state (``startup``: ``auto`` | ``scalar-fix`` | ``truth-perturbed``; the source used
       is ``result.info["startup_source"]``):
 
@@ -106,12 +109,12 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
       - ``init_overrides`` with all of ``llh``, ``vel_l``, ``q_lb`` (the ``--init-*`` flags,
         :func:`ultratight.receiver.deep.handover.parse_init_flags`): those at ``start_s``, clock zero
         (``init-flags``);
-      - the IMU file's truth at t0 perturbed by ``startup_errors`` (seeded by ``seed``; the hot
-        start never uses the truth itself) — the default (``auto``) for generator files with
-        truth, a PRN list and ``start_s`` = 0 (``truth-perturbed``);
-      - otherwise the scalar receiver's first fixes from ``start_s`` on (``scalar-fix``,
-        :func:`ultratight.receiver.deep.handover.scalar_handover`, configured by ``handover``), the
-        flags in ``init_overrides`` replacing their part.
+      - otherwise (``auto``, the default, and ``scalar-fix``) the scalar receiver's first fixes from
+        ``start_s`` on (``scalar-fix``, :func:`ultratight.receiver.deep.handover.scalar_handover`,
+        configured by ``handover``), the flags in ``init_overrides`` replacing their part;
+      - only when named (``truth-perturbed``, an *assisted* start for generated files): the IMU
+        file's truth at t0 perturbed by ``startup_errors`` (seeded by ``seed``), the sidecar's PRN
+        list.  No other start-up reads the IMU file's truth group.
 
       The engine starts at the hand-over time (an IMU stamp): the IF source and the IMU data are
       seen from there on (:class:`~ultratight.receiver.deep.handover.SourceWindow`,
@@ -133,12 +136,15 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
     if startup not in ("auto", ho.STARTUP_SCALAR, ho.STARTUP_TRUTH):
         raise ConfigError(f"unknown start-up {startup!r}; expected auto, {ho.STARTUP_SCALAR} or {ho.STARTUP_TRUTH}")
     src, imu, imu_path, dur, warnings = _open_recording(if_path, imu_path, meta, imu_declaration, duration_s)
+    if startup != ho.STARTUP_TRUTH:
+        imu.truth = None            # a generated IMU file's truth group is read only by the named truth start-up
     side = src.meta or {}
     gen_cfg = side.get("generator") if isinstance(side.get("generator"), dict) else None
     week, tow0 = int(src.start_week), float(src.start_tow_s)
     nav, ephs = _file_ephemerides(if_path, nav_path, gen_cfg, week, tow0)
-    if prns is None:
-        prns = side.get("prn")
+    given = prns is not None
+    if startup == ho.STARTUP_TRUTH and prns is None:
+        prns = side.get("prn")      # the generator's list: part of the assisted start-up
     prns = _drop_unhealthy(nav, prns, week, tow0, warnings)
     atmo, iono_source = _atmosphere(nav, gen_cfg, iono, tropo)
     start_s = float(start_s or 0.0)
@@ -148,8 +154,13 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
     source, hand, t_h, init_state, prns = _startup(
         src, imu, imu_path, nav if nav is not None else ephs, ephs, prns, startup, init_state,
         dict(init_overrides or {}), start_s, handover, gen_cfg, startup_errors, rng, atmo)
+    if not given and source != ho.STARTUP_SCALAR and not prns:
+        prns = _predicted_prns(ephs, init_state, week, tow0 + t_h)
+    if not given:
+        prns = _drop_unhealthy(nav, prns, week, tow0, warnings)
+        prns = _drop_without_ephemeris(prns, ephs, nav_path, warnings)
     if not prns:
-        raise ConfigError(f"{if_path}: no PRNs to track: the sidecar lists none and the start-up found none "
+        raise ConfigError(f"{if_path}: no satellites to track: the start-up found none with a healthy ephemeris "
                           "(give them with --prn)")
     missing = [p for p in prns if p not in ephs]
     if missing:
@@ -163,10 +174,24 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
                            init_state=init_state, rng=rng, duration_s=dur - t_h, atmosphere=atmo, iono_source=iono_source)
     res = eng.run()
     res.info["warnings"] = list(warnings)
+    res.info["assisted"] = assisted_parts(source, eng.opt.bits)
     _note_start(res, t_h, source, hand, file_start)
     t_mid = file_start["tow_s"] + t_h + 0.5 * res.duration_s
     res.info["sat_pos_e"] = [np.asarray(sat_state(ephs[int(p)], np.array([t_mid]))[0][0]).tolist() for p in prns]
     return res
+
+
+def assisted_parts(startup_source, bits):
+    """What of a run was assisted by the generator's knowledge (empty for a run on a user's files):
+    the named truth start-up and the bits re-encoded from the ephemeris (valid for the project's own
+    generated LNAV only).  Every output of such a run says so (docs/process.md)."""
+    from ultratight.receiver.deep import handover as ho
+    out = []
+    if startup_source == ho.STARTUP_TRUTH:
+        out.append("start-up from the IMU file's truth (truth-perturbed)")
+    if bits == "assisted":
+        out.append("data bits re-encoded from the ephemeris (--bits assisted)")
+    return out
 
 
 def _open_recording(if_path, imu_path, meta, imu_declaration, duration_s):
@@ -221,6 +246,26 @@ def _drop_unhealthy(nav, prns, week, tow0, warnings):
     return [p for p in prns if int(p) not in sick]
 
 
+def _drop_without_ephemeris(prns, ephs, nav_path, warnings):
+    """``prns`` without the satellites that have no ephemeris valid at the start (one warning line
+    naming them): the start-up found them, the navigation data cannot predict them."""
+    none = [int(p) for p in prns or () if int(p) not in ephs]
+    if none:
+        warnings.append(f"skipped, no ephemeris at the start in "
+                        f"{nav_path if nav_path is not None else 'the nominal constellation'}: "
+                        + ", ".join(f"PRN {p}" for p in none))
+    return [int(p) for p in prns or () if int(p) in ephs]
+
+
+def _predicted_prns(ephs, state, week, tow_s, mask_deg=PREDICTED_MASK_DEG):
+    """The satellites the ephemerides put above ``mask_deg`` at the initial position of ``state``
+    (a start-up without a scalar pass: ``--init-*`` flags or a given state)."""
+    from ultratight.ins.earth import llh_to_ecef
+    from ultratight.signals.geometry import visible_prns
+    lat, lon, h = (float(v) for v in state["llh"])
+    return [int(p) for p in visible_prns(ephs, np.asarray(llh_to_ecef(lat, lon, h)), week, tow_s, mask_deg)]
+
+
 def _file_ephemerides(if_path, nav_path, gen_cfg, week, tow0):
     """``(nav, ephs)`` of a recording: the RINEX file's ephemerides valid at the start (``nav`` the
     parsed file) or, for a generator file on the nominal constellation, the nominal ones (``nav``
@@ -266,8 +311,7 @@ def _startup(src, imu, imu_path, nav_or_ephs, ephs, prns, startup, init_state, o
     elif all(k in overrides for k in ("llh", "vel_l", "q_lb")):
         hand = ho.flags_state(overrides, start_s)
         source = ho.STARTUP_FLAGS
-    elif startup == ho.STARTUP_TRUTH or (startup == "auto" and has_truth and start_s == 0.0 and not overrides
-                                         and prns):
+    elif startup == ho.STARTUP_TRUTH:
         if not has_truth:
             raise ConfigError(f"{imu_path}: start-up {ho.STARTUP_TRUTH} needs the truth in the IMU file (none here)")
         if start_s != 0.0:
@@ -284,7 +328,7 @@ def _startup(src, imu, imu_path, nav_or_ephs, ephs, prns, startup, init_state, o
         source = ho.STARTUP_SCALAR
         if not prns:
             # every satellite the scalar pass kept tracking (not only the hand-over fix's)
-            prns = [p for p in hand["startup"]["scalar_pass"]["tracked"] if p in ephs]
+            prns = [int(p) for p in hand["startup"]["scalar_pass"]["tracked"]]
     if hand is not None:
         t_h = hand["t_s"]
         init_state = {k: hand[k] for k in ("llh", "vel_l", "q_lb", "clk_bias_m", "clk_drift_mps", "sigmas",

@@ -184,10 +184,11 @@ def add_arguments(p):
                    help="scalar receiver (default) or ultratight GPS/INS engine (needs --imu)")
     p.add_argument("--imu", metavar="IMU", help="IMU file (HDF5 or .csv) for --mode ultratight")
     p.add_argument("--bits", metavar="STRATEGY", default=None,
-                   help="--mode ultratight: navigation-data bits: assisted (default; re-encoded from the ephemeris, "
-                        "valid for the project's own generated LNAV only), decoded (LNAV words decoded from a blind "
-                        "pass over the same file, blind elsewhere), decoded-scalar (words from a scalar-receiver "
-                        "pass), blind (per-bit decisions) or a bit file (CSV, docs/process.md)")
+                   help="--mode ultratight: navigation-data bits: decoded (default; parity-checked LNAV words "
+                        "decoded from a blind pass over the same file, blind elsewhere), decoded-scalar (words from a "
+                        "scalar-receiver pass), blind (per-bit decisions), a bit file (CSV, docs/process.md) or "
+                        "assisted (re-encoded from the ephemeris: the project's own generated LNAV only; the summary "
+                        "and every output then say the run was assisted)")
     p.add_argument("--method", choices=_EngineMethods(), default=None, metavar="METHOD",
                    help="ultra-tight method (--mode ultratight): %(choices)s (default: the engine's DEFAULT_METHOD, "
                         "dlb-rackf)")
@@ -278,10 +279,11 @@ def _add_startup_arguments(p):
     """The ultra-tight mode's start-up."""
     p.add_argument("--startup", choices=("auto", "scalar-fix", "truth-perturbed"), default="auto",
                    help="--mode ultratight: initial state from the scalar receiver's first fixes on the same file "
-                        "(scalar-fix), from the IMU file's truth perturbed (truth-perturbed, generated files) or "
-                        "auto (default: --init-* flags when all three are given, else the truth when the IMU file "
-                        "has it, else scalar-fix); --start S starts the scalar pass at S. The --init-* flags take "
-                        "three numbers: --init-llh -33.87 151.21 40 (or -33.87,151.21,40)")
+                        "(scalar-fix), or auto (default: --init-* flags when all three are given, else scalar-fix); "
+                        "truth-perturbed (assisted, generated files only: the IMU file's truth perturbed, the "
+                        "sidecar's PRN list; the summary and every output say so); --start S starts the scalar pass "
+                        "at S. The --init-* flags take three numbers: --init-llh -33.87 151.21 40 (or "
+                        "-33.87,151.21,40)")
     # three numbers, as `ultratight ins` takes them (LAT LON H) or comma-separated (LAT,LON,H)
     p.add_argument("--init-llh", nargs="+", metavar="LAT LON H",
                    help="--mode ultratight: initial position (deg, deg, m)")
@@ -406,7 +408,7 @@ def _run_ultratight(args):
                           dynamics=args.dynamics)
     from ultratight.receiver.cli.commands import imu_flags
     imu_decl = imu_flags.overrides(args)
-    bits = args.bits or "assisted"
+    bits = args.bits or "decoded"
     check_strategy(bits)
     if args.out:
         note_partial(args.out)
@@ -418,7 +420,8 @@ def _run_ultratight(args):
     from ultratight.receiver.deep import outputs as ut_outputs
     try:
         if args.out:
-            write_result_h5(args.out, res)
+            write_result_h5(args.out, res, extra_attrs={"assisted": "; ".join(res.info.get("assisted") or [])
+                                                        or "no"})
         ut_outputs.write_files(res, csv_path=args.csv, kml_path=args.kml, nmea_path=args.nmea,
                                rinex_obs_path=args.rinex_obs)
     except OSError as exc:
@@ -460,6 +463,8 @@ def _ultratight_summary(res, args):
         "bit_strategy": (info.get("bits") or {}).get("strategy"),
         "blind_fraction": _blind_fraction(res),
         "atmosphere": info.get("atmosphere"),
+        # the parts of the run the generator's knowledge assisted (empty on a user's files; docs/process.md)
+        "assisted": list(info.get("assisted") or []),
         "warnings": list(info.get("warnings") or []),
         "out": args.out,
         "files": {k: v for k, v in (("csv", args.csv), ("kml", args.kml), ("nmea", args.nmea),
@@ -469,6 +474,8 @@ def _ultratight_summary(res, args):
 
 def _print_ultratight_summary(summ, args):
     """The ``--mode ultratight`` summary as text lines on stdout."""
+    if summ["assisted"]:
+        print(f"ASSISTED run: {'; '.join(summ['assisted'])}")
     print(f"ultratight {summ['method']}: PRN {', '.join(str(p) for p in summ['prns'])}")
     rtf = summ["realtime_factor"]
     print(f"signal {summ['duration_s']:.2f} s in {summ['runtime_s']:.2f} s "
