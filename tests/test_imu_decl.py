@@ -192,3 +192,21 @@ def test_ten_g_from_the_first_sample_is_not_mistaken_for_rates_in_g(tmp_path):
     write_imu_csv(p, d, ImuDeclaration(kind="increments", axes="FLU", gyro_unit="rad", accel_unit="m/s"))
     rep = read_imu_csv(p).meta["sanity_check"]
     assert rep["checked"] is False and "not at rest" in rep["reason"]
+
+
+def test_a_body_standing_on_end_passes_and_an_upside_down_declaration_does_not():
+    """A rocket on its pad: gravity on the file's x axis, declared FRD (x forward, pointing up) is a
+    body standing on end — accepted and reported; declared with x as the up axis (ULB) it is a level
+    body; declared with x as a down axis (DRB) the body would be upside down: the sign of a mix-up."""
+    from ultratight.ins.imu_decl import stationary_check
+
+    dt = 0.01
+    n = 200
+    f = np.tile([9.80665, 0.0, 0.0], (n, 1))                     # m/s^2, x up
+    w = np.tile([7.292115e-5, 0.0, 0.0], (n, 1))                  # rad/s: the Earth rate (at the pole, on x)
+    rep = stationary_check(f, w, dt, resolve_declaration(None, {"axes": "FRD"}), "m/s^2", "rad/s", "rates", "p.csv")
+    assert rep["checked"] and rep["stands_on_end"]
+    rep = stationary_check(f, w, dt, resolve_declaration(None, {"axes": "ULB"}), "m/s^2", "rad/s", "rates", "p.csv")
+    assert rep["checked"] and not rep["stands_on_end"]
+    with pytest.raises(InputFileError, match="declared DRB"):
+        stationary_check(f, w, dt, resolve_declaration(None, {"axes": "DRB"}), "m/s^2", "rad/s", "rates", "p.csv")

@@ -44,7 +44,9 @@ def test_ultratight_mode_json_and_output_against_truth(cut, tmp_path, capsys):
     t_wall = time.perf_counter()
     # the named assisted start (truth-perturbed, bits re-encoded): a 3 s cut leaves no time for a scalar fix
     rc = main(["process", str(cut["if"]), "--mode", "ultratight", "--imu", str(cut["imu"]), "--json",
-               "--out", str(out), "--startup", "truth-perturbed", "--bits", "assisted"])
+               "--out", str(out), "--startup", "truth-perturbed", "--bits", "assisted",
+               "--csv", str(tmp_path / "n.csv"), "--nmea", str(tmp_path / "n.nmea"), "--kml", str(tmp_path / "n.kml"),
+               "--rinex-obs", str(tmp_path / "n.obs")])
     t_wall = time.perf_counter() - t_wall
     assert rc == 0
     summ = json.loads(capsys.readouterr().out)
@@ -60,6 +62,10 @@ def test_ultratight_mode_json_and_output_against_truth(cut, tmp_path, capsys):
     assert summ["lock_losses"] == 0           # 20 dB-Hz, no noise event in the first 3 s
     assert summ["startup"] == "truth-perturbed" and summ["lock_lost_channels"] == []
     assert len(summ["assisted"]) == 2 and "truth-perturbed" in summ["assisted"][0]
+    # every output of an assisted run says so
+    for name in ("n.csv", "n.nmea", "n.kml", "n.obs"):
+        head = (tmp_path / name).read_text()[:4000]
+        assert "ASSISTED" in head and "truth-perturbed" in head and "bits assisted" in head, name
     assert summ["n_tight_updates"] >= 20
     assert summ["out"] == str(out)
     # the result file: navigation solution against the generator's trajectory truth

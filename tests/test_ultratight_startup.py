@@ -90,6 +90,7 @@ def _truth_at(traj, t, key):
 def test_starts_from_own_scalar_fix_and_keeps_every_channel(rec):
     s = rec["summary"]
     assert s["startup"] == "scalar-fix" and s["handover"]["source"] == "scalar-fix"
+    assert s["assisted"] == []                       # a user's files: nothing from the generator
     ho = s["handover"]
     # LNAV time of week needs a subframe (6 s) after bit sync: the hand-over comes after it
     assert 6.0 < ho["handover_t_s"] < 12.0

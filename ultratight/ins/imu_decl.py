@@ -38,9 +38,12 @@ checks below are built to accept those when the declaration is right).  There:
 
 * the declared reading must give ``|f|`` within 5 % of 9.80665 m/s^2, else "accelerometer
   units look g, declared m/s^2" or "values look like increments, declared rates";
-* the specific force at rest points up: the file axis carrying most of it must be declared U
-  (positive reading) or D (negative), else "axes look FLU, declared FRD" (the most common
-  right-handed convention with the right vertical letter is named);
+* the specific force at rest points up: when the file axis carrying most of it is declared
+  vertical (U or D), its reading must say so (U positive, D negative), else "axes look FLU,
+  declared FRD" (the most common right-handed convention with the right vertical letter is
+  named) — the declaration would put the body upside down, the sign of a FLU/FRD mix-up.  An
+  axis declared horizontal that carries gravity is a body standing on end (a rocket on its pad,
+  a handheld unit held upright): accepted, and the report says ``stands_on_end``;
 * ``|omega|`` outside [1/20, 40] Earth rates as declared while the other gyro unit puts it
   within [0.2, 5] Earth rates (a tactical or better gyro at rest) gives "gyro units look deg/s,
   declared rad/s".
@@ -368,7 +371,8 @@ def stationary_check(f_raw, w_raw, dt, dec, accel_unit, gyro_unit, kind, path):
     # axes: specific force at rest points up
     i = int(np.argmax(np.abs(fm)))
     up_letter = "U" if fm[i] > 0 else "D"
-    if abs(fm[i]) > 0.7 * mraw and isinstance(dec.axes, str) and dec.axes[i] != up_letter:
+    on_end = bool(abs(fm[i]) > 0.7 * mraw and isinstance(dec.axes, str) and dec.axes[i] not in "UD")
+    if abs(fm[i]) > 0.7 * mraw and isinstance(dec.axes, str) and dec.axes[i] in "UD" and dec.axes[i] != up_letter:
         cands = [c for c in _proper_axes() if c[i] == up_letter]
         pref = {c: k for k, c in enumerate(COMMON_AXES)}
         cands.sort(key=lambda c: (pref.get(c, 99), -sum(x == y for x, y in zip(c, dec.axes)), c))
@@ -377,9 +381,10 @@ def stationary_check(f_raw, w_raw, dt, dec, accel_unit, gyro_unit, kind, path):
                              f"{'up' if up_letter == 'U' else 'down'})")
     if not isinstance(dec.axes, str):
         up = dec.M @ fm
-        if up[2] < 0.7 * mraw:
+        if up[2] < -0.7 * mraw:
             raise InputFileError(f"{path}: declared axes matrix puts the specific force at rest at "
                                  f"{(up / mraw).round(3).tolist()} (FLU), not up")
+        on_end = bool(abs(up[2]) < 0.7 * mraw)
     # gyro: |omega| against the Earth rate, when the other unit fits better
     gfac = GYRO_UNITS[gyro_unit][0] / (dt if kind == "increments" else 1.0)
     w_decl = float(np.linalg.norm(wm)) * gfac
@@ -392,7 +397,7 @@ def stationary_check(f_raw, w_raw, dt, dec, accel_unit, gyro_unit, kind, path):
         raise InputFileError(f"{path}: gyro units look {other}, declared {gyro_unit} ({t_txt}: |omega| = "
                              f"{ratio:.3g} x Earth rate as declared, {oratio:.3g} x as {other})")
     return {"checked": True, "window": [int(a), int(b)], "f_mps2": float(mraw * decl[2]),
-            "omega_earth_rates": ratio, "gyro_in_range": bool(gyro_ok)}
+            "omega_earth_rates": ratio, "gyro_in_range": bool(gyro_ok), "stands_on_end": on_end}
 
 
 def _earth_rate_fits(wm, dt, gyro_unit, kind):

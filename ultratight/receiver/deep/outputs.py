@@ -25,7 +25,8 @@ RINEX_RATE_HZ = 10.0        # RINEX observation epochs
 CSV_COLS = ("t_s", "gps_week", "gps_tow_s", "x_m", "y_m", "z_m", "lat_deg", "lon_deg", "h_m", "ve_mps", "vn_mps",
             "vu_mps", "roll_deg", "pitch_deg", "yaw_deg", "clk_bias_m", "clk_drift_mps", "sigma_e_m", "sigma_n_m",
             "sigma_u_m", "sigma_ve_mps", "sigma_vn_mps", "sigma_vu_mps", "sigma_att_e_deg", "sigma_att_n_deg",
-            "sigma_att_u_deg", "sigma_clk_bias_m", "sigma_clk_drift_mps")
+            "sigma_att_u_deg", "sigma_clk_bias_m", "sigma_clk_drift_mps", "integrity")
+# the last column: integrity state of the row (0 ok, 1 degraded, 2 lost; receiver.deep.integrity)
 
 
 def _start(res):
@@ -48,7 +49,9 @@ def nav_rows(res):
     gps = None if tow0 is None else tow0 + s["t_s"] - s["clk"][:, 0] / C
     return {"t_s": s["t_s"], "pos_e": pos_e, "vel_e": vel_e, "llh": llh, "vel_l": s["vel_l"], "euler": s["euler"],
             "clk": s["clk"], "sig_pos": s["sigma_pos_l_m"], "sig_vel": s["sigma_vel_l_mps"],
-            "sig_att": s["sigma_att_rad"], "sig_clk": s["sigma_clk"], "week": week, "gps_tow_s": gps}
+            "sig_att": s["sigma_att_rad"], "sig_clk": s["sigma_clk"], "week": week, "gps_tow_s": gps,
+            "integrity": np.asarray(s.get("integrity_state", np.zeros(n, np.int8)), dtype=int),
+            "assisted": list((res.info or {}).get("assisted") or [])}
 
 
 def write_solution_csv(path, rows):
@@ -57,10 +60,11 @@ def write_solution_csv(path, rows):
         return [rows["t_s"][i], rows["week"], None if rows["gps_tow_s"] is None else rows["gps_tow_s"][i],
                 *rows["pos_e"][i], math.degrees(rows["llh"][i, 0]), math.degrees(rows["llh"][i, 1]), rows["llh"][i, 2],
                 *rows["vel_l"][i], *np.degrees(rows["euler"][i]), *rows["clk"][i], *rows["sig_pos"][i],
-                *rows["sig_vel"][i], *np.degrees(rows["sig_att"][i]), *rows["sig_clk"][i]]
+                *rows["sig_vel"][i], *np.degrees(rows["sig_att"][i]), *rows["sig_clk"][i], int(rows["integrity"][i])]
 
     write_table_csv(path, CSV_COLS, (values(i) for i in range(rows["t_s"].shape[0])), digits=12,
-                    comment=f"ultratight {__version__} process --mode ultratight: SINS-rate navigation solution")
+                    comment=f"ultratight {__version__} process --mode ultratight: SINS-rate navigation solution"
+                            + "".join(f"; ASSISTED: {a}" for a in rows.get("assisted") or ()))
 
 
 def fix_dicts(res, rows, rate_hz=NMEA_KML_RATE_HZ):
@@ -134,6 +138,29 @@ def bit_strategy(res):
     return {str(int(p)): str(mode) for p in res.prns}
 
 
+def integrity_summary(res):
+    """The run's integrity (``info["integrity"]``, receiver.deep.integrity; docs/ultratight.md
+    "Integrity"): final state, worst state, first degraded / lost times and the time a lost solution
+    stopped the run (s since the first sample of the file), re-initialisations and their times, and
+    ``line``: one sentence for the summary. None for a result without the monitor (scalar reference)."""
+    integ = (res.info or {}).get("integrity")
+    if not integ:
+        return None
+    out = {k: integ.get(k) for k in ("state", "worst", "first_degraded_s", "first_lost_s", "lost_at_s", "n_reinit")}
+    out["reinit_at_s"] = list(integ.get("reinit_at_s") or [])
+    if out["state"] == "lost":
+        out["line"] = (f"integrity lost at t = {out['lost_at_s']:.1f} s: the navigation solution left the "
+                       f"measurements; {out['n_reinit']} re-initialisation(s) from a scalar fix, no solution after "
+                       "that time")
+    elif out["worst"] != "ok":
+        t_bad = out["first_lost_s"] if out["worst"] == "lost" else out["first_degraded_s"]
+        out["line"] = (f"integrity {out['state']} at the end (worst {out['worst']} from t = {t_bad:.1f} s; "
+                       f"{out['n_reinit']} re-initialisation(s) from a scalar fix)")
+    else:
+        out["line"] = "integrity ok"
+    return out
+
+
 def nav_summary(res):
     """First / last SINS-rate row and the final 1-sigma (for the --json summary)."""
     s = res.sins
@@ -175,10 +202,11 @@ def rinex_epochs(res, rate_hz=RINEX_RATE_HZ, code_length=1023.0, chip_rate=1.023
     t_hi = np.nanmin(t[-1])
     k0 = math.ceil((tow0 + t_lo) * rate_hz)
     k1 = math.floor((tow0 + t_hi) * rate_hz)
+    count, seg = _period_counts(info, n_ep, len(res.prns))
     ttx_ch = []
     for c in range(len(res.prns)):
         frac = np.mod(cp[:, c] + half, code_length) - half
-        ttx_ch.append((np.asarray(n0[c], float) + np.arange(n_ep)) * T + frac / chip_rate)
+        ttx_ch.append(count[:, c] * T + frac / chip_rate)
     for k in range(k0, k1 + 1):
         t_rx = k / rate_hz
         ts = t_rx - tow0
@@ -188,7 +216,7 @@ def rinex_epochs(res, rate_hz=RINEX_RATE_HZ, code_length=1023.0, chip_rate=1.023
                 continue
             tc = t[:, c]
             j = int(np.searchsorted(tc, ts))
-            if j <= skip or j >= n_ep:
+            if j >= n_ep or j - seg[1][j] <= skip or seg[0][j - 1] != seg[0][j]:
                 continue
             w = (ts - tc[j - 1]) / (tc[j] - tc[j - 1])
             ttx = ttx_ch[c][j - 1] + w * (ttx_ch[c][j] - ttx_ch[c][j - 1])
@@ -199,6 +227,23 @@ def rinex_epochs(res, rate_hz=RINEX_RATE_HZ, code_length=1023.0, chip_rate=1.023
     return out
 
 
+def _period_counts(info, n_ep, n_ch):
+    """Per epoch row and channel the transmit-time code-period count of the epoch, and per row the
+    run it belongs to and its first row (a re-initialised result is several runs one after the other,
+    ``info["segments"]``; each run counts from its own ``first_period_count``)."""
+    segs = info.get("segments") or [{"first_epoch": 0, "first_period_count": info.get("first_period_count")}]
+    count = np.empty((n_ep, n_ch))
+    seg_id = np.zeros(n_ep, dtype=int)
+    seg_row0 = np.zeros(n_ep, dtype=int)
+    for i, sg in enumerate(segs):
+        r0 = int(sg["first_epoch"])
+        r1 = int(segs[i + 1]["first_epoch"]) if i + 1 < len(segs) else n_ep
+        count[r0:r1] = np.asarray(sg["first_period_count"], float)[None, :] + np.arange(r1 - r0)[:, None]
+        seg_id[r0:r1] = i
+        seg_row0[r0:r1] = r0
+    return count, (seg_id, seg_row0)
+
+
 def write_rinex_obs(path, res, rate_hz=RINEX_RATE_HZ):
     """RINEX 3.04 observations (C1C, D1C) of the ultra-tight channels (see :func:`rinex_epochs`)."""
     from ultratight.receiver.io.rinex_out import RinexObsWriter
@@ -206,6 +251,7 @@ def write_rinex_obs(path, res, rate_hz=RINEX_RATE_HZ):
     week, _ = _start(res)
     w = RinexObsWriter(path, 1.0 / rate_hz, comments=[
         f"ultratight {__version__} process --mode ultratight ({res.method})",
+        *(f"ASSISTED: {a}" for a in (res.info or {}).get("assisted") or ()),
         "C1C: code pseudorange of the ultra-tight channels",
         "D1C: Doppler estimate of the ultra-tight channels",
         "L1C, S1C: not produced by the ultra-tight engine"])
@@ -237,7 +283,8 @@ def write_files(res, csv_path=None, kml_path=None, nmea_path=None, rinex_obs_pat
         write_solution_csv(csv_path, rows)
     if kml_path or nmea_path:
         fixes = fix_dicts(res, rows)
-        opts = {"mode": "ultratight", "method": res.method, "startup": (res.info or {}).get("startup_source")}
+        opts = {"mode": "ultratight", "method": res.method, "startup": (res.info or {}).get("startup_source"),
+                **({"ASSISTED": " + ".join(rows["assisted"])} if rows["assisted"] else {})}
         if kml_path:
             write_kml(kml_path, fixes, name="ultratight ultra-tight track", options=opts)
         if nmea_path:
@@ -270,6 +317,8 @@ def write_result_h5(path, res, extra_attrs=None):
                      ("nav_t_s", res.nav_t), ("nav_pos_e", res.nav_pos_e), ("nav_vel_e", res.nav_vel_e),
                      ("nav_clk", res.nav_clk), ("nav_sigma_doppler_hz", res.nav_sigma_doppler_hz)):
             f.create_dataset(k, data=np.asarray(v), compression="gzip", compression_opts=1, shuffle=True)
+        for k, v in (getattr(res, "nav_integrity", None) or {}).items():
+            f.create_dataset(f"integrity/{k}", data=np.asarray(v), compression="gzip", compression_opts=1)
         if getattr(res, "bit_source", None) is not None:
             f.create_dataset("bit_source", data=np.asarray(res.bit_source), compression="gzip", compression_opts=1)
 

@@ -154,6 +154,8 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
     source, hand, t_h, init_state, prns = _startup(
         src, imu, imu_path, nav if nav is not None else ephs, ephs, prns, startup, init_state,
         dict(init_overrides or {}), start_s, handover, gen_cfg, startup_errors, rng, atmo)
+    if given and source == ho.STARTUP_SCALAR:
+        prns = _tracked_of(prns, hand, warnings)
     if not given and source != ho.STARTUP_SCALAR and not prns:
         prns = _predicted_prns(ephs, init_state, week, tow0 + t_h)
     if not given:
@@ -244,6 +246,18 @@ def _drop_unhealthy(nav, prns, week, tow0, warnings):
         warnings.append("skipped as unhealthy in the navigation file: " +
                         ", ".join(f"PRN {p} (SV health {h})" for p, h in sick.items()))
     return [p for p in prns if int(p) not in sick]
+
+
+def _tracked_of(prns, hand, warnings):
+    """The given ``prns`` that the start-up's scalar pass kept tracking; the others are left out
+    with one warning line (the engine starts its channels from the scalar channels' code phases:
+    a satellite the scalar pass did not see would be a channel on noise)."""
+    tracked = {int(p) for p in hand["startup"]["scalar_pass"]["tracked"]}
+    unseen = [int(p) for p in prns if int(p) not in tracked]
+    if unseen:
+        warnings.append("left out, not tracked by the start-up's scalar pass: " +
+                        ", ".join(f"PRN {p}" for p in unseen))
+    return [int(p) for p in prns if int(p) in tracked]
 
 
 def _drop_without_ephemeris(prns, ephs, nav_path, warnings):
