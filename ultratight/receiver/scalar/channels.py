@@ -11,7 +11,7 @@ import math
 
 from ultratight.errors import InputFileError
 from ultratight.receiver.dsp.acquisition import AcqResult, acquire, doppler_rate_search
-from ultratight.receiver.scalar.process_config import NoSignalError
+from ultratight.receiver.scalar.process_config import MAX_DOPPLER_FRACTION, NoSignalError
 from ultratight.signals.signal import GPS_L1CA
 
 STAGE2_HZ = 400.0            # half-width of the declared (long coherent) search around stage 1
@@ -33,17 +33,9 @@ def cold_search(source, cfg, start_sample, signal=GPS_L1CA):
     default recordings of 1 s or more get two looks; shorter snapshots get one look (the reference
     lists of shared/data/README.md were made so: on the 0.5 s PocketSDR IQ file a second look also
     declares PRN 18, a real satellite at ~38-40 dB-Hz that the list does not show)."""
+    coh, nc, looks = _search_lengths(source, cfg, start_sample, signal)
     avail_ms = int((source.n_samples - start_sample) / source.fs_hz * 1000.0)
-    if avail_ms < 1:
-        raise InputFileError(f"{source.path}: only {source.n_samples - start_sample} samples "
-                             f"({(source.n_samples - start_sample) / source.fs_hz * 1e3:.3f} ms) from the start "
-                             f"sample; need at least 1 ms (one {signal.name} code period) to acquire")
-    coh = max(1, min(int(cfg.acq_coherent_ms), avail_ms))
-    nc = max(1, min(int(cfg.acq_noncoherent), avail_ms // coh))
     prns = cfg.prns if cfg.prns else None
-    n_blk = int(round(coh * nc * 1e-3 * source.fs_hz))
-    looks = cfg.acq_looks if cfg.acq_looks is not None else (2 if avail_ms >= 1000 else 1)
-    looks = 2 if (looks > 1 and avail_ms >= 2 * coh * nc) else 1
     # stage 1: cheap full search (1 ms coherent, up to 10 non-coherent): candidate PRNs and Dopplers
     if nc > 1:
         # weak-signal settings: the full search at the requested integration (a 1 ms first stage
@@ -57,29 +49,74 @@ def cold_search(source, cfg, start_sample, signal=GPS_L1CA):
     if nc == 1 and coh > 1:
         # stage 2: the declared search (coh ms coherent) only for the candidates, in a window of
         # +-STAGE2_HZ around their stage-1 Doppler; a second look one block later for long files
-        # (a data-bit edge can cancel one 10 ms block, never two consecutive ones: edges are 20 ms apart)
         cand = [a.prn for a in res if a.detected]
         if cand:
-            ctr = {a.prn: a.doppler_hz for a in res if a.detected}
-            by_prn = {}
-            for look in range(looks):
-                r2 = acquire(source, prns=cand, doppler_center_hz=ctr, doppler_range_hz=STAGE2_HZ,
-                             coherent_ms=coh, noncoherent=nc, pfa=cfg.acq_pfa,
-                             start_sample=start_sample + look * n_blk, signal=signal)
-                for b in r2:
-                    if b.prn not in by_prn or b.metric > by_prn[b.prn].metric:
-                        by_prn[b.prn] = b
-                # the next look only for candidates still short of the declaration floor
-                cand = [p for p in cand if not (by_prn[p].detected and
-                                                _peak_cn0(by_prn[p].metric, coh) >= cfg.acq_min_cn0_dbhz)]
-                if not cand:
-                    break
+            by_prn = _declared_search(source, cfg, {a.prn: a.doppler_hz for a in res if a.detected}, STAGE2_HZ,
+                                      start_sample, coh, nc, looks, signal)
             res = [by_prn.get(a.prn, a) for a in res]
+    return _annotate(res, coh, nc)
+
+
+def _annotate(res, coh, nc):
     for a in res:
         a.peak_cn0_dbhz = _peak_cn0(a.metric, coh)
         a.coherent_ms = coh
         a.noncoherent = nc
     return res
+
+
+def _search_lengths(source, cfg, start_sample, signal):
+    """``(coh, nc, looks)`` of a search at ``start_sample``: the configured coherent length and
+    non-coherent count cut to the samples left, and the looks (2 for recordings of 1 s or more)."""
+    avail_ms = int((source.n_samples - start_sample) / source.fs_hz * 1000.0)
+    if avail_ms < 1:
+        raise InputFileError(f"{source.path}: only {source.n_samples - start_sample} samples "
+                             f"({(source.n_samples - start_sample) / source.fs_hz * 1e3:.3f} ms) from the start "
+                             f"sample; need at least 1 ms (one {signal.name} code period) to acquire")
+    coh = max(1, min(int(cfg.acq_coherent_ms), avail_ms))
+    nc = max(1, min(int(cfg.acq_noncoherent), avail_ms // coh))
+    looks = cfg.acq_looks if cfg.acq_looks is not None else (2 if avail_ms >= 1000 else 1)
+    looks = 2 if (looks > 1 and avail_ms >= 2 * coh * nc) else 1
+    return coh, nc, looks
+
+
+def _declared_search(source, cfg, centres, half_width_hz, start_sample, coh, nc, looks, signal):
+    """The declared search (``coh`` ms coherent x ``nc``) of the PRNs of ``centres`` {prn: Hz} in
+    +-``half_width_hz`` around their centre; {prn: best AcqResult over the looks}.  A data-bit edge
+    can cancel one 10 ms block, never two consecutive ones (edges are 20 ms apart): the next look,
+    one block later, only for the PRNs still short of the declaration floor."""
+    n_blk = int(round(coh * nc * 1e-3 * source.fs_hz))
+    cand = list(centres)
+    by_prn = {}
+    for look in range(looks):
+        r2 = acquire(source, prns=cand, doppler_center_hz={p: centres[p] for p in cand},
+                     doppler_range_hz=half_width_hz, coherent_ms=coh, noncoherent=nc, pfa=cfg.acq_pfa,
+                     start_sample=start_sample + look * n_blk, signal=signal)
+        for b in r2:
+            if b.prn not in by_prn or b.metric > by_prn[b.prn].metric:
+                by_prn[b.prn] = b
+        cand = [p for p in cand if not (by_prn[p].detected and
+                                        _peak_cn0(by_prn[p].metric, coh) >= cfg.acq_min_cn0_dbhz)]
+        if not cand:
+            break
+    return by_prn
+
+
+def predicted_search(source, cfg, start_sample, centres, half_width_hz, signal=GPS_L1CA):
+    """The search of PRNs whose Doppler is predicted (all in view with a fix and ephemerides,
+    :mod:`ultratight.receiver.scalar.search_plan`): the declared search of :func:`cold_search`'s
+    second stage straight away, in +-``half_width_hz`` around ``centres`` {prn: Hz} (cut to
+    ``MAX_DOPPLER_FRACTION`` fs); one result per PRN with ``peak_cn0_dbhz`` as :func:`cold_search`'s."""
+    coh, nc, looks = _search_lengths(source, cfg, start_sample, signal)
+    top = MAX_DOPPLER_FRACTION * source.fs_hz
+    ctr = {int(p): max(-top, min(top, float(d))) for p, d in centres.items()}
+    width = {p: max(0.0, min(float(half_width_hz), top - abs(d))) for p, d in ctr.items()}
+    res = []
+    for w in sorted(set(width.values())):
+        group = {p: d for p, d in ctr.items() if width[p] == w}
+        res += list(_declared_search(source, cfg, group, w, start_sample, coh, nc, looks, signal).values())
+    order = {p: k for k, p in enumerate(ctr)}
+    return _annotate(sorted(res, key=lambda a: order[a.prn]), coh, nc)
 
 
 def _assisted(a, start_sample):

@@ -21,6 +21,7 @@ class NoSignalError(UltratightError):
 
 
 MAX_DOPPLER_FRACTION = 0.45     # --doppler-range: at most this fraction of the sampling rate
+COARSE_FACTOR = 2.0             # the coarse all-in-view search runs at this multiple of search_every_s
 
 
 @dataclass
@@ -46,7 +47,9 @@ class ProcessConfig:
     sigma_rr_mps: float = 0.05
     reacquire: bool = True
     reacq_retry_s: float = 1.0
-    search_every_s: float = 15.0        # all-in-view: search again for the PRNs not tracked
+    search_every_s: float = 15.0        # all-in-view: search again for the PRNs not tracked (predicted search)
+    coarse_search_every_s: float | None = None   # the full search of PRNs without a prediction (None: 2 x
+                                                 # search_every_s; see search_plan)
     iono: str = "klobuchar"             # klobuchar | off (klobuchar applies once alpha/beta are known)
     tropo: str = "saastamoinen"         # saastamoinen | off
     tropo_mapping: str = "cosz"         # mapping function of the Saastamoinen model
@@ -66,6 +69,8 @@ class ProcessConfig:
             raise ConfigError(f"--threads must be an integer >= 1, got {self.threads}")
         if not self.search_every_s > 0:
             raise ConfigError(f"search interval must be > 0 s, got {self.search_every_s}")
+        if self.coarse_search_every_s is not None and not self.coarse_search_every_s > 0:
+            raise ConfigError(f"coarse search interval must be > 0 s, got {self.coarse_search_every_s}")
         if not 0.1 <= self.obs_rate_hz <= 50.0:
             raise ConfigError(f"observation rate must be in [0.1, 50] Hz, got {self.obs_rate_hz}")
         if self.duration_s is not None and not self.duration_s > 0:
@@ -95,6 +100,14 @@ class ProcessConfig:
             raise ConfigError(f"--mask must be an elevation in [0, 90) deg, got {self.mask_deg:g}")
         self.tracking.validate()
 
+    @property
+    def coarse_interval_s(self):
+        """Interval of the coarse full search (PRNs without a prediction): ``coarse_search_every_s``,
+        by default twice ``search_every_s``."""
+        if self.coarse_search_every_s is not None:
+            return float(self.coarse_search_every_s)
+        return COARSE_FACTOR * float(self.search_every_s)
+
 
 @dataclass
 class ProcessResult:
@@ -113,6 +126,8 @@ class ProcessResult:
     warnings: list = field(default_factory=list)
     corrections: dict = field(default_factory=dict)   # atmosphere options and coefficients used
     searches: int = 0                  # all-in-view searches run after the first acquisition
+    search: dict = field(default_factory=dict)   # the periodic search: runs, predicted_runs, cpu_s, ...
+    cpu_s: float = 0.0                 # the run's CPU time (time.process_time: every thread of the process)
 
     @property
     def realtime_factor(self):
@@ -128,6 +143,17 @@ class ProcessResult:
         pos = np.median(np.array([f["pos_e"] for f in self.fixes]), axis=0)
         llh = ecef_to_llh(pos.copy())
         return pos, [math.degrees(llh[0]), math.degrees(llh[1]), float(llh[2])]
+
+    def search_summary(self):
+        """The periodic all-in-view search's figures: runs (predicted + coarse), the PRNs searched by
+        each (summed over the runs), the PRNs of the last plan predicted above the mask (``predicted``)
+        and below it (``below_mask``), its CPU time and its share of the run's (docs/process.md)."""
+        d = dict(self.search) or {"runs": self.searches, "predicted_runs": 0, "coarse_runs": 0, "predicted_prns": 0,
+                                  "coarse_prns": 0, "predicted": [], "below_mask": [], "cpu_s": 0.0}
+        cpu = float(d.get("cpu_s", 0.0))
+        d["cpu_s"] = round(cpu, 3)
+        d["share_of_cpu"] = round(cpu / self.cpu_s, 4) if self.cpu_s > 0 else None
+        return d
 
     def summary(self):
         pos, llh = self.position_median()
@@ -158,6 +184,8 @@ class ProcessResult:
             "warnings": self.warnings,
             "corrections": self.corrections,
             "searches": self.searches,
+            "search": self.search_summary(),
+            "cpu_s": round(self.cpu_s, 3),
             "version": __version__,
             "out": self.out_path,
         }

@@ -68,12 +68,13 @@ from ultratight.receiver.dsp.tracking import ScalarTracker
 from ultratight.receiver.dsp.tracking_layout import F_DOPP, FL_PLL_LOCK, MODE_LOST, MODE_TRACK, RI_FLAGS, S_MODE
 from ultratight.receiver.io.outputs import write_csv, write_kml
 from ultratight.receiver.scalar.channels import (acquire_signals, allocate_channels, channel_info, cold_search,
-                                                 search_rate)
+                                                 predicted_search, search_rate)
 from ultratight.receiver.scalar.nav_pvt import NavBitStage, ObservableStage, PvtStage, ephemeris_lookup
 from ultratight.receiver.scalar.navdecode import channel_nav
 from ultratight.receiver.scalar.observables import CarrierSmoother, ChannelHistory
 from ultratight.receiver.scalar.process_config import ProcessConfig, ProcessResult
 from ultratight.receiver.scalar.recording import Recorder, finish_hdf5, write_exchange_files
+from ultratight.receiver.scalar.search_plan import plan_search
 from ultratight.signals.recording.iffile import open_if
 from ultratight.signals.signal import GPS_L1CA
 
@@ -166,7 +167,10 @@ class ScalarReceiver:
         self.obs_step = fs / cfg.obs_rate_hz
         self.k_obs = int(math.ceil((self.start_sample + h_samp + 1) / self.obs_step))
         self.h_samp = h_samp
-        self.search = {"next": self.start_sample + int(cfg.search_every_s * fs), "runs": 0}
+        self.search = {"next": self.start_sample + int(cfg.search_every_s * fs),
+                       "next_coarse": self.start_sample + int(cfg.coarse_interval_s * fs),
+                       "predicted_runs": 0, "coarse_runs": 0, "predicted_prns": 0, "coarse_prns": 0,
+                       "predicted": [], "below_mask": [], "cpu_s": 0.0}
 
     # ----------------------------------------------------------------- per block
     def _track_block(self, s):
@@ -253,27 +257,67 @@ class ScalarReceiver:
             info["next_retry"] = now_sample + int(self.cfg.reacq_retry_s * self.fs)
 
     def _search_idle(self, now_sample):
-        """All in view: search the PRNs without a channel running; start the ones found."""
+        """All in view: search the PRNs without a channel running and start the ones found.
+
+        With a fix, the PRNs an ephemeris predicts above the mask are searched every
+        ``search_every_s`` around their predicted Doppler, the ones it predicts below the mask are
+        not searched, and the others (no ephemeris, or no fix yet) get the coarse full search every
+        ``coarse_search_every_s`` (:mod:`ultratight.receiver.scalar.search_plan`)."""
+        srch, fs = self.search, self.fs
+        if now_sample < min(srch["next"], srch["next_coarse"]):
+            return
         idle = [ch for ch in range(self.n_ch) if not self.chinfo[ch]["started"]]
-        if not idle or now_sample < self.search["next"]:
+        if not idle or now_sample + int(0.05 * fs) >= self.stop:
             return
-        self.search["next"] = now_sample + int(self.cfg.search_every_s * self.fs)
-        if now_sample + int(0.05 * self.fs) >= self.stop:
-            return
-        scfg = replace(self.cfg, prns=[self.chinfo[ch]["prn"] for ch in idle], acq_looks=1)
-        res = cold_search(self.source, scfg, int(now_sample), self.signal)
-        self.search["runs"] += 1
+        c0 = time.process_time()
+        plan = self._search_plan([self.chinfo[ch]["prn"] for ch in idle], now_sample)
+        found = []
+        if now_sample >= srch["next"]:
+            srch["next"] = now_sample + int(self.cfg.search_every_s * fs)
+            if plan.predicted:
+                found += predicted_search(self.source, self.cfg, int(now_sample), plan.predicted, plan.window_hz,
+                                          self.signal)
+                srch["predicted_runs"] += 1
+                srch["predicted_prns"] += len(plan.predicted)
+        if now_sample >= srch["next_coarse"]:
+            srch["next_coarse"] = now_sample + int(self.cfg.coarse_interval_s * fs)
+            if plan.unpredicted:
+                scfg = replace(self.cfg, prns=plan.unpredicted, acq_looks=1)
+                found += cold_search(self.source, scfg, int(now_sample), self.signal)
+                srch["coarse_runs"] += 1
+                srch["coarse_prns"] += len(plan.unpredicted)
+        srch["predicted"], srch["below_mask"] = sorted(plan.predicted), sorted(plan.below_mask)
         by_prn = {self.chinfo[ch]["prn"]: ch for ch in idle}
-        for a in res:
-            if not (a.detected and a.peak_cn0_dbhz >= self.cfg.acq_min_cn0_dbhz):
-                continue
-            ch = by_prn[a.prn]
-            search_rate(self.source, a, self.cfg, self.stop, self.signal)
-            self.tracker.start_channel(ch, a.prn, a.code_phase_chips, a.doppler_hz, a.sample_index, a.cn0_dbhz,
-                                       a.rate_hz_s)
-            self.chinfo[ch]["started"] = True
-            self.chinfo[ch]["acquired_s"] = (a.sample_index - self.start_sample) / self.fs
-            self.acq.append(a)
+        for a in found:
+            if a.detected and a.peak_cn0_dbhz >= self.cfg.acq_min_cn0_dbhz:
+                self._start_found(by_prn[a.prn], a)
+        srch["cpu_s"] += time.process_time() - c0
+
+    def _search_plan(self, prns, now_sample):
+        """The :class:`~ultratight.receiver.scalar.search_plan.SearchPlan` of ``prns`` at ``now_sample``
+        from the latest fix and the ephemerides known (``--ephemeris``, else decoded on a channel)."""
+        fix = self.fixes[-1] if self.fixes else None
+        if fix is None:
+            return plan_search(prns, lambda p: None, None, 0.0, self.cfg.mask_deg, self.signal.wavelength_m,
+                               self.cfg.doppler_range_hz)
+        age = (now_sample - fix["sample_index"]) / self.fs
+        tow = float(fix["gps_tow_s"]) + age
+        ch_of = {c["prn"]: ch for ch, c in enumerate(self.chinfo)}
+
+        def eph_of(prn):
+            eph = self.pvt.eph_of(prn, fix["gps_week"], tow)
+            return eph if eph is not None else self.navs[ch_of[prn]].ephemeris
+        return plan_search(prns, eph_of, fix, age, self.cfg.mask_deg, self.signal.wavelength_m,
+                           self.cfg.doppler_range_hz)
+
+    def _start_found(self, ch, a):
+        """Start channel ``ch`` on the periodic search's detection ``a``."""
+        search_rate(self.source, a, self.cfg, self.stop, self.signal)
+        self.tracker.start_channel(ch, a.prn, a.code_phase_chips, a.doppler_hz, a.sample_index, a.cn0_dbhz,
+                                   a.rate_hz_s)
+        self.chinfo[ch]["started"] = True
+        self.chinfo[ch]["acquired_s"] = (a.sample_index - self.start_sample) / self.fs
+        self.acq.append(a)
 
     def _next_sample(self):
         """The next sample the tracking bank needs, after re-acquiring lost channels when none is
@@ -312,7 +356,7 @@ class ScalarReceiver:
     def run(self, out_path=None, csv_path=None, kml_path=None, progress=False, run_config=None, assist=None,
             rinex_obs_path=None, rinex_nav_path=None, nmea_path=None):
         """Run the pipeline over the file; arguments as :func:`process`."""
-        t_wall0 = time.perf_counter()
+        t_wall0, t_cpu0 = time.perf_counter(), time.process_time()
         self.acq = acquire_signals(self.source, self.cfg, self.start_sample, assist, self.signal)
         self.recorder = None
         bar = None
@@ -357,6 +401,7 @@ class ScalarReceiver:
                 bar.close()
             result.signal_s = max(done_s, 0.0)
             result.wall_s = time.perf_counter() - t_wall0
+            result.cpu_s = time.process_time() - t_cpu0
             self._finish(result, complete, run_config, csv_path, kml_path, rinex_nav_path, nmea_path)
         return result
 
@@ -375,7 +420,12 @@ class ScalarReceiver:
         """Channel summaries, warnings and the outputs (partial HDF5 output on an interruption)."""
         result.channels = self._channel_summaries()
         result.corrections = self.pvt.corrections
-        result.searches = self.search["runs"]
+        srch = self.search
+        result.search = {"runs": srch["predicted_runs"] + srch["coarse_runs"], "predicted_runs": srch["predicted_runs"],
+                         "coarse_runs": srch["coarse_runs"], "predicted_prns": srch["predicted_prns"],
+                         "coarse_prns": srch["coarse_prns"], "predicted": srch["predicted"],
+                         "below_mask": srch["below_mask"], "cpu_s": srch["cpu_s"]}
+        result.searches = result.search["runs"]
         result.warnings = _spectrum_check(self.hists, self.tracker, self.input_info, signal=self.signal)
         if self.cfg.record_epochs:
             result.epochs = self.recorder.epoch_arrays()
