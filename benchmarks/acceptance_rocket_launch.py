@@ -74,7 +74,10 @@ def user_directory(gen, stem, user):
     truth = imu.truth
     imu.truth = None
     # the declaration a user writes: axes, lever arm (in those axes) and the grade of the unit
-    write_imu_csv(user / "imu.csv", imu, ImuDeclaration(axes="FRD", noise={"grade": "tactical"}))
+    side_path = write_imu_csv(user / "imu.csv", imu, ImuDeclaration(axes="FRD"))
+    side = json.loads(side_path.read_text())
+    side["noise"] = {"grade": "tactical"}
+    side_path.write_text(json.dumps(side, indent=2))
     return truth
 
 

@@ -100,3 +100,26 @@ def imu_noise(grade=None, **declared):
     si = {name: base[key] * f for key, (name, f) in DATASHEET_KEYS.items()}
     parts = ([f"grade {grade}"] if grade else []) + ([f"declared {', '.join(sorted(given))}"] if given else [])
     return ImuNoise(source="; ".join(parts), **si)
+
+
+# a bias random walk as the error-state model's first-order Gauss-Markov bias: over this correlation
+# time the process is a random walk to within exp(-t / tau) (an hour: longer than any run it tunes)
+RW_AS_GM_TAU_S = 3600.0
+
+
+def error_model_of(noise, tau_s=RW_AS_GM_TAU_S):
+    """The declared noise as :class:`ultratight.ins.imu.ImuErrors`, the model the ultra-tight
+    engine's 17-state filter is tuned from (``errors`` of an IMU file's metadata): white noise
+    ARW / VRW as they are, the turn-on bias as its 1σ, the bias random walk q as a Gauss-Markov
+    bias of correlation time ``tau_s`` whose driving PSD 2σ²/τ equals q² (σ = q √(τ/2)).  A
+    declaration states no scale factor or misalignment: none is modelled."""
+    import numpy as np
+
+    from ultratight.ins.imu import ImuErrors
+
+    k = math.sqrt(tau_s / 2.0)
+    return ImuErrors(gyro_bias=np.full(3, noise.gyro_bias_sigma), accel_bias=np.full(3, noise.accel_bias_sigma),
+                     gyro_arw=np.full(3, noise.gyro_arw), accel_vrw=np.full(3, noise.accel_vrw),
+                     gyro_gm_sigma=np.full(3, noise.gyro_bias_rw * k), gyro_gm_tau=float(tau_s),
+                     accel_gm_sigma=np.full(3, noise.accel_bias_rw * k), accel_gm_tau=float(tau_s),
+                     preset=f"declared ({noise.source})" if noise.source else "declared")

@@ -46,7 +46,7 @@ start time from them, the clock taken as zero (the sidecar start time taken as G
 """
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
@@ -75,13 +75,15 @@ class HandoverConfig:
     window_s: float = 12.0          # scalar pass length from the start (LNAV time of week: <= 6 s + sync)
     min_sats: int = 5               # satellites in the hand-over fix
     settle_fixes: int = 3           # consecutive fixes ending at the hand-over fix
-    still_s: float = 1.0            # still interval for levelling / gyro-compassing
+    still_s: float = 1.0            # still interval for levelling / gyro-compassing (at least)
+    still_max_s: float = 10.0       # ... and at most: the longest still stretch before the hand-over
     still_speed_mps: float = 0.2
     still_force_mps2: float = 0.1   # largest deviation of 0.1 s mean specific force magnitudes
     move_speed_mps: float = 3.0
     accel_half_s: float = 0.1       # GNSS acceleration / IMU mean: +- this around the hand-over
     sideslip_deg: float = 3.0       # body x axis vs velocity direction, 1 sigma
-    max_heading_sigma_deg: float = 5.0
+    max_heading_sigma_deg: float = 30.0   # gyro-compassing worse than this: refused (give --init-att)
+    warn_heading_sigma_deg: float = 5.0   # ... worse than this: a warning (the filter refines it in motion)
     bank_sigma_deg: float = 2.0     # moving: bank vs the coordinated-turn bank, 1 sigma (see docs)
     acq_min_cn0_dbhz: float = 37.0  # scalar pass acquisition (the process flags)
     acq_noncoherent: int = 1
@@ -205,6 +207,15 @@ def _still(imu, t_h, cfg):
     return float(np.ptp(mags)) <= 2.0 * cfg.still_force_mps2
 
 
+def _still_span(imu, t_h, cfg):
+    """The longest still stretch before ``t_h`` in whole ``still_s`` steps, at most ``still_max_s``
+    (gyro-compassing averages the white noise over it)."""
+    T = cfg.still_s
+    while T + cfg.still_s <= cfg.still_max_s + 1e-9 and _still(imu, t_h, replace(cfg, still_s=T + cfg.still_s)):
+        T += cfg.still_s
+    return T
+
+
 def coordinated_left(vel_l, acc_l, g):
     """Unit vector (local ENU) of the body's left (y) axis of a vehicle in coordinated flight along
     ``vel_l`` with acceleration ``acc_l``: the horizontal left of the velocity, banked about the
@@ -227,8 +238,8 @@ def attitude_at(imu, imu_errors, t_h, llh, vel_l, acc_l, sig_acc, cfg):
     speed = float(np.linalg.norm(vel_l))
     g_l = np.asarray(gravity_l(lat, h))
     if speed <= cfg.still_speed_mps and _still(imu, t_h, cfg):
-        w_b, f_b = _imu_mean(imu, t_h - cfg.still_s, t_h)
-        T = cfg.still_s
+        T = _still_span(imu, t_h, cfg)
+        w_b, f_b = _imu_mean(imu, t_h - T, t_h)
         s_f = max(_accel_sigma(imu_errors, T), 1e-4) / np.linalg.norm(g_l)
         w_ie = np.asarray(earth_rate_l(lat))
         s_w = max(_gyro_sigma(imu_errors, T), 1e-9) / np.linalg.norm(w_ie)
@@ -240,7 +251,10 @@ def attitude_at(imu, imu_errors, t_h, llh, vel_l, acc_l, sig_acc, cfg):
                 f"start-up: the receiver is still at the hand-over but gyro-compassing gives a heading sigma of "
                 f"{sig_head:.0f} deg (gyro sigma {gb:.3g} deg/h over {T:g} s vs the horizontal Earth rate "
                 f"{math.degrees(w_ie[1]) * 3600.0:.3g} deg/h): give the heading with --init-att ROLL,PITCH,YAW")
-        return np.asarray(dcm_to_quat(C_lb)), P, "levelling+gyro-compass", ""
+        note = "" if sig_head <= cfg.warn_heading_sigma_deg else (
+            f"start-up: gyro-compassing over {T:g} s gives a heading sigma of {sig_head:.0f} deg (the filter "
+            "refines it once the vehicle accelerates; --init-att gives it)")
+        return np.asarray(dcm_to_quat(C_lb)), P, "levelling+gyro-compass", note
     if speed >= cfg.move_speed_mps:
         w_b, f_b = _imu_mean(imu, t_h - cfg.accel_half_s, t_h + cfg.accel_half_s)
         if f_b is None:
@@ -384,17 +398,26 @@ def scalar_handover(source, imu, imu_errors, ephemerides, prns, start_s=0.0, cfg
     sigmas = {"pos_m": float(fx["sigma_pos_m"]) / math.sqrt(3.0) if "llh" not in overrides else FLAG_SIGMAS["pos_m"],
               "vel_mps": max(sig_vel / math.sqrt(3.0), 0.01) if "vel_l" not in overrides else FLAG_SIGMAS["vel_mps"],
               "clk_bias_m": float(fx["sigma_pos_m"]), "clk_drift_mps": max(sig_vel, 0.01)}
+    note = ""
     if "q_lb" in overrides:
         q, P_att, att_method = overrides["q_lb"], np.eye(3) * math.radians(FLAG_SIGMAS["att_deg"]) ** 2, "init-att"
     else:
-        q, P_att, att_method, _ = attitude_at(imu, imu_errors, t_h, state["llh"], state["vel_l"], acc_l, sig_acc,
+        q, P_att, att_method, note = attitude_at(imu, imu_errors, t_h, state["llh"], state["vel_l"], acc_l, sig_acc,
                                               cfg)
+    lever = np.asarray(getattr(imu, "lever_arm_b", None) if getattr(imu, "lever_arm_b", None) is not None
+                       else np.zeros(3), float)
+    if "llh" not in overrides and np.any(lever):
+        # the fix is the antenna's: the IMU point is the lever arm away, along the hand-over attitude
+        # (the rotation term w x l of the velocity is left to the filter: under 0.1 m/s for 1 rad/s at 0.1 m)
+        pos_imu = pos_e - C_el @ (quat_to_dcm(np.asarray(q, float)) @ lever)
+        state["llh"] = np.asarray(ecef_to_llh(pos_imu.copy()))
     sigmas["att_deg"] = float(math.degrees(math.sqrt(np.max(np.diag(P_att)))))
     sigmas["att_cov_rad2"] = P_att.tolist()
     state.update({"q_lb": np.asarray(q, float), "clk_bias_m": float(clk_b), "clk_drift_mps": clk_d,
                   "sigmas": sigmas})
     eul = np.degrees(dcm_to_euler(quat_to_dcm(state["q_lb"])))
     state["t_s"] = float(t_h)
+    state["warnings"] = [note] if note else []
     state["startup"] = {
         "source": STARTUP_SCALAR, "overridden_by_flags": given, "handover_t_s": float(t_h),
         "scalar_pass": {"start_s": float(start_s), "window_s": float(cfg.window_s), "fixes": len(res.fixes),
@@ -477,4 +500,6 @@ def imu_window(imu, t_s):
         meta["start_tow_s"] = float(meta["start_tow_s"]) + t_s
     meta.pop("config_json", None)
     return ImuData(t=t[k0:] - t_s, dtheta_b=np.asarray(imu.dtheta_b)[k0:], dv_b=np.asarray(imu.dv_b)[k0:],
-                   rate_hz=imu.rate_hz, t0=0.0, truth=None, meta=meta)
+                   rate_hz=imu.rate_hz, t0=0.0, truth=None, meta=meta,
+                   lever_arm_b=np.asarray(getattr(imu, "lever_arm_b", None) if getattr(imu, "lever_arm_b", None)
+                                          is not None else np.zeros(3), float).copy())

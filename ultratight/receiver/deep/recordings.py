@@ -91,7 +91,7 @@ def check_imu_if_alignment(src, imu, if_path="IF file", imu_path="IMU file", tol
 def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None, nav_path=None, prns=None,
                             init_state=None, options=None, duration_s=None, seed=0, startup_errors=None,
                             imu_declaration=None, startup="auto", init_overrides=None, start_s=0.0,
-                            handover=None, iono="klobuchar", tropo="saastamoinen"):
+                            handover=None, iono="klobuchar", tropo="saastamoinen", imu_noise=None):
     """Run the ultra-tight engine on a recorded IF file and an IMU file (HDF5 or CSV).
 
     * ``meta``: sidecar/ION metadata for the IF file (default ``IFFILE.json``); the IF start time
@@ -122,7 +122,11 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
       and Doppler (no acquisition); the result's times are shifted back to seconds since the first
       sample of the file.
     * IMU conventions: ``imu_declaration`` (sidecar keys, :mod:`ultratight.ins.imu_decl`) over the
-      IMU file's sidecar; a GPS-stamped IMU starting before the IF is cut to the IF start.
+      IMU file's sidecar; a GPS-stamped IMU starting before the IF is cut to the IF start.  The tight
+      filter is tuned from the declared IMU (:func:`_declared_model`): ``imu_noise`` (a noise table:
+      ``grade`` and datasheet keys of :mod:`ultratight.ins.imu_noise`, the ``--imu-grade`` /
+      ``--imu-*-noise`` flags) key by key over the sidecar's ``noise`` table, else the model a
+      generated file declares.
     * Time alignment is checked by :func:`check_imu_if_alignment` (gaps, out-of-order stamps,
       IMU/IF offset -> InputFileError).
     * Atmosphere (``iono``, ``tropo`` as the scalar receiver's flags): the engine's predictions and the
@@ -135,7 +139,8 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
                           f"--mode ultratight")
     if startup not in ("auto", ho.STARTUP_SCALAR, ho.STARTUP_TRUTH):
         raise ConfigError(f"unknown start-up {startup!r}; expected auto, {ho.STARTUP_SCALAR} or {ho.STARTUP_TRUTH}")
-    src, imu, imu_path, dur, warnings = _open_recording(if_path, imu_path, meta, imu_declaration, duration_s)
+    src, imu, imu_path, dur, warnings = _open_recording(if_path, imu_path, meta, imu_declaration, duration_s,
+                                                        imu_noise)
     if startup != ho.STARTUP_TRUTH:
         imu.truth = None            # a generated IMU file's truth group is read only by the named truth start-up
     side = src.meta or {}
@@ -154,6 +159,7 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
     source, hand, t_h, init_state, prns = _startup(
         src, imu, imu_path, nav if nav is not None else ephs, ephs, prns, startup, init_state,
         dict(init_overrides or {}), start_s, handover, gen_cfg, startup_errors, rng, atmo)
+    warnings.extend((hand or {}).get("warnings") or [])
     if given and source == ho.STARTUP_SCALAR:
         prns = _tracked_of(prns, hand, warnings)
     if not given and source != ho.STARTUP_SCALAR and not prns:
@@ -169,18 +175,62 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
         raise ConfigError(f"no ephemeris for PRN {missing} at the IF start (week {week}, TOW {tow0:.3f} s) in "
                           f"{nav_path if nav_path is not None else 'the nominal constellation'}")
     file_start = {"week": int(week), "tow_s": float(tow0)}
-    if t_h > 0.0:
-        src, imu, t_h = _from_handover(src, imu, t_h, dur)
-        tow0, week = float(src.start_tow_s), int(src.start_week)
-    eng = UltratightEngine(src, imu, ephs, [int(p) for p in prns], week, tow0, method=method, options=options,
-                           init_state=init_state, rng=rng, duration_s=dur - t_h, atmosphere=atmo, iono_source=iono_source)
-    res = eng.run()
+    res, opt, t_h = _run_reinitialising(
+        (src, imu, ephs, [int(p) for p in prns], method, options, rng, dur, atmo, iono_source),
+        (nav if nav is not None else ephs, handover), init_state, t_h, warnings)
     res.info["warnings"] = list(warnings)
-    res.info["assisted"] = assisted_parts(source, eng.opt.bits)
+    res.info["assisted"] = assisted_parts(source, opt.bits)
     _note_start(res, t_h, source, hand, file_start)
     t_mid = file_start["tow_s"] + t_h + 0.5 * res.duration_s
     res.info["sat_pos_e"] = [np.asarray(sat_state(ephs[int(p)], np.array([t_mid]))[0][0]).tolist() for p in prns]
     return res
+
+
+def _run_reinitialising(run, scalar, init_state, t_h, warnings):
+    """The engine from the hand-over at ``t_h`` on; when its integrity monitor declares the solution
+    lost (receiver.deep.integrity, docs/ultratight.md "Integrity") the run stops there, a new scalar
+    fix is taken from that time on (:func:`~ultratight.receiver.deep.handover.scalar_handover`, same
+    satellites) and a new engine runs from it — at most ``max_reinit`` times, then the result ends
+    lost. ``run``: the recording, ``(src, imu, ephs, prns, method, options, rng, duration, atmosphere,
+    iono source)``; ``scalar``: ``(ephemerides of the scalar pass, HandoverConfig)``. Returns the runs
+    joined in time (:func:`~ultratight.receiver.deep.recorder.join_results`), the engine options
+    used and the first hand-over time."""
+    from dataclasses import replace
+
+    from ultratight.receiver.deep import handover as ho
+    from ultratight.receiver.deep.integrity import IntegrityThresholds
+    from ultratight.receiver.deep.options import EngineOptions
+    from ultratight.receiver.deep.recorder import join_results
+    src0, imu0, ephs, prns, method, options, rng, dur, atmo, iono_source = run
+    opt = options or EngineOptions()
+    opt = replace(opt, integrity_stop=True if opt.integrity_stop is None else bool(opt.integrity_stop))
+    max_reinit = IntegrityThresholds.from_options(opt.integrity).max_reinit
+    parts, starts = [], []
+    while True:
+        src, imu = src0, imu0
+        if t_h > 0.0:
+            src, imu, t_h = _from_handover(src0, imu0, t_h, dur)
+        eng = UltratightEngine(src, imu, ephs, prns, int(src.start_week), float(src.start_tow_s), method=method,
+                               options=opt, init_state=init_state, rng=rng, duration_s=dur - t_h, atmosphere=atmo,
+                               iono_source=iono_source)
+        parts.append(eng.run())
+        starts.append(t_h)
+        lost = (parts[-1].info.get("integrity") or {}).get("lost_at_s")
+        if lost is None or not opt.integrity_stop or len(parts) > max_reinit:
+            break
+        t_lost = t_h + float(lost)
+        try:
+            hand = ho.scalar_handover(src0, imu0, tightmod.imu_errors_from_meta(imu0), scalar[0], prns,
+                                      start_s=t_lost, cfg=scalar[1], atmosphere=atmo)
+        except ConfigError as exc:
+            warnings.append(f"integrity lost at t = {t_lost:.1f} s; no re-initialisation: {exc}")
+            break
+        t_h = hand["t_s"]
+        init_state = {k: hand[k] for k in ("llh", "vel_l", "q_lb", "clk_bias_m", "clk_drift_mps", "sigmas",
+                                           "code_phase_chips") if k in hand}
+        if t_h >= dur - 1.0:
+            break
+    return join_results(parts, starts), opt, starts[0]
 
 
 def assisted_parts(startup_source, bits):
@@ -196,7 +246,7 @@ def assisted_parts(startup_source, bits):
     return out
 
 
-def _open_recording(if_path, imu_path, meta, imu_declaration, duration_s):
+def _open_recording(if_path, imu_path, meta, imu_declaration, duration_s, noise=None):
     """``(src, imu, imu_path, duration, warnings)``: the IF file (its start time required), the IMU file
     read in its declared conventions and cut to the IF start, the duration both cover, and a warning
     line when the IMU ends before the IF span asked for."""
@@ -208,14 +258,35 @@ def _open_recording(if_path, imu_path, meta, imu_declaration, duration_s):
     # the IMU's declared conventions (sidecar IMU.csv.json + ``imu_declaration`` overrides, ins.imu_decl)
     imu = imu_decl.read_imu_file(imu_path, imu_declaration)
     imu = imu_decl.align_to_gps_start(imu, src.start_week, src.start_tow_s, imu_path)
+    warnings = _declared_model(imu, imu_path, noise)
     usable = check_imu_if_alignment(src, imu, if_path, imu_path)
     dur = usable if duration_s is None else min(float(duration_s), usable)
     wanted = src.duration_s if duration_s is None else min(float(duration_s), src.duration_s)
-    warnings = []
     if dur < wanted - 1.0 / float(imu.rate_hz):
         warnings.append(f"{imu_path.name}: the IMU data end at t = {dur:.3f} s, before the {wanted:.3f} s of "
                         f"{Path(if_path).name} asked for: only the first {dur:.3f} s are processed")
     return src, imu, imu_path, dur, warnings
+
+
+def _declared_model(imu, imu_path, noise=None):
+    """The IMU model the tight filter is tuned from (``meta["errors"]``): the noise table ``noise``
+    (grade and datasheet figures, :mod:`ultratight.ins.imu_noise`; from flags) key by key over the
+    declaration's ``noise`` table; without either, the model the file itself declares (a generated
+    file).  Returns the warning lines: an IMU declared with no noise at all is filtered as the
+    "paper" IMU of Zhao et al. 2014 (navigation grade), which is said."""
+    meta = imu.meta if imu.meta is not None else {}
+    imu.meta = meta
+    table = dict((meta.get("declaration") or {}).get("noise") or {})
+    table.update({k: v for k, v in (noise or {}).items() if v is not None})
+    if isinstance(meta.get("errors"), dict) and not noise:
+        return []
+    if not table:
+        return [f"{Path(imu_path).name}: no IMU noise declared (sidecar 'noise' table or --imu-grade): the "
+                "filter assumes the navigation-grade 'paper' IMU of Zhao et al. 2014"]
+    from ultratight.ins.imu_noise import error_model_of, imu_noise
+    grade = table.pop("grade", None)
+    meta["errors"] = error_model_of(imu_noise(grade, **table)).to_dict()
+    return []
 
 
 def _note_start(res, t_h, source, hand, file_start):

@@ -203,6 +203,7 @@ def add_arguments(p):
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     from ultratight.receiver.cli.commands import imu_flags
     imu_flags.add_arguments(p)
+    imu_flags.add_noise_arguments(p)
 
 
 def _add_file_arguments(p):
@@ -302,7 +303,7 @@ def run(args):
     if getattr(args, "imu", None):
         raise ConfigError("--imu is only used with --mode ultratight")
     from ultratight.receiver.cli.commands import imu_flags
-    if imu_flags.overrides(args):
+    if imu_flags.overrides(args) or imu_flags.noise_flags(args) or getattr(args, "imu_grade", None):
         raise ConfigError("the --imu-*/--lever-arm flags declare the IMU file of --mode ultratight")
     ut_only = [f for f, on in (("--init-llh", getattr(args, "init_llh", None)),
                                ("--init-vel", getattr(args, "init_vel", None)),
@@ -408,6 +409,7 @@ def _run_ultratight(args):
                           dynamics=args.dynamics)
     from ultratight.receiver.cli.commands import imu_flags
     imu_decl = imu_flags.overrides(args)
+    noise = {**({"grade": args.imu_grade} if args.imu_grade else {}), **imu_flags.noise_flags(args)}
     bits = args.bits or "decoded"
     check_strategy(bits)
     if args.out:
@@ -416,7 +418,7 @@ def _run_ultratight(args):
                                   nav_path=args.ephemeris, prns=prns, duration_s=args.duration,
                                   startup=args.startup, init_overrides=overrides, start_s=args.start, handover=hcfg,
                                   imu_declaration=imu_decl, options=EngineOptions(bits=bits, threads=args.threads or 0),
-                                  iono=args.iono, tropo=args.tropo)
+                                  iono=args.iono, tropo=args.tropo, imu_noise=noise or None)
     from ultratight.receiver.deep import outputs as ut_outputs
     try:
         if args.out:
