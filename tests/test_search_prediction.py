@@ -127,6 +127,38 @@ def test_coarse_search_before_a_fix_and_its_cpu_share(short_file):
     assert 0.0 < s["cpu_s"] <= res.cpu_s and s["share_of_cpu"] == pytest.approx(s["cpu_s"] / res.cpu_s, abs=1e-3)
 
 
+def test_predicted_search_finds_the_signals_around_their_prediction(short_file):
+    """The two-stage search with its first stage in +-500 Hz around a prediction 150 Hz off: the
+    satellites in the file are declared at their true Doppler and code phase, an absent PRN is not."""
+    import h5py
+
+    from ultratight.receiver.scalar.channels import predicted_search
+    from ultratight.receiver.scalar.process_config import ProcessConfig
+    from ultratight.signals.recording.iffile import open_if
+    files, prns = short_file
+    src = open_if(files["if"])
+    start = int(0.5 * src.fs_hz)
+    with h5py.File(files["truth"], "r") as f:
+        row = int(np.searchsorted(f["sample_index"][:], start))
+        dopp = {p: float(f["doppler_hz"][row, k]) for k, p in enumerate(prns)}
+        code = {p: float(f["code_phase_chips"][row, k]) for k, p in enumerate(prns)}
+        s_row = int(f["sample_index"][row])
+    absent = next(p for p in range(1, 33) if p not in prns)
+    centres = {**{p: d + 150.0 for p, d in dopp.items()}, absent: 1000.0}
+    res = predicted_search(src, ProcessConfig(), start, centres, 500.0)
+    assert [a.prn for a in res] == list(centres)
+    by = {a.prn: a for a in res}
+    assert not by[absent].detected
+    for p in prns:
+        a = by[p]
+        assert a.detected and a.peak_cn0_dbhz >= 37.0, p
+        assert a.doppler_hz == pytest.approx(dopp[p], abs=25.0), p
+        # code phase at the result's sample, from the truth's code rate (1.023 MHz, Doppler-scaled)
+        exp = (code[p] + (a.sample_index - s_row) / src.fs_hz * 1.023e6 * (1 + dopp[p] / 1575.42e6)) % 1023.0
+        err = (a.code_phase_chips - exp + 511.5) % 1023.0 - 511.5
+        assert abs(err) < 0.5, (p, a.code_phase_chips, exp)
+
+
 def test_process_json_reports_the_search(short_file):
     files, _ = short_file
     r = subprocess.run([sys.executable, "-m", "ultratight.receiver.cli", "process", files["if"], "--json",

@@ -21,7 +21,7 @@ def _peak_cn0(metric, coh_ms):
     return 10.0 * math.log10(max(metric - 1.0, 1e-12) / (coh_ms * 1e-3))
 
 
-def cold_search(source, cfg, start_sample, signal=GPS_L1CA):
+def cold_search(source, cfg, start_sample, signal=GPS_L1CA, centres=None, half_width_hz=None):
     """Cold-start search; each result gets ``peak_cn0_dbhz = 10 log10((metric - 1) / T_coh)``.
 
     The CFAR metric is peak / noise floor of the search surface, whose mean under a signal is
@@ -32,19 +32,26 @@ def cold_search(source, cfg, start_sample, signal=GPS_L1CA):
     peak; bit edges are 20 ms apart, so a second look one block later cannot be hit as well.  By
     default recordings of 1 s or more get two looks; shorter snapshots get one look (the reference
     lists of shared/data/README.md were made so: on the 0.5 s PocketSDR IQ file a second look also
-    declares PRN 18, a real satellite at ~38-40 dB-Hz that the list does not show)."""
+    declares PRN 18, a real satellite at ~38-40 dB-Hz that the list does not show).
+
+    ``centres`` {prn: Hz} and ``half_width_hz`` ({prn: Hz} or Hz): the PRNs searched and the first
+    stage's window around each centre (:func:`predicted_search`); default the PRNs of ``cfg`` in
+    +-``cfg.doppler_range_hz``."""
     coh, nc, looks = _search_lengths(source, cfg, start_sample, signal)
     avail_ms = int((source.n_samples - start_sample) / source.fs_hz * 1000.0)
-    prns = cfg.prns if cfg.prns else None
-    # stage 1: cheap full search (1 ms coherent, up to 10 non-coherent): candidate PRNs and Dopplers
+    if centres is None:
+        prns, ctr, rng = (cfg.prns if cfg.prns else None), 0.0, cfg.doppler_range_hz
+    else:
+        prns, ctr, rng = list(centres), centres, half_width_hz
+    # stage 1: cheap search (1 ms coherent, up to 10 non-coherent): candidate PRNs and Dopplers
     if nc > 1:
         # weak-signal settings: the full search at the requested integration (a 1 ms first stage
         # would lose the coherent gain)
-        res = acquire(source, prns=prns, doppler_range_hz=cfg.doppler_range_hz, coherent_ms=coh,
+        res = acquire(source, prns=prns, doppler_center_hz=ctr, doppler_range_hz=rng, coherent_ms=coh,
                       noncoherent=nc, pfa=cfg.acq_pfa, start_sample=start_sample, signal=signal)
     else:
         nc1 = max(1, min(avail_ms, 10))
-        res = acquire(source, prns=prns, doppler_range_hz=cfg.doppler_range_hz, coherent_ms=1,
+        res = acquire(source, prns=prns, doppler_center_hz=ctr, doppler_range_hz=rng, coherent_ms=1,
                       noncoherent=nc1, pfa=cfg.acq_pfa, start_sample=start_sample, signal=signal)
     if nc == 1 and coh > 1:
         # stage 2: the declared search (coh ms coherent) only for the candidates, in a window of
@@ -104,19 +111,13 @@ def _declared_search(source, cfg, centres, half_width_hz, start_sample, coh, nc,
 
 def predicted_search(source, cfg, start_sample, centres, half_width_hz, signal=GPS_L1CA):
     """The search of PRNs whose Doppler is predicted (all in view with a fix and ephemerides,
-    :mod:`ultratight.receiver.scalar.search_plan`): the declared search of :func:`cold_search`'s
-    second stage straight away, in +-``half_width_hz`` around ``centres`` {prn: Hz} (cut to
-    ``MAX_DOPPLER_FRACTION`` fs); one result per PRN with ``peak_cn0_dbhz`` as :func:`cold_search`'s."""
-    coh, nc, looks = _search_lengths(source, cfg, start_sample, signal)
+    :mod:`ultratight.receiver.scalar.search_plan`): :func:`cold_search`'s two stages with the first
+    one in +-``half_width_hz`` around ``centres`` {prn: Hz} (kept inside ``MAX_DOPPLER_FRACTION`` fs)
+    instead of the whole band; one result per PRN, in the order of ``centres``."""
     top = MAX_DOPPLER_FRACTION * source.fs_hz
     ctr = {int(p): max(-top, min(top, float(d))) for p, d in centres.items()}
     width = {p: max(0.0, min(float(half_width_hz), top - abs(d))) for p, d in ctr.items()}
-    res = []
-    for w in sorted(set(width.values())):
-        group = {p: d for p, d in ctr.items() if width[p] == w}
-        res += list(_declared_search(source, cfg, group, w, start_sample, coh, nc, looks, signal).values())
-    order = {p: k for k, p in enumerate(ctr)}
-    return _annotate(sorted(res, key=lambda a: order[a.prn]), coh, nc)
+    return cold_search(source, cfg, start_sample, signal, centres=ctr, half_width_hz=width)
 
 
 def _assisted(a, start_sample):

@@ -16,13 +16,16 @@ Window half-width (:func:`predicted_window_hz`)::
 
     W = PREDICTED_WINDOW_HZ + (3 sigma_v + a_max * age) / lambda         (capped at --doppler-range)
 
-``PREDICTED_WINDOW_HZ`` = 500 Hz covers what the fix does not: the receiver clock drift moving
-between the fix and the search (a TCXO's 0.1 ppm is 158 Hz at L1), the Doppler of a position
-error (at most |v_sat| / range ≈ 3.9 km/s / 20 200 km = 1.9e-4 m/s per metre: 1 Hz per km), and
-the search's own Doppler bins (about 67 Hz at 10 ms coherent); ``sigma_v`` is the fix's velocity standard
-deviation (``sigma_vel_mps``) and ``age`` the time since the fix, with ``a_max`` = ``ACCEL_MAX_MPS2``
-(10 m/s², a vehicle braking hard; 52.5 Hz per second of age).  With the 10 Hz fixes of a static or
-slow receiver the window is ±500–510 Hz: about a twentieth of the ±10 kHz cold search.
+``PREDICTED_WINDOW_HZ`` = 500 Hz is half a bin of the search's first stage (its bins are 667 Hz
+apart at 1 ms coherent: the window always holds the bin nearest to a signal within 167 Hz of the
+prediction) plus 167 Hz for what the fix does not give: the receiver clock drift moving between the
+fix and the search (a TCXO's 0.1 ppm is 158 Hz at L1) and the Doppler of a position error (at most
+|v_sat| / range ≈ 3.9 km/s / 20 200 km = 1.9e-4 m/s per metre: 1 Hz per km).  ``sigma_v`` is the
+fix's velocity standard deviation (``sigma_vel_mps``) and ``age`` the time since the fix, with
+``a_max`` = ``ACCEL_MAX_MPS2`` (10 m/s², a vehicle braking hard; 52.5 Hz per second of age).  With
+the 10 Hz fixes of a static or slow receiver the window is ±500–510 Hz: one or two first-stage bins
+instead of the 30 of the ±10 kHz cold search; the second stage (10 ms coherent, ±400 Hz around the
+first stage's Doppler) runs only for the PRNs the first stage detects.
 """
 
 import math
