@@ -4,7 +4,8 @@
 
 Generates (once, cached in ``--workdir``) a static-open-sky file of ``--duration`` seconds
 (60 s; 20 s with ``--quick``, enough for a first fix) of complex int8 I/Q at ``--fs`` (2.6 MHz by default; the scenario's
-native 4 MHz with ``--fs 4e6``), then runs the receiver with 8 channels in fresh subprocesses: the
+native 4 MHz with ``--fs 4e6``) — the speed reference: the scenario without its ``[atmosphere]`` table and
+from TOW 518400, as the documented figures were measured (:func:`vacuum_scenario`) — then runs the receiver with 8 channels in fresh subprocesses: the
 default (channels on numba's threads when cores are free), one thread (``ProcessConfig(parallel=False)``)
 and the baseline commit (``--baseline``, default the receiver before it was rebuilt from stages, run
 from an export of that commit with its defaults; not with ``--quick``); every code version first
@@ -47,7 +48,7 @@ path, truth, dur, out = sys.argv[1], sys.argv[2], float(sys.argv[3]), sys.argv[4
 opts = {"one": {"parallel": False}, "default": {}}[sys.argv[5]]
 t0 = time.perf_counter()
 r0 = resource.getrusage(resource.RUSAGE_SELF)
-# the generated file has no [atmosphere]: no corrections (8 channels: the speed reference)
+# the generated file has no atmosphere (vacuum_scenario): no corrections (8 channels: the speed reference)
 res = process(open_if(path), ProcessConfig(n_channels=8, duration_s=dur, iono="off", tropo="off", **opts), out_path=out)
 wall = time.perf_counter() - t0
 r1 = resource.getrusage(resource.RUSAGE_SELF)
@@ -64,11 +65,27 @@ print(json.dumps(d))
 """
 
 
+def vacuum_scenario(workdir):
+    """The shipped static-open-sky scenario written to ``workdir`` without its ``[atmosphere]`` table and
+    starting at TOW 518400 (a frame start: first fix at 18 s): the file the speed figures are measured on."""
+    import re
+    from ultratight.config import locate_scenario
+
+    text = locate_scenario("static-open-sky").read_text()
+    head, sep, rest = text.partition("\n[atmosphere]\n")
+    if sep:                                        # cut the table (up to the next one, if any)
+        nxt = rest.find("\n[")
+        text = head + "\n" + (rest[nxt + 1:] if nxt >= 0 else "")
+    path = Path(workdir) / "static-open-sky-vacuum.toml"
+    path.write_text(re.sub(r"(?m)^tow_s = .*$", "tow_s = 518400.0", text))
+    return path
+
+
 def ensure_file(workdir, duration, fs):
-    stem = Path(workdir) / f"static-open-sky-{int(duration)}s-{fs / 1e6:g}MHz"
+    stem = Path(workdir) / f"static-open-sky-vacuum-{int(duration)}s-{fs / 1e6:g}MHz"
     meta = Path(str(stem) + ".ci8.json")
     if not meta.is_file():
-        subprocess.run([sys.executable, "-m", "ultratight.receiver.cli", "generate", "static-open-sky",
+        subprocess.run([sys.executable, "-m", "ultratight.receiver.cli", "generate", str(vacuum_scenario(workdir)),
                         "--duration", str(duration), "--fs", str(fs), "--format", "ci8", "--out", str(stem),
                         "--no-progress", "--json"], check=True, capture_output=True, text=True)
     return str(stem) + ".ci8", str(stem) + ".truth.h5"

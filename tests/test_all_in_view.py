@@ -26,8 +26,11 @@ def test_satellite_appearing_during_the_run_is_acquired(tmp_path):
     from ultratight.receiver.scalar.receiver import ProcessConfig, process
     from ultratight.receiver.cli.scenario_config import load_scenario
     from ultratight.signals.synth.generator import generate
+    # without the scenario's atmosphere: the receiver's corrections are off
     cfg = load_scenario("static-open-sky", {"time.tow_s": 567000.0, "duration_s": 22.0, "frontend.fs_hz": 2.0e6,
-                                            "satellites.mask_deg": 3.0, "satellites.horizon_deg": 3.14})
+                                            "satellites.mask_deg": 3.0, "satellites.horizon_deg": 3.14,
+                                            "atmosphere.iono": "off", "atmosphere.tropo": "off",
+                                            "atmosphere.broadcast": False})
     files = generate(cfg, tmp_path, "rise", progress=False)
     with h5py.File(files["truth"], "r") as f:
         prns = [int(p) for p in f.attrs["prn"]]

@@ -287,8 +287,10 @@ def test_decoded_scalar_pass_on_a_static_receiver(tmp_path):
     from ultratight.signals.constellation import ephemerides_for
     from ultratight.receiver.deep.startup import predict_channels
     from ultratight.signals.recording.iffile import open_if
+    # TOW 518400 (a frame start; the shipped scenario starts 374 s earlier, 16 s into a frame): subframe 1
+    # is sent in the 13 s
     cfg = load_scenario("static-open-sky", {"duration_s": 13.0, "satellites.max_count": 2, "frontend.fs_hz": FS_HZ,
-                                            "nav.data": "lnav-random-sf45"})
+                                            "nav.data": "lnav-random-sf45", "time.tow_s": 518400.0})
     res = generate(cfg, tmp_path, "s", progress=False)
     tr = load_truth(res["truth"])
     with h5py.File(res["truth"]) as f:

@@ -79,7 +79,11 @@ def test_scalar_receiver_threads_give_the_serial_results(tmp_path):
     from ultratight.receiver.scalar.receiver import ProcessConfig, process
     from ultratight.signals.constellation import nominal_ephemerides
     from ultratight.signals.recording.iffile import open_if
-    cfg = load_scenario("static-open-sky", {"duration_s": 8.5, "frontend.fs_hz": 2.046e6, "satellites.max_count": 5})
+    # the scenario without atmosphere (the receiver's corrections are off) and at TOW 518400, a frame
+    # start, so that the time of week is decoded at ~7.3 s and the 8.5 s give fixes
+    cfg = load_scenario("static-open-sky", {"duration_s": 8.5, "frontend.fs_hz": 2.046e6, "satellites.max_count": 5,
+                                            "time.tow_s": 518400.0, "atmosphere.iono": "off",
+                                            "atmosphere.tropo": "off", "atmosphere.broadcast": False})
     paths, _ = prepare_data(cfg, 2, tmp_path)
     ephs = nominal_ephemerides(int(cfg["time"]["week"]), float(cfg["time"]["tow_s"]))
     runs = []

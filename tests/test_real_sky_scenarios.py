@@ -75,9 +75,13 @@ def test_static_open_sky_processed_with_defaults_against_truth(tmp_path, capsys)
     np.testing.assert_allclose(atm["beta"], BETA)
     with h5py.File(d / "static-open-sky.truth.h5", "r") as f:
         truth_pos = f["pos_e"][0]
+        prns, el0 = [int(p) for p in f.attrs["prn"]], f["elev_deg"][0]
         iono, tropo = f["iono_m"][:], f["tropo_m"][:]
-    # the signal carries metres of atmosphere on every satellite (night-time Klobuchar >= 5 ns)
-    assert iono.min() > 1.4 and tropo.min() > 2.0
+    # the sky the scenario's description and docs/generator.md state: 9 satellites, 80 ... 18 deg,
+    # 1.5-3.4 m of ionosphere (night-time Klobuchar, >= 5 ns) and 2.4-7.7 m of troposphere (60 s)
+    assert prns == [11, 14, 10, 28, 26, 21, 18, 17, 7]
+    assert round(float(el0.max())) == 80 and round(float(el0.min())) == 18
+    assert 1.45 <= iono.min() and iono.max() < 3.45 and 2.35 <= tropo.min() and tropo.max() < 7.75
 
     code = main(["process", str(ifp), "--json", "--csv", str(d / "s.csv"), "--no-progress"])
     out, err = capsys.readouterr()

@@ -2,7 +2,9 @@
 generated paper-highdyn cut, the scenario's ``scalar`` method on the same cut, three methods with
 the signal monitor in ``coast`` mode through a x20 noise burst (loss of lock, coasting and
 prefilter restarts), and ``process`` on a
-generated static file of 8.5 s (time of week decoded, fixes), compared with values stored in ``tests/data/regression_v1.npz``.
+generated static file of 8.5 s (time of week decoded, fixes; the static scenario as the fixture was
+made, without atmosphere, pinned in :data:`STATIC_TOML`), compared with values stored in
+``tests/data/regression_v1.npz``.
 
 The stored values were computed by the receiver before its stages were separated into modules; a
 change of any per-epoch Doppler or code estimate, navigation solution, acquisition or fix by more
@@ -20,6 +22,48 @@ FIXTURE = Path(__file__).parent / "data" / "regression_v1.npz"
 METHODS = ("pb-kf-utc", "dlb-ukf", "dlb-ckf", "dlb-rackf", "scalar")
 HIGHDYN = {"duration_s": 2.0, "frontend.fs_hz": 2.046e6, "satellites.max_count": 3}
 STATIC = {"duration_s": 8.5, "frontend.fs_hz": 2.046e6, "satellites.max_count": 5}
+# the static-open-sky scenario the stored values were generated from (no [atmosphere]; TOW 518400):
+# the shipped scenario has since gained a real sky and another start time
+STATIC_TOML = """name = "static-open-sky"
+description = "Static receiver in open sky, no atmosphere (the regression fixture's scenario)."
+duration_s = 60.0
+seed = 1
+
+[time]
+week = 2190
+tow_s = 518400.0
+
+[receiver]
+lat_deg = 41.2750
+lon_deg = 1.9870
+h_m = 50.0
+clock_bias_m = 0.0
+clock_drift_mps = 0.0
+
+[trajectory]
+kind = "static"
+attitude = "fixed"
+att0_deg = [0.0, 0.0, 0.0]
+
+[satellites]
+source = "nominal"
+prns = []
+max_count = 12
+mask_deg = 5.0
+cn0_dbhz = 45.0
+
+[frontend]
+fs_hz = 4.0e6
+if_hz = 0.0
+sampling = "complex"
+format = "ci8"
+bits = 8
+inversion = false
+filter_bw_hz = 0.0
+
+[nav]
+data_bits = true
+"""
 TOL = 1e-9
 STRIDE = 2          # every second epoch is stored (closed loops carry any change to later epochs)
 STRIDE_STATIC = 5
@@ -75,7 +119,9 @@ def _static(out):
     from ultratight.receiver.cli.scenario_runner import prepare_data
     from ultratight.signals.constellation import nominal_ephemerides
     from ultratight.signals.recording.iffile import open_if
-    cfg = load_scenario("static-open-sky", STATIC)
+    toml = Path(out) / "static-open-sky.toml"
+    toml.write_text(STATIC_TOML)
+    cfg = load_scenario(str(toml), STATIC)
     paths, _ = prepare_data(cfg, 2, out)
     week, tow = int(cfg["time"]["week"]), float(cfg["time"]["tow_s"])
     pcfg = ProcessConfig(n_channels=5, record_epochs=True, iono="off", tropo="off", acq_min_cn0_dbhz=30.0)
