@@ -65,7 +65,7 @@ def test_ultratight_mode_json_and_output_against_truth(cut, tmp_path, capsys):
     # every output of an assisted run says so
     for name in ("n.csv", "n.nmea", "n.kml", "n.obs"):
         head = (tmp_path / name).read_text()[:4000]
-        assert "ASSISTED" in head and "truth-perturbed" in head and "bits assisted" in head, name
+        assert "ASSISTED" in head and "truth-perturbed" in head and "bits assisted" in head, (name, head[:3000])
     assert summ["n_tight_updates"] >= 20
     assert summ["out"] == str(out)
     # the result file: navigation solution against the generator's trajectory truth

@@ -251,7 +251,9 @@ def write_rinex_obs(path, res, rate_hz=RINEX_RATE_HZ):
     week, _ = _start(res)
     w = RinexObsWriter(path, 1.0 / rate_hz, comments=[
         f"ultratight {__version__} process --mode ultratight ({res.method})",
-        *(f"ASSISTED: {a}" for a in (res.info or {}).get("assisted") or ()),
+        # one 60-character COMMENT line per assisted part: its tag, the parenthesis of the summary's line
+        *(f"ASSISTED run: {a[a.rfind('(') + 1:-1] if a.endswith(')') else a}"
+          for a in (res.info or {}).get("assisted") or ()),
         "C1C: code pseudorange of the ultra-tight channels",
         "D1C: Doppler estimate of the ultra-tight channels",
         "L1C, S1C: not produced by the ultra-tight engine"])
