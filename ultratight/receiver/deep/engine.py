@@ -71,6 +71,7 @@ from ultratight.receiver.deep.atmosphere_terms import inactive_description
 from ultratight.receiver.dsp.blockstream import BlockStream, NoiseFloor
 from ultratight.receiver.dsp.burst import burst_all, make_burst
 from ultratight.receiver.dsp.correlator import CorrelatorBank
+from ultratight.receiver.deep.integrity import LOST, IntegrityMonitor, IntegrityThresholds
 from ultratight.receiver.deep.epochs import (CONTINUE, END, ERR_BANK, ERR_CORR, NEED_IF, NEED_SINS, TIGHT,
                                         correlate, epoch_gate, epoch_post, run_epochs)
 from ultratight.receiver.dsp.lockmon import LockMonitor, amplitude_threshold
@@ -190,6 +191,8 @@ class UltratightEngine:
                 self._advance_sins(st)
             elif status == TIGHT:
                 self._tight_update(st)
+                if self.integ.state == LOST and self.opt.integrity_stop:
+                    break           # the solution left the measurements: the caller re-initialises
             if progress and status == TIGHT and st.k_ep // 5000 != (st.k_ep - 100) // 5000:
                 print(f"  {self.method}: {st.k_ep / 1000.0:6.1f} s", flush=True)
         runtime = time.perf_counter() - t_wall0
@@ -257,6 +260,7 @@ class UltratightEngine:
                                 half_t=0.5 * sgl.code_period_s)
         P0 = tightmod.initial_covariance(self.ins.llh, st.get("sigmas", {}), self.imu_noise)
         self.tf = tightmod.TightFilter(P0, core=opt.tight_core, gate_sigma=opt.gate_sigma)
+        self.integ = IntegrityMonitor(IntegrityThresholds.from_options(opt.integrity), opt.tight_rate_hz)
         self.follow = SinsFollower(self.outer, self.ins, t_sins, self.imu_dth[0], self.imu_dv[0],
                                    float(self.imu_t[0] - t_sins), sgl.code_period_s)
         los_l = self.follow.first["los_e"] @ C_el
@@ -342,7 +346,8 @@ class UltratightEngine:
         decisions go through the LNAV decoder (receiver.deep.bitsources.decoded_from_pass)."""
         t0 = time.perf_counter()
         first = UltratightEngine(self.src, self.imu, self.ephs, self.prns, self.week, self.tow0, method=self.method,
-                                 options=replace(self.opt, bits="blind"), init_state=self.init_state, rng=self.rng,
+                                 options=replace(self.opt, bits="blind", integrity_stop=False),
+                                 init_state=self.init_state, rng=self.rng,
                                  duration_s=self.duration_s, signal=self.signal, atmosphere=self.atmosphere,
                                  iono_source=self.iono_source)
         first.run()
@@ -421,8 +426,8 @@ class UltratightEngine:
         los_l = self.follow.los_e() @ C_el
         Phi, Qd = tightmod.phi_q(ins, self.dec.step_s, self.imu_noise, opt.clock_q_drift)
         self.tf.predict(Phi, Qd)
-        dx = self.tf.update(m["dz_pr"], m["dz_prr"], los_l, M_pos, m["var_pr"], m["var_prr"], valid,
-                            lever=ins.lever_terms())
+        P_prior, n_rej0, lever = self.tf.P.copy(), self.tf.n_rejected, ins.lever_terms()
+        dx = self.tf.update(m["dz_pr"], m["dz_prr"], los_l, M_pos, m["var_pr"], m["var_prr"], valid, lever=lever)
         dfp_all = np.zeros(len(self.prns))
         if np.any(dx != 0.0):
             ins.feedback(dx)
@@ -430,8 +435,13 @@ class UltratightEngine:
             st.counts["n_feedback"] += 1
             dfp_all = self.follow.apply_correction(sgl.code_length, self.spec.double_loop)
         self.follow.refresh_atmosphere()        # the delays at the updated SINS, carried to the next update
+        # integrity (receiver.deep.integrity): tests of this update; the reported sigma covers the error
+        state = self.integ.update(self.follow.t, m["dz_pr"], m["dz_prr"], m["var_pr"], m["var_prr"], valid, los_l,
+                                  M_pos, P_prior, self.tf.gate_sigma, self.tf.n_rejected - n_rej0, lever)
         st.sig_dopp = tightmod.doppler_sigma_hz(self.tf.P, los_l, sgl.wavelength_m)
         self.rec.set_sigma(self.tf.P, ins.llh)
+        self.rec.sigma_now = self.integ.cover(self.rec.sigma_now, self.follow.t, ins.f_b)
+        self.rec.log_integrity(state, self.integ.last)
         self.rec.log_sins(self.follow.t, ins.x, ins.clk_b, ins.clk_d, replace=True)   # the step the feedback landed on
         if self.spec.double_loop:
             st.use_aid[:] = st.sig_dopp < opt.arbitration_sigma_hz
@@ -619,6 +629,7 @@ class UltratightEngine:
             "n_epochs": st.k_ep,
             "n_tight_updates": self.tf.n_updates,
             "n_tight_rejected": self.tf.n_rejected,
+            "integrity": self.integ.summary(),
             **st.counts,
             "timing_s": st.timing,
             "threads": self.threads,

@@ -94,6 +94,12 @@ class EngineOptions:
     threads: int = 0                     # epoch-stage threads: 0 = the allowed cores (epoch_threads), 1 = one, k = k
     # navigation-data bits (receiver.deep.bitsources): assisted | decoded | blind | path of a bit file
     bits: str = "assisted"
+    # integrity monitor (receiver.deep.integrity, docs/ultratight.md "Integrity"): overrides of its
+    # thresholds (IntegrityThresholds fields) and whether the run stops when the solution is lost:
+    # True stops, False only records, None lets the caller decide (the engine alone records;
+    # recordings.run_ultratight_on_files stops and re-initialises from a new scalar fix)
+    integrity: dict = field(default_factory=dict)
+    integrity_stop: object = None
 
     def as_dict(self):
         return asdict(self)
