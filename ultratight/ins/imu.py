@@ -24,6 +24,28 @@ then quantised with the residual carried over (sum-preserving).  ``b_gm`` is a
 first-order Gauss-Markov process (steady-state sigma, correlation time tau) sampled
 at the IMU rate.  Datasheet units at the boundary: deg/h, deg/sqrt(h), ug,
 ug/sqrt(Hz), ppm (see the ``*_TO_SI`` constants and docs/ins.md).
+
+**Declaration and realisation.**  A preset or an ``[imu]`` table is the *declaration* of a sensor,
+what its datasheet says; one run's sensor is a *realisation* of it (:func:`realise_errors`, drawn
+from the run's generator, so a seed always gives the same sensor and two seeds two sensors):
+
+* turn-on biases ``b_g``, ``b_a``: with ``bias_reading = "sigma"`` (the grades ``navigation``,
+  ``tactical``, ``mems`` and custom figures) the declared figure is the 1-sigma of the turn-on
+  bias over a population of sensors, ``b ~ N(0, sigma^2)`` per axis -- a datasheet's bias
+  (repeatability) figure; with ``bias_reading = "stated"`` (preset ``paper``: Zhao et al. 2014,
+  §3 state *the* bias, 0.01 deg/h and 30 ug) the stated value is the magnitude, with a random sign
+  per axis and run, ``b = s |value|``, ``s = +-1`` equally likely -- the paper gives a value, not a
+  spread, and a fixed sign on every axis in every run would be a sensor no population has;
+* scale factors ``S``: ``N(0, sigma^2)`` per axis; misalignments ``M``: ``N(0, sigma^2)`` per
+  off-diagonal element (the diagonal stays 0);
+* white noise (ARW/VRW), Gauss-Markov bias instability and quantisation are processes already
+  random per run: they are applied as declared.
+
+The IMU file carries the declaration only (``meta["errors"]``, :meth:`ImuErrors.to_dict`:
+1-sigma biases or the stated magnitudes, densities, scale factor and misalignment sigmas,
+``bias_reading``), so a receiver tunes its filters from the datasheet and never from the drawn
+values; the realisation is kept in :attr:`ImuData.errors_realised` for the truth side (the
+generator writes it into the truth file).
 """
 
 import math
@@ -68,6 +90,9 @@ class ImuErrors:
     gyro_quant: float = 0.0                                                   # rad per LSB of dtheta
     accel_quant: float = 0.0                                                  # m/s per LSB of dv
     preset: str = "custom"
+    # how the bias figures read (module doc): "sigma" (1-sigma of the turn-on bias), "stated" (a paper's
+    # stated value: the magnitude, random sign per axis and run) or "realised" (the drawn values of one run)
+    bias_reading: str = "sigma"
     # sensor range (check_limits): angular rate (rad/s), specific force (m/s^2), angular acceleration
     gyro_range: float = math.radians(2000.0)
     accel_range: float = 50.0 * 9.80665
@@ -84,6 +109,10 @@ class ImuErrors:
             out[k] = v.tolist() if isinstance(v, np.ndarray) else (None if v == math.inf else v)
         return out
 
+
+BIAS_READINGS = ("sigma", "stated")
+# the bias reading of each preset when the [imu] table does not name one (module doc)
+PRESET_BIAS_READING = {"paper": "stated"}
 
 # presets in datasheet units (keys as in the scenario [imu] table)
 PRESETS = {
@@ -114,6 +143,7 @@ CONFIG_KEYS = {
     "accel_noise_ug", "accel_vrw_ugrhz", "gyro_bi_dph", "gyro_bi_tau_s", "accel_bi_ug", "accel_bi_tau_s",
     "gyro_sf_ppm", "accel_sf_ppm", "gyro_misalign_mrad", "accel_misalign_mrad", "gyro_quant_urad",
     "accel_quant_mmps", "seed", "file", "lever_arm_m", "gyro_range_dps", "accel_range_g", "angular_accel_max_dps2",
+    "bias_reading",
 }
 # sensor range defaults (datasheet units): a MEMS gyro's +-2000 deg/s, a +-50 g accelerometer, and an
 # angular acceleration no vehicle body reaches (the rate steps of the "turns" kind at 100 Hz: ~4e3)
@@ -150,6 +180,10 @@ def imu_errors_from_config(imu_cfg):
     ``accel_vrw_ugrhz`` ug/sqrt(Hz)) or, as in the paper, as the 1-sigma of the rate samples
     at the IMU rate (``gyro_noise_dph``, ``accel_noise_ug``; needs ``rate_hz``, default 100):
     ``arw = sigma_sample / sqrt(rate_hz)``.
+
+    The result is the *declaration* (module doc): bias, scale-factor and misalignment figures are
+    1-sigma values (or, ``bias_reading = "stated"``, the stated bias magnitudes); one run's sensor is
+    drawn from it by :func:`realise_errors`.
     """
     imu_cfg = dict(imu_cfg or {})
     preset = imu_cfg.get("preset", "ideal")
@@ -163,7 +197,10 @@ def imu_errors_from_config(imu_cfg):
     rate = float(cfg.get("rate_hz", 100.0))
     if not rate > 0.0:
         raise ConfigError(f"imu.rate_hz must be > 0, got {rate}")
-    e = ImuErrors(preset=preset)
+    reading = cfg.get("bias_reading", PRESET_BIAS_READING.get(preset, "sigma"))
+    if reading not in BIAS_READINGS:
+        raise ConfigError(f"imu.bias_reading must be one of {', '.join(BIAS_READINGS)}; got {reading!r}")
+    e = ImuErrors(preset=preset, bias_reading=reading)
     e.gyro_bias = _axes(cfg.get("gyro_bias_dph", 0.0), "gyro_bias_dph") * DPH_TO_RADPS
     e.accel_bias = _axes(cfg.get("accel_bias_ug", 0.0), "accel_bias_ug") * UG_TO_MPS2
     if "gyro_noise_dph" in cfg and "gyro_arw_dprh" in cfg:
@@ -343,8 +380,45 @@ def _quantise(x, q):
     return out
 
 
+def realise_errors(spec, rng):
+    """One run's sensor drawn from the declaration ``spec`` (module doc): an :class:`ImuErrors` with
+    the drawn biases, scale factors and misalignments (``bias_reading = "realised"``) and the
+    declared noise processes.
+
+    Draws from ``rng`` in a fixed order, each group only when its declared figure is non-zero: gyro
+    bias (3), accelerometer bias (3), gyro and accelerometer scale factor (3 each), gyro and
+    accelerometer misalignment (the 6 off-diagonal elements each).  With ``bias_reading = "stated"``
+    the bias draw's sign times the stated magnitude is the bias.  ``spec`` already realised is
+    returned as it is."""
+    if spec.bias_reading == "realised":
+        return spec
+    if spec.bias_reading not in BIAS_READINGS:
+        raise ConfigError(f"imu: bias_reading must be one of {', '.join(BIAS_READINGS)}; got {spec.bias_reading!r}")
+    out = ImuErrors(**{k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in spec.__dict__.items()})
+    out.bias_reading = "realised"
+    for name in ("gyro_bias", "accel_bias"):
+        fig = np.asarray(getattr(spec, name), float)
+        if np.any(fig):
+            z = rng.standard_normal(3)
+            setattr(out, name, np.where(z < 0.0, -1.0, 1.0) * np.abs(fig) if spec.bias_reading == "stated"
+                    else z * fig)
+    for name in ("gyro_sf", "accel_sf"):
+        fig = np.asarray(getattr(spec, name), float)
+        if np.any(fig):
+            setattr(out, name, rng.standard_normal(3) * fig)
+    off = ~np.eye(3, dtype=bool)
+    for name in ("gyro_misalign", "accel_misalign"):
+        fig = np.asarray(getattr(spec, name), float)
+        if np.any(fig[off]):
+            m = np.zeros((3, 3))
+            m[off] = rng.standard_normal(6) * fig[off]
+            setattr(out, name, m)
+    return out
+
+
 def apply_errors(dtheta, dv, errors, rng, dt):
-    """Corrupt ideal increments with ``errors`` (see module doc); returns new arrays."""
+    """Corrupt ideal increments with ``errors`` as given (one run's sensor: :func:`realise_errors`
+    draws it from a declaration; see module doc); returns new arrays."""
     n = dtheta.shape[0]
     Mg = np.eye(3) + np.diag(errors.gyro_sf) + errors.gyro_misalign
     Ma = np.eye(3) + np.diag(errors.accel_sf) + errors.accel_misalign
@@ -362,9 +436,12 @@ def apply_errors(dtheta, dv, errors, rng, dt):
 
 
 def synthesize_imu(traj, rate_hz, errors=None, rng=None, duration_s=None, with_truth=True, lever_arm_b=None):
-    """IMU increments along ``traj`` at ``rate_hz`` with ``errors`` (None = ideal).
+    """IMU increments along ``traj`` at ``rate_hz`` of a sensor declared by ``errors`` (None = ideal).
 
-    ``rng``: numpy Generator (required when the errors are random).  The ideal increments are checked
+    ``rng``: numpy Generator: the run's sensor is drawn from it (:func:`realise_errors`: biases, scale
+    factors, misalignments), then the noise.  ``meta["errors"]`` holds the declaration
+    (:meth:`ImuErrors.to_dict`), the drawn sensor is ``errors_realised`` (truth side; never written
+    into the IMU file).  The ideal increments are checked
     against the sensor range of ``errors`` (:func:`check_limits`, ConfigError beyond it).  Returns :class:`ImuData`
     whose ``truth`` holds t, llh, vel_l, q_lb at the interval edges (t0 = 0 and every t[k]).
     ``lever_arm_b`` (FLU, m): the IMU sits at ``antenna - C_eb l`` where ``traj`` is the
@@ -372,6 +449,8 @@ def synthesize_imu(traj, rate_hz, errors=None, rng=None, duration_s=None, with_t
     ``truth["llh_antenna"]``/``truth["vel_l_antenna"]`` the antenna's, and ``lever_arm_b`` is
     recorded in the data.
     """
+    if errors is not None and errors.bias_reading == "realised":
+        raise ConfigError("synthesize_imu: errors must be a declaration (a preset or [imu] figures), not a drawn sensor")
     lever = None
     if lever_arm_b is not None and np.any(np.asarray(lever_arm_b, float)):
         lever = np.asarray(lever_arm_b, float).reshape(3)
@@ -385,8 +464,12 @@ def synthesize_imu(traj, rate_hz, errors=None, rng=None, duration_s=None, with_t
     edges = np.arange(n + 1) / rate_hz
     dth, dv = ideal_increments(traj, edges, lever)
     check_limits(dth, dv, rate_hz, errors)
+    realised = None
     if errors is not None and not errors.is_ideal():
-        dth, dv = apply_errors(dth, dv, errors, rng, 1.0 / rate_hz)
+        if rng is None:
+            rng = np.random.default_rng(0)
+        realised = realise_errors(errors, rng)
+        dth, dv = apply_errors(dth, dv, realised, rng, 1.0 / rate_hz)
     truth = None
     if with_truth:
         k = traj.kinematics(edges)
@@ -394,9 +477,11 @@ def synthesize_imu(traj, rate_hz, errors=None, rng=None, duration_s=None, with_t
         if lever is not None:
             truth["llh_antenna"], truth["vel_l_antenna"] = truth["llh"], truth["vel_l"]
             truth["llh"], truth["vel_l"], truth["q_lb"] = lever_arm_truth(k, lever)
-    meta = {"errors": (errors or ImuErrors(preset="ideal")).to_dict()}
+    spec = errors or ImuErrors(preset="ideal")
+    meta = {"errors": spec.to_dict()}
     return ImuData(t=edges[1:].copy(), dtheta_b=dth, dv_b=dv, rate_hz=rate_hz, t0=0.0, truth=truth, meta=meta,
-                   lever_arm_b=np.zeros(3) if lever is None else lever)
+                   lever_arm_b=np.zeros(3) if lever is None else lever,
+                   errors_realised=(realised or spec).to_dict())
 
 
 # ------------------------------------------------------------------ Allan deviation (for tests/benchmarks)

@@ -38,6 +38,9 @@ class ImuData:
     truth: dict | None = None        # optional: t, llh, vel_l, q_lb at t0 and every t[k]
     meta: dict = field(default_factory=dict)
     lever_arm_b: np.ndarray = field(default_factory=lambda: np.zeros(3))   # IMU -> antenna, FLU, m
+    # a synthesised run's drawn sensor errors (ultratight.ins.imu.realise_errors, ImuErrors.to_dict form):
+    # truth, never written into the IMU file (its meta holds the declaration)
+    errors_realised: dict | None = None
 
     @property
     def n(self):

@@ -256,8 +256,11 @@ def _kf_update(x, P, z, H, R):
 # time update from the SINS error model (ultratight.ins.error_model), initial covariance, IMU noise
 # ---------------------------------------------------------------------------------------------
 def imu_errors_from_meta(imu):
-    """:class:`ultratight.ins.imu.ImuErrors` from an IMU file's metadata (generator-written files
-    carry the error model); files without it use the "paper" preset of Zhao et al. 2014, §3."""
+    """The *declared* IMU model (:class:`ultratight.ins.imu.ImuErrors`) from an IMU file's metadata:
+    generator-written files carry the declaration of the sensor (``meta["errors"]``: 1-sigma turn-on
+    biases or a paper's stated magnitudes, noise densities, scale-factor and misalignment sigmas;
+    the drawn sensor of the run is truth and is not in the file, see :mod:`ultratight.ins.imu`);
+    files without it use the "paper" preset of Zhao et al. 2014, §3."""
     d = (getattr(imu, "meta", None) or {}).get("errors")
     if isinstance(d, dict):
         e = imu_mod.ImuErrors()
@@ -297,8 +300,9 @@ def phi_q(ins, dt, imu_errors, clock_q_drift=1e-4, clock_q_bias=1e-4, bias_floor
 def initial_covariance(llh, sigmas, imu_errors):
     """P0 (17x17) of the hot start: ``sigmas`` dict (StartupErrors fields: pos_m, vel_mps,
     att_deg, clk_bias_m, clk_drift_mps; optional ``att_cov_rad2``, a 3x3 attitude covariance that
-    replaces att_deg); bias sigmas from the IMU error model (at least
-    a small floor)."""
+    replaces att_deg); bias sigmas from the declared IMU model (:func:`imu_errors_from_meta`: the
+    1-sigma turn-on bias, or the magnitude a paper states), at least a small floor -- never from the
+    biases a simulation drew for the run."""
     lat, h = float(llh[0]), float(llh[2])
     rm, rn = radii(lat)
     s_pos = float(sigmas.get("pos_m", 1.0))

@@ -477,15 +477,15 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
         sent = plan.sent_bits()
         if sent is not None:
             truth.write_sent_bits(sent, gen.nav_data)
-        truth.f.attrs["elapsed_s"] = time.perf_counter() - t_start
-        truth.finish()
         result = {"if": paths["if"], "meta": paths["meta"]} if write_if else {}
         result["truth"] = paths["truth"]
         imu_cfg = cfg.get("imu")
         if imu_cfg and hasattr(gen.trajectory, "save_h5"):
-            extra += _write_imu_traj(imu_cfg, gen.trajectory, paths, gen.ss_imu, gen.resolved)
+            extra += _write_imu_traj(imu_cfg, gen.trajectory, paths, gen.ss_imu, gen.resolved, truth.f)
             result["imu"] = paths["imu"]
             result["trajectory"] = paths["trajectory"]
+        truth.f.attrs["elapsed_s"] = time.perf_counter() - t_start
+        truth.finish()
         if writer is not None:
             writer.close()
         truth.staged.commit()
@@ -528,14 +528,20 @@ def _summary(gen, write_if, t_start):
             "elapsed_s": time.perf_counter() - t_start}
 
 
-def _write_imu_traj(imu_cfg, trajectory, paths, ss_imu, resolved):
-    """Write IMU and trajectory truth under temporary names; returns their :class:`StagedFile` objects."""
+def _write_imu_traj(imu_cfg, trajectory, paths, ss_imu, resolved, truth_f=None):
+    """Write IMU and trajectory truth under temporary names; returns their :class:`StagedFile` objects.
+
+    The IMU file's metadata holds the sensor's declaration (the ``[imu]`` table read by
+    :func:`ultratight.ins.imu.imu_errors_from_config`); the sensor drawn from it for this seed goes
+    into the open truth file ``truth_f`` (group ``imu_errors``, :func:`write_imu_errors_truth`)."""
 
     rate = float(imu_cfg.get("rate_hz", 100.0))
     errors = imu_mod.imu_errors_from_config(imu_cfg)
     lever = imu_cfg.get("lever_arm_m")
     data = imu_mod.synthesize_imu(trajectory, rate, errors, np.random.default_rng(ss_imu),
                                   lever_arm_b=None if lever is None else np.asarray(lever, float))
+    if truth_f is not None:
+        write_imu_errors_truth(truth_f, data.errors_realised)
     out = [StagedFile(paths["imu"])]
     write_imu_h5(out[0].tmp, data, {"config_json": json.dumps(resolved), "version": __version__})
     out.append(StagedFile(paths["trajectory"]))
@@ -543,4 +549,30 @@ def _write_imu_traj(imu_cfg, trajectory, paths, ss_imu, resolved):
     return out
 
 
-__all__ = ["generate", "generation_estimate", "Generation", "noise_factor", "output_paths", "set_nav_bits"]
+# the drawn sensor errors in the truth file (group imu_errors): SI, per body axis (FLU)
+IMU_TRUTH_KEYS = ("gyro_bias", "accel_bias", "gyro_sf", "accel_sf", "gyro_misalign", "accel_misalign")
+
+
+def write_imu_errors_truth(f, realised):
+    """Group ``imu_errors`` of the open truth file ``f``: the sensor errors drawn for the run
+    (``realised``: :attr:`ultratight.ins.imu_data.ImuData.errors_realised`) -- biases rad/s and
+    m/s^2, scale factors, misalignments rad -- for the evaluation; the receiver reads the IMU file's
+    declaration, never these."""
+    g = f.create_group("imu_errors")
+    g.attrs["description"] = ("sensor errors drawn for this run from the [imu] declaration (truth): biases "
+                              "rad/s, m/s^2; scale factors; misalignments rad; body axes FLU")
+    for k in IMU_TRUTH_KEYS:
+        g.create_dataset(k, data=np.asarray(realised[k], float))
+
+
+def read_imu_errors_truth(path):
+    """The drawn sensor errors of a truth file (:func:`write_imu_errors_truth`), or None when the
+    run had no IMU (or the file predates the group)."""
+    with h5py.File(path, "r") as f:
+        if "imu_errors" not in f:
+            return None
+        return {k: np.asarray(f["imu_errors"][k][()], float) for k in IMU_TRUTH_KEYS if k in f["imu_errors"]}
+
+
+__all__ = ["generate", "generation_estimate", "Generation", "noise_factor", "output_paths", "set_nav_bits",
+           "read_imu_errors_truth", "write_imu_errors_truth"]
