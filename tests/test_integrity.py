@@ -109,6 +109,7 @@ def test_states_follow_the_documented_hysteresis():
     assert mon.state == OK and mon.worst == LOST
     s = mon.summary()
     assert (s["state"], s["worst"], s["first_lost_s"]) == ("ok", "lost", pytest.approx(3.9))
+    assert s["lost_at_s"] is None                      # it did not end lost
 
 
 def test_short_failures_and_outages_are_not_lost():

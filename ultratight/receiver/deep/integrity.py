@@ -274,7 +274,9 @@ class IntegrityMonitor:
     # ---------------------------------------------------------------- the record
     def summary(self, n_reinit=0):
         """``info["integrity"]``: final and worst state, first degraded / lost times (s since the
-        engine's start), the time the run stopped lost (or None), re-initialisations, thresholds."""
+        engine's start), the time the state last became lost when the run ends lost (else None; with
+        ``integrity_stop`` the run ends there), re-initialisations, thresholds."""
         return {"state": STATE_NAMES[self.state], "worst": STATE_NAMES[self.worst],
                 "first_degraded_s": self.first_degraded_s, "first_lost_s": self.first_lost_s,
-                "lost_at_s": self.lost_at_s, "n_reinit": int(n_reinit), "thresholds": asdict(self.th)}
+                "lost_at_s": self.lost_at_s if self.state == LOST else None, "n_reinit": int(n_reinit),
+                "thresholds": asdict(self.th)}
