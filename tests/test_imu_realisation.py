@@ -177,3 +177,21 @@ def test_engine_initial_bias_covariance_is_the_declared_sigma(tmp_path, monkeypa
     assert np.allclose(np.diag(P0[tightmod.BG, tightmod.BG]), sg ** 2, rtol=1e-12, atol=0)
     assert np.allclose(np.diag(P0[tightmod.BA, tightmod.BA]), sa ** 2, rtol=1e-12, atol=0)
     assert not np.allclose(np.diag(P0[tightmod.BG, tightmod.BG]), real["gyro_bias"] ** 2, rtol=1e-2, atol=0)
+
+
+def test_scenario_tables_name_the_start_up_and_the_imu_declaration():
+    """``ultratight scenario`` records how its runs start (truth at t = 0 plus the hot-start errors of
+    StartupErrors: assisted) and that the IMU is a sensor drawn from the declaration, in the text below
+    the tables, metrics.json and results.h5 (run_settings)."""
+    from ultratight.receiver.cli.scenario_config import load_scenario
+    from ultratight.receiver.cli.scenario_runner import run_settings, run_settings_text
+    from ultratight.receiver.deep.startup import StartupErrors
+    s = run_settings(load_scenario("paper-highdyn"))
+    assert s["startup"] == {"kind": "truth-perturbed (assisted)", "sigmas": StartupErrors().as_dict()}
+    assert s["imu"]["preset"] == "paper" and s["imu"]["bias_reading"] == "stated"
+    text = run_settings_text(s)
+    assert text.startswith("start-up: truth-perturbed (assisted): truth at t = 0 plus 1-sigma errors position 0.5 m")
+    assert "IMU: preset paper (stated bias magnitudes, random signs)" in text
+    t2 = run_settings_text(run_settings(load_scenario("vehicle-turns"), StartupErrors(pos_m=3.0)))
+    assert "position 3 m" in t2 and "IMU: preset tactical (1-sigma figures)" in t2
+    assert json.loads(json.dumps(s)) == s              # what results.h5 stores as run_settings_json

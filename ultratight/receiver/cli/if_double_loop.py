@@ -24,7 +24,8 @@ from ultratight.receiver.cli import scenario_runner
 from ultratight.receiver.deep.methods import METHODS  # noqa: F401  (the accepted method names)
 from ultratight.receiver.cli.scenario_config import IMU_DEFAULTS, load_scenario
 from ultratight.receiver.cli.scenario_runner import (METHOD_METRICS, aggregate_methods, errors_vs_truth,
-                                                     noise_event_text, prepare_data, run_method)
+                                                     noise_event_text, prepare_data, run_method, run_settings,
+                                                     run_settings_text)
 
 DEFAULT_METHODS = ("pb-kf-utc", "dlb-ukf", "dlb-ckf", "dlb-rackf")
 
@@ -87,11 +88,12 @@ def summarize(cfg, runs):
     agg = aggregate_methods(cfg, per, raw, methods, 0)
     dur = float(cfg["duration_s"])
     seeds = [int(r["seed"]) for r in runs]
+    settings = run_settings(cfg)
     text = M.format_tables(agg, segs) + "\n" + (
         f"\n{len(runs)} run(s), seeds {', '.join(map(str, seeds))}; RMS over all channels and runs; "
-        "'\\' = lock lost (diverged) in that segment.") + noise_event_text(agg, methods)
+        "'\\' = lock lost (diverged) in that segment.\n") + run_settings_text(settings) + noise_event_text(agg, methods)
     js = {"scenario": cfg.get("name"), "runs": len(runs), "seeds": seeds, "duration_s": dur,
-          "segments_s": [list(x) for x in segs], "channel": 0,
+          "segments_s": [list(x) for x in segs], "channel": 0, "startup": settings["startup"], "imu": settings["imu"],
           "methods": {m: {k: agg[m][k] for k in METHOD_METRICS} for m in methods},
           "paper_table3": M.PAPER_TABLE3, "paper_table4_s": M.PAPER_TABLE4_S}
     return {"text": text, "json": json_clean(js)}

@@ -72,10 +72,13 @@ def _cfg_key(cfg):
     if any(event_place(ev) != PLACE_IF for ev in evs):
         # noise events inside the receiver do not change the data: one cache entry for their readings
         cfg = dict(cfg, noise_events=[ev for ev in evs if event_place(ev) == PLACE_IF])
-    blob = json.dumps(cfg, sort_keys=True, default=str) + __version__
+    blob = json.dumps(cfg, sort_keys=True, default=str) + __version__ + DATA_MODEL
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
+# the generated data's model, part of the cache key: entries of an older model are never reused
+# ("imu-realised": the IMU sensor drawn per seed from the [imu] declaration, ultratight.ins.imu)
+DATA_MODEL = "imu-realised"
 CACHE_VERSION = 2       # done.json layout: {"version", "files": {kind: {"name", "size"}}}
 
 
@@ -218,6 +221,42 @@ def truth_initial_state(cfg):
     return {"llh": k["llh"][0], "vel_l": k["vel_l"][0], "q_lb": k["q_lb"][0],
             "clk_bias_m": float(rcv.get("clock_bias_m", 0.0)),
             "clk_drift_mps": float(rcv.get("clock_drift_mps", 0.0))}
+
+
+STARTUP_KIND = "truth-perturbed (assisted)"
+
+
+def run_settings(cfg, startup_errors=None):
+    """How the runs of a scenario start and what their IMU is, for the tables, ``metrics.json`` and
+    ``results.h5``: the start-up (:func:`run_method`: the scenario truth at t = 0 plus the errors of
+    :class:`ultratight.receiver.deep.startup.StartupErrors`, channels predicted from that state and
+    the ephemeris, assisted data bits) and the IMU declaration (a sensor drawn from it per run; the
+    filters are tuned from the declaration)."""
+    errs = startup_errors or StartupErrors()
+    imu = None
+    if isinstance(cfg.get("imu"), dict):
+        from ultratight.ins.imu import imu_errors_from_config
+        decl = imu_errors_from_config(cfg["imu"])
+        imu = {"preset": decl.preset, "bias_reading": decl.bias_reading,
+               "sensor": "drawn per run from the declaration (truth file group imu_errors)",
+               "filter_tuning": "the declaration (IMU file meta errors)"}
+    return {"startup": {"kind": STARTUP_KIND, "sigmas": errs.as_dict()}, "imu": imu}
+
+
+def run_settings_text(settings):
+    """The table lines of :func:`run_settings`."""
+    st = settings["startup"]
+    sg = st["sigmas"]
+    text = (f"start-up: {st['kind']}: truth at t = 0 plus 1-sigma errors position {sg['pos_m']:g} m, velocity "
+            f"{sg['vel_mps']:g} m/s, attitude {sg['att_deg']:g} deg, clock {sg['clk_bias_m']:g} m / "
+            f"{sg['clk_drift_mps']:g} m/s; channels predicted from that state and the ephemeris, assisted bits")
+    imu = settings.get("imu")
+    if imu:
+        how = ("stated bias magnitudes, random signs" if imu["bias_reading"] == "stated"
+               else "1-sigma figures")
+        text += (f"\nIMU: preset {imu['preset']} ({how}); the sensor drawn per run from the declaration, "
+                 "filters tuned from the declaration")
+    return text
 
 
 def engine_options_for(cfg, options=None, seed=0):
@@ -442,9 +481,11 @@ def _report(name, cfg, methods, runs, base_seed, out, channel, plots, options, p
     segs = M.SEGMENTS_S
     agg = aggregate_methods(cfg, per, raw, methods, channel)
     mon = monitor_mode(options or EngineOptions())
+    settings = run_settings(cfg)
     js = {"scenario": cfg.get("name", str(name)), "seed": base_seed, "runs": runs, "duration_s": dur,
           "segments_s": [list(x) for x in segs], "channel": channel,
           "methods": {m: {k: agg[m][k] for k in METHOD_METRICS} for m in methods}, "monitor": mon,
+          "startup": settings["startup"], "imu": settings["imu"],
           "per_run": per, "version": __version__, "paper_table3": M.PAPER_TABLE3, "paper_table4_s": M.PAPER_TABLE4_S}
     mpath = out / "metrics.json"
     write_text_atomic(mpath, json.dumps(json_clean(js), indent=2))
@@ -458,8 +499,9 @@ def _report(name, cfg, methods, runs, base_seed, out, channel, plots, options, p
     text = M.format_tables(agg, segs) + "\n" + (
         f"\n{runs} run(s), seeds {base_seed}..{base_seed + runs - 1}; RMS over all channels and runs; "
         "'\\' = lock lost (diverged) in that segment.")
-    text += f"\nsignal monitor: {mon}" + noise_event_text(agg, methods)
-    return {"json": json_clean({k: js[k] for k in ("scenario", "seed", "runs", "monitor", "methods")}),
+    text += f"\nsignal monitor: {mon}\n" + run_settings_text(settings) + noise_event_text(agg, methods)
+    return {"json": json_clean({k: js[k] for k in ("scenario", "seed", "runs", "monitor", "startup", "imu",
+                                                   "methods")}),
             "text": text,
             "metrics_path": str(mpath), "h5_path": str(hpath), "figures": figs}
 
@@ -572,6 +614,7 @@ def write_results_h5(path, cfg, raw, methods, runs, base_seed, consume=False, ke
         f.attrs["methods"] = ",".join(methods)
         f.attrs["runs"] = int(runs)
         f.attrs["seed"] = int(base_seed)
+        f.attrs["run_settings_json"] = json.dumps(run_settings(cfg))
         for r, m in list(raw):
             res, d_err, c_err = raw.pop((r, m)) if consume else raw[(r, m)]
             if consume and (r, m) in keep:
