@@ -229,6 +229,8 @@ def _run_reinitialising(run, scalar, init_state, t_h, warnings):
         init_state = {k: hand[k] for k in ("llh", "vel_l", "q_lb", "clk_bias_m", "clk_drift_mps", "sigmas",
                                            "code_phase_chips") if k in hand}
         if t_h >= dur - 1.0:
+            warnings.append(f"integrity lost at t = {t_lost:.1f} s; no re-initialisation: the scalar fix came at "
+                            f"t = {t_h:.1f} s, too close to the end ({dur:.1f} s)")
             break
     return join_results(parts, starts), opt, starts[0]
 
