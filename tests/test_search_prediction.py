@@ -14,6 +14,8 @@ WGS84_A = 6378137.0
 WGS84_F = 1.0 / 298.257223563
 C_LIGHT = 299792458.0
 WEEK, TOW = 2190, 569026.0                     # static-open-sky-atmosphere's start
+# the generated files carry no atmosphere (the receiver's corrections are off: not the subject here)
+NO_SKY = {"atmosphere.iono": "off", "atmosphere.tropo": "off", "atmosphere.broadcast": False}
 LAT, LON, H = 41.275, 1.987, 50.0
 
 
@@ -103,7 +105,7 @@ def short_file(tmp_path_factory):
     from ultratight.receiver.cli.scenario_config import load_scenario
     from ultratight.signals.synth.generator import generate
     cfg = load_scenario("static-open-sky", {"duration_s": 3.0, "frontend.fs_hz": 2.0e6, "satellites.max_count": 6,
-                                            "time.tow_s": 518400.0})
+                                            "time.tow_s": 518400.0, **NO_SKY})
     files = generate(cfg, tmp_path_factory.mktemp("search"), "s", progress=False)
     with __import__("h5py").File(files["truth"], "r") as f:
         prns = [int(p) for p in f.attrs["prn"]]
@@ -183,7 +185,7 @@ def test_receiver_searches_the_predicted_satellites_only(tmp_path):
     from ultratight.signals.constellation import nominal_ephemerides
     from ultratight.signals.synth.generator import generate
     cfg = load_scenario("static-open-sky", {"duration_s": 10.0, "frontend.fs_hz": 2.0e6, "satellites.max_count": 6,
-                                            "time.tow_s": 518400.0})
+                                            "time.tow_s": 518400.0, **NO_SKY})
     files = generate(cfg, tmp_path, "p", progress=False)
     week, tow = int(cfg["time"]["week"]), float(cfg["time"]["tow_s"])
     ephs = nominal_ephemerides(week, tow)
