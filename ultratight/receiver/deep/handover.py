@@ -77,6 +77,7 @@ class HandoverConfig:
     settle_fixes: int = 3           # consecutive fixes ending at the hand-over fix
     still_s: float = 1.0            # still interval for levelling / gyro-compassing (at least)
     still_max_s: float = 10.0       # ... and at most: the longest still stretch before the hand-over
+    fix_avg_s: float = 3.0          # a still receiver hands over the mean of its fixes over this span
     still_speed_mps: float = 0.2
     still_force_mps2: float = 0.1   # largest deviation of 0.1 s mean specific force magnitudes
     move_speed_mps: float = 3.0
@@ -90,6 +91,9 @@ class HandoverConfig:
     acq_coherent_ms: int = 10
     doppler_range_hz: float = 10e3
     dynamics: str = "normal"        # scalar pass loop profile and Doppler-rate search (process --dynamics)
+    # no acquisition setting given and the pass tracks fewer than min_sats: once more with the
+    # weak-signal acquisition (WEAK_ACQUISITION: 5 ms x 16 non-coherent, C/N0 floor 25 dB-Hz)
+    weak_retry: bool = True
 
     def as_dict(self):
         return asdict(self)
@@ -327,15 +331,64 @@ def scalar_pass(source, ephemerides, prns, start_s, cfg, atmosphere=None):
                        acq_min_cn0_dbhz=cfg.acq_min_cn0_dbhz, acq_noncoherent=cfg.acq_noncoherent,
                        acq_coherent_ms=cfg.acq_coherent_ms, doppler_range_hz=cfg.doppler_range_hz,
                        dynamics=cfg.dynamics, tracking=TrackingConfig.for_dynamics(cfg.dynamics))
+    weak = cfg.weak_retry and cfg.dynamics == "normal" and all(
+        getattr(cfg, k) in (None, HandoverConfig.__dataclass_fields__[k].default) for k in WEAK_ACQUISITION)
     try:
-        return process(source, pc, ephemerides=ephemerides)
+        res = process(source, pc, ephemerides=ephemerides)
+        res.pass_duration_s = pc.duration_s
+        if not weak or sum(1 for c in res.channels if c["tracked"]) >= cfg.min_sats:
+            return res
+    except NoSignalError as exc:
+        if not weak:
+            raise NoFixError(f"start-up: the scalar pass over {pc.duration_s:g} s from t = {start_s:g} s found no "
+                             f"fix: {exc}") from None
+    # weak signals: bit sync and the first subframe take longer, the pass gets a longer window
+    pc = replace(pc, duration_s=max(min(WEAK_WINDOW_FACTOR * cfg.window_s, avail), 1e-3), **WEAK_ACQUISITION)
+    try:
+        res = process(source, pc, ephemerides=ephemerides)
     except NoSignalError as exc:
         raise NoFixError(f"start-up: the scalar pass over {pc.duration_s:g} s from t = {start_s:g} s found no "
-                         f"fix: {exc}") from None
+                         f"fix, also with the weak-signal acquisition: {exc}") from None
+    res.pass_duration_s = pc.duration_s
+    res.warnings = list(getattr(res, "warnings", []) or []) + [
+        "start-up: too few satellites at the default acquisition; the scalar pass ran again with the "
+        f"weak-signal acquisition (5 ms x 16, C/N0 floor 25 dB-Hz) over {pc.duration_s:g} s"]
+    return res
+
+
+# the weak-signal acquisition of the start-up's second scalar pass (HandoverConfig.weak_retry)
+WEAK_ACQUISITION = {"acq_min_cn0_dbhz": 25.0, "acq_noncoherent": 16, "acq_coherent_ms": 5}
+WEAK_WINDOW_FACTOR = 2.5        # ... over this many window_s (30 s by default)
 
 
 class NoFixError(ConfigError):
     """The scalar start-up pass found no usable fix."""
+
+
+def _still_fixes(fixes, k, fs, cfg):
+    """``(k, mean position, sigma)``: a receiver still at the settled fix ``k`` hands over at the
+    first fix that ends ``fix_avg_s`` of consecutive still fixes (speed <= ``still_speed_mps``), with
+    the mean ECEF position of those fixes and, as its 1-sigma per axis, the largest ENU scatter of
+    the fixes about their mean (their errors are correlated over the loops' time constants: the
+    scatter, not the scatter / sqrt(n)). ``(k, None, 0.0)`` when the receiver moves or the pass ends
+    first."""
+    def still(f):
+        return float(np.linalg.norm(f["vel_e"])) <= cfg.still_speed_mps
+
+    t = [f["sample_index"] / fs for f in fixes]
+    if not still(fixes[k]):
+        return k, None, 0.0
+    j0 = k
+    for j in range(k, len(fixes) - 1):
+        if not still(fixes[j]) or fixes[j]["n_used"] < cfg.min_sats:
+            return k, None, 0.0
+        if t[j] - t[j0] >= cfg.fix_avg_s - 1e-9 and fixes[j + 1]["n_used"] >= cfg.min_sats:
+            P = np.array([f["pos_e"] for f in fixes[j0:j + 1]], float)
+            mean = P.mean(axis=0)
+            llh = ecef_to_llh(mean.copy())
+            enu = (P - mean) @ np.asarray(dcm_ecef_from_enu(llh[0], llh[1]))
+            return j, mean, float(np.max(np.sqrt(np.mean(enu ** 2, axis=0))))
+    return k, None, 0.0
 
 
 def pick_fix(fixes, obs_step_s, cfg):
@@ -367,12 +420,13 @@ def scalar_handover(source, imu, imu_errors, ephemerides, prns, start_s=0.0, cfg
     obs_step = 0.1
     k = pick_fix(res.fixes, obs_step, cfg)
     if k is None:
-        raise NoFixError(f"start-up: the scalar pass over {cfg.window_s:g} s from t = {start_s:g} s gave "
+        raise NoFixError(f"start-up: the scalar pass over {res.pass_duration_s:g} s from t = {start_s:g} s gave "
                          f"{len(res.fixes)} fixes, none of {cfg.settle_fixes} consecutive ones with >= "
                          f"{cfg.min_sats} satellites (tracked: {[c['prn'] for c in res.channels if c['tracked']]}); "
                          "give --init-llh/--init-vel/--init-att or a longer/later window (--start)")
-    fx, fp, fn = res.fixes[k], res.fixes[k - 1], res.fixes[k + 1]
     fs = float(source.fs_hz)
+    k, still_pos, still_sig = _still_fixes(res.fixes, k, fs, cfg)
+    fx, fp, fn = res.fixes[k], res.fixes[k - 1], res.fixes[k + 1]
     t_fix = fx["sample_index"] / fs
     dt_imu = 1.0 / float(imu.rate_hz)
     t0_imu = float(getattr(imu, "t0", 0.0))
@@ -381,6 +435,8 @@ def scalar_handover(source, imu, imu_errors, ephemerides, prns, start_s=0.0, cfg
     dtv = fn["sample_index"] / fs - fp["sample_index"] / fs
     acc_e = (np.asarray(fn["vel_e"]) - np.asarray(fp["vel_e"])) / dtv
     pos_e = np.asarray(fx["pos_e"], float) + np.asarray(fx["vel_e"], float) * d + 0.5 * acc_e * d * d
+    if still_pos is not None:
+        pos_e = still_pos
     vel_e = np.asarray(fx["vel_e"], float) + acc_e * d
     llh = np.asarray(ecef_to_llh(pos_e.copy()))
     C_el = np.asarray(dcm_ecef_from_enu(llh[0], llh[1]))
@@ -395,7 +451,8 @@ def scalar_handover(source, imu, imu_errors, ephemerides, prns, start_s=0.0, cfg
     state = {"llh": llh, "vel_l": vel_l, "code_phase_chips": channel_code_phases(res, round(t_h * fs), fs)}
     given = sorted(k_ for k_ in ("llh", "vel_l", "q_lb") if k_ in overrides)
     state.update({k_: overrides[k_] for k_ in ("llh", "vel_l") if k_ in overrides})
-    sigmas = {"pos_m": float(fx["sigma_pos_m"]) / math.sqrt(3.0) if "llh" not in overrides else FLAG_SIGMAS["pos_m"],
+    sig_pos = max(float(fx["sigma_pos_m"]) / math.sqrt(3.0), still_sig)
+    sigmas = {"pos_m": sig_pos if "llh" not in overrides else FLAG_SIGMAS["pos_m"],
               "vel_mps": max(sig_vel / math.sqrt(3.0), 0.01) if "vel_l" not in overrides else FLAG_SIGMAS["vel_mps"],
               "clk_bias_m": float(fx["sigma_pos_m"]), "clk_drift_mps": max(sig_vel, 0.01)}
     note = ""
@@ -417,10 +474,11 @@ def scalar_handover(source, imu, imu_errors, ephemerides, prns, start_s=0.0, cfg
                   "sigmas": sigmas})
     eul = np.degrees(dcm_to_euler(quat_to_dcm(state["q_lb"])))
     state["t_s"] = float(t_h)
-    state["warnings"] = [note] if note else []
+    state["warnings"] = [w for w in getattr(res, "warnings", None) or () if w.startswith("start-up:")] + (
+        [note] if note else [])
     state["startup"] = {
         "source": STARTUP_SCALAR, "overridden_by_flags": given, "handover_t_s": float(t_h),
-        "scalar_pass": {"start_s": float(start_s), "window_s": float(cfg.window_s), "fixes": len(res.fixes),
+        "scalar_pass": {"start_s": float(start_s), "window_s": float(res.pass_duration_s), "fixes": len(res.fixes),
                         "first_fix_s": None if not res.fixes else float(res.fixes[0]["sample_index"] / fs),
                         "fix_t_s": float(t_fix), "n_used": int(fx["n_used"]), "used_prn": list(fx["used_prn"]),
                         "tracked": [c["prn"] for c in res.channels if c["tracked"]],
