@@ -227,8 +227,9 @@ def _add_receiver_arguments(p):
     p.add_argument("--ephemeris", metavar="RINEX", help="RINEX navigation file (default: decode from the signal)")
     p.add_argument("--prn", metavar="LIST", help="PRNs to search, e.g. 1,3,7-12 (default: all 32)")
     p.add_argument("--channels", type=int, default=None, metavar="N",
-                   help="tracking channels (default: all in view - every satellite acquired is tracked and the "
-                        "others are searched again every 15 s; with N, the N strongest, no periodic search)")
+                   help="tracking channels (default: all in view - every satellite acquired is tracked; the "
+                        "others are searched again every 15 s around their predicted Doppler once ephemerides and "
+                        "a fix are known, every 30 s in full before; with N, the N strongest, no periodic search)")
     p.add_argument("--threads", type=int, default=None, metavar="K",
                    help="threads of the channel stages (default: one per core this process may use, "
                         "at most one per channel)")
