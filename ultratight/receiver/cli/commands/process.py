@@ -436,6 +436,11 @@ def _run_ultratight(args):
         print(json_dumps(summ))
     else:
         _print_ultratight_summary(summ, args)
+    integ = summ.get("integrity")
+    if integ and integ["state"] == "lost":
+        # the run finished, its solution did not: status 3 (docs/reliability.md)
+        print(f"ultratight process: {integ['line']}", file=sys.stderr)
+        return 3
     return 0
 
 
@@ -466,6 +471,7 @@ def _ultratight_summary(res, args):
         "bit_strategy": (info.get("bits") or {}).get("strategy"),
         "blind_fraction": _blind_fraction(res),
         "atmosphere": info.get("atmosphere"),
+        "integrity": ut_outputs.integrity_summary(res),
         # the parts of the run the generator's knowledge assisted (empty on a user's files; docs/process.md)
         "assisted": list(info.get("assisted") or []),
         "warnings": list(info.get("warnings") or []),
@@ -490,6 +496,8 @@ def _print_ultratight_summary(summ, args):
     print(f"start-up: {summ['startup']} at t = {ho.get('handover_t_s', 0.0):.2f} s; channels lost: "
           f"{summ['lock_lost_channels'] or 'none'}")
     print(f"data bits: {summ['bit_strategy']}; blind fraction per channel: {summ['blind_fraction']}")
+    if summ.get("integrity"):
+        print(summ["integrity"]["line"])
     if args.out:
         print(f"output: {args.out}")
 
