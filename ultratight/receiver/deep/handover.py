@@ -365,6 +365,15 @@ class NoFixError(ConfigError):
     """The scalar start-up pass found no usable fix."""
 
 
+def _imu_point(imu, pos_e, C_el, q_lb):
+    """LLH of the IMU point of an antenna fix ``pos_e`` (ECEF): the lever arm IMU -> antenna
+    (``imu.lever_arm_b``, FLU) away along the hand-over attitude ``q_lb``, ``p_imu = p_ant - C_el C_lb l``
+    (the rotation term w x l of the velocity is left to the filter: under 0.1 m/s for 1 rad/s at 0.1 m)."""
+    lever = getattr(imu, "lever_arm_b", None)
+    lever = np.zeros(3) if lever is None else np.asarray(lever, float)
+    return np.asarray(ecef_to_llh((pos_e - C_el @ (quat_to_dcm(np.asarray(q_lb, float)) @ lever)).copy()))
+
+
 def _still_fixes(fixes, k, fs, cfg):
     """``(k, mean position, sigma)``: a receiver still at the settled fix ``k`` hands over at the
     first fix that ends ``fix_avg_s`` of consecutive still fixes (speed <= ``still_speed_mps``), with
@@ -461,13 +470,8 @@ def scalar_handover(source, imu, imu_errors, ephemerides, prns, start_s=0.0, cfg
     else:
         q, P_att, att_method, note = attitude_at(imu, imu_errors, t_h, state["llh"], state["vel_l"], acc_l, sig_acc,
                                               cfg)
-    lever = np.asarray(getattr(imu, "lever_arm_b", None) if getattr(imu, "lever_arm_b", None) is not None
-                       else np.zeros(3), float)
-    if "llh" not in overrides and np.any(lever):
-        # the fix is the antenna's: the IMU point is the lever arm away, along the hand-over attitude
-        # (the rotation term w x l of the velocity is left to the filter: under 0.1 m/s for 1 rad/s at 0.1 m)
-        pos_imu = pos_e - C_el @ (quat_to_dcm(np.asarray(q, float)) @ lever)
-        state["llh"] = np.asarray(ecef_to_llh(pos_imu.copy()))
+    if "llh" not in overrides:
+        state["llh"] = _imu_point(imu, pos_e, C_el, q)
     sigmas["att_deg"] = float(math.degrees(math.sqrt(np.max(np.diag(P_att)))))
     sigmas["att_cov_rad2"] = P_att.tolist()
     state.update({"q_lb": np.asarray(q, float), "clk_bias_m": float(clk_b), "clk_drift_mps": clk_d,

@@ -122,13 +122,9 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
       and Doppler (no acquisition); the result's times are shifted back to seconds since the first
       sample of the file.
     * IMU conventions: ``imu_declaration`` (sidecar keys, :mod:`ultratight.ins.imu_decl`) over the
-      IMU file's sidecar; a GPS-stamped IMU starting before the IF is cut to the IF start.  The tight
-      filter is tuned from the declared IMU (:func:`_declared_model`): ``imu_noise`` (a noise table:
-      ``grade`` and datasheet keys of :mod:`ultratight.ins.imu_noise`, the ``--imu-grade`` /
-      ``--imu-*-noise`` flags) key by key over the sidecar's ``noise`` table, else the model a
-      generated file declares.
-    * Time alignment is checked by :func:`check_imu_if_alignment` (gaps, out-of-order stamps,
-      IMU/IF offset -> InputFileError).
+      IMU file's sidecar; a GPS-stamped IMU is cut to the IF start; time alignment checked by
+      :func:`check_imu_if_alignment`.  The filter is tuned from the declared IMU
+      (:func:`_declared_model`; ``imu_noise``: the noise flags' table).
     * Atmosphere (``iono``, ``tropo`` as the scalar receiver's flags): the engine's predictions and the
       scalar start-up carry the same model (:func:`_atmosphere`).
     Returns an :class:`EngineResult`.
@@ -160,20 +156,8 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
         src, imu, imu_path, nav if nav is not None else ephs, ephs, prns, startup, init_state,
         dict(init_overrides or {}), start_s, handover, gen_cfg, startup_errors, rng, atmo)
     warnings.extend((hand or {}).get("warnings") or [])
-    if given and source == ho.STARTUP_SCALAR:
-        prns = _tracked_of(prns, hand, warnings)
-    if not given and source != ho.STARTUP_SCALAR and not prns:
-        prns = _predicted_prns(ephs, init_state, week, tow0 + t_h)
-    if not given:
-        prns = _drop_unhealthy(nav, prns, week, tow0, warnings)
-        prns = _drop_without_ephemeris(prns, ephs, nav_path, warnings)
-    if not prns:
-        raise ConfigError(f"{if_path}: no satellites to track: the start-up found none with a healthy ephemeris "
-                          "(give them with --prn)")
-    missing = [p for p in prns if p not in ephs]
-    if missing:
-        raise ConfigError(f"no ephemeris for PRN {missing} at the IF start (week {week}, TOW {tow0:.3f} s) in "
-                          f"{nav_path if nav_path is not None else 'the nominal constellation'}")
+    prns = _tracked_prns(prns, given, source, hand, init_state, (nav, ephs, nav_path, week, tow0, t_h), warnings,
+                         if_path)
     file_start = {"week": int(week), "tow_s": float(tow0)}
     res, opt, t_h = _run_reinitialising(
         (src, imu, ephs, [int(p) for p in prns], method, options, rng, dur, atmo, iono_source),
@@ -319,6 +303,29 @@ def _drop_unhealthy(nav, prns, week, tow0, warnings):
         warnings.append("skipped as unhealthy in the navigation file: " +
                         ", ".join(f"PRN {p} (SV health {h})" for p, h in sick.items()))
     return [p for p in prns if int(p) not in sick]
+
+
+def _tracked_prns(prns, given, source, hand, init_state, nav_at, warnings, if_path):
+    """The satellites the engine tracks (:func:`run_ultratight_on_files`, "PRNs"): given ones the
+    scalar pass saw, else those the start-up found, less the unhealthy ones and those without an
+    ephemeris (warning lines); ConfigError when none is left or a given one has no ephemeris."""
+    from ultratight.receiver.deep import handover as ho
+    nav, ephs, nav_path, week, tow0, t_h = nav_at
+    if given and source == ho.STARTUP_SCALAR:
+        prns = _tracked_of(prns, hand, warnings)
+    if not given and source != ho.STARTUP_SCALAR and not prns:
+        prns = _predicted_prns(ephs, init_state, week, tow0 + t_h)
+    if not given:
+        prns = _drop_unhealthy(nav, prns, week, tow0, warnings)
+        prns = _drop_without_ephemeris(prns, ephs, nav_path, warnings)
+    if not prns:
+        raise ConfigError(f"{if_path}: no satellites to track: the start-up found none with a healthy ephemeris "
+                          "(give them with --prn)")
+    missing = [p for p in prns if p not in ephs]
+    if missing:
+        raise ConfigError(f"no ephemeris for PRN {missing} at the IF start (week {week}, TOW {tow0:.3f} s) in "
+                          f"{nav_path if nav_path is not None else 'the nominal constellation'}")
+    return prns
 
 
 def _tracked_of(prns, hand, warnings):
