@@ -6,7 +6,9 @@ Simulation (this project's choices): an aircraft at 3 km, 200 m/s east at the st
 descents and horizontal manoeuvres (``[trajectory]`` segments of constant ENU acceleration, body
 x along the velocity); IMU at 100 Hz with gyro constant 0.2 °/h and random walk 0.01 °/√h,
 accelerometer constant 0.01 g and random walk 0.01 g/√Hz (constants drawn per axis and run from
-N(0, σ²)); GNSS fixes at 1 Hz = truth + white noise of σ 0.00015° (latitude, longitude), 5 m
+N(0, σ²), ``[imu] bias_reading = "sigma"``, the reading the documented figures were measured with;
+``"stated"``: the paper's value as the magnitude with a random sign per axis and run; the filters
+know the figures, the drawn values are truth); GNSS fixes at 1 Hz = truth + white noise of σ 0.00015° (latitude, longitude), 5 m
 (height), 1 km/h (each velocity axis) — ``[gnss] mode = "truth"``, the paper's description; or
 ``mode = "lsq"``: least-squares fixes of simulated pseudoranges/rates of the nominal constellation.
 Gross errors: at t = 10, 20, …, 500 s the noise of all six components becomes V + m·σ·sign V
@@ -77,7 +79,7 @@ SCHEMA = {
     "receiver": {"lat_deg": 34.25, "lon_deg": 108.95, "h_m": 3000.0},
     "trajectory": {"vel0_enu_mps": [200.0, 0.0, 0.0], "segments": SEGMENTS},
     "imu": {"rate_hz": 100.0, "gyro_bias_dph": 0.2, "gyro_arw_dprh": 0.01, "accel_bias_g": 0.01,
-            "accel_vrw_g_rhz": 0.01},
+            "accel_vrw_g_rhz": 0.01, "bias_reading": "sigma"},
     "gnss": {"rate_hz": 1.0, "mode": "truth", "sigma_lat_deg": 0.00015, "sigma_lon_deg": 0.00015,
              "sigma_h_m": 5.0, "sigma_vel_mps": 1.0 / 3.6, "sigma_pr_m": 3.0, "sigma_prr_mps": 0.1,
              "mask_deg": 5.0},
@@ -98,6 +100,7 @@ def load(path, raw, overrides):
     C.num(cfg["receiver"], "h_m", "receiver", lo=-1000.0, hi=1e5)
     C.num(cfg["gnss"], "rate_hz", "gnss", lo=0.0, lo_open=True, hi=100.0)
     C.num(cfg["imu"], "rate_hz", "imu", lo=1.0)
+    C.bias_reading(cfg["imu"])
     ratio = cfg["imu"]["rate_hz"] / cfg["gnss"]["rate_hz"]
     if abs(ratio - round(ratio)) > 1e-9:
         raise ConfigError("imu.rate_hz must be an integer multiple of gnss.rate_hz")
@@ -141,7 +144,8 @@ def simulate(cfg, seed):
     im = cfg["imu"]
     rate = float(im["rate_hz"])
     imu, bias_true = C.draw_imu(traj, rate, im["gyro_bias_dph"] * C.DPH, math.radians(im["gyro_arw_dprh"]) / 60.0,
-                                im["accel_bias_g"] * C.G0, im["accel_vrw_g_rhz"] * C.G0, rng)
+                                im["accel_bias_g"] * C.G0, im["accel_vrw_g_rhz"] * C.G0, rng,
+                                im["bias_reading"])
     g = cfg["gnss"]
     dt = 1.0 / float(g["rate_hz"])
     t_gnss = np.arange(1, int(math.floor(dur / dt + 1e-9)) + 1) * dt

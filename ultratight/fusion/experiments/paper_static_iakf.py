@@ -7,8 +7,10 @@ ephemeris (``[satellites] rinex``; the nominal constellation with ``source = "no
 elevation mask, pseudoranges/rates from :func:`ultratight.signals.synth.obssim.simulate_observables`
 (σ 2 m, 2 m/s), a receiver clock starting at 25 m / 0.01 m/s driven by the TCXO h-parameters; a
 level static IMU at 100 Hz with constant bias and white noise 0.02 °/h (gyro) and 1e-4 g
-(accelerometer) each (the bias drawn per axis and run from N(0, σ²), the white noise as the 1σ
-of each IMU sample).  Initial SINS errors (identical for all filters of a run) are drawn from
+(accelerometer) each (the constant drawn per axis and run from N(0, σ²), ``[imu] bias_reading =
+"sigma"``, the reading the documented figures were measured with; ``"stated"``: the paper's value
+as each axis's bias magnitude with a random sign per axis and run; the white noise as the 1σ of
+each IMU sample).  Initial SINS errors (identical for all filters of a run) are drawn from
 N(0, σ²) with σ = 0.6° (attitude), 0.2 m/s (velocity), 15 m (position); the initial receiver
 clock estimate is 0 (error 25 m / 0.01 m/s).
 
@@ -78,7 +80,7 @@ SCHEMA = {
     "gnss": {"rate_hz": 1.0, "sigma_pr_m": 2.0, "sigma_prr_mps": 2.0, "clock_bias0_m": 25.0,
              "clock_drift0_mps": 0.01, "h0": 2e-19, "h_m2": 2e-20},
     "imu": {"rate_hz": 100.0, "gyro_bias_dph": 0.02, "gyro_noise_dph": 0.02, "accel_bias_g": 1e-4,
-            "accel_noise_g": 1e-4},
+            "accel_noise_g": 1e-4, "bias_reading": "sigma"},
     "initial_errors": {"att_deg": 0.6, "vel_mps": 0.2, "pos_m": 15.0},
     "wrong": {"gyro_dph": 0.1, "accel_g": 1e-2, "clock_bias_m": 35.0, "clock_drift_mps": 0.3,
               "sigma_pr_m": 50.0, "sigma_prr_mps": 0.6},
@@ -100,6 +102,7 @@ def load(path, raw, overrides):
     for k in ("sigma_pr_m", "sigma_prr_mps", "h0", "h_m2"):
         C.num(cfg["gnss"], k, "gnss", lo=0.0, lo_open=True)
     C.num(cfg["imu"], "rate_hz", "imu", lo=1.0)
+    C.bias_reading(cfg["imu"])
     if abs(cfg["imu"]["rate_hz"] / cfg["gnss"]["rate_hz"] - round(cfg["imu"]["rate_hz"] / cfg["gnss"]["rate_hz"])) > 1e-9:
         raise ConfigError("imu.rate_hz must be an integer multiple of gnss.rate_hz")
     for k in ("gyro_bias_dph", "gyro_noise_dph", "accel_bias_g", "accel_noise_g"):
@@ -151,7 +154,8 @@ def simulate(cfg, seed):
     imu_c = cfg["imu"]
     rate = float(imu_c["rate_hz"])
     imu, bias_true = C.draw_imu(traj, rate, imu_c["gyro_bias_dph"] * C.DPH, imu_c["gyro_noise_dph"] * C.DPH / math.sqrt(rate),
-                                imu_c["accel_bias_g"] * C.G0, imu_c["accel_noise_g"] * C.G0 / math.sqrt(rate), rng)
+                                imu_c["accel_bias_g"] * C.G0, imu_c["accel_noise_g"] * C.G0 / math.sqrt(rate), rng,
+                                imu_c["bias_reading"])
     g = cfg["gnss"]
     dt = 1.0 / float(g["rate_hz"])
     t_gnss = np.arange(1, int(math.floor(dur / dt + 1e-9)) + 1) * dt

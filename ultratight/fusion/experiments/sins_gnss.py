@@ -22,7 +22,7 @@ from ultratight.errors import ConfigError
 from ultratight.io_guard import h5_atomic, savefig_atomic, write_text_atomic
 from ultratight.fusion.coupling.integration import nees_band
 from ultratight.ins import error_model as em
-from ultratight.ins.imu import ImuErrors, synthesize_imu
+from ultratight.ins.imu import BIAS_READINGS, ImuErrors, synthesize_imu
 from ultratight.io_guard import json_clean
 from ultratight.config import apply_overrides, deep_merge, check_known_keys, check_number
 
@@ -56,15 +56,27 @@ def tables(raw, schema, overrides):
     return apply_overrides(cfg, overrides)
 
 
-def draw_imu(traj, rate_hz, gyro_bias_sigma, gyro_white, accel_bias_sigma, accel_white, rng):
-    """IMU increments along ``traj`` with constant biases drawn per axis from N(0, σ²) (rad/s,
-    m/s²) and white noise (rad/√s, (m/s)/√s).  Returns (ImuData, bias_true [bg, ba] (6,))."""
-    bg = rng.standard_normal(3) * gyro_bias_sigma
-    ba = rng.standard_normal(3) * accel_bias_sigma
-    e = ImuErrors(gyro_bias=bg, accel_bias=ba, gyro_arw=np.full(3, gyro_white),
-                  accel_vrw=np.full(3, accel_white), preset="custom")
+def draw_imu(traj, rate_hz, gyro_bias, gyro_white, accel_bias, accel_white, rng, bias_reading="sigma"):
+    """IMU increments along ``traj`` of a sensor drawn from the declared figures (rad/s, m/s²; white
+    noise rad/√s, (m/s)/√s): ``bias_reading = "sigma"`` draws each axis's constant bias from
+    N(0, figure²), ``"stated"`` takes the figure as the magnitude with a random sign per axis
+    (:func:`ultratight.ins.imu.realise_errors`).  Returns (ImuData, bias_true [bg, ba] (6,)): the
+    drawn biases are truth; the filters are tuned from the figures."""
+    e = ImuErrors(gyro_bias=np.full(3, float(gyro_bias)), accel_bias=np.full(3, float(accel_bias)),
+                  gyro_arw=np.full(3, gyro_white), accel_vrw=np.full(3, accel_white), preset="custom",
+                  bias_reading=bias_reading)
     imu = synthesize_imu(traj, rate_hz, errors=e, rng=rng)
-    return imu, np.concatenate([bg, ba])
+    real = imu.errors_realised
+    return imu, np.concatenate([real["gyro_bias"], real["accel_bias"]])
+
+
+def bias_reading(imu_table):
+    """``[imu] bias_reading``: "stated" (the paper's constant bias is the magnitude, random sign per
+    axis and run) or "sigma" (the figure is the 1σ of N(0, σ²)); ConfigError otherwise."""
+    v = imu_table.get("bias_reading")
+    if v not in BIAS_READINGS:
+        raise ConfigError(f"imu.bias_reading must be one of {', '.join(BIAS_READINGS)}, got {v!r}")
+    return v
 
 
 def initial_P(n_states, att_rad, vel_mps, pos_m, bg, ba, clk=None):
