@@ -550,6 +550,62 @@ def test_interruption_while_the_outputs_open_leaves_no_temporary_file(work, monk
     assert snapshot(work) == before
 
 
+def _companion(long_rec, d, kind):
+    """A companion file of the 20 s recording that does not belong to it (docs/reliability.md)."""
+    from ultratight.ins.imu_data import read_imu_h5, write_imu_csv
+    from ultratight.ins.imu_decl import ImuDeclaration
+
+    for f in ("v.ci8", "v.ci8.json"):
+        os.symlink(long_rec / f, d / f)
+    if kind == "parked":
+        # a parked vehicle's IMU (level, still) beside a recording that drives
+        shutil.copyfile(long_rec / "v.imu.h5", d / "x.imu.h5")
+        with h5py.File(d / "x.imu.h5", "r+") as f:
+            n, dt = f["t"].shape[0], 1.0 / float(f.attrs["rate_hz"])
+            f["dtheta_b"][...] = np.zeros((n, 3))
+            f["dv_b"][...] = np.tile([0.0, 0.0, 9.80 * dt], (n, 1))
+            del f["truth"]
+        return ["--imu", "x.imu.h5"]
+    # the recording's own IMU written in FLU and declared RFU (x and y swapped): gravity stays on z,
+    # the stationary check cannot tell
+    imu = read_imu_h5(long_rec / "v.imu.h5")
+    imu.truth = None
+    side = write_imu_csv(d / "x.csv", imu, ImuDeclaration(axes="FLU"))
+    side.write_text(side.read_text().replace('"FLU"', '"RFU"'))
+    return ["--imu", "x.csv"]
+
+
+@pytest.mark.parametrize("kind", ["parked", "axes-swapped"])
+def test_a_companion_that_does_not_belong_ends_lost_or_recovers(long_rec, tmp_path, kind):
+    """Issue of the hostile probe: an IMU of another vehicle, or the right IMU mis-declared in a way the
+    stationary check cannot see, with --mode ultratight defaults. The integrity monitor sees the
+    solution leave the measurements: the run ends lost (status 3, the last stderr line says so) or it
+    re-initialised from a new scalar fix and the summary says integrity was lost on the way; never a
+    silent exit 0 with an "ok" verdict."""
+    flags = _companion(long_rec, tmp_path, kind)
+    res = cli(P + ["v.ci8", "--mode", "ultratight", *flags, "--json"], tmp_path)
+    assert "Traceback" not in res.stderr
+    assert res.returncode in (0, 3), res.stderr
+    summ = _strict_json(res.stdout)
+    lines = res.stderr.strip().splitlines()
+    assert summ["integrity"]["worst"] == "lost", summ["integrity"]
+    if res.returncode == 3:
+        assert summ["integrity"]["state"] == "lost" and "integrity lost at t =" in lines[-1]
+        assert all(ln.startswith("ultratight process: warning: ") for ln in lines[:-1]), res.stderr
+    else:
+        assert summ["integrity"]["n_reinit"] >= 1 and summ["integrity"]["state"] != "lost"
+    assert not leftovers(tmp_path)
+
+
+def test_prns_the_recording_does_not_hold(long_rec, tmp_path):
+    """``--prn`` naming satellites that are not in the recording: the start-up's scalar pass finds no
+    fix and says so in one line (it used to claim lock on them)."""
+    for f in ("v.ci8", "v.ci8.json", "v.imu.h5"):
+        os.symlink(long_rec / f, tmp_path / f)
+    res = cli(P + ["v.ci8", "--mode", "ultratight", "--imu", "v.imu.h5", "--prn", "1,8"], tmp_path)
+    assert_clean_failure(res, 2, "found no fix", snapshot(tmp_path), tmp_path)
+
+
 @pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="needs /proc/PID/maps")
 def test_sighup_and_sigterm_during_ultratight_process(long_rec, tmp_path):
     for f in ("v.ci8", "v.ci8.json", "v.imu.h5"):
@@ -591,7 +647,8 @@ DISK_FULL = [
     ("generate", ["generate", "vehicle-turns", "--duration", "1", "--out", "g/x", "--no-progress"], 1_000_000),
     ("process-scalar", ["process", "v.ci8", "--prn", "11,14,10,28", "--out", "o.h5", "--no-progress"], 100_000),
     ("process-csv", ["process", "v.ci8", "--prn", "11,14,10,28", "--csv", "o.csv", "--no-progress"], 10),
-    ("process-ultratight", ["process", "v.ci8", "--mode", "ultratight", "--imu", "v.imu.h5", "--out", "u.h5"],
+    ("process-ultratight", ["process", "v.ci8", "--mode", "ultratight", "--imu", "v.imu.h5", "--out", "u.h5",
+                            *ASSISTED],
      50_000),
     ("ins-save-imu", ["ins", "vehicle-turns", "--duration", "5", "--save-imu", "i.h5"], 20_000),
     ("scenario", ["scenario", "vehicle-turns", "--duration", "0.5", "--methods", "scalar", "--no-plots", "--quiet",
