@@ -59,6 +59,9 @@ ACCEPTANCE = {
     "acceptance_process_4mhz": ("bench_process.py", ["--fs", "4e6"], ["--fs", "4e6", "--quick"], True),
     # docs/integrate.md: the walk_0827 table of every core (../shared/data) and the tight run
     "acceptance_integrate_walk": ("acceptance_integrate_walk.py", [], ["--quick"], True),
+    # docs/ultratight.md "A rocket launch as a user's files": process --mode ultratight with its defaults
+    "acceptance_rocket_launch": ("acceptance_rocket_launch.py", ["--cn0-list", "45,30", "--data", "{data}"],
+                                 ["--quick", "--data", "{data}"], True),
 }
 # the papers' Monte Carlo tables, printed by ``ultratight scenario`` (docs/paper_afm.md,
 # docs/integration-experiments.md, docs/airdata.md): --quick runs one seed of a shorter cut
