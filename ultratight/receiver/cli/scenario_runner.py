@@ -52,7 +52,7 @@ from ultratight.receiver.deep.scalar_reference import run_scalar  # noqa: F401 (
 from ultratight.receiver.cli.scenario_config import IMU_DEFAULTS, load_scenario
 from ultratight.receiver.deep.startup import StartupErrors, perturb_state
 from ultratight.cores import plan
-from ultratight.receiver.cli.workers import WorkerPool, check_workers, fix_mmap_threshold, release_heap
+from ultratight.receiver.cli.workers import WorkerPool, check_workers, fix_mmap_threshold, release_heap, warm_up
 from ultratight.signals.constellation import ephemerides_for
 from ultratight.signals.synth.generator import generate, generation_estimate
 from ultratight.signals.recording.iffile import open_if
@@ -350,6 +350,28 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
     return _report(name, cfg, methods, int(runs), base_seed, out, channel, plots, options, per, raw)
 
 
+WARM_S = 0.5     # s of signal each method runs here before the workers get their jobs (_warm_methods)
+
+
+def _warm_methods(paths, cfg, methods, seed, options, threads, progress):
+    """Compile once (:func:`ultratight.receiver.cli.workers.warm_up`): each method on the first
+    ``WARM_S`` s of a run's data here, on the workers' threads, so that the workers load the kernels
+    from numba's cache instead of each compiling them; with a warm cache only the first one runs."""
+    t0 = time.perf_counter()
+    dur = min(WARM_S, float(cfg["duration_s"]))
+    n = warm_up(_warm_method, [(paths, cfg, m, seed, options, threads, dur) for m in dict.fromkeys(methods)])
+    release_heap()
+    if progress and n:
+        print(f"numba: {n} kernel(s) compiled once, here, before the workers start ({time.perf_counter() - t0:.1f} s; "
+              "later runs load them from the cache)", flush=True)
+    return n
+
+
+def _warm_method(paths, cfg, method, seed, options, threads, duration_s):
+    opt = dataclasses.replace(engine_options_for(cfg, options), threads=int(threads))
+    run_method(paths, cfg, method, seed, options=opt, duration_s=duration_s)
+
+
 def _method_job(paths, cfg, method, seed, options, threads=1):
     """One method on one run's data in a worker process, on ``threads`` numba threads (the plan's
     threads per worker: the workers share the allowed cores)."""
@@ -402,6 +424,8 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
             how = ", the IF generated once per run and shared" if shared else ""
             print(f"{len(jobs)} method run(s) in {n_workers} worker process(es) of {threads} thread(s){how}",
                   flush=True)
+        if not here:          # the jobs run in the workers: their kernels compiled here first
+            _warm_methods(all_paths[0], cfg, methods, base_seed, options, threads, progress)
         if shared:
             _map_shared(pool, cfg, methods, runs, base_seed, jobs, done)
         else:

@@ -156,6 +156,37 @@ class WorkerPool:
         return results
 
 
+def warm_up(fn, jobs):
+    """Compile once: ``fn(*job)`` for each of ``jobs`` (short representative calls) here, one after the
+    other, before the workers get their jobs. What numba compiles for them goes into its cache
+    (``cache=True`` kernels), from which every worker then loads the kernels at their first call instead
+    of compiling the same ones at the same time — with an empty cache (a fresh install) the four method
+    workers of the main job each compiled every shared kernel. The first job always runs; when numba
+    compiled nothing for it (the cache is warm) the others are skipped. Returns the kernels compiled
+    (numba's ``numba:compile`` events, cache loads not counted)."""
+    from numba.core import event
+
+    class CompileCounter(event.Listener):
+        compiled = 0
+
+        def on_start(self, ev):
+            self.compiled += 1
+
+        def on_end(self, ev):
+            pass
+
+    counter = CompileCounter()
+    event.register("numba:compile", counter)
+    try:
+        for i, job in enumerate(jobs):
+            fn(*job)
+            if i == 0 and counter.compiled == 0:
+                break
+    finally:
+        event.unregister("numba:compile", counter)
+    return counter.compiled
+
+
 def run_jobs(fn, jobs, workers=None, on_done=None):
     """``[fn(*job) for job in jobs]``, in worker processes when ``workers`` (default: the plan's,
     :func:`ultratight.cores.plan`) is above 1 (:class:`WorkerPool`, the plan's threads each)."""
