@@ -97,8 +97,6 @@ import scipy.fft
 from scipy.ndimage import median_filter
 from scipy.special import gammainccinv
 
-from scipy.signal import resample_poly
-
 from ultratight.errors import ConfigError
 from ultratight.receiver.dsp.blockstream import block_sigma_arm
 from ultratight.signals.geometry import light_time
@@ -318,6 +316,9 @@ class _SearchBlocks:
             # polyphase FIR low-pass (Kaiser) + decimation; output sample j is input sample j*D (delay
             # compensated).  A boxcar is not enough: for real IF the mixing image at -2*IF can alias
             # onto the signal band (e.g. IF = fs/4, D = 4 puts it at 0 Hz) and bias the code phase.
+            # scipy.signal loads here, only for such rates: its import (~1 s, it loads scipy.stats)
+            # would otherwise be a large part of a short run's start-up
+            from scipy.signal import resample_poly
             xs = resample_poly(self.xb, 1, self.dec).astype(np.complex64)
             xs = xs[:n_s * noncoherent]
             if xs.shape[0] < n_s * noncoherent:

@@ -58,7 +58,6 @@ from dataclasses import replace
 
 import numba
 import numpy as np
-from tqdm import tqdm
 
 from ultratight.cores import stage_threads
 from ultratight.errors import InputFileError
@@ -66,7 +65,6 @@ from ultratight.receiver.dsp.acquisition import acquire
 from ultratight.receiver.dsp.blockstream import BlockStream
 from ultratight.receiver.dsp.tracking import ScalarTracker
 from ultratight.receiver.dsp.tracking_layout import F_DOPP, FL_PLL_LOCK, MODE_LOST, MODE_TRACK, RI_FLAGS, S_MODE
-from ultratight.receiver.io.outputs import write_csv, write_kml
 from ultratight.receiver.scalar.channels import (acquire_signals, allocate_channels, channel_info, cold_search,
                                                  predicted_search, search_rate)
 from ultratight.receiver.scalar.nav_pvt import NavBitStage, ObservableStage, PvtStage, ephemeris_lookup
@@ -440,6 +438,8 @@ class ScalarReceiver:
                 writer.abort()
                 raise
         if complete:
+            if csv_path or kml_path:
+                from ultratight.receiver.io.outputs import write_csv, write_kml   # (h5py loads with them)
             if csv_path:
                 write_csv(csv_path, self.fixes)
             if kml_path:
@@ -455,6 +455,7 @@ class ScalarReceiver:
 
 
 def _progress_bar(n_samples, fs):
+    from tqdm import tqdm
     return tqdm(total=round(n_samples / fs, 1), unit="s", desc="process",
                 bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.1f}/{total:.1f} s signal "
                            "[{elapsed}<{remaining}{postfix}]", leave=False)

@@ -12,7 +12,6 @@ from ultratight import __version__
 from ultratight.receiver.dsp.tracking_layout import (R_CN0, R_CODE_PHASE, R_DOPP, REC_F_NAMES, REC_I_NAMES, RI_EPOCH,
                                                      RI_FLAGS, RI_MODE, RI_PTR)
 from ultratight.receiver.io.nmea import DEFAULT_LEAP_S, write_nmea
-from ultratight.receiver.io.outputs import H5Stream
 from ultratight.receiver.io.rinex_out import RinexObsWriter, write_rinex_nav
 
 _F64_FIELDS = ("code_phase_chips", "code_rate_cps", "carr_acc_cycles", "doppler_hz")
@@ -54,7 +53,9 @@ class Recorder:
                 w.abort()
 
     def _open(self, out_path, rinex_obs_path, cfg, source, prns):
-        self.writer = H5Stream(out_path) if out_path else None
+        if out_path:
+            from ultratight.receiver.io.outputs import H5Stream     # h5py loads only for an HDF5 output
+            self.writer = H5Stream(out_path)
         self.epochs = {p: {k: [] for k in self.EPOCH_KEYS} for p in prns} if cfg.record_epochs else {}
         self.restarts = [0] * len(prns)        # re-acquisitions per channel at the previous RINEX epoch
         if rinex_obs_path:
