@@ -1,0 +1,112 @@
+"""Compile once (receiver.cli.workers.warm_up, scenario_runner._warm_methods): the kernels of a scenario's
+methods are compiled in the parent, one method after the other, before any job reaches a worker; with a
+warm cache only the first method runs there."""
+
+import os
+
+import numba
+import numpy as np
+import pytest
+
+from ultratight.receiver.cli import scenario_runner, workers
+
+
+def _fresh_kernel_call(x):
+    """Compile and call a kernel numba has never seen (a new function object each call)."""
+    return numba.njit(lambda v: v * 2 + 1)(x)
+
+
+def test_warm_up_counts_compilations_and_runs_every_job_when_cold():
+    seen = []
+
+    def job(x):
+        seen.append(x)
+        assert _fresh_kernel_call(x) == 2 * x + 1
+
+    assert workers.warm_up(job, [(1,), (2,), (3,)]) == 3
+    assert seen == [1, 2, 3]
+
+
+def test_warm_up_skips_the_rest_when_the_first_job_compiled_nothing():
+    kernel = numba.njit(lambda v: v - 1)
+    kernel(np.int64(5))                     # compiled before: later calls load nothing new
+    seen = []
+
+    def job(x):
+        seen.append(x)
+        assert kernel(np.int64(x)) == x - 1
+
+    assert workers.warm_up(job, [(1,), (2,), (3,)]) == 0
+    assert seen == [1]
+
+
+class _Stop(Exception):
+    pass
+
+
+@pytest.fixture
+def recorded_run(monkeypatch):
+    """``_run_all`` with the data, the engine and the pool replaced by recorders: the events in order
+    (("start", workers, threads), ("method", name, duration_s, threads, pid), ("jobs", names)); the pool
+    stops the run when it is handed the jobs."""
+    events = []
+    state = {"cold": True}
+
+    class Pool:
+        def __init__(self, workers, preload=(), processes=None, threads=1):
+            events.append(("start", workers, threads))
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def map(self, fn, jobs, on_done=None):
+            events.append(("jobs", [j[2] for j in jobs]))
+            raise _Stop
+
+    def run_method(paths, cfg, method, seed, options=None, startup_errors=None, duration_s=None):
+        events.append(("method", method, duration_s, getattr(options, "threads", None), os.getpid()))
+        if state["cold"]:
+            _fresh_kernel_call(3)                 # an empty cache: the method's kernels compile now
+
+    monkeypatch.setattr(scenario_runner, "WorkerPool", Pool)
+    monkeypatch.setattr(scenario_runner, "run_method", run_method)
+    monkeypatch.setattr(scenario_runner, "_prepare_run", lambda cfg, r, *a, **k: {"truth": "t.h5", "if_seed": r})
+
+    def go(methods, workers=None, cold=True):
+        state["cold"] = cold
+        cfg = scenario_runner.scenario_config("paper-highdyn", methods, 1, 2.0)
+        shared = workers is None and len(methods) > 1
+        if shared:
+            monkeypatch.setattr(scenario_runner, "_map_shared",
+                                lambda pool, cfg, methods, runs, seed, jobs, done: pool.map(None, jobs))
+        with pytest.raises(_Stop):
+            scenario_runner._run_all(cfg, list(methods), 1, 1, "unused", 0, False, None, workers)
+        return events
+
+    return go
+
+
+@pytest.mark.parametrize("workers", [None, 2])          # the shared IF ring, and one stream per method
+def test_methods_warmed_in_the_parent_before_the_workers_get_jobs(recorded_run, workers):
+    methods = ["pb-kf-utc", "dlb-ukf", "dlb-ckf", "dlb-rackf"]
+    events = recorded_run(methods, workers)
+    start, *warm, jobs = events
+    assert start[0] == "start" and start[1] >= 2
+    threads = start[2]
+    # every method once, here (this process), on the workers' threads, WARM_S of signal; then the jobs
+    assert warm == [("method", m, scenario_runner.WARM_S, threads, os.getpid()) for m in methods]
+    assert jobs == ("jobs", methods)
+
+
+def test_warm_cache_runs_only_the_first_method_here(recorded_run):
+    events = recorded_run(["dlb-rackf", "dlb-ckf", "pb-kf-utc"], workers=3, cold=False)
+    assert [e[:3] for e in events[1:]] == [("method", "dlb-rackf", scenario_runner.WARM_S),
+                                          ("jobs", ["dlb-rackf", "dlb-ckf", "pb-kf-utc"])]
+
+
+def test_no_warm_up_when_the_jobs_run_here(recorded_run):
+    events = recorded_run(["dlb-rackf", "dlb-ckf"], workers=1)
+    assert [e[0] for e in events] == ["start", "jobs"]
