@@ -98,8 +98,9 @@ def pooled(rows):
         o["runtime_s"].append(r["runtime_s"])
         o["rtf"].append(r["realtime_factor"])
         o["lost"] += r["lost_channels"]
-        o["corr_s"].append(r["timing_s"]["correlate"])
-        o["pref_s"].append(r["timing_s"]["prefilter"])
+        # the engine's timing split (absent from engines that time other stages: nan)
+        o["corr_s"].append(r["timing_s"].get("correlate", float("nan")))
+        o["pref_s"].append(r["timing_s"].get("prefilter", float("nan")))
         o["n_ep"].append(r["n_epochs"])
         o["seeds"].append(r["seed"])
         for k, v in r["sq"].items():
