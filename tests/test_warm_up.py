@@ -16,15 +16,19 @@ def _fresh_kernel_call(x):
     return numba.njit(lambda v: v * 2 + 1)(x)
 
 
-def test_warm_up_counts_compilations_and_runs_every_job_when_cold():
+def test_warm_up_counts_compilations_and_runs_every_job_when_cold(capsys):
     seen = []
 
     def job(x):
         seen.append(x)
         assert _fresh_kernel_call(x) == 2 * x + 1
+        # the line saying why the run waits comes with the first compilation, once
+        out = capsys.readouterr().out
+        assert ("numba: compiling the kernels once" in out) == (x == 1)
 
-    assert workers.warm_up(job, [(1,), (2,), (3,)]) == 3
+    assert workers.warm_up(job, [(1,), (2,), (3,)], progress=True) == 3
     assert seen == [1, 2, 3]
+    assert capsys.readouterr().out.startswith("numba: 3 kernel(s) compiled in ")
 
 
 def test_warm_up_skips_the_rest_when_the_first_job_compiled_nothing():
@@ -107,6 +111,10 @@ def test_warm_cache_runs_only_the_first_method_here(recorded_run):
                                           ("jobs", ["dlb-rackf", "dlb-ckf", "pb-kf-utc"])]
 
 
-def test_no_warm_up_when_the_jobs_run_here(recorded_run):
-    events = recorded_run(["dlb-rackf", "dlb-ckf"], workers=1)
-    assert [e[0] for e in events] == ["start", "jobs"]
+@pytest.mark.parametrize("methods,workers", [
+    (["dlb-rackf", "dlb-ckf"], 1),      # --workers 1: the jobs run here, one after the other
+    (["dlb-rackf"], None),              # one job: one worker, which compiles what it needs once anyway
+])
+def test_no_warm_up_without_several_workers(recorded_run, methods, workers):
+    events = recorded_run(methods, workers)
+    assert [e[0] for e in events] == ["start", "jobs"] and events[0][1] == 1

@@ -357,13 +357,10 @@ def _warm_methods(paths, cfg, methods, seed, options, threads, progress):
     """Compile once (:func:`ultratight.receiver.cli.workers.warm_up`): each method on the first
     ``WARM_S`` s of a run's data here, on the workers' threads, so that the workers load the kernels
     from numba's cache instead of each compiling them; with a warm cache only the first one runs."""
-    t0 = time.perf_counter()
     dur = min(WARM_S, float(cfg["duration_s"]))
-    n = warm_up(_warm_method, [(paths, cfg, m, seed, options, threads, dur) for m in dict.fromkeys(methods)])
+    n = warm_up(_warm_method, [(paths, cfg, m, seed, options, threads, dur) for m in dict.fromkeys(methods)],
+                progress=progress)
     release_heap()
-    if progress and n:
-        print(f"numba: {n} kernel(s) compiled once, here, before the workers start ({time.perf_counter() - t0:.1f} s; "
-              "later runs load them from the cache)", flush=True)
     return n
 
 
@@ -424,7 +421,7 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
             how = ", the IF generated once per run and shared" if shared else ""
             print(f"{len(jobs)} method run(s) in {n_workers} worker process(es) of {threads} thread(s){how}",
                   flush=True)
-        if not here:          # the jobs run in the workers: their kernels compiled here first
+        if n_workers > 1:     # several workers would compile the same kernels: compiled here first
             _warm_methods(all_paths[0], cfg, methods, base_seed, options, threads, progress)
         if shared:
             _map_shared(pool, cfg, methods, runs, base_seed, jobs, done)

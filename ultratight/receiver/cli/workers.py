@@ -19,6 +19,7 @@ import importlib
 import multiprocessing
 import os
 import sys
+import time
 from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
 
 from ultratight.cores import check_workers, plan  # noqa: F401 (check_workers: used by the runners)
@@ -156,14 +157,15 @@ class WorkerPool:
         return results
 
 
-def warm_up(fn, jobs):
+def warm_up(fn, jobs, progress=False):
     """Compile once: ``fn(*job)`` for each of ``jobs`` (short representative calls) here, one after the
     other, before the workers get their jobs. What numba compiles for them goes into its cache
     (``cache=True`` kernels), from which every worker then loads the kernels at their first call instead
     of compiling the same ones at the same time — with an empty cache (a fresh install) the four method
     workers of the main job each compiled every shared kernel. The first job always runs; when numba
-    compiled nothing for it (the cache is warm) the others are skipped. Returns the kernels compiled
-    (numba's ``numba:compile`` events, cache loads not counted)."""
+    compiled nothing for it (the cache is warm) the others are skipped. ``progress``: a line when the
+    first compilation starts (why the run waits) and one with the count and time at the end. Returns the
+    kernels compiled (numba's ``numba:compile`` events, cache loads not counted)."""
     from numba.core import event
 
     class CompileCounter(event.Listener):
@@ -171,10 +173,14 @@ def warm_up(fn, jobs):
 
         def on_start(self, ev):
             self.compiled += 1
+            if self.compiled == 1 and progress:
+                print("numba: compiling the kernels once, before the workers start (the first run after an "
+                      "install; later runs load them from the cache)", flush=True)
 
         def on_end(self, ev):
             pass
 
+    t0 = time.perf_counter()
     counter = CompileCounter()
     event.register("numba:compile", counter)
     try:
@@ -184,6 +190,8 @@ def warm_up(fn, jobs):
                 break
     finally:
         event.unregister("numba:compile", counter)
+    if progress and counter.compiled:
+        print(f"numba: {counter.compiled} kernel(s) compiled in {time.perf_counter() - t0:.1f} s", flush=True)
     return counter.compiled
 
 
