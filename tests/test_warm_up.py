@@ -1,5 +1,5 @@
 """Compile once (receiver.cli.workers.warm_up, scenario_runner._warm_methods): the kernels of a scenario's
-methods are compiled in the parent, one method after the other, before any job reaches a worker; with a
+methods are compiled by one worker, one method after the other, before any job reaches the workers; with a
 warm cache only the first method runs there."""
 
 import os
@@ -51,8 +51,8 @@ class _Stop(Exception):
 @pytest.fixture
 def recorded_run(monkeypatch):
     """``_run_all`` with the data, the engine and the pool replaced by recorders: the events in order
-    (("start", workers, threads), ("method", name, duration_s, threads, pid), ("jobs", names)); the pool
-    stops the run when it is handed the jobs."""
+    (("start", workers, threads), ("call", function) for what one worker runs, ("method", name,
+    duration_s, threads), ("jobs", names)); the pool stops the run when it is handed the jobs."""
     events = []
     state = {"cold": True}
 
@@ -66,12 +66,16 @@ def recorded_run(monkeypatch):
         def __exit__(self, *exc):
             return False
 
+        def call(self, fn, *args):
+            events.append(("call", fn.__name__))
+            return fn(*args)
+
         def map(self, fn, jobs, on_done=None):
             events.append(("jobs", [j[2] for j in jobs]))
             raise _Stop
 
     def run_method(paths, cfg, method, seed, options=None, startup_errors=None, duration_s=None):
-        events.append(("method", method, duration_s, getattr(options, "threads", None), os.getpid()))
+        events.append(("method", method, duration_s, getattr(options, "threads", None)))
         if state["cold"]:
             _fresh_kernel_call(3)                 # an empty cache: the method's kernels compile now
 
@@ -94,20 +98,21 @@ def recorded_run(monkeypatch):
 
 
 @pytest.mark.parametrize("workers", [None, 2])          # the shared IF ring, and one stream per method
-def test_methods_warmed_in_the_parent_before_the_workers_get_jobs(recorded_run, workers):
+def test_methods_warmed_by_one_worker_before_the_workers_get_jobs(recorded_run, workers):
     methods = ["pb-kf-utc", "dlb-ukf", "dlb-ckf", "dlb-rackf"]
     events = recorded_run(methods, workers)
-    start, *warm, jobs = events
+    start, call, *warm, jobs = events
     assert start[0] == "start" and start[1] >= 2
     threads = start[2]
-    # every method once, here (this process), on the workers' threads, WARM_S of signal; then the jobs
-    assert warm == [("method", m, scenario_runner.WARM_S, threads, os.getpid()) for m in methods]
+    # in one worker: every method once, on the workers' threads, WARM_S of signal; then the jobs
+    assert call == ("call", "_warm_methods")
+    assert warm == [("method", m, scenario_runner.WARM_S, threads) for m in methods]
     assert jobs == ("jobs", methods)
 
 
 def test_warm_cache_runs_only_the_first_method_here(recorded_run):
     events = recorded_run(["dlb-rackf", "dlb-ckf", "pb-kf-utc"], workers=3, cold=False)
-    assert [e[:3] for e in events[1:]] == [("method", "dlb-rackf", scenario_runner.WARM_S),
+    assert [e[:3] for e in events[1:]] == [("call", "_warm_methods"), ("method", "dlb-rackf", scenario_runner.WARM_S),
                                           ("jobs", ["dlb-rackf", "dlb-ckf", "pb-kf-utc"])]
 
 
@@ -118,3 +123,11 @@ def test_warm_cache_runs_only_the_first_method_here(recorded_run):
 def test_no_warm_up_without_several_workers(recorded_run, methods, workers):
     events = recorded_run(methods, workers)
     assert [e[0] for e in events] == ["start", "jobs"] and events[0][1] == 1
+
+
+def test_pool_call_runs_in_one_worker_process():
+    with workers.WorkerPool(2, processes=True) as pool:
+        pid = pool.call(os.getpid)
+    assert pid != os.getpid()
+    with workers.WorkerPool(1) as pool:              # no worker processes: here
+        assert pool.call(os.getpid) == os.getpid()

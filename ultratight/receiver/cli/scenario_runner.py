@@ -350,13 +350,14 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
     return _report(name, cfg, methods, int(runs), base_seed, out, channel, plots, options, per, raw)
 
 
-WARM_S = 0.5     # s of signal each method runs here before the workers get their jobs (_warm_methods)
+WARM_S = 0.5     # s of signal each method runs in one worker before the jobs start (_warm_methods)
 
 
 def _warm_methods(paths, cfg, methods, seed, options, threads, progress):
-    """Compile once (:func:`ultratight.receiver.cli.workers.warm_up`): each method on the first
-    ``WARM_S`` s of a run's data here, on the workers' threads, so that the workers load the kernels
-    from numba's cache instead of each compiling them; with a warm cache only the first one runs."""
+    """Compile once (:func:`ultratight.receiver.cli.workers.warm_up`), in one worker before the jobs
+    start: each method on the first ``WARM_S`` s of a run's data, so that the other workers load the
+    kernels from numba's cache instead of each compiling them; with a warm cache only the first one
+    runs (its kernels are those this worker's own job loads; this process stays as light as before)."""
     dur = min(WARM_S, float(cfg["duration_s"]))
     n = warm_up(_warm_method, [(paths, cfg, m, seed, options, threads, dur) for m in dict.fromkeys(methods)],
                 progress=progress)
@@ -421,8 +422,8 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
             how = ", the IF generated once per run and shared" if shared else ""
             print(f"{len(jobs)} method run(s) in {n_workers} worker process(es) of {threads} thread(s){how}",
                   flush=True)
-        if n_workers > 1:     # several workers would compile the same kernels: compiled here first
-            _warm_methods(all_paths[0], cfg, methods, base_seed, options, threads, progress)
+        if n_workers > 1:     # several workers would compile the same kernels: compiled by one first
+            pool.call(_warm_methods, all_paths[0], cfg, methods, base_seed, options, threads, progress)
         if shared:
             _map_shared(pool, cfg, methods, runs, base_seed, jobs, done)
         else:

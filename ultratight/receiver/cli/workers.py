@@ -127,6 +127,12 @@ class WorkerPool:
             self._pool.shutdown(wait=True, cancel_futures=True)
         return False
 
+    def call(self, fn, *args):
+        """``fn(*args)`` in one worker (here without worker processes), waited for; its result."""
+        if self._pool is None:
+            return fn(*args)
+        return self._pool.submit(fn, *args).result()
+
     def map(self, fn, jobs, on_done=None):
         """``[fn(*job) for job in jobs]`` in the workers (module-level ``fn``, picklable arguments and
         results); ``on_done(i, result)`` in this process as each job finishes; the first failure
@@ -158,8 +164,8 @@ class WorkerPool:
 
 
 def warm_up(fn, jobs, progress=False):
-    """Compile once: ``fn(*job)`` for each of ``jobs`` (short representative calls) here, one after the
-    other, before the workers get their jobs. What numba compiles for them goes into its cache
+    """Compile once: ``fn(*job)`` for each of ``jobs`` (short representative calls) in this process, one
+    after the other, before the other workers get their jobs (:meth:`WorkerPool.call`). What numba compiles for them goes into its cache
     (``cache=True`` kernels), from which every worker then loads the kernels at their first call instead
     of compiling the same ones at the same time — with an empty cache (a fresh install) the four method
     workers of the main job each compiled every shared kernel. The first job always runs; when numba
