@@ -44,6 +44,19 @@ def test_warm_up_skips_the_rest_when_the_first_job_compiled_nothing():
     assert seen == [1]
 
 
+def test_a_failing_warm_up_job_is_left_to_the_job_proper():
+    seen = []
+
+    def job(x):
+        seen.append(x)
+        _fresh_kernel_call(x)
+        if x == 1:
+            raise ValueError("too short a cut for this setting")
+
+    assert workers.warm_up(job, [(1,), (2,)]) == 2
+    assert seen == [1, 2]
+
+
 class _Stop(Exception):
     pass
 
