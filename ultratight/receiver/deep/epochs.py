@@ -171,7 +171,7 @@ def epoch_post(k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, i_ptau, i_pf, per_m
         record_one(c, k_ep, t_start, fs, if_hz, f0, cp0, x_post, P, i_ptau, i_pf, rec_t, rec_f, rec_cp, rec_a,
                    rec_mode, mode_now, src_outer.aid_grid, src_outer.n_filled, sample_ptr, sig.half_period_s,
                    sig.code_len, aid_out, aid_dt, pend[0], pend_ts[0])
-    settle(1, pend, pend_ts, per_max, fs, src_outer, window, sig)
+    settle(np.int64(1), pend, pend_ts, per_max, fs, src_outer, window, sig)
 
 
 @njit(cache=True)
@@ -274,7 +274,10 @@ def safe_epochs(k_ep, src, corr, outer, window, rec):
 def _channels_parallel(E, k_ep, epoch0, src, corr, wipe, bank, outer, window, rec, law, sig, burst, tap_fix, err):
     """``E`` epochs of every channel, the channels spread over numba's threads (each with its own
     work arrays); ``err[c]``: 0 or the first error of channel ``c``."""
-    for c in prange(corr.sample_ptr.shape[0]):
+    for cu in prange(corr.sample_ptr.shape[0]):
+        # prange's index is unsigned: as int64 the per-channel kernels get the one signature the serial
+        # path compiles (not a second copy of every one of them)
+        c = np.int64(cu)
         W1 = np.empty((N_W1, NZ))
         W2 = np.empty((N_W2, NZ, NZ))
         WA = np.empty(2 * tap_fix.shape[0])
@@ -311,7 +314,8 @@ def run_epochs(k_ep, src, corr, wipe, bank, outer, window, rec, law, sig, burst)
             E = 1
             epoch = _bank_epoch_count(bank, n)
             for c in range(n):
-                r = epoch_channel(c, k_ep, 0, epoch, src, corr, wipe, bank, outer, window, rec, law, sig, burst,
+                # e_row as int64, not the literal 0: one compiled epoch_channel for both paths
+                r = epoch_channel(c, k_ep, np.int64(0), epoch, src, corr, wipe, bank, outer, window, rec, law, sig, burst,
                                   tap_fix, W1, W2, WA)
                 if r != 0:
                     err[c] = r
