@@ -692,3 +692,109 @@ def test_sigint_during_scenario_plotting_is_not_swallowed(tmp_path):
     assert "interrupted by SIGINT" in lines[-1] and "complete outputs kept" in lines[-1], err
     assert all(ln.startswith("wrote ") for ln in lines[:-1]) and len(lines) <= 2, err
     assert not leftovers(tmp_path)
+
+
+# ------------------------------------------------------------------------------------------
+# campaign: a signal while the LocalCluster starts or the runs are going
+# ------------------------------------------------------------------------------------------
+CAMPAIGN = ["campaign", "static-open-sky", "--methods", "scalar", "--duration", "1", "--quiet"]
+
+
+def _campaign_dirt(tmp_path):
+    """What a campaign's LocalCluster could leave under ``tmp_path`` (the working directory, ``--out`` and
+    the system temporary directory the test gives it): Dask scratch space, worker directories, dirlocks."""
+    return [str(p) for pat in ("dask-scratch-space", "worker-*", "*.dirlock", "ultratight-campaign-*")
+            for p in Path(tmp_path).rglob(pat)]
+
+
+def _session_gone(pgid, wait_s=30.0):
+    """True once no process of the session ``pgid`` is left (the driver's workers included)."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < wait_s:
+        try:
+            os.killpg(pgid, 0)
+        except ProcessLookupError:
+            return True
+        time.sleep(0.1)
+    return False
+
+
+def test_sigterm_during_a_campaign_keeps_its_run_files_and_leaves_no_scratch(tmp_path, monkeypatch):
+    """Issue 27: a campaign stopped by SIGTERM while its runs are going ends in one line (status 143),
+    keeps exactly the run files it names, complete, and leaves no Dask scratch space, worker directory,
+    dirlock or temporary file behind (it used to leave them under the system temporary directory)."""
+    from ultratight.receiver.cli.campaign import read_run
+
+    monkeypatch.setenv("TMPDIR", str(tmp_path / "tmp"))
+    (tmp_path / "tmp").mkdir()
+    out = tmp_path / "c"
+    rc, err = _run_and_signal(CAMPAIGN + ["--runs", "8", "--workers", "1", "--out", str(out)], tmp_path,
+                              signal.SIGTERM, lambda pid: any(out.glob("runs/run-*.h5")))
+    assert rc == 128 + signal.SIGTERM, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in err, err
+    head = "ultratight campaign: interrupted by SIGTERM; no partial output written; complete outputs kept: "
+    assert lines[0].startswith(head), lines[0]
+    kept = sorted(lines[0][len(head):].split(", "))
+    assert kept == sorted(str(p) for p in out.glob("runs/*")) and 1 <= len(kept) < 8, (kept, err)
+    for p in kept:
+        got = read_run(p)
+        assert got is not None and bool(got[1]["complete"]) and p.endswith(f"run-{int(got[1]['index']):05d}.h5")
+    assert not (out / "campaign.json").exists()
+    assert not _campaign_dirt(tmp_path), _campaign_dirt(tmp_path)
+    assert not list((tmp_path / "tmp").iterdir())
+    assert not leftovers(tmp_path), leftovers(tmp_path)
+
+
+@pytest.mark.skipif(not hasattr(os, "killpg"), reason="needs process groups")
+@pytest.mark.parametrize("sig", [signal.SIGINT, getattr(signal, "SIGHUP", signal.SIGINT)], ids=["INT", "HUP"])
+def test_signal_to_the_process_group_while_the_campaign_cluster_starts(tmp_path, monkeypatch, sig):
+    """Ctrl-C (SIGINT) or a closed terminal (SIGHUP) reaches the whole process group, the cluster's worker
+    processes too, here while they start: one line (128 + N) from the driver and no traceback from a
+    worker or multiprocessing's resource tracker; no process of the run is left; the ``--out`` directory
+    the command created is removed again (no run file kept) and no scratch space is left."""
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    monkeypatch.setenv("TMPDIR", str(tmp))
+    out = tmp_path / "c"
+    p = subprocess.Popen([sys.executable, "-m", "ultratight.receiver.cli", *CAMPAIGN, "--runs", "2", "--workers",
+                          "2", "--out", str(out)], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True, start_new_session=True)
+    t0 = time.monotonic()
+    while p.poll() is None and not any(tmp.rglob("worker-*")) and time.monotonic() - t0 < 120:
+        time.sleep(0.05)
+    assert p.poll() is None, p.communicate()
+    os.killpg(p.pid, sig)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 128 + sig, err
+    assert err.strip().splitlines() == [f"ultratight campaign: interrupted by {sig.name}; no output written"], err
+    assert _session_gone(p.pid), "processes of the campaign left running"
+    assert not out.exists()
+    assert not _campaign_dirt(tmp_path), _campaign_dirt(tmp_path)
+    assert not list(tmp.iterdir())
+    assert not leftovers(tmp_path)
+
+
+def test_campaign_removes_the_temporaries_of_a_stopped_worker_only(tmp_path):
+    """A worker stopped mid-write (killed after distributed's grace period) leaves its
+    ``.NAME.tmp-PID-RANDOM`` file in the data cache; once the cluster is down the campaign removes the
+    temporaries whose writer has ended, and the directories that leaves empty, and nothing else."""
+    from ultratight.io_guard import tmp_name
+    from ultratight.receiver.cli.campaign import remove_orphaned_temporaries
+
+    cache = tmp_path / "cache"
+    (cache / "k1").mkdir(parents=True)                 # an entry whose only file is the dead writer's temporary
+    (cache / "k2").mkdir()
+    (cache / "k2" / "done.json").write_text("{}")      # a complete entry and a live writer's temporary
+    (cache / "k1.lock").write_text("")
+    res = subprocess.run([sys.executable, "-c", "import sys; from ultratight.io_guard import tmp_name; "
+                          "p = tmp_name(sys.argv[1]); open(p, 'w').write('x'); print(p)",
+                          str(cache / "k1" / "data.truth.h5")], capture_output=True, text=True, check=True)
+    dead = Path(res.stdout.strip())
+    live = tmp_name(cache / "k2" / "data.imu.h5")
+    live.write_text("x")
+    assert dead.is_file() and f".tmp-{os.getpid()}-" not in dead.name
+    remove_orphaned_temporaries(cache)
+    assert not dead.exists() and not (cache / "k1").exists()
+    assert live.is_file() and (cache / "k2" / "done.json").is_file() and (cache / "k1.lock").is_file()
+    remove_orphaned_temporaries(tmp_path / "absent")   # no cache (a scenario without IF data): nothing to do

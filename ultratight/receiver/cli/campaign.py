@@ -30,10 +30,20 @@ resumed campaign and an uninterrupted one sum the same numbers in the same order
 import hashlib
 import json
 import logging
+import os
+import re
+import shutil
+import signal
 import sys
+import tempfile
+import threading
 import time
+import weakref
+from contextlib import contextmanager
+from multiprocessing import resource_tracker
 from pathlib import Path
 
+import dask
 import h5py
 import numba
 import numpy as np
@@ -275,10 +285,22 @@ def local_workers(workers, n_runs, log=None):
     return k
 
 
+# the scratch directory of each LocalCluster started here (start_client), removed by stop_client
+_SCRATCH = weakref.WeakKeyDictionary()
+
+
 def start_client(workers=None, scheduler=None, timeout_s=SCHEDULER_TIMEOUT_S, n_runs=None, log=None):
     """(client, cluster or None, description): a LocalCluster of single-threaded worker processes
     (:func:`local_workers` for ``n_runs`` runs; default: one per allowed core), or a connection to
-    ``scheduler``."""
+    ``scheduler``. Close both with :func:`stop_client`.
+
+    The LocalCluster keeps Dask's scratch space (``dask-scratch-space``: the worker directories and
+    their ``*.dirlock`` files) in a temporary directory of its own (``ultratight-campaign-*`` under
+    the system's temporary directory), removed by :func:`stop_client` or, at the latest, when the
+    cluster object is collected or the interpreter exits. It starts with SIGINT, SIGTERM and SIGHUP
+    deferred (:func:`_signals_deferred`): its worker processes never receive them (a Ctrl-C reaches
+    the terminal's whole process group) and are stopped by the driver instead; a signal that arrives
+    meanwhile ends the run once the cluster is up, which is then closed again."""
     if scheduler is not None:
         try:
             client = Client(scheduler, timeout=timeout_s)
@@ -287,9 +309,64 @@ def start_client(workers=None, scheduler=None, timeout_s=SCHEDULER_TIMEOUT_S, n_
                               f"({' '.join(str(exc).split()) or type(exc).__name__})") from None
         return client, None, f"scheduler {scheduler}"
     k = local_workers(workers, allowed_cores() if n_runs is None else n_runs, log)
-    cluster = LocalCluster(n_workers=k, threads_per_worker=1, processes=True, dashboard_address=":0",
-                           silence_logs=logging.ERROR, env=dict(WORKER_ENV))
-    return Client(cluster), cluster, f"LocalCluster of {k} worker(s) x 1 thread"
+    client = cluster = scratch = None
+    try:
+        scratch = tempfile.mkdtemp(prefix="ultratight-campaign-")
+        with dask.config.set({"temporary-directory": scratch}), _signals_deferred():
+            cluster = LocalCluster(n_workers=k, threads_per_worker=1, processes=True, dashboard_address=":0",
+                                   silence_logs=logging.CRITICAL, env=dict(WORKER_ENV), local_directory=scratch)
+            _SCRATCH[cluster] = weakref.finalize(cluster, shutil.rmtree, scratch, ignore_errors=True)
+            client = Client(cluster)
+    except BaseException:
+        stop_client(client, cluster)
+        if scratch is not None:
+            shutil.rmtree(scratch, ignore_errors=True)
+        raise
+    return client, cluster, f"LocalCluster of {k} worker(s) x 1 thread"
+
+
+def stop_client(client, cluster=None):
+    """Close ``client`` and ``cluster`` (either may be None) without distributed's shutdown messages (a
+    worker's heartbeat that finds the scheduler gone, a comm closed mid-message), then remove the
+    cluster's scratch directory (:func:`start_client`)."""
+    quiet = logging.getLogger("distributed")
+    level = quiet.level
+    quiet.setLevel(logging.CRITICAL + 1)
+    try:
+        for part in (client, cluster):
+            if part is not None:
+                try:
+                    part.close()
+                except Exception:      # already closed, or the scheduler gone: nothing left to stop
+                    pass
+    finally:
+        quiet.setLevel(level)
+        remove = _SCRATCH.pop(cluster, None) if cluster is not None else None
+        if remove is not None:
+            remove()
+
+
+@contextmanager
+def _signals_deferred():
+    """Block SIGINT, SIGTERM and SIGHUP in this thread while a LocalCluster starts. The threads it
+    starts (its event loop) inherit the mask, and so do the worker processes they spawn: a signal sent
+    to the process group (Ctrl-C, a closed terminal, ``timeout``) reaches only the driver, whose
+    cleanup closes the cluster, instead of ending each worker with its own traceback. A blocked signal
+    is pending, not lost: it is handled as soon as the mask is restored."""
+    if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    sigs = set(io_guard.HANDLED_SIGNALS)
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
+    try:
+        # multiprocessing's resource tracker (a process started with the first worker) ignores SIGINT and
+        # SIGTERM but would die of a SIGHUP, and starting it unblocks SIGINT and SIGTERM in the thread that
+        # starts it: start it here, with SIGHUP blocked, then block all three again
+        resource_tracker.ensure_running()
+        signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 def _task(experiment, cfg, methods, seed):
@@ -354,24 +431,16 @@ def run_campaign(scenario, *, runs, methods=None, seed=None, workers=None, sched
     elapsed = {}
     where = "no runs left"
     if todo:
-        own = client is None
-        cluster = None
-        if own:
-            try:
-                client, cluster, where = start_client(workers, scheduler, connect_timeout_s, len(todo), log)
-            except BaseException:
-                for d in reversed(created):         # no cluster, no run: leave no empty OUT/runs behind
-                    _remove_empty_dir(d)
-                raise
-        else:
-            where = "given client"
+        local = client is None and scheduler is None
         try:
-            _compute(client, where, name, cfg, methods, seeds, keys, todo, runs, out, elapsed, progress, log)
-        finally:
-            if own:
-                client.close()
-                if cluster is not None:
-                    cluster.close()
+            where = _compute_on(client, (workers, scheduler, connect_timeout_s, log), name, cfg, methods, seeds,
+                                keys, todo, runs, out, elapsed, progress, log)
+        except BaseException:
+            if local:                   # the cluster's workers are gone: so are the writers of any temporaries
+                remove_orphaned_temporaries(out / "cache")
+            for d in reversed(created):     # no run file kept: leave no empty OUT/runs (or OUT) behind
+                _remove_empty_dir(d)
+            raise
     wall = time.perf_counter() - t0
 
     results = []
@@ -444,6 +513,56 @@ def _check_out(out):
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out} exists and is not a directory")
     io_guard.check_output_path(out / "runs" / "run-00000.h5", "--out", create_parent=True)
+
+
+def _compute_on(client, start, name, cfg, methods, seeds, keys, todo, *rest):
+    """:func:`_compute` on ``client``, or on a client started from ``start`` = (workers, scheduler,
+    connect timeout, log) and stopped again on every exit path (:func:`stop_client`); returns where the
+    runs executed."""
+    job = (name, cfg, methods, seeds, keys, todo, *rest)
+    if client is not None:
+        _compute(client, "given client", *job)
+        return "given client"
+    workers, scheduler, timeout_s, log = start
+    client, cluster, where = start_client(workers, scheduler, timeout_s, len(todo), log)
+    try:
+        _compute(client, where, *job)
+    finally:
+        stop_client(client, cluster)
+    return where
+
+
+_TEMPORARY = re.compile(r"^\..+\.tmp-(\d+)-[0-9a-f]+$")     # io_guard.tmp_name: .NAME.tmp-PID-RANDOM
+
+
+def remove_orphaned_temporaries(d):
+    """Remove the temporary files (``io_guard.tmp_name``) under ``d`` whose writing process has ended
+    (a worker stopped mid-write), then the directories below ``d`` that this leaves empty. A temporary
+    file is renamed only by the process that wrote it, so once that process is gone it is garbage."""
+    d = Path(d)
+    if not d.is_dir():
+        return
+    emptied = set()
+    for p in d.rglob(".*.tmp-*"):
+        m = _TEMPORARY.match(p.name)
+        if m and p.is_file() and not _pid_alive(int(m.group(1))):
+            try:
+                p.unlink()
+            except OSError:
+                continue
+            emptied.update(q for q in p.parents if q != d and d in q.parents)
+    for sub in sorted(emptied, key=lambda q: len(q.parts), reverse=True):
+        _remove_empty_dir(sub)
+
+
+def _pid_alive(pid):
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:                  # e.g. another user's process: alive
+        return True
+    return True
 
 
 def _compute(client, where, name, cfg, methods, seeds, keys, todo, runs, out, elapsed, progress, log):
