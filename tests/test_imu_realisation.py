@@ -206,9 +206,7 @@ def test_experiments_draw_their_sensor_from_the_paper_figures():
     from ultratight.fusion.experiments import paper_static_iakf as SI
     from ultratight.fusion.experiments import sins_gnss as C
     from ultratight.ins.imu import ImuErrors, apply_errors
-    # the experiments' schema default stays N(0, sigma^2); the shipped scenario TOMLs set "stated" (Fang
-    # 2017 §4 and Cai et al. 2020 §4.1 state the constant errors as values), the reading the documented
-    # 10-seed figures are measured with
+    # the documented 10-seed figures of both experiments were measured with the N(0, sigma^2) reading
     assert SI.SCHEMA["imu"]["bias_reading"] == RF.SCHEMA["imu"]["bias_reading"] == "sigma"
     tr = _static(2.0)
     bg, ba = 0.2 * C.DPH, 0.01 * C.G0
