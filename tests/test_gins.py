@@ -32,15 +32,18 @@ SIG_P, SIG_V = 0.03, 0.02       # GNSS noise of the synthetic fixes (m, m/s), de
 
 
 def _log(traj_cfg, duration, seed, grade="tactical", lever=LEVER, gnss_hz=5.0):
-    """(ImuData, GnssFixes, ImuNoise, ImuErrors, trajectory): IMU with constant turn-on biases drawn
-    from the grade's σ and its white noise; fixes of the antenna with seeded white noise."""
+    """(ImuData, GnssFixes, ImuNoise, ImuErrors, trajectory): IMU declared with the grade's turn-on
+    bias σ and white noise, its constant biases drawn by the synthesis (``bias_reading`` "sigma"); the
+    returned ImuErrors holds the drawn sensor (the truth); fixes of the antenna with seeded white noise."""
     traj = build_trajectory(traj_cfg, SITE, duration)
     noise = imu_noise(grade)
     rng = np.random.default_rng(seed)
-    err = ImuErrors(gyro_bias=rng.standard_normal(3) * noise.gyro_bias_sigma,
-                    accel_bias=rng.standard_normal(3) * noise.accel_bias_sigma,
-                    gyro_arw=np.full(3, noise.gyro_arw), accel_vrw=np.full(3, noise.accel_vrw))
-    imu = synthesize_imu(traj, 100.0, err, rng, lever_arm_b=lever)
+    spec = ImuErrors(gyro_bias=np.full(3, noise.gyro_bias_sigma), accel_bias=np.full(3, noise.accel_bias_sigma),
+                     gyro_arw=np.full(3, noise.gyro_arw), accel_vrw=np.full(3, noise.accel_vrw))
+    imu = synthesize_imu(traj, 100.0, spec, rng, lever_arm_b=lever)
+    drawn = imu.errors_realised
+    err = ImuErrors(gyro_bias=np.asarray(drawn["gyro_bias"], float), accel_bias=np.asarray(drawn["accel_bias"], float),
+                    gyro_arw=spec.gyro_arw, accel_vrw=spec.accel_vrw)
     imu.t = imu.t + T0
     imu.t0 = T0
     tg = np.arange(1.0 / gnss_hz, duration + 1e-9, 1.0 / gnss_hz)
