@@ -174,28 +174,3 @@ def test_an_interrupted_cleanup_that_fails_still_reports_the_interruption(monkey
     monkeypatch.setattr(ins, "run", lambda args: (_ for _ in ()).throw(RuntimeError("bug")))
     with pytest.raises(RuntimeError):
         cli.main(["ins", "paper-highdyn"])
-
-
-def test_a_signal_inside_numba_waits_for_numba_to_return():
-    """A handled signal that lands in numba's own Python (compiling or loading a kernel) is not raised
-    there — an exception in the middle of LLVM object construction can crash the process — but by a
-    timer once those frames are left."""
-    import signal
-    import sys
-    import time
-
-    from ultratight import io_guard
-
-    ns = {"__name__": "numba.core.compiler_fake", "io_guard": io_guard, "signal": signal, "sys": sys}
-    exec("def compile_step():\n    io_guard._handler(signal.SIGTERM, sys._getframe())\n    return 'returned'\n", ns)
-    previous = io_guard.install_signal_handlers()
-    try:
-        assert ns["compile_step"]() == "returned"           # not raised inside numba's frames
-        assert io_guard.interrupted_signal() == signal.SIGTERM
-        with pytest.raises(io_guard.Interrupted):
-            t0 = time.monotonic()
-            while time.monotonic() - t0 < 5.0:
-                time.sleep(0.01)                             # the retry timer raises here
-    finally:
-        io_guard.restore_signal_handlers(previous)
-        io_guard._pending_signal = None

@@ -471,44 +471,7 @@ def _handler(signum, frame):
             signal.signal(s, signal.SIG_IGN)
         except (OSError, ValueError):
             pass
-    if _in_numba(frame) and _retry_later():
-        return          # raised once numba's compiler / cache loader has returned (_retry)
     raise Interrupted(signum)
-
-
-NUMBA_RETRY_S = 0.1     # while a signal waits for numba's compiler to return, look again this often
-
-
-def _in_numba(frame):
-    """Whether the interrupted code is numba's own Python (compiling or loading a kernel from the
-    cache): an exception raised there can leave LLVM objects half-built, whose destruction may crash
-    the process instead of ending it with the one-line message."""
-    while frame is not None:
-        mod = frame.f_globals.get("__name__", "") or ""
-        if mod.startswith(("numba.", "llvmlite.")):
-            return True
-        frame = frame.f_back
-    return False
-
-
-def _retry_later():
-    """Arm a timer that raises the pending interruption once numba's frames are left."""
-    if not hasattr(signal, "setitimer"):
-        return False
-    try:
-        signal.signal(signal.SIGALRM, _retry)
-        signal.setitimer(signal.ITIMER_REAL, NUMBA_RETRY_S)
-    except (OSError, ValueError):
-        return False
-    return True
-
-
-def _retry(signum, frame):
-    if _in_numba(frame):
-        signal.setitimer(signal.ITIMER_REAL, NUMBA_RETRY_S)
-        return
-    signal.signal(signal.SIGALRM, signal.SIG_DFL)
-    raise Interrupted(_pending_signal)
 
 
 def install_signal_handlers():
@@ -535,11 +498,6 @@ def install_signal_handlers():
 
 
 def restore_signal_handlers(previous):
-    if hasattr(signal, "setitimer"):
-        try:
-            signal.setitimer(signal.ITIMER_REAL, 0.0)      # a pending retry (_retry_later) ends here
-        except (OSError, ValueError):
-            pass
     if _pending_signal is None and _outer_unraisablehook is not None:
         # after an interrupted run the quiet hook stays for the interpreter's shutdown, whose
         # finalisers are the ones that would report; the next install starts clean
