@@ -364,3 +364,42 @@ def test_coordinated_bank_left_axis():
     h = math.sqrt(0.5)
     np.testing.assert_allclose(coordinated_left([100.0, 0.0, 0.0], [0.0, -g, 0.0], g), [0.0, h, h], atol=1e-12)
     np.testing.assert_allclose(coordinated_left([100.0, 0.0, 0.0], [0.0, g, 0.0], g), [0.0, h, -h], atol=1e-12)
+
+
+def _fixes(n, still_until_s, rate_hz=10.0, fs=4e6, seed=7):
+    """Synthetic 10 Hz scalar fixes: positions scattered about a point, still until ``still_until_s``,
+    a clock with a constant drift (the engine clock of every fix the same when carried along it)."""
+    rng = np.random.default_rng(seed)
+    p0 = np.array([6378137.0, 0.0, 0.0])
+    out = []
+    for i in range(n):
+        t = i / rate_hz
+        v = np.zeros(3) if t <= still_until_s else np.array([0.0, 5.0, 0.0])
+        # receiver time of the sample minus GPS time: clock 100 m + 0.2 m/s
+        gps = 1000.0 + t - (100.0 + 0.2 * t) / 299792458.0
+        out.append({"sample_index": round(t * fs), "pos_e": p0 + rng.normal(0.0, 2.0, 3), "vel_e": v, "n_used": 8,
+                    "gps_tow_s": gps, "gps_week": 2190, "clk_drift_mps": 0.2})
+    return out
+
+
+def test_still_receiver_averages_its_fixes_up_to_fix_avg_s():
+    """A still receiver hands over at the fix ending fix_avg_s of still fixes with their mean; motion
+    after 5 s: the mean of the 5 s it has; motion before fix_avg_min_s: the settled fix alone."""
+    from dataclasses import replace
+
+    from ultratight.receiver.deep.handover import HandoverConfig, _engine_clock, _still_fixes
+
+    cfg, fs = HandoverConfig(), 4e6
+    fx = _fixes(200, 100.0)
+    j, mean, sig, used = _still_fixes(fx, 10, fs, cfg)
+    assert j == 10 + round(cfg.fix_avg_s * 10) and len(used) == j - 10 + 1
+    np.testing.assert_allclose(mean, np.mean([f["pos_e"] for f in fx[10:j + 1]], axis=0), rtol=0, atol=1e-9)
+    assert 1.0 < sig < 3.0                              # the scatter (2 m per axis), not scatter / sqrt(n)
+    clocks = [_engine_clock(f, fs, 1000.0, 2190, j / 10.0) for f in used]
+    np.testing.assert_allclose(clocks, 100.0 + 0.2 * j / 10.0, atol=1e-4)    # each fix's clock carried to t_j
+    j5, _, _, used5 = _still_fixes(_fixes(200, 5.0), 10, fs, cfg)
+    assert j5 == 50 and len(used5) == 41               # still up to 5.0 s: 4 s of them from the fix at 1 s
+    jm, mean_m, _, used_m = _still_fixes(_fixes(200, 3.0), 10, fs, cfg)
+    assert (jm, mean_m, used_m) == (10, None, None)    # still for 2 s after the settled fix: < fix_avg_min_s
+    jp, mean_p, _, _ = _still_fixes(_fixes(200, 30.0), 10, fs, replace(cfg, fix_avg_s=3.0))
+    assert jp == 40 and mean_p is not None             # the earlier 3 s mean

@@ -72,12 +72,15 @@ WEEK_S = 604800.0
 class HandoverConfig:
     """Parameters of the scalar-to-ultra-tight hand-over (see module docstring)."""
 
-    window_s: float = 12.0          # scalar pass length from the start (LNAV time of week: <= 6 s + sync)
+    window_s: float = 20.0          # scalar pass length from the start: LNAV time of week (<= 6 s + sync),
+    #                                 a settled fix and a still receiver's fix_avg_s of averaging
     min_sats: int = 5               # satellites in the hand-over fix
     settle_fixes: int = 3           # consecutive fixes ending at the hand-over fix
     still_s: float = 1.0            # still interval for levelling / gyro-compassing (at least)
     still_max_s: float = 10.0       # ... and at most: the longest still stretch before the hand-over
-    fix_avg_s: float = 3.0          # a still receiver hands over the mean of its fixes over this span
+    fix_avg_s: float = 10.0         # a still receiver hands over the mean of its fixes over this span ...
+    fix_avg_min_s: float = 3.0      # ... or over the still fixes it has when motion or the pass end comes
+    #                                 first, if they span at least this (else the settled fix alone)
     still_speed_mps: float = 0.2
     still_force_mps2: float = 0.1   # largest deviation of 0.1 s mean specific force magnitudes
     move_speed_mps: float = 3.0
@@ -358,7 +361,7 @@ def scalar_pass(source, ephemerides, prns, start_s, cfg, atmosphere=None):
 
 # the weak-signal acquisition of the start-up's second scalar pass (HandoverConfig.weak_retry)
 WEAK_ACQUISITION = {"acq_min_cn0_dbhz": 25.0, "acq_noncoherent": 16, "acq_coherent_ms": 5}
-WEAK_WINDOW_FACTOR = 2.5        # ... over this many window_s (30 s by default)
+WEAK_WINDOW_FACTOR = 1.5        # ... over this many window_s (30 s by default)
 
 
 class NoFixError(ConfigError):
@@ -375,29 +378,49 @@ def _imu_point(imu, pos_e, C_el, q_lb):
 
 
 def _still_fixes(fixes, k, fs, cfg):
-    """``(k, mean position, sigma)``: a receiver still at the settled fix ``k`` hands over at the
-    first fix that ends ``fix_avg_s`` of consecutive still fixes (speed <= ``still_speed_mps``), with
-    the mean ECEF position of those fixes and, as its 1-sigma per axis, the largest ENU scatter of
-    the fixes about their mean (their errors are correlated over the loops' time constants: the
-    scatter, not the scatter / sqrt(n)). ``(k, None, 0.0)`` when the receiver moves or the pass ends
-    first."""
+    """A receiver still at the settled fix ``k`` hands over at fix ``j``, the last of the consecutive
+    still fixes from ``k`` (speed <= ``still_speed_mps``, at least ``min_sats`` satellites, a next fix
+    for the acceleration) that span at most ``fix_avg_s``: fewer when motion or the end of the pass
+    comes first, but at least ``fix_avg_min_s``. Returns ``(j, mean ECEF position, sigma, the fixes
+    used)``, sigma (1-sigma per axis) being the largest ENU scatter of the fixes about their mean
+    (their errors are correlated over the loops' time constants: the scatter, not the scatter /
+    sqrt(n)); ``(k, None, 0.0, None)`` when the receiver moves at ``k`` or its still fixes span less
+    than ``fix_avg_min_s``. The caller averages the fixes' clock biases too: the clock and the
+    height err together, and one averaged without the other would leave the engine's first
+    pseudorange residuals a common bias.
+
+    Why 10 s: the engine's tracking channels carry the hand-over's code error a long time (their code
+    estimate is carrier-aided and averages everything since the start), so the hand-over error decays
+    slowly at low C/N0; on the rocket-launch pad at 30 dB-Hz the 3 s mean left the run 3.1 m 3D RMS,
+    the 10 s mean 1.3 m (docs/ultratight.md "Start-up without truth")."""
     def still(f):
-        return float(np.linalg.norm(f["vel_e"])) <= cfg.still_speed_mps
+        return float(np.linalg.norm(f["vel_e"])) <= cfg.still_speed_mps and f["n_used"] >= cfg.min_sats
 
     t = [f["sample_index"] / fs for f in fixes]
     if not still(fixes[k]):
-        return k, None, 0.0
-    j0 = k
+        return k, None, 0.0, None
+    j_end = None
     for j in range(k, len(fixes) - 1):
-        if not still(fixes[j]) or fixes[j]["n_used"] < cfg.min_sats:
-            return k, None, 0.0
-        if t[j] - t[j0] >= cfg.fix_avg_s - 1e-9 and fixes[j + 1]["n_used"] >= cfg.min_sats:
-            P = np.array([f["pos_e"] for f in fixes[j0:j + 1]], float)
-            mean = P.mean(axis=0)
-            llh = ecef_to_llh(mean.copy())
-            enu = (P - mean) @ np.asarray(dcm_ecef_from_enu(llh[0], llh[1]))
-            return j, mean, float(np.max(np.sqrt(np.mean(enu ** 2, axis=0))))
-    return k, None, 0.0
+        if not still(fixes[j]) or t[j] - t[k] > cfg.fix_avg_s + 1e-9:
+            break
+        if fixes[j + 1]["n_used"] >= cfg.min_sats:
+            j_end = j
+    if j_end is None or t[j_end] - t[k] < cfg.fix_avg_min_s - 1e-9:
+        return k, None, 0.0, None
+    used = fixes[k:j_end + 1]
+    P = np.array([f["pos_e"] for f in used], float)
+    mean = P.mean(axis=0)
+    llh = ecef_to_llh(mean.copy())
+    enu = (P - mean) @ np.asarray(dcm_ecef_from_enu(llh[0], llh[1]))
+    return j_end, mean, float(np.max(np.sqrt(np.mean(enu ** 2, axis=0)))), used
+
+
+def _engine_clock(f, fs, tow0, week0, t_at):
+    """The engine's clock bias (m) at ``t_at`` (s of the IF file) from scalar fix ``f``: the IF file's
+    receiver time against GPS time, ``c (tow0 + t_fix - t_gps,fix)``, carried along the fix's drift."""
+    t_fix = f["sample_index"] / fs
+    gps = float(f["gps_tow_s"]) + WEEK_S * ((f["gps_week"] or week0) - week0)
+    return C * (tow0 + t_fix - gps) + float(f["clk_drift_mps"]) * (t_at - t_fix)
 
 
 def pick_fix(fixes, obs_step_s, cfg):
@@ -434,7 +457,7 @@ def scalar_handover(source, imu, imu_errors, ephemerides, prns, start_s=0.0, cfg
                          f"{cfg.min_sats} satellites (tracked: {[c['prn'] for c in res.channels if c['tracked']]}); "
                          "give --init-llh/--init-vel/--init-att or a longer/later window (--start)")
     fs = float(source.fs_hz)
-    k, still_pos, still_sig = _still_fixes(res.fixes, k, fs, cfg)
+    k, still_pos, still_sig, still_used = _still_fixes(res.fixes, k, fs, cfg)
     fx, fp, fn = res.fixes[k], res.fixes[k - 1], res.fixes[k + 1]
     t_fix = fx["sample_index"] / fs
     dt_imu = 1.0 / float(imu.rate_hz)
@@ -454,8 +477,7 @@ def scalar_handover(source, imu, imu_errors, ephemerides, prns, start_s=0.0, cfg
     sig_vel = float(fx.get("sigma_vel_mps", 0.1))
     sig_acc = math.sqrt(2.0) * sig_vel / dtv
     tow0, week0 = float(source.start_tow_s), int(source.start_week)
-    gps = float(fx["gps_tow_s"]) + WEEK_S * ((fx["gps_week"] or week0) - week0)
-    clk_b = C * (tow0 + t_fix - gps) + float(fx["clk_drift_mps"]) * d
+    clk_b = float(np.mean([_engine_clock(f, fs, tow0, week0, t_h) for f in (still_used or [fx])]))
     clk_d = float(fx["clk_drift_mps"])
     state = {"llh": llh, "vel_l": vel_l, "code_phase_chips": channel_code_phases(res, round(t_h * fs), fs)}
     given = sorted(k_ for k_ in ("llh", "vel_l", "q_lb") if k_ in overrides)
