@@ -247,3 +247,24 @@ def test_acceptance_atmosphere_60s(tmp_path):
     assert on["corrections"]["iono_source"] == "lnav" and on["n_used_median"] >= 10
     assert on["rms_3d_m"] <= 0.5 and abs(on["mean_enu_m"][2]) <= 0.3
     assert off["rms_3d_m"] > 5.0 and off["mean_enu_m"][2] > 5.0
+
+
+def test_saastamoinen_is_continuous_through_the_tropopause_and_fades_to_the_top():
+    """A climbing vehicle: no step at 10-11 km (RTKLIB's model stops there: up to 5 m at 5 deg);
+    the pressure above follows the US Standard Atmosphere 1976 (geometric 20 km: 5529 Pa, 32 km:
+    889 Pa; NOAA-S/T 76-1562 Table I) to within the 0.3 % that joins it to the closed form at
+    11 km; a dry stratosphere (wet delay under 1 mm above 15 km); nothing above 81 km."""
+    el = math.radians(5.0)
+    h = np.linspace(0.0, 80000.0, 8001)
+    d = saastamoinen_delay_m(0.5, h, el)
+    assert np.all(np.diff(d) < 0.0) and d[-1] > 0.0
+    assert np.max(np.abs(np.diff(d))) < 0.04                  # 10 m steps: no more than at sea level (3.7 cm)
+    near = saastamoinen_delay_m(0.5, np.array([10999.9, 11000.0, 11000.1]), el)
+    assert np.ptp(near) < 1e-3
+    assert standard_atmosphere(20000.0)[0] == pytest.approx(55.29, rel=0.004)
+    assert standard_atmosphere(32000.0)[0] == pytest.approx(8.89, rel=0.004)
+    assert saastamoinen_zenith_m(0.5, 15000.0)[1] < 1e-3
+    assert saastamoinen_delay_m(0.5, 81000.0, el) == 0.0
+    # arrays of any shape, scalars stay scalars
+    assert standard_atmosphere(np.array([[0.0, 12000.0], [5e4, 9e4]]))[0].shape == (2, 2)
+    assert np.ndim(standard_atmosphere(12000.0)[0]) == 0

@@ -23,7 +23,13 @@ the form of Davis et al. (1985, Radio Sci. 20(6)),
 with the meteorological values of a standard atmosphere at the ellipsoidal height ``h`` (the
 closed-form troposphere of the ICAO/ISA model: ``P = 1013.25 (1 - 2.2557e-5 h)^5.2568`` hPa,
 ``T = 288.16 - 6.5e-3 h`` K, relative humidity 70 %, water-vapour pressure from the
-saturation formula ``6.108 exp((17.15 T - 4684) / (T - 38.45))`` hPa).  Mapping functions
+saturation formula ``6.108 exp((17.15 T - 4684) / (T - 38.45))`` hPa).  Above the tropopause
+(11 km) the closed form no longer holds; there the pressure follows the ICAO standard atmosphere's
+upper layers (the ``ambiance`` library, scaled to meet the closed form at 11 km) up to its top at
+81 km, where it is zero.  The delay is therefore continuous in height: a vehicle that climbs
+through 10-11 km sees the ~0.5 m of zenith delay above it fade, not switch off (RTKLIB's
+``tropmodel`` returns 0 above 10 km, a step of up to 5 m at 5 deg of elevation that a receiver
+tracking a climbing vehicle takes as a jump of the carrier).  Mapping functions
 (``MAPPINGS``):
 
 * ``"cosz"`` — ``1 / cos z = 1 / sin E`` (Saastamoinen's own thin-layer mapping, the one RTKLIB's
@@ -48,7 +54,9 @@ TROPO_MODELS = ("saastamoinen", "off")
 MAPPINGS = ("cosz", "black-eisner")
 REL_HUMIDITY = 0.7
 ISA_T0_K = 288.16              # 15 degC + 273.16 (the Saastamoinen standard-atmosphere constant)
-TROPO_H_MIN_M, TROPO_H_MAX_M = -100.0, 1.0e4
+TROPO_H_MIN_M = -100.0
+TROPOPAUSE_M = 11000.0         # top of the closed-form troposphere
+ISA_TOP_M = 81000.0            # top of the ISA tables (ambiance): no delay above
 NIGHT_DELAY_S = 5.0e-9         # the model's constant night-time delay (IS-GPS-200)
 MIN_PERIOD_S = 72000.0
 
@@ -80,13 +88,38 @@ def klobuchar_delay_s(alpha, beta, lat_rad, lon_rad, elev_rad, azim_rad, tow_s):
     return f * np.where(np.abs(x) < 1.57, day, NIGHT_DELAY_S)
 
 
-def standard_atmosphere(h_m):
-    """(pressure hPa, temperature K, water-vapour pressure hPa) at ellipsoidal height ``h_m``
-    (clamped at 0 below the ellipsoid), standard atmosphere with 70 % relative humidity."""
-    h = np.maximum(np.asarray(h_m, dtype=float), 0.0)
+def _closed_form(h):
+    return 1013.25 * (1.0 - 2.2557e-5 * h) ** 5.2568, ISA_T0_K - 6.5e-3 * h
+
+
+def _closed_form(h):
+    """(P hPa, T K, e hPa) of the closed-form troposphere (module docstring) at h <= 11 km."""
     p = 1013.25 * (1.0 - 2.2557e-5 * h) ** 5.2568
     t = ISA_T0_K - 6.5e-3 * h
-    e = 6.108 * REL_HUMIDITY * np.exp((17.15 * t - 4684.0) / (t - 38.45))
+    return p, t, 6.108 * REL_HUMIDITY * np.exp((17.15 * t - 4684.0) / (t - 38.45))
+
+
+def standard_atmosphere(h_m):
+    """(pressure hPa, temperature K, water-vapour pressure hPa) at ellipsoidal height ``h_m``
+    (clamped at 0 below the ellipsoid), standard atmosphere with 70 % relative humidity: the closed
+    form up to the tropopause (11 km); above it the ICAO layers' pressure and temperature (module
+    docstring), the water vapour falling with the pressure from its tropopause value (the
+    stratosphere is dry: 70 % humidity at its 270 K would be 0.4 m of slant delay at 50 km), and
+    no atmosphere above 81 km."""
+    h = np.maximum(np.asarray(h_m, dtype=float), 0.0)
+    p, t, e = (np.array(v, dtype=float, ndmin=1) for v in _closed_form(np.minimum(h, TROPOPAUSE_M)))
+    hi = np.broadcast_to(h > TROPOPAUSE_M, p.shape)
+    if np.any(hi):
+        from ambiance import Atmosphere
+
+        hh = np.broadcast_to(h, p.shape)[hi]
+        isa = Atmosphere(np.concatenate([[TROPOPAUSE_M], np.minimum(hh, ISA_TOP_M)]))
+        p11, t11, e11 = _closed_form(TROPOPAUSE_M)
+        ratio = np.where(hh >= ISA_TOP_M, 0.0, isa.pressure[1:] / isa.pressure[0])
+        p[hi], e[hi] = p11 * ratio, e11 * ratio
+        t[hi] = isa.temperature[1:] + (t11 - isa.temperature[0])
+    if not h.ndim:
+        return p[0], t[0], e[0]
     return p, t, e
 
 
@@ -114,13 +147,13 @@ def mapping(elev_rad, name="cosz"):
 
 
 def saastamoinen_delay_m(lat_rad, h_m, elev_rad, mapping_name="cosz"):
-    """Slant tropospheric delay (m); 0 for elevations <= 0 or heights outside [-100 m, 10 km]
-    (the standard atmosphere's domain)."""
+    """Slant tropospheric delay (m); 0 for elevations <= 0, below -100 m and above the standard
+    atmosphere's top (81 km)."""
     zhd, zwd = saastamoinen_zenith_m(lat_rad, h_m)
     el = np.asarray(elev_rad, dtype=float)
     h = np.asarray(h_m, dtype=float)
     d = (zhd + zwd) * mapping(el, mapping_name)
-    ok = (el > 0.0) & (h >= TROPO_H_MIN_M) & (h <= TROPO_H_MAX_M)
+    ok = (el > 0.0) & (h >= TROPO_H_MIN_M) & (h < ISA_TOP_M)
     return np.where(ok, d, 0.0)
 
 
