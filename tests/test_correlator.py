@@ -6,7 +6,8 @@ import pytest
 from ultratight.constants import CA_LEN, F_CA, F_L1
 from ultratight.errors import ConfigError
 from ultratight.receiver.dsp.correlator import (
-    COLUMNS, CorrelatorBank, code_rate_from_doppler, estimate_sigma_arm)
+    COLUMNS, COS_LUT, LUT_BITS, LUT_SIZE, SIN_LUT, CorrelatorBank, code_rate_from_doppler, estimate_sigma_arm,
+    integrate_channel, nco_fixed_point, tap_fixed_point)
 from ultratight.signals.ca_code import ca_code
 from ultratight.signals.corr_model import (
     amplitude_from_cn0, code_autocorr, epl_noise_covariance, signal_amplitude, tap_offsets)
@@ -78,6 +79,79 @@ def test_matches_numpy_reference(complex_sampling, fs, if_hz):
     # the state advanced exactly: code phase continues from the start of the next period
     dp = code_rate_from_doppler(rep_fd) / fs
     assert bank.code_phase[0] == pytest.approx((rep_cp + start * dp) % CA_LEN, abs=1e-9)
+
+
+def fixed_point_sums(buf, is_complex, off, n, code_ext, cp0, cstep, ph0, phstep, tap_fix, cos_lut, sin_lut):
+    """The kernel's arithmetic as documented, in float64 numpy: carrier table entry = bits
+    ``32 - LUT_BITS ..`` of the 32-bit phase ``ph0 + k*phstep``; tap t uses code entry
+    ``(cp0 + k*cstep + tap_fix[t]) >> 32``.  Returns [I_t..., Q_t...] and sum_k (|bi| + |bq|)."""
+    k = np.arange(n, dtype=np.int64)
+    li = ((ph0 + k * phstep) >> (32 - LUT_BITS)) & (LUT_SIZE - 1)
+    c, s = cos_lut[li].astype(float), sin_lut[li].astype(float)
+    if is_complex:
+        xr, xi = buf[2 * (off + k)].astype(float), buf[2 * (off + k) + 1].astype(float)
+        bi, bq = xr * c + xi * s, xi * c - xr * s
+    else:
+        xr = buf[off + k].astype(float)
+        bi, bq = xr * c, -xr * s
+    codes = [code_ext[(cp0 + k * cstep + d) >> 32].astype(float) for d in tap_fix]
+    sums = [np.sum(bi * cd) for cd in codes] + [np.sum(bq * cd) for cd in codes]
+    return np.array(sums), float(np.sum(np.abs(bi) + np.abs(bq)))
+
+
+# (n samples, start code phase in chips, carrier Hz, taps): block lengths around the 1024-sample
+# float32 block, one shorter than a block, a start where the late tap reads the table's left
+# padding, one running past the period end into the right padding, a falling carrier phase
+KERNEL_CASES = [(4000, 0.0, 1234.5, (0.0, 0.5, -0.5)), (1024, 300.25, -2345.6, (0.0, 0.5, -0.5)),
+                (1023, 10.5, 800.0, (0.0, 0.25, -0.25)), (1025, 700.0, -4000.0, (0.0, 0.5, -0.5)),
+                (3000, 3.3, 150.0, (0.0, 0.9, -0.9)), (300, 0.1, -9000.0, (0.0, 0.5, -0.5)),
+                (12, 1022.6, 2000.0, (0.0, 0.5, -0.5)), (2600, 300.0, -1.0, (0.0, 0.5, -0.5, 1.5, -1.5))]
+
+
+@pytest.mark.parametrize("is_complex", [True, False])
+@pytest.mark.parametrize("n,cp_chips,f_hz,taps", KERNEL_CASES)
+def test_integrate_channel_exact_on_dyadic_data(is_complex, n, cp_chips, f_hz, taps):
+    """Samples in {-4..4} and carrier tables of multiples of 1/8: every product and partial sum is
+    exact in float32, so the kernel's sums equal the numpy ones exactly, in any order of the
+    additions; any wrong table index, sample or block boundary shows."""
+    rng = np.random.default_rng(n)
+    fs = 4.0e6
+    bank = CorrelatorBank([13], fs, 0.0, is_complex, vel_spacing_chips=3.0 if len(taps) == 5 else None)
+    code_ext = bank.code_ext[0]
+    cos_t = (rng.integers(-8, 9, LUT_SIZE) / 8.0).astype(np.float32)
+    sin_t = (rng.integers(-8, 9, LUT_SIZE) / 8.0).astype(np.float32)
+    off = 7
+    buf = rng.integers(-4, 5, (off + n) * (2 if is_complex else 1)).astype(np.float32)
+    dp = F_CA * (1.0 + f_hz / F_L1) / fs
+    cp0, cstep, ph0, phstep = nco_fixed_point(cp_chips, bank.pad, dp, 0.3, f_hz, fs)
+    tap_fix = tap_fixed_point(np.array(taps))
+    acc = np.zeros(2 * len(taps))
+    integrate_channel(buf, is_complex, off, n, code_ext, cp0, cstep, ph0, phstep, tap_fix, cos_t, sin_t, acc)
+    ref, _ = fixed_point_sums(buf, is_complex, off, n, code_ext, cp0, cstep, ph0, phstep, tap_fix, cos_t, sin_t)
+    np.testing.assert_array_equal(acc, ref)
+
+
+@pytest.mark.parametrize("is_complex", [True, False])
+@pytest.mark.parametrize("n,cp_chips,f_hz,taps", KERNEL_CASES[:3])
+def test_integrate_channel_float32_rounding_on_noise(is_complex, n, cp_chips, f_hz, taps):
+    """With the carrier tables and Gaussian samples the sums differ from the float64 ones only by
+    float32 rounding: at most gamma_m * sum|terms| with gamma_m = m u / (1 - m u), u = 2**-24,
+    m = 1024 + 3 (worst case of a float32 sum of a block plus its products; Higham 2002, ch. 3)."""
+    rng = np.random.default_rng(5 + n)
+    fs = 4.0e6
+    bank = CorrelatorBank([21], fs, 0.0, is_complex)
+    buf = rng.standard_normal(2 * n if is_complex else n).astype(np.float32)
+    dp = F_CA * (1.0 + f_hz / F_L1) / fs
+    cp0, cstep, ph0, phstep = nco_fixed_point(cp_chips, bank.pad, dp, 0.6, f_hz, fs)
+    tap_fix = tap_fixed_point(np.array(taps))
+    acc = np.zeros(6)
+    integrate_channel(buf, is_complex, 0, n, bank.code_ext[0], cp0, cstep, ph0, phstep, tap_fix, COS_LUT, SIN_LUT,
+                      acc)
+    ref, abs_sum = fixed_point_sums(buf, is_complex, 0, n, bank.code_ext[0], cp0, cstep, ph0, phstep, tap_fix,
+                                    COS_LUT, SIN_LUT)
+    mu = (1024 + 3) * 2.0 ** -24
+    assert np.all(np.abs(acc - ref) <= mu / (1 - mu) * abs_sum)
+    assert np.max(np.abs(ref)) > 10.0                  # the sums are not trivially small
 
 
 def test_column_names():
