@@ -403,3 +403,22 @@ def test_still_receiver_averages_its_fixes_up_to_fix_avg_s():
     assert (jm, mean_m, used_m) == (10, None, None)    # still for 2 s after the settled fix: < fix_avg_min_s
     jp, mean_p, _, _ = _still_fixes(_fixes(200, 30.0), 10, fs, replace(cfg, fix_avg_s=3.0))
     assert jp == 40 and mean_p is not None             # the earlier 3 s mean
+
+
+def test_still_fixes_ride_through_velocity_noise_but_not_a_creep():
+    """30 dB-Hz fixes scatter by 0.2 m/s: a fix at 0.25 m/s with sigma 0.22 m/s is still rest; a
+    vehicle creeping at 0.3 m/s with the same noise is not still, however noisy each fix is."""
+    from ultratight.receiver.deep.handover import HandoverConfig, _still_fixes
+
+    cfg, fs = HandoverConfig(), 4e6
+    fx = _fixes(200, 100.0)
+    rng = np.random.default_rng(3)
+    for f in fx:
+        f["vel_e"] = rng.normal(0.0, 0.22 / math.sqrt(3.0), 3)
+        f["sigma_vel_mps"] = 0.22
+    fx[15]["vel_e"] = np.array([0.25, 0.0, 0.0])
+    j, mean, _, _ = _still_fixes(fx, 10, fs, cfg)
+    assert j == 110 and mean is not None
+    for f in fx:
+        f["vel_e"] = f["vel_e"] + np.array([0.0, 0.3, 0.0])
+    assert _still_fixes(fx, 10, fs, cfg)[1] is None

@@ -379,9 +379,10 @@ def _imu_point(imu, pos_e, C_el, q_lb):
 
 def _still_fixes(fixes, k, fs, cfg):
     """A receiver still at the settled fix ``k`` hands over at fix ``j``, the last of the consecutive
-    still fixes from ``k`` (speed <= ``still_speed_mps``, at least ``min_sats`` satellites, a next fix
-    for the acceleration) that span at most ``fix_avg_s``: fewer when motion or the end of the pass
-    comes first, but at least ``fix_avg_min_s``. Returns ``(j, mean ECEF position, sigma, the fixes
+    still fixes from ``k`` (speed <= ``still_speed_mps`` or within 3 sigma of the fix's velocity
+    noise, at least ``min_sats`` satellites, a next fix for the acceleration) that span at most
+    ``fix_avg_s``: fewer when motion or the end of the pass comes first, but at least
+    ``fix_avg_min_s``; their mean velocity must be under ``still_speed_mps``. Returns ``(j, mean ECEF position, sigma, the fixes
     used)``, sigma (1-sigma per axis) being the largest ENU scatter of the fixes about their mean
     (their errors are correlated over the loops' time constants: the scatter, not the scatter /
     sqrt(n)); ``(k, None, 0.0, None)`` when the receiver moves at ``k`` or its still fixes span less
@@ -393,8 +394,9 @@ def _still_fixes(fixes, k, fs, cfg):
     estimate is carrier-aided and averages everything since the start), so the hand-over error decays
     slowly at low C/N0; on the rocket-launch pad at 30 dB-Hz the 3 s mean left the run 3.1 m 3D RMS,
     the 10 s mean 1.3 m (docs/ultratight.md "Start-up without truth")."""
-    def still(f):
-        return float(np.linalg.norm(f["vel_e"])) <= cfg.still_speed_mps and f["n_used"] >= cfg.min_sats
+    def still(f):       # within the fix's own velocity noise (3 sigma) of rest
+        lim = max(cfg.still_speed_mps, 3.0 * float(f.get("sigma_vel_mps", 0.0)))
+        return float(np.linalg.norm(f["vel_e"])) <= lim and f["n_used"] >= cfg.min_sats
 
     t = [f["sample_index"] / fs for f in fixes]
     if not still(fixes[k]):
@@ -408,6 +410,8 @@ def _still_fixes(fixes, k, fs, cfg):
     if j_end is None or t[j_end] - t[k] < cfg.fix_avg_min_s - 1e-9:
         return k, None, 0.0, None
     used = fixes[k:j_end + 1]
+    if float(np.linalg.norm(np.mean([f["vel_e"] for f in used], axis=0))) > cfg.still_speed_mps:
+        return k, None, 0.0, None        # creeping: the fixes' noise hid a steady velocity
     P = np.array([f["pos_e"] for f in used], float)
     mean = P.mean(axis=0)
     llh = ecef_to_llh(mean.copy())
