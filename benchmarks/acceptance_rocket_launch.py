@@ -1,6 +1,6 @@
 """Ultra-tight on a recording as a user has it: the rocket-launch scenario (docs/ultratight.md).
 
-    python benchmarks/acceptance_rocket_launch.py [--cn0-list 45,30] [--seed 3] [--duration S]
+    python benchmarks/acceptance_rocket_launch.py [--cn0-list 45,30] [--seed 3] [--duration S] [--fs HZ]
         [--data DIR] [--quick] [--json OUT.json] [-- EXTRA PROCESS FLAGS]
 
 Per C/N0: ``ultratight generate`` writes the rocket-launch scenario (60 s on the pad, then the launch
@@ -19,6 +19,8 @@ its defaults (no other flags) and writes ``res.h5``; only then is the generator'
 file's truth group, the IMU point) read to score the SINS-rate solution: 3D position and velocity
 RMS over the whole run from the hand-over, the largest error, the fraction of rows whose ENU error
 lies inside the reported 3σ on every axis, channels lost, the integrity state, the wall time.
+``--fs`` samples the recording at another rate than the scenario's 4 MHz (e.g. 2.6e6, the rate of
+common front ends and of other simulators' files).
 """
 
 import argparse
@@ -111,18 +113,19 @@ def score(res_h5, truth):
             "integrity": (info.get("integrity") or {}).get("state")}
 
 
-def run_one(data, cn0, seed, duration_s, extra):
+def run_one(data, cn0, seed, duration_s, extra, fs_hz=None):
     from ultratight.receiver.cli import main as cli_main
 
-    base = data / f"cn0_{cn0:g}_seed{seed}"
+    base = data / (f"cn0_{cn0:g}_seed{seed}" + (f"_fs{fs_hz:g}" if fs_hz else ""))
     gen, user = base / "gen", base / "user"
     for p in (gen, user):
         p.mkdir(parents=True, exist_ok=True)
     (base / "rl.toml").write_text(scenario_text(duration_s))
     t0 = time.perf_counter()
     if not (gen / "rl.ci8").is_file():
+        fs_args = ["--fs", repr(float(fs_hz))] if fs_hz else []
         assert cli_main(["generate", str(base / "rl.toml"), "--cn0", str(cn0), "--seed", str(seed), "--out",
-                         str(gen / "rl"), "--no-progress"]) == 0
+                         str(gen / "rl"), "--no-progress", *fs_args]) == 0
     gen_s = time.perf_counter() - t0
     for p in user.iterdir():
         p.unlink()
@@ -135,7 +138,8 @@ def run_one(data, cn0, seed, duration_s, extra):
     t0 = time.perf_counter()
     r = subprocess.run(cmd, cwd=user, capture_output=True, text=True)
     wall = time.perf_counter() - t0
-    row = {"cn0_dbhz": cn0, "seed": seed, "generate_s": round(gen_s, 1), "wall_s": round(wall, 1),
+    row = {"cn0_dbhz": cn0, "seed": seed, "fs_hz": fs_hz or 4e6, "generate_s": round(gen_s, 1),
+           "wall_s": round(wall, 1),
            "exit": r.returncode, "stderr": r.stderr.strip().splitlines()[-3:]}
     if r.returncode in (0, 3) and out.is_file():
         summ = json.loads(r.stdout)
@@ -155,6 +159,7 @@ def main():
     ap.add_argument("--cn0-list", default="45,30", help="C/N0 values, dB-Hz (default 45,30)")
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's 100 s)")
+    ap.add_argument("--fs", type=float, default=None, help="sampling rate of the recording, Hz (default: 4 MHz)")
     ap.add_argument("--data", default=None, help="folder for the generated files (kept; reused when present)")
     ap.add_argument("extra", nargs="*", help="further process flags (after --)")
     args = ap.parse_args()
@@ -164,7 +169,7 @@ def main():
         cn0s = cn0s[:1]
     tmp = None if args.data else tempfile.TemporaryDirectory(prefix="ut_rocket_")
     data = Path(args.data or tmp.name)
-    rows = [run_one(data, c, args.seed, duration, args.extra) for c in cn0s]
+    rows = [run_one(data, c, args.seed, duration, args.extra, args.fs) for c in cn0s]
     print("rocket-launch, a user's files, `process --mode ultratight` with its defaults")
     print(f"{'C/N0':>5} {'exit':>4} {'3D RMS':>8} {'max':>8} {'vel RMS':>8} {'in 3σ':>6} {'lost':>6} "
           f"{'integrity':>9} {'wall':>7}  met")
