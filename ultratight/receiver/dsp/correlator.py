@@ -127,6 +127,57 @@ def estimate_sigma_arm(block, is_complex):
     return sigma_arm
 
 
+@njit(cache=True, fastmath={"reassoc", "contract"})
+def _epl_block(buf, is_complex, off, m, code_ext, cp, cstep, ph, phstep, dE, dL, cos_lut, sin_lut):
+    """float32 sums ``(I_P, I_E, I_L, Q_P, Q_E, Q_L)`` over the ``m`` samples from buffer offset
+    ``off`` (``cp``/``ph``: the code and carrier accumulators at the first of them; arguments
+    otherwise as :func:`integrate_channel`, ``dE``/``dL`` the early/late tap offsets in fixed point).
+
+    Its own kernel so that only these sums are reassociated: LLVM then splits each of the six over
+    the lanes of 8-wide vectors (the table look-ups stay one load per sample and lane, the
+    wipe-off and multiply-adds run eight samples at a time; contraction fuses each multiply-add).
+    That took the bank from 0.4 to 0.7 G channel-samples/s on one core; the sums change only by
+    float32 rounding (a different order of the additions).  Indices are unsigned (``np.uint64``):
+    numba then leaves out the negative-index wraparound of every look-up.
+    """
+    shift = 32 - LUT_BITS
+    mask = LUT_SIZE - 1
+    one = np.uint64(1)
+    ip = np.float32(0.0); ie = np.float32(0.0); il = np.float32(0.0)
+    qp = np.float32(0.0); qe = np.float32(0.0); ql = np.float32(0.0)
+    if is_complex:
+        for kk in range(m):
+            j = np.uint64(2 * (off + kk))
+            xr = buf[j]
+            xi = buf[j + one]
+            li = np.uint64((ph >> shift) & mask)
+            c = cos_lut[li]
+            s = sin_lut[li]
+            bi = xr * c + xi * s
+            bq = xi * c - xr * s
+            cP = code_ext[np.uint64(cp >> 32)]
+            cE = code_ext[np.uint64((cp + dE) >> 32)]
+            cL = code_ext[np.uint64((cp + dL) >> 32)]
+            ip += bi * cP; ie += bi * cE; il += bi * cL
+            qp += bq * cP; qe += bq * cE; ql += bq * cL
+            cp += cstep
+            ph += phstep
+    else:
+        for kk in range(m):
+            xr = buf[np.uint64(off + kk)]
+            li = np.uint64((ph >> shift) & mask)
+            bi = xr * cos_lut[li]
+            bq = -xr * sin_lut[li]
+            cP = code_ext[np.uint64(cp >> 32)]
+            cE = code_ext[np.uint64((cp + dE) >> 32)]
+            cL = code_ext[np.uint64((cp + dL) >> 32)]
+            ip += bi * cP; ie += bi * cE; il += bi * cL
+            qp += bq * cP; qe += bq * cE; ql += bq * cL
+            cp += cstep
+            ph += phstep
+    return ip, ie, il, qp, qe, ql
+
+
 @njit(cache=True)
 def integrate_channel(buf, is_complex, off, n, code_ext, cp_fix0, cstep, ph0, phstep,
                       tap_fix, cos_lut, sin_lut, acc):
@@ -139,10 +190,10 @@ def integrate_channel(buf, is_complex, off, n, code_ext, cp_fix0, cstep, ph0, ph
     ``tap_fix[t]`` are the tap offsets in fixed point (code chips * 2**32).
     ``acc`` (2*n_taps,) receives [I_t..., Q_t...] raw sums (float64).
 
-    One function (89 lines) on purpose: the three-tap loop is the receiver's hot spot and keeps its
-    twelve accumulators in registers; split into calls, numba would not keep them there. Its indices
-    are unsigned (``np.uint64``): numba then leaves out the negative-index wraparound of every
-    look-up, which made the loop 1.6 times faster with the same sums.
+    Three taps (the receiver's hot spot): float32 sums over blocks of 1024 samples
+    (:func:`_epl_block`, vectorised) flushed to float64; the accumulators at a block's first
+    sample ``k`` are ``cp_fix0 + k*cstep`` and ``ph0 + k*phstep`` exactly (integers).  Other tap
+    counts: one float64 loop.
     """
     n_taps = tap_fix.shape[0]
     shift = 32 - LUT_BITS
@@ -152,49 +203,16 @@ def integrate_channel(buf, is_complex, off, n, code_ext, cp_fix0, cstep, ph0, ph
     if n_taps == 3:
         dE = tap_fix[1]
         dL = tap_fix[2]
-        ip = np.float32(0.0); ie = np.float32(0.0); il = np.float32(0.0)
-        qp = np.float32(0.0); qe = np.float32(0.0); ql = np.float32(0.0)
-        ip64 = 0.0; ie64 = 0.0; il64 = 0.0; qp64 = 0.0; qe64 = 0.0; ql64 = 0.0
-        # float32 partial sums flushed to float64 every 1024 samples (speed + accuracy)
+        for t in range(6):
+            acc[t] = 0.0
         k = 0
         while k < n:
-            kend = min(k + 1024, n)
-            if is_complex:
-                for kk in range(k, kend):
-                    j = np.uint64(2 * (off + kk))
-                    xr = buf[j]
-                    xi = buf[j + np.uint64(1)]
-                    li = np.uint64((ph >> shift) & mask)
-                    c = cos_lut[li]
-                    s = sin_lut[li]
-                    bi = xr * c + xi * s
-                    bq = xi * c - xr * s
-                    cP = code_ext[np.uint64(cp >> 32)]
-                    cE = code_ext[np.uint64((cp + dE) >> 32)]
-                    cL = code_ext[np.uint64((cp + dL) >> 32)]
-                    ip += bi * cP; ie += bi * cE; il += bi * cL
-                    qp += bq * cP; qe += bq * cE; ql += bq * cL
-                    cp += cstep
-                    ph += phstep
-            else:
-                for kk in range(k, kend):
-                    xr = buf[np.uint64(off + kk)]
-                    li = np.uint64((ph >> shift) & mask)
-                    bi = xr * cos_lut[li]
-                    bq = -xr * sin_lut[li]
-                    cP = code_ext[np.uint64(cp >> 32)]
-                    cE = code_ext[np.uint64((cp + dE) >> 32)]
-                    cL = code_ext[np.uint64((cp + dL) >> 32)]
-                    ip += bi * cP; ie += bi * cE; il += bi * cL
-                    qp += bq * cP; qe += bq * cE; ql += bq * cL
-                    cp += cstep
-                    ph += phstep
-            ip64 += ip; ie64 += ie; il64 += il; qp64 += qp; qe64 += qe; ql64 += ql
-            ip = np.float32(0.0); ie = np.float32(0.0); il = np.float32(0.0)
-            qp = np.float32(0.0); qe = np.float32(0.0); ql = np.float32(0.0)
-            k = kend
-        acc[0] = ip64; acc[1] = ie64; acc[2] = il64
-        acc[3] = qp64; acc[4] = qe64; acc[5] = ql64
+            m = min(1024, n - k)
+            s6 = _epl_block(buf, is_complex, off + k, m, code_ext, cp_fix0 + k * cstep, cstep,
+                            ph0 + k * phstep, phstep, dE, dL, cos_lut, sin_lut)
+            for t in range(6):
+                acc[t] += s6[t]
+            k += m
     else:
         for t in range(2 * n_taps):
             acc[t] = 0.0
