@@ -67,7 +67,6 @@ from ultratight.signals.recording.packing import ION_ENCODINGS
 # the format registry lives in sampleformat (metadata_check and sigmf_io need it without this module);
 # FORMATS and check_bits_for_format are part of this module's interface too
 from ultratight.signals.recording.sampleformat import FORMATS, check_bits_for_format, get_format  # noqa: F401
-from ultratight.signals.recording.sigmf_io import read_sigmf
 
 
 def sidecar_path(path):
@@ -361,6 +360,8 @@ def open_if(path=None, meta=None, fs_hz=None, if_hz=None, fmt=None, iq_conj=Fals
         if not mp.is_file() and not str(mp).lower().endswith(".sigmf-data"):
             check_input_file(mp, "metadata file")
         if str(mp).lower().endswith((".sigmf-meta", ".sigmf-data")):
+            from ultratight.signals.recording.sigmf_io import read_sigmf   # sigmf + jsonschema: 0.15 s
+
             info = read_sigmf(mp)
             if path is None:
                 path = info["data_file"]
