@@ -73,7 +73,7 @@ from ultratight.receiver.dsp.burst import burst_all, make_burst
 from ultratight.receiver.dsp.correlator import CorrelatorBank
 from ultratight.receiver.deep.integrity import LOST, IntegrityMonitor, IntegrityThresholds
 from ultratight.receiver.deep.epochs import (CONTINUE, END, ERR_BANK, ERR_CORR, NEED_IF, NEED_SINS, TIGHT,
-                                        correlate, epoch_gate, epoch_post, run_epochs)
+                                        correlate, epoch_gate, epoch_post, run_epochs, run_epochs_threaded)
 from ultratight.receiver.dsp.lockmon import LockMonitor, amplitude_threshold
 from ultratight.receiver.deep.methods import DEFAULT_METHOD, check_method, method_spec
 from ultratight.receiver.deep.options import MODE_COAST, MODE_COMBINED, MODE_INNER, MODE_OUTER, EngineOptions, epoch_threads
@@ -182,7 +182,8 @@ class UltratightEngine:
                 status = self._special_epoch(st)
                 st.timing["special_epochs"] += time.perf_counter() - tw
             else:
-                status, st.k_ep, info = run_epochs(st.k_ep, *self._stage_views(st))
+                steady = run_epochs_threaded if self.threads > 1 else run_epochs
+                status, st.k_ep, info = steady(st.k_ep, *self._stage_views(st))
                 st.timing["epochs"] += time.perf_counter() - tw
                 self._check_status(status, info)
             if status == END or (status == NEED_IF and not self._read_if()):

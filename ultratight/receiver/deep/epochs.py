@@ -290,12 +290,40 @@ def _channels_parallel(E, k_ep, epoch0, src, corr, wipe, bank, outer, window, re
 
 
 @njit(cache=True)
+def _serial_epoch(n, k_ep, src, corr, wipe, bank, outer, window, rec, law, sig, burst, tap_fix, W1, W2, WA, err):
+    """One epoch of every channel, one after the other (``err`` as :func:`_channels_parallel`)."""
+    epoch = _bank_epoch_count(bank, n)
+    for c in range(n):
+        # e_row as int64, not the literal 0: one compiled epoch_channel for both paths
+        r = epoch_channel(c, k_ep, np.int64(0), epoch, src, corr, wipe, bank, outer, window, rec, law, sig, burst,
+                          tap_fix, W1, W2, WA)
+        if r != 0:
+            err[c] = r
+            break
+
+
+@njit(cache=True)
+def _after_epochs(E, n, k_ep, corr, bank, outer, window, sig, err):
+    """After ``E`` epochs of every channel: ``(status, k_ep, info)`` with status CONTINUE, TIGHT or a
+    channel's error (info: the channel)."""
+    for c in range(n):
+        if err[c] != 0:
+            return err[c], k_ep, c
+    settle(E, window.pend, window.pend_ts, corr.per_max, corr.fs, outer, window, sig)
+    _bank_epoch_advance(bank, n, E)
+    k_ep += E
+    if corr.t_start.min() >= window.t_next_upd * corr.fs:
+        return TIGHT, k_ep, 0
+    return CONTINUE, k_ep, 0
+
+
+@njit(cache=True)
 def run_epochs(k_ep, src, corr, wipe, bank, outer, window, rec, law, sig, burst):
     """Steady epochs (no start-up phase initialisation, no restart, no coasting channel) from epoch
-    ``k_ep`` on, until a stop (module docstring). Returns ``(status, k_ep, info)``.
-
-    With ``corr.parallel`` the epochs that provably need no stop (:func:`safe_epochs`) run with the
-    channels spread over the threads; the last few before a stop run one epoch at a time."""
+    ``k_ep`` on, until a stop (module docstring), one channel after the other. Returns ``(status,
+    k_ep, info)``. :func:`run_epochs_threaded` is the same with the channels over the threads; they
+    are two kernels so that a one-thread run (each worker of the main job) neither compiles nor loads
+    the threaded one (a quarter of the engine's first compilation)."""
     n = corr.sample_ptr.shape[0]
     tap_fix = tap_fixed_point(corr.tap_off)
     W1 = np.empty((N_W1, NZ))
@@ -306,25 +334,34 @@ def run_epochs(k_ep, src, corr, wipe, bank, outer, window, rec, law, sig, burst)
         st = epoch_gate(k_ep, src, corr, outer, rec)
         if st != CONTINUE:
             return st, k_ep, 0
-        E = safe_epochs(k_ep, src, corr, outer, window, rec) if corr.parallel else 1
+        _serial_epoch(n, k_ep, src, corr, wipe, bank, outer, window, rec, law, sig, burst, tap_fix, W1, W2, WA, err)
+        st, k_ep, info = _after_epochs(1, n, k_ep, corr, bank, outer, window, sig, err)
+        if st != CONTINUE:
+            return st, k_ep, info
+
+
+@njit(cache=True)
+def run_epochs_threaded(k_ep, src, corr, wipe, bank, outer, window, rec, law, sig, burst):
+    """:func:`run_epochs` with the channels spread over numba's threads for the epochs that provably
+    need no stop (:func:`safe_epochs`); the last few before a stop run one epoch at a time."""
+    n = corr.sample_ptr.shape[0]
+    tap_fix = tap_fixed_point(corr.tap_off)
+    W1 = np.empty((N_W1, NZ))
+    W2 = np.empty((N_W2, NZ, NZ))
+    WA = np.empty(2 * tap_fix.shape[0])
+    err = np.zeros(n, dtype=np.int64)
+    while True:
+        st = epoch_gate(k_ep, src, corr, outer, rec)
+        if st != CONTINUE:
+            return st, k_ep, 0
+        E = safe_epochs(k_ep, src, corr, outer, window, rec)
         if E >= 2:
             _channels_parallel(E, k_ep, _bank_epoch_count(bank, n), src, corr, wipe, bank, outer, window, rec,
                                law, sig, burst, tap_fix, err)
         else:
             E = 1
-            epoch = _bank_epoch_count(bank, n)
-            for c in range(n):
-                # e_row as int64, not the literal 0: one compiled epoch_channel for both paths
-                r = epoch_channel(c, k_ep, np.int64(0), epoch, src, corr, wipe, bank, outer, window, rec, law, sig, burst,
-                                  tap_fix, W1, W2, WA)
-                if r != 0:
-                    err[c] = r
-                    break
-        for c in range(n):
-            if err[c] != 0:
-                return err[c], k_ep, c
-        settle(E, window.pend, window.pend_ts, corr.per_max, corr.fs, outer, window, sig)
-        _bank_epoch_advance(bank, n, E)
-        k_ep += E
-        if corr.t_start.min() >= window.t_next_upd * corr.fs:
-            return TIGHT, k_ep, 0
+            _serial_epoch(n, k_ep, src, corr, wipe, bank, outer, window, rec, law, sig, burst, tap_fix, W1, W2, WA,
+                          err)
+        st, k_ep, info = _after_epochs(E, n, k_ep, corr, bank, outer, window, sig, err)
+        if st != CONTINUE:
+            return st, k_ep, info
