@@ -1,8 +1,9 @@
 """Compile once (receiver.cli.workers.warm_up, scenario_runner._warm_methods): the kernels of a scenario's
-methods are compiled by one worker, one method after the other, before any job reaches the workers; with a
-warm cache only the first method runs there."""
+methods are compiled by one worker, one method after the other, on data of its own while the runs' data are
+generated, before any job reaches the workers; with a warm cache only the first method runs there."""
 
 import os
+from types import SimpleNamespace
 
 import numba
 import numpy as np
@@ -83,6 +84,11 @@ def recorded_run(monkeypatch):
             events.append(("call", fn.__name__))
             return fn(*args)
 
+        def start(self, fn, *args):          # runs at once here; the data are generated after it
+            events.append(("call", fn.__name__))
+            res = fn(*args)
+            return SimpleNamespace(result=lambda: res)
+
         def map(self, fn, jobs, on_done=None):
             events.append(("jobs", [j[2] for j in jobs]))
             raise _Stop
@@ -95,6 +101,9 @@ def recorded_run(monkeypatch):
     monkeypatch.setattr(scenario_runner, "WorkerPool", Pool)
     monkeypatch.setattr(scenario_runner, "run_method", run_method)
     monkeypatch.setattr(scenario_runner, "_prepare_run", lambda cfg, r, *a, **k: {"truth": "t.h5", "if_seed": r})
+    # the warm-up's own short data (not the run's)
+    monkeypatch.setattr(scenario_runner, "prepare_data",
+                        lambda cfg, seed, out, **k: ({"truth": str(out) + "/warm.h5", "if_seed": seed}, False))
 
     def go(methods, workers=None, cold=True):
         state["cold"] = cold

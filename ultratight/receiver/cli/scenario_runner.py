@@ -5,19 +5,17 @@ Cache: the generated files live in ``OUT/cache/<key>/`` where ``key`` is a hash 
 resolved scenario configuration (including the seed and any overrides) and the package
 version, so a rerun with the same configuration reuses the data and any change regenerates it.
 
-IF samples: by default (``cache=False``) the cache entry holds the truth, IMU and trajectory only,
-and the IF is generated in memory, the samples of the IF file bit for bit: once per run, here,
-into a shared-memory ring that the run's methods read at the same time, one worker process each
-(:mod:`ultratight.signals.synth.ifring`, with several methods and the default workers), or by each
-method from its own generator (:class:`ultratight.signals.synth.ifstream.GeneratedIf`, produced block by
-block on a worker thread while the method tracks); ``cache=True`` (``--cache``) writes the IF file
-into the entry as well and the methods read it from disk.
+IF samples: by default (``cache=False``) the cache entry holds the truth, IMU and trajectory only, and the IF
+is generated in memory, the samples of the IF file bit for bit: once per run, here, into a shared-memory
+ring that the run's methods read at the same time, one worker process each (:mod:`ultratight.signals.synth.
+ifring`, with several methods and the default workers), or by each method from its own generator
+(:class:`ultratight.signals.synth.ifstream.GeneratedIf`, produced block by block on a worker thread while the
+method tracks); ``cache=True`` (``--cache``) writes the IF file into the entry and the methods read it.
 
-Per run (seed ``seed + r``) and method the engine runs on the *same* samples; the tracking
-errors are estimate minus the generator's truth (``<stem>.truth.h5``, docs/generator.md)
-interpolated at each channel's integration start (see :mod:`ultratight.receiver.cli.metrics`).
-The engine's own randomness (hot-start errors) is seeded by the run seed, so every method of
-a run starts from the same perturbed INS state.
+Per run (seed ``seed + r``) and method the engine runs on the *same* samples; the tracking errors are
+estimate minus the generator's truth (``<stem>.truth.h5``, docs/generator.md) interpolated at each channel's
+integration start (see :mod:`ultratight.receiver.cli.metrics`). The engine's own randomness (hot-start
+errors) is seeded by the run seed, so every method of a run starts from the same perturbed INS state.
 
 Outputs in ``OUT``: ``results.h5`` (per run and method: estimates, errors, arbitration modes,
 navigation solution; attributes with the resolved configuration) and ``metrics.json``; PNG
@@ -28,6 +26,7 @@ import dataclasses
 import hashlib
 import json
 import sys
+import tempfile
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -353,14 +352,19 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
 WARM_S = 0.5     # s of signal each method runs in one worker before the jobs start (_warm_methods)
 
 
-def _warm_methods(paths, cfg, methods, seed, options, threads, progress):
-    """Compile once (:func:`ultratight.receiver.cli.workers.warm_up`), in one worker before the jobs
-    start: each method on the first ``WARM_S`` s of a run's data, so that the other workers load the
-    kernels from numba's cache instead of each compiling them; with a warm cache only the first one
-    runs (its kernels are those this worker's own job loads; this process stays as light as before)."""
-    dur = min(WARM_S, float(cfg["duration_s"]))
-    n = warm_up(_warm_method, [(paths, cfg, m, seed, options, threads, dur) for m in dict.fromkeys(methods)],
-                progress=progress)
+def _warm_methods(cfg, methods, seed, options, threads, progress):
+    """Compile once (:func:`ultratight.receiver.cli.workers.warm_up`) in one worker while this process
+    generates the runs' data: each method on ``WARM_S`` s of data of its own (in a temporary directory);
+    the other workers then load the kernels from numba's cache. Returns the kernels compiled; a failure
+    is left to the jobs proper to meet and report."""
+    short = dict(cfg, duration_s=min(WARM_S, float(cfg["duration_s"])))
+    try:
+        with tempfile.TemporaryDirectory(prefix="ultratight-warm-") as d:
+            paths, _ = prepare_data(short, seed, Path(d), progress=False, cache_if=False)
+            n = warm_up(_warm_method, [(paths, short, m, seed, options, threads, short["duration_s"])
+                                       for m in dict.fromkeys(methods)], progress=progress)
+    except Exception:
+        n = 0
     release_heap()
     return n
 
@@ -371,8 +375,7 @@ def _warm_method(paths, cfg, method, seed, options, threads, duration_s):
 
 
 def _method_job(paths, cfg, method, seed, options, threads=1):
-    """One method on one run's data in a worker process, on ``threads`` numba threads (the plan's
-    threads per worker: the workers share the allowed cores)."""
+    """One method on one run's data in a worker process, on ``threads`` numba threads (the plan's)."""
     opt = dataclasses.replace(engine_options_for(cfg, options), threads=int(threads))
     res, _truth = run_method(paths, cfg, method, seed, options=opt)
     release_heap()
@@ -383,11 +386,10 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
     """Every method on every run's data: per-run summaries and raw (result, errors) per (run, method).
 
     The data of every run are prepared first, here (``cache``: with the IF files); then the (run, method)
-    jobs run in worker processes (:mod:`ultratight.receiver.cli.workers`), as many as
-    :func:`ultratight.cores.plan` gives for the jobs and the allowed cores (at least one), so this
-    process, which collects every method's results and writes the outputs,
-    never holds an engine's working memory as well; ``workers`` = 1 runs them here, one after the
-    other. Streamed with the default workers and several methods, a run's IF is generated once, here,
+    jobs run in worker processes (:mod:`ultratight.receiver.cli.workers`), as many as :func:`ultratight.
+    cores.plan` gives for the jobs and the allowed cores (at least one), so this process, which collects
+    every method's results and writes the outputs, never holds an engine's working memory as well;
+    ``workers`` = 1 runs them here, one after the other. Streamed with the default workers and several methods, a run's IF is generated once, here,
     into a ring the run's methods read at the same time, one worker process each
     (:mod:`ultratight.signals.synth.ifring`); otherwise every method streams its own copy. The results do
     not depend on where a job ran nor on where its samples came from."""
@@ -415,6 +417,8 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
 
     # the workers start (and import the engine) while this process generates the data
     with WorkerPool(n_workers, preload=(__name__,), processes=not here, threads=threads) as pool:
+        # several workers would compile the same kernels: compiled by one first, meanwhile the data
+        warm = pool.start(_warm_methods, cfg, methods, base_seed, options, threads, progress) if n_workers > 1 else None
         all_paths = [_prepare_run(cfg, r, runs, base_seed + r, out, channel, progress, cache, shared)
                      for r in range(runs)]
         jobs = [(all_paths[r], cfg, m, base_seed + r, options) + (() if here else (threads,)) for r, m in keys]
@@ -422,8 +426,8 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
             how = ", the IF generated once per run and shared" if shared else ""
             print(f"{len(jobs)} method run(s) in {n_workers} worker process(es) of {threads} thread(s){how}",
                   flush=True)
-        if n_workers > 1:     # several workers would compile the same kernels: compiled by one first
-            pool.call(_warm_methods, all_paths[0], cfg, methods, base_seed, options, threads, progress)
+        if warm is not None:
+            warm.result()
         if shared:
             _map_shared(pool, cfg, methods, runs, base_seed, jobs, done)
         else:

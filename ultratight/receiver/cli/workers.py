@@ -20,7 +20,7 @@ import multiprocessing
 import os
 import sys
 import time
-from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_EXCEPTION, Future, ProcessPoolExecutor, wait
 
 from ultratight.cores import check_workers, plan  # noqa: F401 (check_workers: used by the runners)
 
@@ -132,6 +132,18 @@ class WorkerPool:
         if self._pool is None:
             return fn(*args)
         return self._pool.submit(fn, *args).result()
+
+    def start(self, fn, *args):
+        """``fn(*args)`` in one worker, not waited for: a future (``.result()`` waits and returns it or
+        raises); here, without worker processes, run at once."""
+        fut = Future()
+        if self._pool is not None:
+            return self._pool.submit(fn, *args)
+        try:
+            fut.set_result(fn(*args))
+        except Exception as exc:        # handed on like a worker's: raised by .result()
+            fut.set_exception(exc)
+        return fut
 
     def map(self, fn, jobs, on_done=None):
         """``[fn(*job) for job in jobs]`` in the workers (module-level ``fn``, picklable arguments and
