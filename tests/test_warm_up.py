@@ -103,7 +103,7 @@ def recorded_run(monkeypatch):
     monkeypatch.setattr(scenario_runner, "_prepare_run", lambda cfg, r, *a, **k: {"truth": "t.h5", "if_seed": r})
     # the warm-up's own short data (not the run's)
     monkeypatch.setattr(scenario_runner, "prepare_data",
-                        lambda cfg, seed, out, **k: ({"truth": str(out) + "/warm.h5", "if_seed": seed}, False))
+                        lambda cfg, seed, out, **k: ({"truth": "warm.h5", "if_seed": seed}, False))
 
     def go(methods, workers=None, cold=True):
         state["cold"] = cold

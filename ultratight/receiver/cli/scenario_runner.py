@@ -26,7 +26,6 @@ import dataclasses
 import hashlib
 import json
 import sys
-import tempfile
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -352,17 +351,16 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
 WARM_S = 0.5     # s of signal each method runs in one worker before the jobs start (_warm_methods)
 
 
-def _warm_methods(cfg, methods, seed, options, threads, progress):
+def _warm_methods(cfg, methods, seed, options, threads, progress, out):
     """Compile once (:func:`ultratight.receiver.cli.workers.warm_up`) in one worker while this process
-    generates the runs' data: each method on ``WARM_S`` s of data of its own (in a temporary directory);
-    the other workers then load the kernels from numba's cache. Returns the kernels compiled; a failure
-    is left to the jobs proper to meet and report."""
+    generates the runs' data: each method on ``WARM_S`` s of data of its own (a data cache entry of its
+    own in ``out``, reused by later runs); the other workers then load the kernels from numba's cache.
+    Returns the kernels compiled; a failure is left to the jobs proper to meet and report."""
     short = dict(cfg, duration_s=min(WARM_S, float(cfg["duration_s"])))
     try:
-        with tempfile.TemporaryDirectory(prefix="ultratight-warm-") as d:
-            paths, _ = prepare_data(short, seed, Path(d), progress=False, cache_if=False)
-            n = warm_up(_warm_method, [(paths, short, m, seed, options, threads, short["duration_s"])
-                                       for m in dict.fromkeys(methods)], progress=progress)
+        paths, _ = prepare_data(short, seed, out, progress=False, cache_if=False)
+        n = warm_up(_warm_method, [(paths, short, m, seed, options, threads, short["duration_s"])
+                                   for m in dict.fromkeys(methods)], progress=progress)
     except Exception:
         n = 0
     release_heap()
@@ -418,7 +416,8 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
     # the workers start (and import the engine) while this process generates the data
     with WorkerPool(n_workers, preload=(__name__,), processes=not here, threads=threads) as pool:
         # several workers would compile the same kernels: compiled by one first, meanwhile the data
-        warm = pool.start(_warm_methods, cfg, methods, base_seed, options, threads, progress) if n_workers > 1 else None
+        warm = pool.start(_warm_methods, cfg, methods, base_seed, options, threads, progress, out) if n_workers > 1 \
+            else None
         all_paths = [_prepare_run(cfg, r, runs, base_seed + r, out, channel, progress, cache, shared)
                      for r in range(runs)]
         jobs = [(all_paths[r], cfg, m, base_seed + r, options) + (() if here else (threads,)) for r, m in keys]
