@@ -303,6 +303,16 @@ def _serial_epoch(n, k_ep, src, corr, wipe, bank, outer, window, rec, law, sig, 
 
 
 @njit(cache=True)
+def _work_arrays(corr):
+    """The channel count, the taps in fixed point, the tracking bank's and the correlator's work arrays
+    and the per-channel error flags of the steady-epoch loops."""
+    n = corr.sample_ptr.shape[0]
+    tap_fix = tap_fixed_point(corr.tap_off)
+    return (n, tap_fix, np.empty((N_W1, NZ)), np.empty((N_W2, NZ, NZ)), np.empty(2 * tap_fix.shape[0]),
+            np.zeros(n, dtype=np.int64))
+
+
+@njit(cache=True)
 def _after_epochs(E, n, k_ep, corr, bank, outer, window, sig, err):
     """After ``E`` epochs of every channel: ``(status, k_ep, info)`` with status CONTINUE, TIGHT or a
     channel's error (info: the channel)."""
@@ -324,12 +334,7 @@ def run_epochs(k_ep, src, corr, wipe, bank, outer, window, rec, law, sig, burst)
     k_ep, info)``. :func:`run_epochs_threaded` is the same with the channels over the threads; they
     are two kernels so that a one-thread run (each worker of the main job) neither compiles nor loads
     the threaded one (a quarter of the engine's first compilation)."""
-    n = corr.sample_ptr.shape[0]
-    tap_fix = tap_fixed_point(corr.tap_off)
-    W1 = np.empty((N_W1, NZ))
-    W2 = np.empty((N_W2, NZ, NZ))
-    WA = np.empty(2 * tap_fix.shape[0])
-    err = np.zeros(n, dtype=np.int64)
+    n, tap_fix, W1, W2, WA, err = _work_arrays(corr)
     while True:
         st = epoch_gate(k_ep, src, corr, outer, rec)
         if st != CONTINUE:
@@ -344,12 +349,7 @@ def run_epochs(k_ep, src, corr, wipe, bank, outer, window, rec, law, sig, burst)
 def run_epochs_threaded(k_ep, src, corr, wipe, bank, outer, window, rec, law, sig, burst):
     """:func:`run_epochs` with the channels spread over numba's threads for the epochs that provably
     need no stop (:func:`safe_epochs`); the last few before a stop run one epoch at a time."""
-    n = corr.sample_ptr.shape[0]
-    tap_fix = tap_fixed_point(corr.tap_off)
-    W1 = np.empty((N_W1, NZ))
-    W2 = np.empty((N_W2, NZ, NZ))
-    WA = np.empty(2 * tap_fix.shape[0])
-    err = np.zeros(n, dtype=np.int64)
+    n, tap_fix, W1, W2, WA, err = _work_arrays(corr)
     while True:
         st = epoch_gate(k_ep, src, corr, outer, rec)
         if st != CONTINUE:
