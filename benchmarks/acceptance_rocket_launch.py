@@ -1,7 +1,7 @@
 """Ultra-tight on a recording as a user has it: the rocket-launch scenario (docs/ultratight.md).
 
     python benchmarks/acceptance_rocket_launch.py [--cn0-list 45,30] [--seed 3] [--duration S] [--fs HZ]
-        [--data DIR] [--quick] [--json OUT.json] [-- EXTRA PROCESS FLAGS]
+        [--no-tropo] [--data DIR] [--quick] [--json OUT.json] [-- EXTRA PROCESS FLAGS]
 
 Per C/N0: ``ultratight generate`` writes the rocket-launch scenario (60 s on the pad, then the launch
 to 1177 m/s; broadcast ionosphere and Saastamoinen troposphere on the signals; data bits the receiver
@@ -20,7 +20,8 @@ file's truth group, the IMU point) read to score the SINS-rate solution: 3D posi
 RMS over the whole run from the hand-over, the largest error, the fraction of rows whose ENU error
 lies inside the reported 3σ on every axis, channels lost, the integrity state, the wall time.
 ``--fs`` samples the recording at another rate than the scenario's 4 MHz (e.g. 2.6e6, the rate of
-common front ends and of other simulators' files).
+common front ends and of other simulators' files); ``--no-tropo`` leaves the troposphere out of the
+signals (as some simulators do; the ionosphere stays), the receiver still run with its defaults.
 """
 
 import argparse
@@ -41,7 +42,7 @@ LEVER_FLU_M = [-0.5, 0.0, 0.0]    # the antenna 0.5 m from the IMU along the bod
 TARGETS = {45.0: (1.0, 0.1), 30.0: (2.5, 0.15)}     # 3D position RMS (m), velocity RMS (m/s)
 
 
-def scenario_text(duration_s):
+def scenario_text(duration_s, tropo=True):
     from ultratight.config import locate_scenario
 
     path = locate_scenario("rocket-launch")
@@ -54,6 +55,9 @@ def scenario_text(duration_s):
     assert n == 1, "rocket-launch.toml: no [imu] table"
     if duration_s:
         txt = re.sub(r"(?m)^duration_s = .*$", f"duration_s = {float(duration_s)}", txt)
+    if not tropo:
+        txt, n = re.subn(r'(?m)^tropo = "saastamoinen"$', 'tropo = "off"', txt)
+        assert n == 1, "rocket-launch.toml: no [atmosphere] tropo line"
     return txt
 
 
@@ -113,14 +117,14 @@ def score(res_h5, truth):
             "integrity": (info.get("integrity") or {}).get("state")}
 
 
-def run_one(data, cn0, seed, duration_s, extra, fs_hz=None):
+def run_one(data, cn0, seed, duration_s, extra, fs_hz=None, tropo=True):
     from ultratight.receiver.cli import main as cli_main
 
-    base = data / (f"cn0_{cn0:g}_seed{seed}" + (f"_fs{fs_hz:g}" if fs_hz else ""))
+    base = data / (f"cn0_{cn0:g}_seed{seed}" + (f"_fs{fs_hz:g}" if fs_hz else "") + ("" if tropo else "_notropo"))
     gen, user = base / "gen", base / "user"
     for p in (gen, user):
         p.mkdir(parents=True, exist_ok=True)
-    (base / "rl.toml").write_text(scenario_text(duration_s))
+    (base / "rl.toml").write_text(scenario_text(duration_s, tropo))
     t0 = time.perf_counter()
     if not (gen / "rl.ci8").is_file():
         fs_args = ["--fs", repr(float(fs_hz))] if fs_hz else []
@@ -138,14 +142,16 @@ def run_one(data, cn0, seed, duration_s, extra, fs_hz=None):
     t0 = time.perf_counter()
     r = subprocess.run(cmd, cwd=user, capture_output=True, text=True)
     wall = time.perf_counter() - t0
-    row = {"cn0_dbhz": cn0, "seed": seed, "fs_hz": fs_hz or 4e6, "generate_s": round(gen_s, 1),
+    row = {"cn0_dbhz": cn0, "seed": seed, "fs_hz": fs_hz or 4e6, "tropo_in_signal": tropo,
+           "generate_s": round(gen_s, 1),
            "wall_s": round(wall, 1),
            "exit": r.returncode, "stderr": r.stderr.strip().splitlines()[-3:]}
     if r.returncode in (0, 3) and out.is_file():
         summ = json.loads(r.stdout)
         row.update(prns=summ["prns"], startup=summ["startup"], bits=summ["bit_strategy"],
                    assisted=summ.get("assisted"), lock_lost_channels=summ["lock_lost_channels"],
-                   handover_t_s=(summ.get("handover") or {}).get("handover_t_s"))
+                   handover_t_s=(summ.get("handover") or {}).get("handover_t_s"),
+                   troposphere=((summ.get("handover") or {}).get("troposphere") or {}).get("troposphere"))
         row.update(score(out, truth))
         pos_t, vel_t = TARGETS.get(float(cn0), (None, None))
         if pos_t is not None:
@@ -160,6 +166,7 @@ def main():
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's 100 s)")
     ap.add_argument("--fs", type=float, default=None, help="sampling rate of the recording, Hz (default: 4 MHz)")
+    ap.add_argument("--no-tropo", action="store_true", help="no troposphere on the signals")
     ap.add_argument("--data", default=None, help="folder for the generated files (kept; reused when present)")
     ap.add_argument("extra", nargs="*", help="further process flags (after --)")
     args = ap.parse_args()
@@ -169,7 +176,7 @@ def main():
         cn0s = cn0s[:1]
     tmp = None if args.data else tempfile.TemporaryDirectory(prefix="ut_rocket_")
     data = Path(args.data or tmp.name)
-    rows = [run_one(data, c, args.seed, duration, args.extra, args.fs) for c in cn0s]
+    rows = [run_one(data, c, args.seed, duration, args.extra, args.fs, not args.no_tropo) for c in cn0s]
     print("rocket-launch, a user's files, `process --mode ultratight` with its defaults")
     print(f"{'C/N0':>5} {'exit':>4} {'3D RMS':>8} {'max':>8} {'vel RMS':>8} {'in 3σ':>6} {'lost':>6} "
           f"{'integrity':>9} {'wall':>7}  met")

@@ -145,3 +145,24 @@ def test_parser_does_not_import_the_engine():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert r.stdout.split() == ["None", "False"]
+
+
+@pytest.mark.parametrize("flags,checked", [((), True), (("--tropo", "saastamoinen"), False), (("--tropo", "off"), False)])
+def test_the_troposphere_is_tested_only_when_not_asked_for(cut, monkeypatch, flags, checked):
+    """Without --tropo the start-up tests the recording for a troposphere (receiver.deep.tropo_check);
+    a --tropo given is the user's choice and is not second-guessed."""
+    import ultratight.receiver.deep.recordings as rec
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def run(*a, **k):
+        seen.update(check=k["handover"].tropo_check, tropo=k["tropo"])
+        raise Stop
+
+    monkeypatch.setattr(rec, "run_ultratight_on_files", run)
+    with pytest.raises(Stop):
+        main(["process", str(cut["if"]), "--mode", "ultratight", "--imu", str(cut["imu"]), *flags])
+    assert seen == {"check": checked, "tropo": flags[1] if flags else "saastamoinen"}

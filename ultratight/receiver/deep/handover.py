@@ -97,6 +97,9 @@ class HandoverConfig:
     # no acquisition setting given and the pass tracks fewer than min_sats: once more with the
     # weak-signal acquisition (WEAK_ACQUISITION: 5 ms x 16 non-coherent, C/N0 floor 25 dB-Hz)
     weak_retry: bool = True
+    # the troposphere correction was not asked for explicitly: test whether the recording carries one
+    # (receiver.deep.tropo_check) and switch the correction off for the run when it does not
+    tropo_check: bool = True
 
     def as_dict(self):
         return asdict(self)
@@ -471,8 +474,9 @@ def scalar_handover(source, imu, imu_errors, ephemerides, prns, start_s=0.0, cfg
     dtv = fn["sample_index"] / fs - fp["sample_index"] / fs
     acc_e = (np.asarray(fn["vel_e"]) - np.asarray(fp["vel_e"])) / dtv
     pos_e = np.asarray(fx["pos_e"], float) + np.asarray(fx["vel_e"], float) * d + 0.5 * acc_e * d * d
-    if still_pos is not None:
-        pos_e = still_pos
+    tro = _tropo_test(still_used or res.fixes[max(0, k - 29):k + 1], atmosphere, cfg)
+    shift = np.r_[tro["shift_e"], tro["shift_clk_m"]] if tro["troposphere"] == "absent" else np.zeros(4)
+    pos_e = (pos_e if still_pos is None else still_pos) + shift[:3]
     vel_e = np.asarray(fx["vel_e"], float) + acc_e * d
     llh = np.asarray(ecef_to_llh(pos_e.copy()))
     C_el = np.asarray(dcm_ecef_from_enu(llh[0], llh[1]))
@@ -481,7 +485,7 @@ def scalar_handover(source, imu, imu_errors, ephemerides, prns, start_s=0.0, cfg
     sig_vel = float(fx.get("sigma_vel_mps", 0.1))
     sig_acc = math.sqrt(2.0) * sig_vel / dtv
     tow0, week0 = float(source.start_tow_s), int(source.start_week)
-    clk_b = float(np.mean([_engine_clock(f, fs, tow0, week0, t_h) for f in (still_used or [fx])]))
+    clk_b = float(np.mean([_engine_clock(f, fs, tow0, week0, t_h) for f in (still_used or [fx])])) + shift[3]
     clk_d = float(fx["clk_drift_mps"])
     state = {"llh": llh, "vel_l": vel_l, "code_phase_chips": channel_code_phases(res, round(t_h * fs), fs)}
     given = sorted(k_ for k_ in ("llh", "vel_l", "q_lb") if k_ in overrides)
@@ -505,7 +509,8 @@ def scalar_handover(source, imu, imu_errors, ephemerides, prns, start_s=0.0, cfg
     eul = np.degrees(dcm_to_euler(quat_to_dcm(state["q_lb"])))
     state["t_s"] = float(t_h)
     state["warnings"] = [w for w in getattr(res, "warnings", None) or () if w.startswith("start-up:")] + (
-        [note] if note else [])
+        [note] if note else []) + ([TROPO_ABSENT.format(**tro)] if tro["troposphere"] == "absent" else [])
+    state["troposphere"] = tro
     state["startup"] = {
         "source": STARTUP_SCALAR, "overridden_by_flags": given, "handover_t_s": float(t_h),
         "scalar_pass": {"start_s": float(start_s), "window_s": float(res.pass_duration_s), "fixes": len(res.fixes),
@@ -516,9 +521,24 @@ def scalar_handover(source, imu, imu_errors, ephemerides, prns, start_s=0.0, cfg
         "attitude_method": att_method, "euler_deg": [float(v) for v in eul],
         "sigmas": {k_: v for k_, v in sigmas.items() if k_ != "att_cov_rad2"},
         "att_sigma_deg": [float(v) for v in np.degrees(np.sqrt(np.diag(P_att)))],
-        "config": cfg.as_dict(),
+        "config": cfg.as_dict(), "troposphere": tro,
     }
     return state
+
+
+TROPO_ABSENT = ("start-up: the pseudoranges fit without a troposphere (per-satellite mean residuals {rms_without_m} m "
+                "RMS) far better than with the Saastamoinen model ({rms_with_m} m): the recording carries none (a "
+                "simulator's?); the troposphere correction is off for this run (--tropo saastamoinen keeps it)")
+
+
+def _tropo_test(fixes, atmosphere, cfg):
+    """The troposphere model test (:mod:`ultratight.receiver.deep.tropo_check`) on the hand-over's
+    fixes, when the correction is on by default (``cfg.tropo_check``); else ``not tested``."""
+    if not cfg.tropo_check or atmosphere is None or getattr(atmosphere, "tropo", "off") == "off":
+        return {"troposphere": "not tested"}
+    from ultratight.receiver.deep.tropo_check import troposphere_test
+
+    return troposphere_test(fixes, getattr(atmosphere, "mapping", "cosz"))
 
 
 def channel_code_phases(res, n0, fs, signal=GPS_L1CA, max_gap_s=0.05):

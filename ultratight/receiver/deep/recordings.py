@@ -155,7 +155,7 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
     source, hand, t_h, init_state, prns = _startup(
         src, imu, imu_path, nav if nav is not None else ephs, ephs, prns, startup, init_state,
         dict(init_overrides or {}), start_s, handover, gen_cfg, startup_errors, rng, atmo)
-    warnings.extend((hand or {}).get("warnings") or [])
+    atmo, iono_source = _after_startup(hand, warnings, (nav, gen_cfg, iono), atmo, iono_source)
     prns = _tracked_prns(prns, given, source, hand, init_state, (nav, ephs, nav_path, week, tow0, t_h), warnings,
                          if_path)
     file_start = {"week": int(week), "tow_s": float(tow0)}
@@ -370,6 +370,16 @@ def _file_ephemerides(if_path, nav_path, gen_cfg, week, tow0):
     if gen_cfg is not None and gen_cfg.get("satellites", {}).get("source", "nominal") == "nominal":
         return None, nominal_ephemerides(week, tow0)
     raise ConfigError(f"{if_path}: no ephemerides: give a RINEX navigation file (--ephemeris)")
+
+
+def _after_startup(hand, warnings, how, atmo, iono_source):
+    """The start-up's warnings added to ``warnings``; the run's ``(atmosphere, iono source)``: without
+    the troposphere when the scalar hand-over found the signal carries none (receiver.deep.tropo_check;
+    ``how`` = ``(nav, generator config, iono)`` of :func:`_atmosphere`)."""
+    warnings.extend((hand or {}).get("warnings") or [])
+    if ((hand or {}).get("troposphere") or {}).get("troposphere") == "absent":
+        return _atmosphere(*how, "off")
+    return atmo, iono_source
 
 
 def _atmosphere(nav, gen_cfg, iono, tropo):

@@ -244,7 +244,7 @@ class PvtStage:
             el_all[fin], az_all[fin] = elev_azim(sol.pos_e, sp[fin])
         sv_list = [{"prn": self.prns[j], "elev_deg": math.degrees(el_all[j]),
                     "azim_deg": math.degrees(az_all[j]) % 360.0, "cn0_dbhz": float(row["cn0_dbhz"][j]),
-                    "used": bool(sol.used[j])} for j in np.flatnonzero(fin)]
+                    "used": bool(sol.used[j]), "resid_m": float(sol.residuals_m[j])} for j in np.flatnonzero(fin)]
         llh_deg = [math.degrees(sol.llh[0]), math.degrees(sol.llh[1]), float(sol.llh[2])]
         return {"t_s": row["t_s"], "sample_index": row["sample_index"], "gps_week": self.week_known,
                 "gps_tow_s": row["t_rx"] - sol.clk_bias_m / C, "pos_e": sol.pos_e, "vel_e": sol.vel_e,

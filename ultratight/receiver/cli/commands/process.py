@@ -403,11 +403,12 @@ def _run_ultratight(args):
         raise ConfigError(f"{', '.join(ignored)} not supported with --mode ultratight (the IF parameters come "
                           "from the sidecar / --meta)")
     args.iono = args.iono or "klobuchar"           # the scalar receiver's defaults (recorded resolved)
+    tropo_check = args.tropo is None               # not asked for: the start-up tests the recording for one
     args.tropo = args.tropo or "saastamoinen"
     prns = _prn_list(args.prn) if args.prn else None
     hcfg = HandoverConfig(acq_min_cn0_dbhz=args.acq_min_cn0, acq_noncoherent=args.acq_noncoherent,
                           acq_coherent_ms=args.acq_coherent, doppler_range_hz=args.doppler_range,
-                          dynamics=args.dynamics)
+                          dynamics=args.dynamics, tropo_check=tropo_check)
     from ultratight.receiver.cli.commands import imu_flags
     imu_decl = imu_flags.overrides(args)
     noise = {**({"grade": args.imu_grade} if args.imu_grade else {}), **imu_flags.noise_flags(args)}
