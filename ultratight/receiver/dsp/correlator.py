@@ -136,7 +136,7 @@ def _epl_block(buf, is_complex, off, m, code_ext, cp, cstep, ph, phstep, dE, dL,
     Its own kernel so that only these sums are reassociated: LLVM then splits each of the six over
     the lanes of 8-wide vectors (the table look-ups stay one load per sample and lane, the
     wipe-off and multiply-adds run eight samples at a time; contraction fuses each multiply-add).
-    That took the bank from 0.4 to 0.7 G channel-samples/s on one core; the sums change only by
+    That took the bank from 0.42 to 0.63 G channel-samples/s per core (8 channels); the sums change only by
     float32 rounding (a different order of the additions).  Indices are unsigned (``np.uint64``):
     numba then leaves out the negative-index wraparound of every look-up.
     """
