@@ -50,6 +50,14 @@ def test_plan_follows_the_work_and_the_allowed_cores(machine, load):
     assert cores.plan(1, threads=1) == cores.CorePlan(1, 1)
     assert cores.plan(4, workers=3, threads=2) == cores.CorePlan(3, 2)
     assert cores.plan(2, workers=8) == cores.CorePlan(2, 1)
+    # a producer beside the jobs (the scenario's streamed IF) keeps a core: the job's threads
+    # take the rest, at least one; --threads still overrides
+    assert cores.plan(1, reserved=1) == cores.CorePlan(1, 1)
+    assert cores.plan(4, workers=4, reserved=1) == cores.CorePlan(4, 1)
+    assert cores.plan(1, reserved=1, threads=2) == cores.CorePlan(1, 2)
+    reads = machine(4, load)
+    assert cores.plan(1, reserved=1) == cores.CorePlan(1, 3)
+    assert cores.plan(1, reserved=9) == cores.CorePlan(1, 1)
     assert reads == []
 
 
@@ -100,12 +108,14 @@ def test_worker_compiles_after_its_pool_started(tmp_path, threads):
     assert r.stdout.strip() == f"[({min(threads, numba.config.NUMBA_NUM_THREADS)}, 42)]"
 
 
-@pytest.mark.parametrize("n_cores,load,runs,expect", [
-    (1, BUSY, 1, (1, 1)),        # one core: one worker, one thread
-    (2, IDLE, 1, (1, 2)),        # two cores, one job: one worker of two threads
-    (2, BUSY, 2, (2, 1)),        # two cores, two jobs: two workers of one thread
+@pytest.mark.parametrize("n_cores,load,runs,cache,expect", [
+    (1, BUSY, 1, False, (1, 1)),      # one core: one worker, one thread
+    (2, IDLE, 1, True, (1, 2)),       # two cores, one job on a cached IF file: one worker of two threads
+    (2, BUSY, 1, False, (1, 1)),      # the same job with its IF generated beside it: the generator keeps a core
+    (2, BUSY, 2, False, (2, 1)),      # two cores, two jobs: two workers of one thread
 ])
-def test_scenario_command_on_one_and_two_cores(machine, monkeypatch, tmp_path, capsys, n_cores, load, runs, expect):
+def test_scenario_command_on_one_and_two_cores(machine, monkeypatch, tmp_path, capsys, n_cores, load, runs, cache,
+                                               expect):
     reads = machine(n_cores, load)
     pools = []
 
@@ -117,7 +127,7 @@ def test_scenario_command_on_one_and_two_cores(machine, monkeypatch, tmp_path, c
     monkeypatch.setattr(scenario_runner, "WorkerPool", Pool)
     out = tmp_path / "X"
     rc = main(["scenario", "static-open-sky", "--duration", "1", "--methods", "scalar", "--out", str(out),
-               "--no-plots", "--quiet", "--runs", str(runs)])
+               "--no-plots", "--quiet", "--runs", str(runs)] + (["--cache"] if cache else []))
     err = capsys.readouterr().err
     assert rc == 0, err[-2000:]
     assert "Traceback" not in err and "NUMBA_NUM_THREADS" not in err

@@ -35,20 +35,26 @@ class CorePlan:
     threads: int
 
 
-def plan(n_jobs=1, n_items=None, workers=None, threads=None):
+def plan(n_jobs=1, n_items=None, workers=None, threads=None, reserved=0):
     """The policy: ``n_jobs`` independent jobs (runs, methods) each spreading ``n_items`` items
-    (channels; None: no limit) over threads, on :func:`allowed_cores` cores.
+    (channels; None: no limit) over threads, on :func:`allowed_cores` cores, ``reserved`` of them
+    kept for a producer that runs beside the jobs all the time (the scenario's IF generator).
 
     * workers: ``workers`` when given (an integer >= 1, ``--workers``), else one per allowed core;
       never more than the jobs;
     * threads per worker: ``threads`` when given and > 0 (``--threads``), else the allowed cores
-      shared between the workers (at least 1); never more than the items.
+      less the reserved ones shared between the workers (at least 1); never more than the items.
+
+    Reserving matters for threads: a job's threads meet at every batch of epochs, so a thread that
+    loses its core to the producer stalls the others — two engine threads beside a generator thread
+    on two cores ran slower than one engine thread beside it.
     """
     n_jobs = max(1, int(n_jobs))
     cores = allowed_cores()
     w = cores if workers is None else int(workers)
     w = max(1, min(w, n_jobs))
-    t = int(threads) if threads is not None and int(threads) > 0 else max(1, cores // w)
+    free = max(1, cores - max(0, int(reserved)))
+    t = int(threads) if threads is not None and int(threads) > 0 else max(1, free // w)
     if n_items is not None:
         t = min(t, max(1, int(n_items)))
     return CorePlan(workers=w, threads=max(1, t))

@@ -390,11 +390,12 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
     ``workers`` = 1 runs them here, one after the other. Streamed with the default workers and several methods, a run's IF is generated once, here,
     into a ring the run's methods read at the same time, one worker process each
     (:mod:`ultratight.signals.synth.ifring`); otherwise every method streams its own copy. The results do
-    not depend on where a job ran nor on where its samples came from."""
+    not depend on where a job ran nor on where its samples came from. A streamed IF keeps a core busy
+    beside the engines: it is reserved (:func:`ultratight.cores.plan`)."""
     n_jobs = runs * len(methods)
     shared = not cache and workers is None and len(methods) > 1
     cores = plan(len(methods) if shared else n_jobs, workers=len(methods) if shared else workers,
-                 threads=getattr(options, "threads", None))
+                 threads=getattr(options, "threads", None), reserved=0 if cache else 1)
     n_workers, threads = cores.workers, cores.threads
     here = workers is not None and int(workers) == 1
     per_job = {}
