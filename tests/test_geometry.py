@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from ultratight.ins.earth import elev_azim, llh_to_ecef
+from ultratight.ins.earth import elev_azim, enu_frames, llh_to_ecef
 from ultratight.signals.constellation import nominal_ephemerides
 from ultratight.signals.ephemeris import sat_state
-from ultratight.signals.geometry import light_time, visible_prns
+from ultratight.signals.geometry import light_time, light_time_many, visible_prns
 from ultratight.signals.rinex import read_rinex_nav
 
 C = 299792458.0
@@ -113,6 +113,29 @@ def test_vectorised_equals_one_by_one(nav, rx_static):
     for k in range(len(t)):
         o1 = light_time(eph, rx_static, np.zeros(3), WEEK, t[k:k + 1])
         assert abs(o1["pseudorange_m"][0] - o["pseudorange_m"][k]) < 1e-7
+
+
+def test_many_satellites_equal_one_at_a_time(nav):
+    """light_time_many (the generator's path: receivers prepared once, their frames passed) gives
+    every value light_time gives, bit for bit, on a moving receiver with a clock."""
+    ephs = nav.select_all(WEEK, TOW)
+    t = TOW + np.linspace(0.0, 0.2, 41)
+    pos = np.asarray(llh_to_ecef(math.radians(28.246), math.radians(102.0266), 50e3)) + np.outer(t - TOW, [300.0, -40.0, 80.0])
+    vel = np.tile([300.0, -40.0, 80.0], (t.size, 1))
+    bias = 12.5 + 0.3 * (t - TOW)
+    frames = enu_frames(pos)
+    for fr in (frames, None):
+        many = light_time_many([e for e in ephs.values()], pos, vel, t, bias, 0.3, fr)
+        assert len(many) == len(ephs)
+        for got, eph in zip(many, ephs.values()):
+            ref = light_time(eph, pos, vel, WEEK, t, bias, 0.3, fr)
+            assert got.keys() == ref.keys()
+            for k in ref:
+                np.testing.assert_array_equal(got[k], ref[k], err_msg=k)
+            # the fast path (frames given) against the general broadcasting function
+            el, az = elev_azim(pos, got["sat_pos_e"])
+            np.testing.assert_array_equal(got["elev_rad"], el)
+            np.testing.assert_array_equal(got["azim_rad"], az)
 
 
 def test_elev_azim_closed_forms():

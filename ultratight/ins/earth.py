@@ -159,6 +159,16 @@ def _elev_azim_rows(frames, rx, sat, out):
         out[i, 1] = az + 2.0 * math.pi if az < 0.0 else az
 
 
+def elev_azim_rows(frames, rx_rows, sat_rows):
+    """:func:`elev_azim` without its broadcasting: elevation and azimuth arrays (n,) of ``sat_rows``
+    (n, 3) seen from ``rx_rows`` (n, 3, or 1, 3) in their ``frames`` (:func:`enu_frames` of
+    ``rx_rows``), all float64 and C-contiguous — for callers that evaluate many satellites at
+    the same receivers."""
+    out = np.empty((sat_rows.shape[0], 2))
+    _elev_azim_rows(frames, rx_rows, sat_rows, out)
+    return out[:, 0], out[:, 1]
+
+
 def elev_azim(rx_pos_e, sat_pos_e, frames=None):
     """Elevation and azimuth (rad) of satellite(s) seen from receiver(s): ECEF positions, broadcasting
     over (..., 3); a scalar pair for one receiver and one satellite.

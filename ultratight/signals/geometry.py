@@ -51,7 +51,7 @@ from numba import njit
 
 from ultratight.constants import C, CA_LEN, F_CA, LAMBDA_L1, OMEGA_E, WGS84_A, WGS84_B
 from ultratight.errors import ConfigError
-from ultratight.ins.earth import elev_azim
+from ultratight.ins.earth import elev_azim, elev_azim_rows
 from ultratight.signals.ephemeris import eph_params, sat_state, state_scalar
 from ultratight.signals.signal import GPS_L1CA
 
@@ -218,40 +218,65 @@ def light_time(eph, rx_pos_e, rx_vel_e, week, t_rx_tow, rx_clk_bias_m=0.0, rx_cl
     caller passes the receivers' ``rx_frames`` (:func:`ultratight.ins.earth.enu_frames` of
     ``rx_pos_e``), computed once for all satellites.
     """
-    t_rx = np.ascontiguousarray(np.atleast_1d(np.asarray(t_rx_tow, dtype=np.float64)))
-    n = t_rx.shape[0]
-    rx = np.ascontiguousarray(np.broadcast_to(np.asarray(rx_pos_e, dtype=np.float64), (n, 3)))
-    rv = np.ascontiguousarray(np.broadcast_to(np.asarray(rx_vel_e, dtype=np.float64), (n, 3)))
-    bias = np.ascontiguousarray(np.broadcast_to(np.asarray(rx_clk_bias_m, dtype=np.float64), (n,)))
-    drift = np.ascontiguousarray(np.broadcast_to(np.asarray(rx_clk_drift_mps, dtype=np.float64), (n,)))
-    p = eph if isinstance(eph, np.ndarray) else eph_params(eph)
-    tau = np.empty(n)
-    clk = np.empty((n, 2))
-    obs = np.empty((n, N_OBS))
-    _light_time_kernel(p, rx, rv, t_rx, bias, drift, tau, clk, obs)
-    pr = obs[:, OBS_PR]
-    pr_dot = obs[:, OBS_PR_DOT]
-    t_sv = obs[:, OBS_T_SV]
-    sat_pos = obs[:, OBS_POS:OBS_POS + 3]
-    elev, azim = elev_azim(rx_pos_e, sat_pos, rx_frames)
-    return {
-        "pseudorange_m": pr,
-        "range_rate_mps": pr_dot,
-        "doppler_hz": -pr_dot / LAMBDA_L1,
-        "code_phase_chips": np.mod(t_sv * F_CA, float(CA_LEN)),
-        "carrier_phase_cycles": -pr / LAMBDA_L1,
-        "t_tx_tow": t_sv,
-        "t_tx_gps": obs[:, OBS_T_TX],
-        "tau_s": tau,
-        "range_m": obs[:, OBS_RANGE],
-        "sat_pos_e": sat_pos,
-        "sat_vel_e": obs[:, OBS_VEL:OBS_VEL + 3],
-        "sat_clk_bias_s": clk[:, 0],
-        "sat_clk_drift": clk[:, 1],
-        "los_e": obs[:, OBS_LOS:OBS_LOS + 3],
-        "elev_rad": elev,
-        "azim_rad": azim,
-    }
+    rx = _Receivers(rx_pos_e, rx_vel_e, t_rx_tow, rx_clk_bias_m, rx_clk_drift_mps)
+    return rx.solve(eph if isinstance(eph, np.ndarray) else eph_params(eph), rx_pos_e, rx_frames)
+
+
+def light_time_many(params, rx_pos_e, rx_vel_e, t_rx_tow, rx_clk_bias_m=0.0, rx_clk_drift_mps=0.0,
+                    rx_frames=None):
+    """:func:`light_time` of several satellites (``params``: their :func:`ultratight.signals.ephemeris.
+    eph_params` arrays or ephemerides) at the same receivers: the receivers' arrays are prepared once,
+    so the per-satellite cost is mostly the kernel's (pass ``rx_frames``, as to :func:`light_time`);
+    every value is the one :func:`light_time` gives."""
+    rx = _Receivers(rx_pos_e, rx_vel_e, t_rx_tow, rx_clk_bias_m, rx_clk_drift_mps)
+    return [rx.solve(p if isinstance(p, np.ndarray) else eph_params(p), rx_pos_e, rx_frames) for p in params]
+
+
+class _Receivers:
+    """The receive times, positions, velocities and clocks of :func:`light_time` as contiguous arrays."""
+
+    def __init__(self, rx_pos_e, rx_vel_e, t_rx_tow, rx_clk_bias_m, rx_clk_drift_mps):
+        self.t = np.ascontiguousarray(np.atleast_1d(np.asarray(t_rx_tow, dtype=np.float64)))
+        n = self.t.shape[0]
+        self.pos = np.ascontiguousarray(np.broadcast_to(np.asarray(rx_pos_e, dtype=np.float64), (n, 3)))
+        self.vel = np.ascontiguousarray(np.broadcast_to(np.asarray(rx_vel_e, dtype=np.float64), (n, 3)))
+        self.bias = np.ascontiguousarray(np.broadcast_to(np.asarray(rx_clk_bias_m, dtype=np.float64), (n,)))
+        self.drift = np.ascontiguousarray(np.broadcast_to(np.asarray(rx_clk_drift_mps, dtype=np.float64), (n,)))
+
+    def solve(self, p, rx_pos_e, rx_frames):
+        """The observables dict of the satellite of parameters ``p`` (:func:`light_time`)."""
+        n = self.t.shape[0]
+        tau = np.empty(n)
+        clk = np.empty((n, 2))
+        obs = np.empty((n, N_OBS))
+        _light_time_kernel(p, self.pos, self.vel, self.t, self.bias, self.drift, tau, clk, obs)
+        pr = obs[:, OBS_PR]
+        pr_dot = obs[:, OBS_PR_DOT]
+        t_sv = obs[:, OBS_T_SV]
+        sat_pos = obs[:, OBS_POS:OBS_POS + 3]
+        if rx_frames is not None and np.ndim(rx_pos_e) == 2 and rx_frames.shape[0] == n \
+                and rx_frames.flags.c_contiguous:
+            elev, azim = elev_azim_rows(rx_frames, self.pos, np.ascontiguousarray(sat_pos))
+        else:
+            elev, azim = elev_azim(rx_pos_e, sat_pos, rx_frames)
+        return {
+            "pseudorange_m": pr,
+            "range_rate_mps": pr_dot,
+            "doppler_hz": -pr_dot / LAMBDA_L1,
+            "code_phase_chips": np.mod(t_sv * F_CA, float(CA_LEN)),
+            "carrier_phase_cycles": -pr / LAMBDA_L1,
+            "t_tx_tow": t_sv,
+            "t_tx_gps": obs[:, OBS_T_TX],
+            "tau_s": tau,
+            "range_m": obs[:, OBS_RANGE],
+            "sat_pos_e": sat_pos,
+            "sat_vel_e": obs[:, OBS_VEL:OBS_VEL + 3],
+            "sat_clk_bias_s": clk[:, 0],
+            "sat_clk_drift": clk[:, 1],
+            "los_e": obs[:, OBS_LOS:OBS_LOS + 3],
+            "elev_rad": elev,
+            "azim_rad": azim,
+        }
 
 
 # ------------------------------------------------------------------ all channels at one receive time

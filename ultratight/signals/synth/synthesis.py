@@ -47,7 +47,8 @@ from ultratight.constants import C, CA_LEN, F_CA, LAMBDA_L1, T_CA
 from ultratight.signals.ca_code import ca_code
 from ultratight.signals.corr_model import signal_amplitude
 from ultratight.ins.earth import ecef_to_llh_batch, enu_frames
-from ultratight.signals.geometry import light_time
+from ultratight.signals.ephemeris import eph_params
+from ultratight.signals.geometry import light_time_many
 
 LUT_BITS = 11
 LUT_N = 1 << LUT_BITS
@@ -160,6 +161,7 @@ class SignalPlan:
     def __init__(self, ephs, cn0_dbhz, traj, week, tow0, fs_hz, if_hz, is_complex, inversion=False,
                  clock_bias_m=0.0, clock_drift_mps=0.0, n_samples=None, atmosphere=None, iono_broadcast=None):
         self.ephs = list(ephs)
+        self._params = [eph_params(e) for e in self.ephs]
         self.prns = np.array([e.prn for e in self.ephs], dtype=np.int64)
         self.cn0_dbhz = np.broadcast_to(np.asarray(cn0_dbhz, dtype=float), (len(self.ephs),)).copy()
         self.traj = traj
@@ -193,7 +195,7 @@ class SignalPlan:
         pos, vel = self.traj.pos_vel_e(np.maximum(tau_traj, 0.0))
         t_true = self.tow0 + e - b / C
         frames = enu_frames(pos)
-        out = [light_time(eph, pos, vel, self.week, t_true, b, self.drift, frames) for eph in self.ephs]
+        out = light_time_many(self._params, pos, vel, t_true, b, self.drift, frames)
         if self.atmosphere is not None:
             self._apply_atmosphere(out, pos, t_true, e)
         return out, {"pos_e": pos, "vel_e": vel, "clk_bias_m": b, "t_true": t_true, "e": e}
@@ -278,11 +280,13 @@ class SignalPlan:
             if entry is None:
                 continue
             first, b = entry
-            for e in range(3):
-                idx = (epoch0[:, s] + e) // 20 - first
-                idx = np.clip(idx, 0, len(b) - 1)
-                out[:, s, e] = b[idx]
+            idx = (epoch0[:, s, None] + _NEXT3) // 20 - first
+            np.clip(idx, 0, len(b) - 1, out=idx)
+            out[:, s, :] = b[idx]
         return out
+
+
+_NEXT3 = np.arange(3, dtype=np.int64)     # bit_values: epochs epoch0, +1, +2
 
 
 def eval_poly(coefs, i):
