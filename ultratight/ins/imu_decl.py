@@ -64,7 +64,7 @@ import numpy as np
 
 from ultratight.constants import OMEGA_E
 from ultratight.errors import ConfigError, InputFileError
-from ultratight.ins.imu_noise import DATASHEET_KEYS, GRADES, imu_noise
+from ultratight.ins.imu_noise import ALL_KEYS, GRADES, OPTIONAL_KEYS, imu_noise
 
 SIDECAR_FORMAT = "ultratight-imu-sidecar"
 SIDECAR_VERSION = 1
@@ -81,7 +81,7 @@ _UNIT_ALIASES = {"m/s2": "m/s^2", "m/s²": "m/s^2", "mps2": "m/s^2", "dps": "deg
                  "mps": "m/s"}
 KEYS = ("format", "version", "kind", "axes", "gyro_unit", "accel_unit", "rate_hz", "time_ref", "gps_week",
         "time_offset_s", "lever_arm_m", "check", "noise")
-NOISE_KEYS = ("grade",) + tuple(DATASHEET_KEYS)
+NOISE_KEYS = ("grade",) + tuple(ALL_KEYS)
 # preference when naming the likely axes (most common first)
 COMMON_AXES = ("FLU", "FRD", "RFU", "LFD", "RBD", "BRU", "LBU", "BLD")
 STILL_WINDOW_S = 1.0
@@ -268,14 +268,16 @@ def _noise_table(nz):
         if k == "grade":
             if v not in GRADES:
                 raise ConfigError(f"noise grade must be one of {', '.join(GRADES)}, got {v!r}")
-        elif isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-            raise ConfigError(f"noise {k} must be a positive number, got {v!r}")
+        elif isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0 or (
+                v == 0 and k not in OPTIONAL_KEYS):
+            raise ConfigError(f"noise {k} must be a {'non-negative' if k in OPTIONAL_KEYS else 'positive'} number, "
+                              f"got {v!r}")
     return dict(nz)
 
 
 def resolve_noise(declaration=None, grade=None, **flags):
     """The declared :class:`ultratight.ins.imu_noise.ImuNoise`: the datasheet values of ``flags``
-    (keys of ``DATASHEET_KEYS``, None = not given) over the ``noise`` table of ``declaration``
+    (keys of ``ALL_KEYS``, None = not given) over the ``noise`` table of ``declaration``
     (an :class:`ImuDeclaration` or None) over the grade (``grade``, else the table's).  ConfigError
     when a value is missing and no grade is given."""
     table = dict((declaration.noise or {}) if declaration is not None else {})

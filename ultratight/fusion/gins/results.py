@@ -55,16 +55,19 @@ class Storage:
         self.n_zupt = 0
         self.n_nhc = 0
 
-    def node_post(self, c, x, bias, clk, P, dx, P_prior, Phi):
+    def node_post(self, c, x, bias, clk, P, dx, P_prior, Phi, Pt, Pt_prior):
+        """Node c after its updates: the design filter's P (posterior) and P_prior (what the
+        smoother needs), and the reported covariances Pt / Pt_prior (of the filter's actual error,
+        :mod:`ultratight.fusion.gins.consider`)."""
         if c == 0:
             self.q[0], self.v[0], self.p[0] = x[0:4], x[4:7], x[7:10]
         self.x_post[c] = x[0:10]
         self.bias_post[c] = bias
         self.clk_post[c] = clk
-        self.d_prior[c] = np.diag(P_prior)
-        self.d_post[c] = np.diag(P)
-        self.a_prior[c] = P_prior[em.ATT, em.ATT]
-        self.a_post[c] = P[em.ATT, em.ATT]
+        self.d_prior[c] = np.diag(Pt_prior)
+        self.d_post[c] = np.diag(Pt)
+        self.a_prior[c] = Pt_prior[em.ATT, em.ATT]
+        self.a_post[c] = Pt[em.ATT, em.ATT]
         self.dx[c] = dx
         if self.smooth:
             self.Phi[c], self.P_prior[c], self.P_post[c] = Phi, P_prior, P

@@ -14,6 +14,10 @@ layout, position block in metres north/east/up as in
   Covariance steps also end at the IMU sample nearest each GNSS epoch.  Q from ImuNoise only:
   gyro ARW², accelerometer VRW², gyro and accelerometer bias random-walk PSDs; clock PSDs for
   tight coupling (``clock_psd``).
+* **Reported covariance** (:mod:`ultratight.fusion.gins.consider`): the covariance of the
+  filter's actual error with the sensors' scale-factor and cross-axis errors (ImuNoise
+  ``gyro_sf``, ``gyro_cross``, ``accel_sf``, ``accel_cross``) considered, propagated beside the
+  design covariance with the filter's own gains; the reported σ and the χ² gate use it.
 * **Updates** (:mod:`ultratight.fusion.gins.updates`, :mod:`ultratight.fusion.gins.cores`) at the
   node of each GNSS epoch (the position predicted to the epoch's time with the velocity), then
   ZUPT / NHC at most every ``aid_interval_s``; the error state is fed back after the updates of a
@@ -34,9 +38,11 @@ from numba import njit
 from ultratight.errors import ConfigError
 from ultratight.fusion.coupling.integration import discrete_model, imu_psd, pos_scale
 from ultratight.fusion.gins import alignment, results, updates
+from ultratight.fusion.gins.consider import ConsiderCovariance
 from ultratight.fusion.gins.cores import make_core
 from ultratight.fusion.gins.options import check_options, in_windows
 from ultratight.ins import error_model as em
+from ultratight.ins.attitude import quat_to_dcm
 from ultratight.ins.earth import dcm_ecef_from_enu, llh_to_ecef
 from ultratight.ins.sins import sins_step
 
@@ -113,10 +119,11 @@ class GinsRun:
             self.clk[:] = np.where(np.isfinite(clk0), clk0, 0.0)
         m_gnss = 6 if (not self.tight and self._has_velocity()) else 3
         self.core = make_core(opts.filter, P0, opts, m_gnss)
+        self.consider = ConsiderCovariance(nz, self.core.P, opts.nhc_sigma_mps if opts.nhc else None)
         self.nodes, self.by_node, self.reason = _schedule(imu, al.j0, src, opts)
         self.store = results.Storage(imu, al.j0, self.nodes, self.ns, opts.smooth, src.n)
         self.store.node_post(0, self.x, self.bias, self.clk, self.core.P, np.zeros(self.ns), self.core.P,
-                             np.eye(self.ns))
+                             np.eye(self.ns), self.core.P, self.core.P)
         self.next_aid = -np.inf
         self.n_rejected_run = 0
         self.row_runs = {}
@@ -143,7 +150,9 @@ class GinsRun:
         else:
             Phi, Qd = discrete_model(self.x, s[3:6] / T, T, self.q_psd, self.ns, clock_qd)
             self.core.predict(Phi, Qd)
+        self.consider.predict(Phi, Qd, quat_to_dcm(self.x[0:4]), s[0:3], s[3:6])
         P_prior = self.core.P
+        Pt_prior = self.consider.covariance(P_prior)
         updated = False
         self.core.prior_used = None
         for k in self.by_node.get(b, ()):
@@ -154,7 +163,8 @@ class GinsRun:
         dx = self.core.x.copy()
         if updated:
             self.feedback(dx)
-        st.node_post(c, self.x, self.bias, self.clk, self.core.P, dx, P_prior, Phi)
+        st.node_post(c, self.x, self.bias, self.clk, self.core.P, dx, P_prior, Phi,
+                     self.consider.covariance(self.core.P), Pt_prior)
 
     def feedback(self, dx):
         """Closed-loop reset: the error state into the SINS state, bias and clock estimates."""
@@ -183,7 +193,8 @@ class GinsRun:
             return False
         z, H, R, quality = rows
         p = None if self.core.own_gate else self.o.gate_p
-        mask, nis, why = updates.gate(z - H @ self.core.x, H, self.core.gate_R(R), self.core.P, p, per_row=self.tight)
+        mask, nis, why = updates.gate(z - H @ self.core.x, H, self.core.gate_R(R),
+                                      self.consider.covariance(self.core.P), p, per_row=self.tight)
         if self.tight:
             mask, why = self._release_rows(quality, mask, why)
             quality = -1
@@ -196,7 +207,10 @@ class GinsRun:
             return False
         self.n_rejected_run = 0
         z, H, R = z[mask], H[mask], R[np.ix_(mask, mask)]
+        P_before = self.core.P
         self.core.update_gnss(z, H, R)
+        self.consider.update(self.core.prior_used if self.core.prior_used is not None else P_before, H,
+                             self.core.gate_R(R))
         log.epoch(k, t_k, True, z.shape[0], nis, not mask.all(), quality, why)
         return True
 
@@ -231,16 +245,19 @@ class GinsRun:
         if not (o.zupt or o.nhc) or self.imu.t[b] < self.next_aid:
             return False
         self.next_aid = self.imu.t[b] + o.aid_interval_s - 1e-9
-        done = False
+        rows, nhc = None, False
         if o.zupt and self.still[b]:
-            self.core.update_aid(*updates.zupt_rows(self.x, o.zupt_sigma_mps, self.ns))
+            rows = updates.zupt_rows(self.x, o.zupt_sigma_mps, self.ns)
             self.store.n_zupt += 1
-            done = True
         elif o.nhc and np.linalg.norm(self.x[4:7]) >= o.nhc_min_speed_mps:
-            self.core.update_aid(*updates.nhc_rows(self.x, o.nhc_sigma_mps, self.ns))
+            rows, nhc = updates.nhc_rows(self.x, o.nhc_sigma_mps, self.ns), True
             self.store.n_nhc += 1
-            done = True
-        return done
+        if rows is None:
+            return False
+        P_before = self.core.P
+        self.core.update_aid(*rows)
+        self.consider.update(P_before, rows[1], rows[2], nhc=nhc)
+        return True
 
 
 def _source(opts, fixes, tight):

@@ -111,8 +111,11 @@ def _noise(args):
         dec = imu_decl.resolve_declaration(args.imu, {})
     except (ConfigError, InputFileError):
         dec = None
+    from ultratight.receiver.cli.commands.integrate import SCALE_FLAGS
+    flags = imu_flags.noise_flags(args)
+    flags.update({key: getattr(args, flag[2:].replace("-", "_"), None) for flag, key, _t in SCALE_FLAGS})
     try:
-        return imu_flags.resolve_noise(args, dec)
+        return imu_decl.resolve_noise(dec, grade=getattr(args, "imu_grade", None), **flags)
     except ConfigError as exc:
         raise ConfigError(f"{exc} (the filter is tuned from the IMU's declared noise: --imu-grade or the "
                           "--imu-*-noise/-bias flags, or the sidecar's noise table)") from None

@@ -19,6 +19,12 @@ IMU_FORMATS = ("auto", "csv", "h5", "rtklib-raw", "sf", "kf-gins")
 GNSS_FORMATS = ("auto", "pos", "nmea", "ubx", "rinex")
 OUTPUT_FLAGS = (("--out", "out"), ("--csv", "csv"), ("--kml", "kml"), ("--nmea", "nmea"), ("--plot", "plot"))
 DEFAULT_RATE_HZ = 10.0
+# flag -> datasheet key of ultratight.ins.imu_noise (optional keys: scale factor and cross-axis, 1 sigma)
+SCALE_FLAGS = (("--imu-gyro-scale-factor", "gyro_scale_factor_pct",
+                "gyro scale-factor error, %% (1 sigma; default: the grade's, docs/gins.md)"),
+               ("--imu-gyro-cross-axis", "gyro_cross_axis_pct", "gyro cross-axis sensitivity, %% (1 sigma)"),
+               ("--imu-accel-scale-factor", "accel_scale_factor_pct", "accelerometer scale-factor error, %% (1 sigma)"),
+               ("--imu-accel-cross-axis", "accel_cross_axis_pct", "accelerometer cross-axis sensitivity, %% (1 sigma)"))
 
 
 def add_arguments(p):
@@ -78,6 +84,9 @@ def add_arguments(p):
     from ultratight.receiver.cli.commands import imu_flags
     imu_flags.add_arguments(p)
     imu_flags.add_noise_arguments(p)
+    n = next(g for g in p._action_groups if g.title and g.title.startswith("IMU noise"))
+    for flag, _key, text in SCALE_FLAGS:
+        n.add_argument(flag, type=float, default=None, metavar="PCT", help=text)
     for a in p._actions:        # integrate takes the lever arm in body axes (after --mount), not in the file's
         if "--lever-arm" in a.option_strings:
             a.help = "lever arm IMU -> antenna in body axes forward-right-down (after --mount), m"
