@@ -664,11 +664,11 @@ def write_results_h5(path, cfg, raw, methods, runs, base_seed, consume=False, ke
 
 
 def make_plots(out, raw, methods, channel):
-    """Paper-style figures (Fig. 4–7): Doppler and code-phase error of one channel vs time."""
+    """Paper-style figures (Fig. 4–7): Doppler and code-phase error of one channel vs time (Agg canvas
+    without pyplot, curves through :func:`ultratight.receiver.cli.metrics.plot_envelope`, one draw)."""
     try:                        # matplotlib: optional dependency (the "plot" extra)
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
     except ImportError:
         return []
     figs = []
@@ -680,21 +680,21 @@ def make_plots(out, raw, methods, channel):
         have = [m for m in ms if (0, m) in raw]
         if not have:
             continue
-        fig, ax = plt.subplots(figsize=(8, 4))
+        fig = Figure(figsize=(8, 4))
+        fig.subplots_adjust(left=0.1, right=0.98, bottom=0.12, top=0.92)
+        FigureCanvasAgg(fig)
+        ax = fig.add_subplot()
         for m in have:
             res = raw[(0, m)][0]
             err = raw[(0, m)][idx]
-            ax.plot(res.t_start[:, channel], err[:, channel], lw=0.5, label=m)
+            ax.plot(*M.plot_envelope(res.t_start[:, channel], err[:, channel]), lw=0.5, label=m)
         ax.set_xlabel("time (s)")
         ax.set_ylabel(ylabel)
         ax.set_title(f"channel {channel} (PRN {raw[(0, have[0])][0].prns[channel]}), run 0")
         ax.grid(True, alpha=0.3)
         ax.legend()
         p = Path(out) / name
-        try:
-            with atomic_path(p) as tmp:
-                fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
-        finally:
-            plt.close(fig)
+        with atomic_path(p) as tmp:
+            fig.savefig(tmp, format="png", dpi=110)
         figs.append(str(p))
     return figs

@@ -46,12 +46,19 @@ carrier phase enters as ``cos(2 pi f_IF t - phi)``. The IF readers undo both
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import signal as sps
 
 from ultratight.errors import ConfigError
 
 SUPPORTED_BITS = (0, 1, 2, 4, 8, 16)
 MAX_IMPULSE = 1 << 24      # samples of the impulse response that measures the filter's noise gain
+
+
+def _signal():
+    """:mod:`scipy.signal`, imported on first use: only a front end with a filter needs it, and its
+    import (about a second, scipy.stats with it) would otherwise fall on every command that builds a
+    scenario."""
+    import scipy.signal
+    return scipy.signal
 
 
 def _number(fe, key, default):
@@ -186,13 +193,13 @@ class FrontEnd:
                 raise ConfigError(f"frontend.filter_bw_hz = {bw} must be in (0, fs) for complex sampling")
             if self.if_hz != 0.0:
                 raise ConfigError("frontend.filter_bw_hz with complex sampling needs if_hz = 0")
-            sos = sps.butter(self.filter_order, fc, btype="low", fs=self.fs_hz, output="sos")
+            sos = _signal().butter(self.filter_order, fc, btype="low", fs=self.fs_hz, output="sos")
         else:
             lo, hi = self.if_hz - bw / 2.0, self.if_hz + bw / 2.0
             if lo <= 0 or hi >= nyq:
                 raise ConfigError(
                     f"frontend band-pass {lo:.0f}..{hi:.0f} Hz must lie inside (0, fs/2 = {nyq:.0f}) Hz")
-            sos = sps.butter(self.filter_order, [lo, hi], btype="band", fs=self.fs_hz, output="sos")
+            sos = _signal().butter(self.filter_order, [lo, hi], btype="band", fs=self.fs_hz, output="sos")
         self._sos = sos
         # white-noise power gain = sum h^2 (impulse response long enough to converge)
         n = max(4096, 50 * self.fs_hz / bw)
@@ -202,7 +209,7 @@ class FrontEnd:
         n = int(n)
         imp = np.zeros(n)
         imp[0] = 1.0
-        h = sps.sosfilt(sos, imp)
+        h = _signal().sosfilt(sos, imp)
         self._gain = float(np.sqrt(np.sum(h * h)))
         self._zi = None
 
@@ -218,7 +225,7 @@ class FrontEnd:
 
         if self._zi is None:
             self._zi = np.zeros((self._sos.shape[0], 2), dtype=np.complex128 if self.is_complex else np.float64)
-        y, self._zi = sps.sosfilt(self._sos, x, zi=self._zi)
+        y, self._zi = _signal().sosfilt(self._sos, x, zi=self._zi)
         y /= self._gain
         return y.astype(x.dtype, copy=False)
 
