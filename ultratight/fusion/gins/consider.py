@@ -84,6 +84,9 @@ class ConsiderCovariance:
             return
         G = np.zeros((Phi.shape[0], self.pss.size))
         G[:, :self.n_sensor] = consider_sensitivity(C, dth, dv, Phi.shape[0])[:, self.keep]
+        n = Phi.shape[0]            # the node's composite update e⁺ = L e⁻ − J s + η (smoother)
+        self.G, self.Q = G, Qd
+        self.L, self.J, self.N = np.eye(n), np.zeros((n, self.pss.size)), np.zeros((n, n))
         GP = G * self.pss
         A = Phi @ self.Pts
         Pt = Phi @ self.Pt @ Phi.T + A @ G.T + G @ A.T + GP @ G.T + Qd
@@ -99,16 +102,60 @@ class ConsiderCovariance:
         PHt = P_design @ H.T
         K = np.linalg.solve(H @ PHt + R, PHt.T).T
         A = np.eye(K.shape[0]) - K @ H
-        Pt = A @ self.Pt @ A.T + K @ R @ K.T
+        KRK = K @ R @ K.T
+        Pt = A @ self.Pt @ A.T + KRK
         Pts = A @ self.Pts
+        J = A @ self.J
         if nhc and self.pss.size > self.n_sensor:
             b = slice(self.n_sensor, self.n_sensor + 2)
             KB = K @ self.Pts[:, b].T @ A.T
             Pt = Pt + K @ np.diag(self.pss[b]) @ K.T - KB - KB.T
             Pts[:, b] -= K * self.pss[b]
+            J[:, b] += K
         self.Pt = 0.5 * (Pt + Pt.T)
         self.Pts = Pts
+        self.L, self.J, self.N = A @ self.L, J, A @ self.N @ A.T + KRK
 
     def covariance(self, P_design):
         """The covariance of the filter's actual error (P_t; the design P when nothing is considered)."""
         return self.Pt if self.on else P_design
+
+
+def consider_smoother(Phi, P_prior, P_post, st):
+    """(K, n, n) covariance of the RTS-smoothed solution's actual error.
+
+    The smoother's gains C_k = P⁺_k Φ_{k+1}ᵀ (P⁻_{k+1})⁻¹ are the design filter's (``Phi``,
+    ``P_prior``, ``P_post`` as :func:`ultratight.fusion.gins.smoother.rts_backward` takes them).
+    With e⁻_{k+1} = Φ e⁺_k + Γ s + w and each node's composite update e⁺ = L e⁻ − J s + η
+    (``st``: per node ``Pt``, ``Pts`` after the updates, ``L``, ``J``, ``N`` = Cov η, ``G`` = Γ and
+    ``Q`` of the step into it, ``pss``), the smoothed error e^s_k = (I − C Φ) e⁺_k + C e^s_{k+1}
+    − C Γ s − C w is written e^s_k = T_k e⁺_k + U_k s + f_k, f_k independent of e⁺_k and s::
+
+        T_k = I − C Φ + C T_{k+1} L_{k+1} Φ,   U_k = C (T_{k+1} (L_{k+1} Γ − J_{k+1}) + U_{k+1} − Γ)
+        F_k = C ((T_{k+1} L_{k+1} − I) Q (…)ᵀ + T_{k+1} N_{k+1} T_{k+1}ᵀ + F_{k+1}) Cᵀ
+        Ps_k = T P_t Tᵀ + U P_ss Uᵀ + T P_ts Uᵀ + U P_st Tᵀ + F_k
+
+    from T_K = I, U_K = 0, F_K = 0 (the last node's smoothed error is its filtered one)."""
+    K, n = P_post.shape[0], P_post.shape[1]
+    I = np.eye(n)
+    Pss = np.diag(st.pss)
+    Ps = np.empty((K, n, n))
+    Ps[-1] = st.Pt[-1]
+    T, U, F = I, np.zeros((n, st.pss.size)), np.zeros((n, n))
+    for k in range(K - 2, -1, -1):
+        Pp = P_prior[k + 1]
+        Ph = Phi[k + 1]
+        try:
+            C = np.linalg.solve(Pp, Ph @ P_post[k]).T
+        except np.linalg.LinAlgError:
+            C = P_post[k] @ Ph.T @ np.linalg.pinv(Pp)
+        TL = T @ st.L[k + 1]
+        G = st.G[k + 1]
+        B = TL - I
+        F = C @ (B @ st.Q[k + 1] @ B.T + T @ st.N[k + 1] @ T.T + F) @ C.T
+        U = C @ (TL @ G - T @ st.J[k + 1] + U - G)
+        T = I - C @ Ph + C @ TL @ Ph
+        X = T @ st.Pts[k] @ U.T
+        P = T @ st.Pt[k] @ T.T + U @ Pss @ U.T + X + X.T + F
+        Ps[k] = 0.5 * (P + P.T)
+    return Ps

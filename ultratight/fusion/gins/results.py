@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ultratight.fusion.gins.consider import consider_smoother
 from ultratight.fusion.gins.options import GinsResult, in_windows
 from ultratight.fusion.gins.smoother import rts_backward, sample_corrections
 from ultratight.ins import error_model as em
@@ -54,6 +55,7 @@ class Storage:
                     "reason": [""] * n_epochs}
         self.n_zupt = 0
         self.n_nhc = 0
+        self.cons = None            # when smoothing with considered errors: :class:`ConsiderNodes`
 
     def node_post(self, c, x, bias, clk, P, dx, P_prior, Phi, Pt, Pt_prior):
         """Node c after its updates: the design filter's P (posterior) and P_prior (what the
@@ -72,10 +74,34 @@ class Storage:
         if self.smooth:
             self.Phi[c], self.P_prior[c], self.P_post[c] = Phi, P_prior, P
 
+    def node_consider(self, c, cc):
+        """Node c's considered covariances and composite update (:class:`ConsiderNodes`), when smoothing."""
+        if not (self.smooth and cc.on):
+            return
+        if self.cons is None:
+            self.cons = ConsiderNodes(len(self.node_j), self.d_post.shape[1], cc.pss)
+        self.cons.store(c, cc)
+
     def epoch(self, k, t, used, n_rows, nis, rejected, quality, reason):
         lg = self.log
         lg["t"][k], lg["used"][k], lg["n_rows"][k], lg["nis"][k] = t, used, n_rows, nis
         lg["rejected"][k], lg["quality"][k], lg["reason"][k] = rejected, quality, reason
+
+
+class ConsiderNodes:
+    """Per covariance node, what :func:`ultratight.fusion.gins.consider.consider_smoother` needs."""
+
+    def __init__(self, K, n, pss):
+        m = pss.size
+        self.pss = pss
+        self.Pt, self.Pts = np.empty((K, n, n)), np.zeros((K, n, m))
+        self.L, self.J, self.N = np.tile(np.eye(n), (K, 1, 1)), np.zeros((K, n, m)), np.zeros((K, n, n))
+        self.G, self.Q = np.zeros((K, n, m)), np.zeros((K, n, n))
+
+    def store(self, c, cc):
+        self.Pt[c], self.Pts[c] = cc.Pt, cc.Pts
+        if c > 0:
+            self.L[c], self.J[c], self.N[c], self.G[c], self.Q[c] = cc.L, cc.J, cc.N, cc.G, cc.Q
 
 
 def euler_from_q(q):
@@ -139,6 +165,8 @@ def _smoothed(st, chunk, tight, in_out, fwd):
         clk -= corr[:, em.CLK:em.DRIFT + 1]
     span = st.node_t[chunk] - st.node_t[prev]
     w = np.where(span > 0, (st.t - st.node_t[prev]) / np.where(span > 0, span, 1.0), 1.0)[:, None]
+    if st.cons is not None:         # the σ of the smoothed solution's actual error (considered errors)
+        Ps = consider_smoother(st.Phi, st.P_prior, st.P_post, st.cons)
     dP = np.einsum("kii->ki", Ps)
     dvar = (1 - w) * dP[prev] + w * dP[chunk]
     Aa = Ps[:, em.ATT, em.ATT]

@@ -124,6 +124,7 @@ class GinsRun:
         self.store = results.Storage(imu, al.j0, self.nodes, self.ns, opts.smooth, src.n)
         self.store.node_post(0, self.x, self.bias, self.clk, self.core.P, np.zeros(self.ns), self.core.P,
                              np.eye(self.ns), self.core.P, self.core.P)
+        self.store.node_consider(0, self.consider)
         self.next_aid = -np.inf
         self.n_rejected_run = 0
         self.row_runs = {}
@@ -165,6 +166,7 @@ class GinsRun:
             self.feedback(dx)
         st.node_post(c, self.x, self.bias, self.clk, self.core.P, dx, P_prior, Phi,
                      self.consider.covariance(self.core.P), Pt_prior)
+        st.node_consider(c, self.consider)
 
     def feedback(self, dx):
         """Closed-loop reset: the error state into the SINS state, bias and clock estimates."""
