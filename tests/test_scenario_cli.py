@@ -60,6 +60,14 @@ def test_paper_highdyn_20s_rackf_rides_through_the_burst_and_beats_ckf(scenario_
         assert 0 < m["runtime_s"] <= t_wall, (m["runtime_s"], t_wall)
         assert 0 < m["realtime_factor"] * 20.0 <= t_wall, (m["realtime_factor"], t_wall)
     assert (scenario_20s / "metrics.json").is_file() and (scenario_20s / "results.h5").is_file()
+    # each run's summary splits its run time: the parts are disjoint wall-clock intervals of the run
+    per = json.loads((scenario_20s / "metrics.json").read_text())["per_run"]
+    for runs in per.values():
+        for run in runs:
+            split = run["timing_s"]
+            assert set(split) == {"epochs", "special_epochs", "sins_outer", "tight", "if_read"}
+            assert all(v >= 0 for v in split.values()) and split["epochs"] > 0
+            assert sum(split.values()) <= run["runtime_s"]
     import h5py
     with h5py.File(scenario_20s / "results.h5") as f:
         g = f["run001/dlb-rackf"]
