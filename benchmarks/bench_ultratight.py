@@ -18,7 +18,11 @@ both cores of the reference machine) — and reports:
 * ``maxrss_mb``: peak resident set size of this process;
 * with ``--baseline REV``: the same benchmark of commit ``REV`` (its own ``bench_ultratight.py``,
   exported with ``git archive`` and run in a subprocess right after, same cut and threads) under
-  ``baseline``, and per method ``ratio_baseline``: this run's real-time factor over the baseline's.
+  ``baseline``, and per method ``ratio_baseline``: this run's real-time factor over the baseline's;
+* with ``--scenario``: per method, ``ultratight scenario paper-highdyn --methods M`` on the same cut
+  as a user runs it (the IF generated in memory beside the engine), its ``runtime_s``, its ratio to
+  the engine-only run (``scenario.ratio_to_engine_only``) and the engine's split of it (``if_read``:
+  waiting for the generator).
 """
 
 import argparse
@@ -38,6 +42,9 @@ def main(argv=None):
     ap.add_argument("--methods", default="dlb-rackf,dlb-ukf,dlb-ckf")
     ap.add_argument("--workdir", default=None, help="data cache (default: a temporary folder)")
     ap.add_argument("--threads", type=int, default=2, help="threads of the measured run (reference: 1)")
+    ap.add_argument("--scenario", action="store_true",
+                    help="also run `ultratight scenario paper-highdyn` per method on the same cut (streamed IF) and "
+                         "compare its runtime_s with the engine-only run")
     ap.add_argument("--baseline", metavar="REV", default="none",
                     help="also run this commit's own bench_ultratight.py on the same cut (default: none)")
     a = ap.parse_args(argv)
@@ -90,10 +97,43 @@ def main(argv=None):
         print(f"dlb-rackf / dlb-ukf (one thread): whole run {out['ratio_rackf_over_ukf']:.2f} (paper Table 4: 0.52)")
     print(f"peak RSS {out['maxrss_mb']:.0f} MB; {cfg['frontend']['fs_hz'] / 1e6:g} MHz {cfg['frontend']['format']}, "
           f"{dur:g} s cut of paper-highdyn")
+    if a.scenario:
+        _compare_scenario(out, methods, dur, fs)
     if a.baseline.lower() != "none":
         _compare_baseline(a, out, dur, fs)
     finish(a, out)
     return 0
+
+
+def _compare_scenario(out, methods, dur, fs):
+    """``ultratight scenario paper-highdyn --methods M --duration D`` per method, as a user runs it (its
+    IF generated in memory beside the engine, its own choice of threads), in a fresh process right
+    after the engine-only runs: its ``runtime_s`` against the engine-only run's, and the engine's split
+    of the difference (``timing_s``, ``if_read`` = waiting for the generator)."""
+    import json
+    import subprocess
+
+    for m in methods:
+        with tempfile.TemporaryDirectory() as tmp:
+            cmd = [sys.executable, "-m", "ultratight.receiver.cli.main", "scenario", "paper-highdyn", "--methods", m,
+                   "--duration", f"{dur:g}", "--no-plots", "--json", "--out", tmp]
+            if fs:
+                cmd += ["--fs-hz", f"{fs:g}"]
+            t0 = time.perf_counter()
+            subprocess.run(cmd, capture_output=True, text=True, check=True)
+            wall = time.perf_counter() - t0
+            with open(Path(tmp) / "metrics.json") as f:
+                run = json.load(f)["per_run"][m][0]
+        eng = out["methods"][m]
+        sc = {"runtime_s": run["runtime_s"], "timing_s": run["timing_s"], "command_wall_s": wall,
+              "ratio_to_engine_only": run["runtime_s"] / eng["runtime_s"]}
+        eng["scenario"] = sc
+        tm = run["timing_s"]
+        print(f"{m:10s} scenario (IF generated beside it): runtime_s {run['runtime_s']:.2f} s = "
+              f"{sc['ratio_to_engine_only']:.2f} x the engine alone ({eng['runtime_s']:.2f} s); epochs "
+              f"{tm.get('epochs', 0):.2f} s, waiting for IF {tm.get('if_read', 0):.2f} s, SINS + outer loop "
+              f"{tm.get('sins_outer', 0):.2f} s, tight {tm.get('tight', 0):.2f} s; whole command {wall:.1f} s",
+              flush=True)
 
 
 def _compare_baseline(a, out, dur, fs):
