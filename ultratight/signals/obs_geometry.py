@@ -1,7 +1,8 @@
 """Satellite states for recorded raw observations: one row per row of :class:`RawEpochs`.
 
 ``sat_states(raw, nav) -> SatStates`` evaluates, for every (epoch, satellite) row, the broadcast
-ephemeris (:mod:`ultratight.signals.ephemeris`, IS-GPS-200 Table 20-IV) at the signal's
+ephemeris (:mod:`ultratight.signals.ephemeris`, IS-GPS-200 Table 20-IV; or a CNAV set of
+:mod:`ultratight.signals.cnav`, Table 30-II, which evaluates itself through its ``state`` method) at the signal's
 **transmit time in GPS time**:
 
     t_sv = t_rx − ρ / c                (satellite-clock time of transmission; exact, since the
@@ -78,13 +79,19 @@ def select_rows(ephs, t):
 def _evaluate(eph, t_sv):
     """(pos, vel, clk_s, drift) of ``eph`` at the transmit times whose satellite-clock readings are
     ``t_sv`` (continuous GPS seconds): the clock iteration of the module doc."""
-    p = eph_params(eph)
+    if hasattr(eph, "state"):                   # a CNAV set (ultratight.signals.cnav.CnavEphemeris)
+        state = eph.state
+    else:
+        p = eph_params(eph)
+
+        def state(tw):
+            return sat_state(p, tw)
     base = eph.week * SECONDS_PER_WEEK
     clk = np.zeros_like(t_sv)
     for _ in range(CLOCK_ITERATIONS):
-        _, _, clk, _ = sat_state(p, t_sv - clk - base)
+        _, _, clk, _ = state(t_sv - clk - base)
     t = t_sv - clk
-    pos, vel, clk, drift = sat_state(p, t - base)
+    pos, vel, clk, drift = state(t - base)
     return pos, vel, clk, drift, t
 
 
