@@ -291,8 +291,10 @@ def test_with_rtklibs_weights_our_solution_is_rtklibs(tmp_path):
 
 
 def test_spp_on_a_ubx_log_without_nav(capsys, tmp_path):
-    """A u-blox log alone: the ephemerides come from its RXM-SFRBX subframes; the missing ionospheric
-    coefficients are one warning line; velocities from the Doppler are in the CSV."""
+    """A u-blox log alone: the ephemerides come from its RXM-SFRBX subframes (LNAV for PRNs 10, 23, 27,
+    32; CNAV for 8, 18, 24, whose LNAV subframes are incomplete); by default the pseudoranges are the
+    L1 C/A + L2C ionosphere-free combination (no model, no warning); ``--signals l1`` takes L1 C/A with
+    the Klobuchar coefficients of a CNAV type 30.  Velocities from the Doppler are in the CSV."""
     ubx = DATA / "real-imu-gnss" / "walk_0827" / "gnss_1730.ubx"
     _need(ubx)
     pytest.importorskip("pyubx2", reason="pyubx2 not installed")
@@ -301,15 +303,20 @@ def test_spp_on_a_ubx_log_without_nav(capsys, tmp_path):
     assert rc == 0, err
     s = json.loads(out)
     assert s["obs_format"] == "ubx" and s["nav"] == "RXM-SFRBX"
-    assert s["satellites_with_ephemeris"] == [10, 23, 27, 32] and s["epochs"] == 536 and s["fixes"] >= 500
-    assert s["corrections"]["iono"] == "klobuchar (no parameters)"
-    warning = ("ultratight spp: warning: no ionospheric coefficients (alpha/beta) in the navigation data: "
-               "ionosphere not corrected")
-    assert err.strip().splitlines() == [warning]
+    assert s["satellites_with_ephemeris"] == [8, 10, 18, 23, 24, 27, 32] and s["epochs"] == 536
+    assert s["fixes"] >= 500
+    assert s["corrections"]["signals"] == "GPS L1 C/A + L2C ionosphere-free"
+    assert s["corrections"]["ionosphere"] == "ionosphere-free dual-frequency combination (no model)"
+    assert err.strip() == ""
     rows = _csv_rows(out_csv)
-    assert len(rows) == s["fixes"] and rows[0]["iono"] == "off"
+    assert len(rows) == s["fixes"] and rows[0]["iono"] == "iono-free"
     speed = np.array([math.hypot(float(r["vx_mps"]), float(r["vy_mps"])) for r in rows])
     assert np.all(np.isfinite(speed))
+    rc, out, err = _run(["spp", str(ubx), "--json", "--signals", "l1"], capsys)
+    s = json.loads(out)
+    assert rc == 0 and err.strip() == "" and s["corrections"]["signals"] == "GPS L1 C/A"
+    assert s["corrections"]["iono"] == "klobuchar"
+    assert s["corrections"]["ionosphere"] == "single frequency, Klobuchar (broadcast)"
     rc, out, err = _run(["spp", str(ubx), "--code", "P1"], capsys)
     assert rc == 2 and "--code applies to RINEX observations" in err
 

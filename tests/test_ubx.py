@@ -1,7 +1,8 @@
 """u-blox log reading (ultratight.signals.ubx) on the walk_0827 recording: the RXM-RAWX epochs, the
 LNAV subframes of RXM-SFRBX (bit layout, parity, ephemerides, which RTKLIB's u-blox decoder decodes
-alike) and positions / velocities from the decoded ephemerides against the receiver's own NAV-PVT
-solution in the same file."""
+alike), the CNAV sets of the satellites without one (tests/test_cnav.py tests the messages), the
+L1 C/A + L2C ionosphere-free rows, and positions / velocities from the decoded ephemerides against the
+receiver's own NAV-PVT solution in the same file."""
 
 import math
 from pathlib import Path
@@ -12,20 +13,38 @@ import pytest
 from ultratight.constants import C
 from ultratight.errors import InputFileError
 from ultratight.signals.lnav import check_word, encode_subframe
-from ultratight.signals.observations import RawEpochs
+from ultratight.signals.observations import F_L2_HZ, RawEpochs
+from ultratight.signals.rinex import NavData
 from ultratight.signals.ubx import nav_pvt_messages, read_ubx, sfrbx_transmitted_bits
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 WALK_UBX = DATA / "real-imu-gnss" / "walk_0827" / "gnss_1730.ubx"
 F_L1, F_L2 = 1575.42e6, 1227.60e6
+LNAV_PRNS = [10, 23, 27, 32]
 
 
 @pytest.fixture(scope="module")
 def log():
+    """The log read with L1 C/A pseudoranges as measured (``signals="l1"``)."""
+    if not WALK_UBX.exists():
+        pytest.skip(f"shared data not found: {WALK_UBX}")
+    pytest.importorskip("pyubx2", reason="pyubx2 not installed")
+    return read_ubx(WALK_UBX, signals="l1")
+
+
+@pytest.fixture(scope="module")
+def log_if():
+    """The log read as by default: L1 C/A + L2C ionosphere-free rows."""
     if not WALK_UBX.exists():
         pytest.skip(f"shared data not found: {WALK_UBX}")
     pytest.importorskip("pyubx2", reason="pyubx2 not installed")
     return read_ubx(WALK_UBX)
+
+
+def _lnav_only(nav):
+    """The navigation data as an L1 C/A-only decoder has them: the four LNAV sets, no Klobuchar."""
+    return NavData(path=nav.path, version=nav.version,
+                   ephemerides={p: nav.ephemerides[p] for p in LNAV_PRNS})
 
 
 def _sfrbx_l1ca(path):
@@ -98,17 +117,26 @@ def test_sfrbx_round_trip_of_an_encoded_subframe():
 
 
 def test_sfrbx_ephemerides(log):
-    """Complete subframe 1-3 sets in the 134 s: PRNs 10, 23, 27, 32 (data of 2025-08-28, toe
-    410400 s of week 2381, healthy, GPS orbits); the log holds no subframe 4 page 18, so no
-    Klobuchar coefficients."""
+    """Complete LNAV subframe 1-3 sets in the 134 s: PRNs 10, 23, 27, 32 (data of 2025-08-28, toe
+    410400 s of week 2381, healthy, GPS orbits); PRNs 8, 18, 24 (2-5 L1 subframes only) get their
+    CNAV set (L2 CM / L5 I: types 10, 11, 30; toe 408300 s for PRN 8, 408600 s for the others; L1 and L2
+    healthy, L5 marked bad).  No subframe 4 page 18: the Klobuchar coefficients are those of a CNAV
+    type 30."""
     nav = log.nav
-    assert sorted(nav.ephemerides) == [10, 23, 27, 32]
-    for lst in nav.ephemerides.values():
+    assert sorted(nav.ephemerides) == [8, 10, 18, 23, 24, 27, 32]
+    for prn, lst in nav.ephemerides.items():
         assert len(lst) == 1
         e = lst[0]
-        assert e.week == 2381 and e.toe == 410400.0 and e.healthy and e.iode == (e.iodc & 0xFF)
-        assert abs(e.sqrt_a - 5153.6) < 5 and e.e < 0.03 and abs(math.degrees(e.i0) - 55) < 3
-    assert nav.ion_alpha is None and nav.ion_beta is None
+        if prn in LNAV_PRNS:
+            assert e.week == 2381 and e.toe == 410400.0 and e.healthy and e.iode == (e.iodc & 0xFF)
+            assert abs(e.sqrt_a - 5153.6) < 5 and e.e < 0.03 and abs(math.degrees(e.i0) - 55) < 3
+        else:
+            assert e.source == "CNAV" and e.week == 2381 and e.toe == (408300.0 if prn == 8 else 408600.0)
+            assert e.healthy and e.signal_ok("L2") and not e.signal_ok("L5")
+            a = math.sqrt(26559710.0 + e.delta_a)
+            assert abs(a - 5153.6) < 5 and e.e < 0.03 and abs(math.degrees(e.i0) - 55) < 3
+    assert log.raw.meta["navigation"]["klobuchar"] == "CNAV type 30"
+    assert nav.ion_alpha == log.cnav[8].iono[0] and nav.ion_beta == log.cnav[8].iono[1]
 
 
 def _pvt_reference(log):
@@ -149,8 +177,8 @@ def test_decoded_ephemerides_fit_the_pseudoranges_at_the_receivers_position(log)
     raw = log.raw
     itow, ref, _ = _pvt_reference(log)
     iono = _l2c_ionosphere(raw)
-    st = sat_states(raw, log.nav)
-    res = {p: [] for p in log.nav.ephemerides}
+    st = sat_states(raw, _lnav_only(log.nav))
+    res = {p: [] for p in LNAV_PRNS}
     for k in range(raw.n_epochs):
         sl = raw.epoch(k)
         ok = st.valid[sl]
@@ -182,7 +210,7 @@ def test_spp_with_decoded_ephemerides_near_nav_pvt(log):
     raw = log.raw
 
     def run(r):
-        res = run_spp(r, log.nav, SppConfig())
+        res = run_spp(r, _lnav_only(log.nav), SppConfig())
         d, dv = [], []
         for f in res.fixes:
             j = np.argmin(np.abs(itow - f["gps_tow_s"]))
@@ -263,17 +291,59 @@ def test_decoded_ephemerides_equal_rtklibs_decoding(log):
         if r == 2 and raw.ephsat <= 32:         # RTKLIB satellite numbers 1..32 are GPS
             e = raw.nav.eph[raw.ephsat - 1]
             theirs[e.sat] = e
-    assert sorted(theirs) == sorted(log.nav.ephemerides) == [10, 23, 27, 32]
+    assert sorted(theirs) == log.raw.meta["navigation"]["lnav_ephemeris_prns"] == LNAV_PRNS
     pairs = (("sqrt_a", lambda e: math.sqrt(e.A)), ("e", "e"), ("i0", "i0"), ("omega0", "OMG0"), ("omega", "omg"),
              ("m0", "M0"), ("delta_n", "deln"), ("omega_dot", "OMGd"), ("idot", "idot"), ("crc", "crc"),
              ("crs", "crs"), ("cuc", "cuc"), ("cus", "cus"), ("cic", "cic"), ("cis", "cis"), ("af0", "f0"),
              ("af1", "f1"), ("af2", "f2"), ("tgd", lambda e: e.tgd[0]), ("toe", "toes"), ("week", "week"),
              ("iode", "iode"), ("iodc", "iodc"), ("sv_health", "svh"), ("ura_index", "sva"))
-    for prn, lst in log.nav.ephemerides.items():
-        ours, ref = lst[0], theirs[prn]
+    for prn in LNAV_PRNS:
+        ours, ref = log.nav.ephemerides[prn][0], theirs[prn]
         for mine, other in pairs:
             b = other(ref) if callable(other) else getattr(ref, other)
             a = getattr(ours, mine)
             assert a == pytest.approx(b, rel=1e-12, abs=1e-20), (prn, mine, a, b)
     assert all(v == 0.0 for v in list(raw.nav.ion_gps)[:8])
     p.free_raw(raw)
+
+
+def test_iono_free_rows_of_the_log(log, log_if):
+    """The default reading: L2C is the log's second frequency (3734 L1 C/A rows have it, 108 do not and
+    are dropped); each row is the ionosphere-free combination with the satellite's type 30 group delays
+    (IS-GPS-200 §30.3.3.3.1.1.2, here in the test's own form), and σ grows by √(γ²+1)/(γ−1)."""
+    raw, ifr = log.raw, log_if.raw
+    g = (F_L1 / F_L2) ** 2
+    p2 = log.pr2["L2C"]
+    keep = np.isfinite(p2) & np.isfinite(raw.pr_m)
+    assert ifr.prn.size == int(keep.sum()) == 3734 and ifr.meta["rows_single_frequency_dropped"] == 108
+    assert ifr.meta["signal"] == "GPS L1 C/A + L2C ionosphere-free" and np.all(ifr.iono_free_f2_hz == F_L2_HZ)
+    assert np.array_equal(ifr.prn, raw.prn[keep]) and np.array_equal(ifr.pr_l1_m, raw.pr_m[keep])
+    gd = {p: log.group_delays.get(int(p), {"isc_l2c": 0.0, "isc_l1ca": 0.0}) for p in np.unique(raw.prn)}
+    isc = np.array([(gd[p]["isc_l2c"] - g * gd[p]["isc_l1ca"]) / (1 - g) for p in raw.prn[keep]])
+    expect = (g * raw.pr_m[keep] - p2[keep]) / (g - 1.0) + C * isc
+    assert np.max(np.abs(ifr.pr_m - expect)) < 1e-6
+    assert np.array_equal(ifr.doppler_hz, raw.doppler_hz[keep]) and np.array_equal(ifr.t, raw.t)
+
+
+def test_spp_on_the_combination_near_nav_pvt(log_if):
+    """Single-point positions on the L1 C/A + L2C combination with seven satellites (four LNAV, three
+    CNAV sets) against NAV-PVT: measured mean horizontal difference 8.45 m, mean ENU (+6.58, +2.08, +1.57)
+    m, horizontal scatter about the mean 6.64 m (single epochs; the combination triples the code noise
+    and multipath of a handheld antenna).  The mean is no longer the ionosphere's (L1 C/A alone, four
+    satellites: +7.2, +4.1, +5.9 m) but an offset of the whole RTK track that Galileo's E1/E5a
+    combination shows alike (docs/spp.md).  Bounds: 1.2 × the measured mean and scatter."""
+    from ultratight.receiver.scalar.spp import SppConfig, enu_errors, run_spp
+    itow, ref, _ = _pvt_reference(log_if)
+    res = run_spp(log_if.raw, log_if.nav, SppConfig())
+    assert len(res.fixes) >= 0.95 * log_if.raw.n_epochs and not res.warnings
+    assert res.corrections["signals"] == "GPS L1 C/A + L2C ionosphere-free"
+    assert res.corrections["ionosphere"].startswith("ionosphere-free")
+    d = np.array([enu_errors(f["pos_e"][None, :], ref[np.argmin(np.abs(itow - f["gps_tow_s"]))])[0]
+                  for f in res.fixes])
+    horiz = float(np.mean(np.hypot(d[:, 0], d[:, 1])))
+    scatter = float(np.sqrt(np.mean(np.sum((d[:, :2] - d[:, :2].mean(axis=0)) ** 2, axis=1))))
+    print(f"\nwalk SPP (L1 C/A + L2C, 7 satellites) vs NAV-PVT: mean horizontal {horiz:.2f} m, mean ENU "
+          f"{np.round(d.mean(axis=0), 2)} m, horizontal scatter {scatter:.2f} m, "
+          f"{np.mean([f['n_used'] for f in res.fixes]):.1f} satellites used")
+    assert horiz <= 1.2 * 8.45 and scatter <= 1.2 * 6.64
+    assert abs(d[:, 2].mean()) < 3.0                     # the ionosphere's +5.9 m in height is gone

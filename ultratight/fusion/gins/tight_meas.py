@@ -1,7 +1,9 @@
-"""Tight INS/GNSS measurement model on recorded raw GPS L1 C/A observations (``ultratight integrate
+"""Tight INS/GNSS measurement model on recorded raw GPS observations (``ultratight integrate
 --coupling tight``): per epoch of a :class:`ultratight.signals.observations.RawEpochs`, the
 pseudorange and pseudorange-rate innovations of an antenna position/velocity/clock estimate, their
-lines of sight and their σ.  See docs/gins-tight.md.
+lines of sight and their σ.  A row's pseudorange is L1 C/A or, where the RawEpochs says so
+(``iono_free_f2_hz``, e.g. a dual-frequency u-blox log), the ionosphere-free combination of L1 C/A
+with L2C or L5; Doppler is always L1's.  See docs/gins-tight.md.
 
 Satellite states come from :func:`ultratight.signals.obs_geometry.sat_states` — one row per
 RawEpochs row: ECEF position/velocity at the transmit time, satellite clock ``clk_m`` (af0/af1/af2,
@@ -16,7 +18,8 @@ equations its light-time solution evaluates, vectorised here over the satellites
 with ``e`` the unit line of sight receiver → satellite in the ECEF frame of reception,
 ``g = R3 (y_s, −x_s, 0)`` (the derivative of the rotation with respect to its angle: the Sagnac
 rate), ``b``/``d`` the receiver clock bias (m) and drift (m/s), ``I`` the Klobuchar ionospheric
-group delay and ``T`` the Saastamoinen tropospheric delay of
+group delay (none on a combined row: the combination has removed it, to first order) and ``T`` the
+Saastamoinen tropospheric delay of
 :class:`ultratight.signals.atmosphere.AtmosphereModel` (broadcast alpha/beta from the navigation
 data).  The Doppler is the rate of the *carrier* phase, so the ionosphere enters it with the
 opposite sign of the code (``−İ``); the delay rates are forward differences over
@@ -45,7 +48,7 @@ is missing keeps its pseudorange: ``dz_rr`` is NaN, ``sigma_rr`` is ``inf`` and 
 Noise (:class:`TightNoise`, 1σ, every coefficient overridable; a scalar ``sigma_pr_m`` /
 ``sigma_rr_mps`` replaces the model by a constant)::
 
-    σ_pr² = a² + (b / sin E)² + c² 10^((C0 − C/N0)/10) + (k_I I)² + (σ_T / (sin E + 0.1))²
+    σ_pr² = k² (a² + (b / sin E)² + c² 10^((C0 − C/N0)/10)) + (k_I I)² + (σ_T / (sin E + 0.1))²
     σ_D²  = d² + f² 10^((C0 − C/N0)/10)            (Hz);  σ_rr = λ_L1 σ_D
 
 The first two code terms are the elevation model of RTKLIB (Takasu, RTKLIB 2.4.2 manual,
@@ -56,6 +59,13 @@ and of the Saastamoinen model (0.3 m zenith, when it is applied), as in the same
 d = 0.1 Hz (about 2 cm/s, the order of a u-blox receiver's reported Doppler σ at strong signals plus
 the unmodelled antenna jitter) and f = 0.15 Hz at 45 dB-Hz (0.48 Hz ≈ 9 cm/s at 35 dB-Hz).
 Without a C/N0 the C/N0 terms take their value at C0.
+
+``k`` is 1 on an L1 C/A row.  On an ionosphere-free row ``(γ P1 − P2)/(γ − 1)``, ``γ = (f1/f2)²``, the
+code terms (noise and multipath of each frequency, taken independent and equal) are multiplied by
+``k = √(γ² + 1)/(γ − 1)`` (:func:`ultratight.signals.observations.iono_free_noise_factor`: 2.98 with
+L2C, 2.59 with L5), and the ionosphere term is absent (``I = 0``: the combination leaves no ionosphere
+residual to first order; the higher orders are centimetres).  The troposphere is the same on both
+frequencies and so in the combination: its term is unchanged.  The C/N0 used is L1's.
 """
 
 from __future__ import annotations
@@ -66,12 +76,12 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from ultratight.constants import C, LAMBDA_L1, OMEGA_E
+from ultratight.constants import LAMBDA_L1, OMEGA_E, C
 from ultratight.errors import ConfigError, FilterError
 from ultratight.ins.earth import ecef_to_llh, elev_azim, enu_frames
 from ultratight.signals.atmosphere import AtmosphereModel
 from ultratight.signals.obs_geometry import sat_states
-from ultratight.signals.observations import week_tow
+from ultratight.signals.observations import iono_free_noise_factor, week_tow
 
 ATMO_RATE_DT_S = 1.0          # forward-difference step of the atmospheric delay rates, s
 SAGNAC_ITER = 2               # fixed-point steps of the travel time (each gains a factor ~1e-5)
@@ -106,9 +116,12 @@ class TightNoise:
         return np.where(np.isfinite(cn0), 10.0 ** ((self.cn0_ref_dbhz - np.where(np.isfinite(cn0), cn0, 0.0))
                                                      / 10.0), 1.0)
 
-    def sigma_pr(self, elev_rad, cn0_dbhz, iono_m, tropo_active):
+    def sigma_pr(self, elev_rad, cn0_dbhz, iono_m, tropo_active, code_factor=1.0):
+        """σ of the pseudorange (module docstring); ``code_factor`` multiplies the code terms (a, b, c):
+        :func:`ultratight.signals.observations.iono_free_noise_factor` for a combined row."""
         s = np.maximum(np.sin(np.asarray(elev_rad, dtype=float)), SIN_EL_FLOOR)
-        var = (self.pr_a_m ** 2 + (self.pr_b_m / s) ** 2 + self.pr_cn0_m ** 2 * self.cn0_factor(cn0_dbhz)
+        code = self.pr_a_m ** 2 + (self.pr_b_m / s) ** 2 + self.pr_cn0_m ** 2 * self.cn0_factor(cn0_dbhz)
+        var = (np.asarray(code_factor, dtype=float) ** 2 * code
                + (self.iono_frac * np.asarray(iono_m, dtype=float)) ** 2)
         if tropo_active:
             var = var + (self.tropo_zenith_m / (s + 0.1)) ** 2
@@ -235,15 +248,35 @@ class TightMeasurements:
             cn0 = np.asarray(raw.cn0_dbhz, dtype=float)
             usable &= ~(cn0 < float(cn0_min_dbhz))            # rows without C/N0 pass
         self.usable = usable
+        f2 = getattr(raw, "iono_free_f2_hz", None)
+        self.iono_free = np.zeros(prn.shape[0], dtype=bool) if f2 is None else raw.iono_free_rows()
+        self.code_factor = np.ones(prn.shape[0]) if f2 is None else iono_free_noise_factor(f2)
         self.rr_meas = -LAMBDA_L1 * np.asarray(raw.doppler_hz, dtype=float)
         self.rr_meas[~np.all(np.isfinite(self.states.vel_e), axis=1)] = np.nan
         self.warnings = []
-        if iono == "klobuchar" and not self.atmo.iono_active:
+        single = usable & ~self.iono_free
+        if iono == "klobuchar" and not self.atmo.iono_active and single.any():
             self.warnings.append("the navigation data hold no Klobuchar coefficients: ionosphere not modelled")
+        dropped = int(getattr(raw, "meta", {}).get("rows_single_frequency_dropped", 0) or 0)
+        if dropped:
+            self.warnings.append(f"{dropped} GPS L1 C/A rows left out: no {raw.meta.get('iono_free_pair', 'second')} "
+                                 "pseudorange for the ionosphere-free combination")
         if not usable.any():
             self.warnings.append("no observation row has a valid satellite state and a pseudorange")
         self.info = {"mask_deg": float(mask_deg), "atmosphere": self.atmo.describe(),
-                     "rows": int(prn.shape[0]), "usable_rows": int(usable.sum())}
+                     "signals": str(getattr(raw, "meta", {}).get("signal", "GPS L1 C/A")),
+                     "ionosphere": self._iono_line(usable), "rows": int(prn.shape[0]), "usable_rows": int(usable.sum())}
+
+    def _iono_line(self, usable):
+        """How the rows' ionosphere is handled (the summary's line)."""
+        n_if, n_single = int((usable & self.iono_free).sum()), int((usable & ~self.iono_free).sum())
+        parts = []
+        if n_if:
+            parts.append(f"{n_if} rows ionosphere-free (dual frequency)")
+        if n_single:
+            parts.append(f"{n_single} single-frequency rows with the "
+                         + ("broadcast Klobuchar model" if self.atmo.iono_active else "ionosphere not modelled"))
+        return "; ".join(parts) or "no usable rows"
 
     @property
     def n_epochs(self):
@@ -279,7 +312,7 @@ class TightMeasurements:
         rng_dot = a_term / (1.0 + b_term / C)
         return rng, u, rng_dot, sr, vr
 
-    def _atmosphere(self, pos, vel, sr, vr, tow):
+    def _atmosphere(self, pos, vel, sr, vr, tow, single):
         """(elev, azim, iono_m, tropo_m, carrier-phase delay rate m/s) for the receiver at pos; NaN
         elevations and no delays deep inside the Earth (a cold least-squares start)."""
         if np.linalg.norm(pos) < HORIZON_MIN_RADIUS_M:
@@ -300,6 +333,7 @@ class TightMeasurements:
         with np.errstate(invalid="ignore"):
             iono, tropo = self.atmo.delays_m(lat, lon, h, el, az, tow)
             iono2, tropo2 = self.atmo.delays_m(lat2, lon2, h2, np.atleast_1d(el2), np.atleast_1d(az2), tow + dt)
+        iono, iono2 = np.where(single, iono, 0.0), np.where(single, iono2, 0.0)    # combined rows: none
         rate = (-(iono2 - iono) + (tropo2 - tropo)) / dt
         return el, az, np.atleast_1d(iono), np.atleast_1d(tropo), np.atleast_1d(rate)
 
@@ -307,7 +341,7 @@ class TightMeasurements:
         """Clock-free predictions of rows ``idx``: dict of pr (m), rr (m/s), los, elev, azim, iono, tropo."""
         rng, u, rng_dot, sr, vr = self._geometry(idx, pos, vel)
         tow = float(week_tow(self.t[k])[1])
-        el, az, iono, tropo, atmo_rate = self._atmosphere(pos, vel, sr, vr, tow)
+        el, az, iono, tropo, atmo_rate = self._atmosphere(pos, vel, sr, vr, tow, ~self.iono_free[idx])
         st = self.states
         pr = rng - np.asarray(st.clk_m, dtype=float)[idx] + iono + tropo
         rr = rng_dot - np.asarray(st.drift_mps, dtype=float)[idx] * (1.0 - rng_dot / C) + atmo_rate
@@ -316,7 +350,7 @@ class TightMeasurements:
     def _sigmas(self, idx, elev, iono):
         cn0 = np.asarray(self.raw.cn0_dbhz, dtype=float)[idx]
         if self.sigma_pr_m is None:
-            sig_pr = self.noise.sigma_pr(elev, cn0, iono, self.atmo.tropo != "off")
+            sig_pr = self.noise.sigma_pr(elev, cn0, iono, self.atmo.tropo != "off", self.code_factor[idx])
         else:
             sig_pr = np.full(idx.shape[0], float(self.sigma_pr_m))
         if self.sigma_rr_mps is None:

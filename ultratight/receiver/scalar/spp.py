@@ -8,6 +8,12 @@ elevation mask, RAIM exclusion, Sagnac rotation, and the atmosphere of
 :class:`ultratight.signals.atmosphere.AtmosphereModel`: broadcast Klobuchar ionosphere when the
 coefficients are known, Saastamoinen troposphere).
 
+Rows whose pseudorange is a dual-frequency ionosphere-free combination
+(``RawEpochs.iono_free_rows``, e.g. a u-blox log with L2C read by :func:`ultratight.signals.ubx.read_ubx`)
+get no ionosphere model and their a-priori σ multiplied by
+:func:`ultratight.signals.observations.iono_free_noise_factor` (≈ 3 for L1/L2); the fixes and the
+summary's ``corrections`` say which signals and ionosphere handling were used.
+
 Per row the satellite states come from :func:`ultratight.signals.obs_geometry.sat_states`; the
 pseudorange corrected for the satellite clock is ``ρ + clk_m`` and the range rate ``−λ·D +
 drift_mps`` (velocity only when at least four Doppler values are present).  The fixes are dicts with
@@ -27,7 +33,11 @@ from ultratight.ins.earth import dcm_ecef_from_enu, ecef_to_llh
 from ultratight.receiver.scalar.pvt import atmosphere_delays, solve_pvt
 from ultratight.signals.atmosphere import AtmosphereModel
 from ultratight.signals.obs_geometry import sat_states
-from ultratight.signals.observations import SECONDS_PER_WEEK, week_tow
+from ultratight.signals.observations import (
+    SECONDS_PER_WEEK,
+    iono_free_noise_factor,
+    week_tow,
+)
 from ultratight.signals.signal import GPS_L1CA
 
 SIGMA_PR_M = 3.0
@@ -70,7 +80,11 @@ def run_spp(raw, nav, cfg=None):
     """Solve every epoch of ``raw`` with ``nav`` (module doc); returns :class:`SppResult`."""
     cfg = cfg or SppConfig()
     states = sat_states(raw, nav)
+    combined = raw.iono_free_rows()
     model, warn = atmosphere_for(nav, cfg)
+    if combined.all() and raw.prn.size:
+        warn = [w for w in warn if "ionospheric coefficients" not in w]       # none needed
+    factor = iono_free_noise_factor(raw.iono_free_f2_hz) if raw.iono_free_f2_hz is not None else np.ones(raw.prn.size)
     prc = np.where(states.valid, raw.pr_m + states.clk_m, np.nan)
     rr = np.where(states.valid, -GPS_L1CA.wavelength_m * raw.doppler_hz + states.drift_mps, np.nan)
     fixes, last_x, n_states = [], None, 0
@@ -84,21 +98,44 @@ def run_spp(raw, nav, cfg=None):
             continue
         _, tow = week_tow(raw.t[k])
         sol = solve_pvt(states.pos_e[sl][ok], prc[sl][ok], states.vel_e[sl][ok], rr[sl][ok],
-                        sigma_pr_m=cfg.sigma_pr_m, sigma_rr_mps=cfg.sigma_rr_mps, x0=last_x,
+                        sigma_pr_m=cfg.sigma_pr_m * factor[sl][ok], sigma_rr_mps=cfg.sigma_rr_mps, x0=last_x,
                         mask_deg=cfg.mask_deg, raim=cfg.raim,
-                        delays=atmosphere_delays(model, float(tow)) if model.active else None)
+                        delays=_delays(model, float(tow), ~combined[sl][ok]) if model.active else None)
         if not sol.valid:
             continue
         last_x = np.r_[sol.pos_e, sol.clk_bias_m]
-        fixes.append(_fix(raw, k, t0, sol, raw.prn[sl][ok], raw.cn0_dbhz[sl][ok], model, cfg))
+        fixes.append(_fix(raw, k, t0, sol, raw.prn[sl][ok], raw.cn0_dbhz[sl][ok], model, cfg,
+                          bool(combined[sl][ok].any())))
     if n_states and not fixes:
         warn.append(f"no fix: no epoch has a solution with four satellites (valid ephemeris and pseudorange) "
                     f"above the {cfg.mask_deg:g} deg mask")
-    return SppResult(fixes, raw.n_epochs, n_states, {**model.describe(), "mask_deg": cfg.mask_deg,
-                                                     "raim": cfg.raim}, warn)
+    corr = {**model.describe(), "mask_deg": cfg.mask_deg, "raim": cfg.raim,
+            "signals": str(raw.meta.get("signal", "GPS L1 C/A")), "ionosphere": _iono_line(combined, model)}
+    return SppResult(fixes, raw.n_epochs, n_states, corr, warn)
 
 
-def _fix(raw, k, t0, sol, prns, cn0, model, cfg):
+def _iono_line(combined, model):
+    n_if, n = int(combined.sum()), int(combined.size)
+    single = "Klobuchar (broadcast)" if model.iono_active else "not corrected"
+    if n_if == 0:
+        return f"single frequency, {single}"
+    if n_if == n:
+        return "ionosphere-free dual-frequency combination (no model)"
+    return f"ionosphere-free combination on {n_if} of {n} rows; the others {single}"
+
+
+def _delays(model, tow, single):
+    """:func:`atmosphere_delays` with the ionosphere only on the rows where ``single`` (single frequency)."""
+    parts = {}
+    f = atmosphere_delays(model, tow, parts)
+
+    def g(rx_pos_e, sat_pos_e):
+        total = f(rx_pos_e, sat_pos_e)
+        return total - np.where(single, 0.0, np.asarray(parts["iono_m"], dtype=float))
+    return g
+
+
+def _fix(raw, k, t0, sol, prns, cn0, model, cfg, combined=False):
     t_gps = float(raw.t[k]) - sol.clk_bias_m / C
     week = math.floor(t_gps / SECONDS_PER_WEEK)
     vel = sol.vel_e if sol.vel_e is not None else np.full(3, np.nan)
@@ -113,7 +150,8 @@ def _fix(raw, k, t0, sol, prns, cn0, model, cfg):
             "n_used": int(sol.used.sum()), "raim_ok": bool(sol.raim_ok),
             "excluded_prn": [int(prns[j]) for j in sol.excluded],
             "used_prn": [int(p) for p in prns[sol.used]],
-            "iono": "klobuchar" if model.iono_active else "off", "tropo": cfg.tropo, "sv": sv}
+            "iono": "iono-free" if combined else "klobuchar" if model.iono_active else "off", "tropo": cfg.tropo,
+            "sv": sv}
 
 
 def enu_errors(positions, reference):

@@ -2,8 +2,10 @@
 
 OBS is a RINEX 2.x/3.x observation file (:mod:`ultratight.signals.rinex_obs`) or a u-blox UBX log
 (:mod:`ultratight.signals.ubx`, RXM-RAWX); NAV a RINEX navigation file, optional with a UBX log (its
-RXM-SFRBX subframes give the ephemerides and, when the log holds subframe 4 page 18, the Klobuchar
-coefficients).  The per-epoch solution is :func:`ultratight.receiver.scalar.spp.run_spp`; ``--csv``
+RXM-SFRBX subframes give the ephemerides: LNAV from L1 C/A, CNAV from L2C/L5 for the satellites without
+a complete LNAV set; Klobuchar coefficients from subframe 4 page 18 or a CNAV type 30).  With a UBX log
+holding GPS L2C (or L5) pseudoranges, ``--signals auto`` (default) positions on the L1 C/A + L2C
+ionosphere-free combination; ``--signals l1`` on L1 C/A alone.  The per-epoch solution is :func:`ultratight.receiver.scalar.spp.run_spp`; ``--csv``
 writes the fixes with the columns of ``ultratight process --csv``, ``--json`` prints the summary.
 """
 
@@ -25,6 +27,9 @@ def add_arguments(p):
     p.add_argument("--iono", choices=("klobuchar", "off"), default="klobuchar",
                    help="ionosphere: broadcast Klobuchar from the navigation header or subframe 4 page 18 "
                         "(default) or off")
+    p.add_argument("--signals", choices=("auto", "l1"), default="auto",
+                   help="u-blox log: auto = the ionosphere-free L1 C/A + L2C (or L5) combination when the log has "
+                        "a second frequency (default); l1 = L1 C/A only (RINEX observations: always L1 C/A)")
     p.add_argument("--tropo", choices=("saastamoinen", "off"), default="saastamoinen",
                    help="troposphere: Saastamoinen with a standard atmosphere (default) or off")
     p.add_argument("--no-raim", action="store_true", help="no RAIM exclusion of a faulty satellite")
@@ -81,7 +86,7 @@ def _load(args):
         raise ConfigError("--code applies to RINEX observations (a UBX log gives the C/A code)")
     if kind == "ubx":
         from ultratight.signals.ubx import read_ubx
-        log = read_ubx(args.obs)
+        log = read_ubx(args.obs, signals=args.signals)
         raw, nav = log.raw, log.nav
         if raw.n_epochs == 0:
             raise InputFileError(f"{args.obs}: the UBX log holds no RXM-RAWX epoch")
@@ -172,6 +177,9 @@ def _write_csv(args, res):
 def _print_human(s):
     print(f"observations: {s['obs']} ({s['obs_format']}), navigation: {s['nav']}")
     print(f"epochs: {s['epochs']}, with ephemerides: {s['epochs_with_ephemeris']}, fixes: {s['fixes']}")
+    c = s.get("corrections") or {}
+    if c.get("signals"):
+        print(f"signals: {c['signals']}; ionosphere: {c.get('ionosphere')}")
     if s["mean_position_llh"]:
         lat, lon, h = s["mean_position_llh"]
         x, y, z = s["mean_position_ecef_m"]
