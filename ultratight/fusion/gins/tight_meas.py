@@ -249,6 +249,9 @@ class TightMeasurements:
             usable &= ~(cn0 < float(cn0_min_dbhz))            # rows without C/N0 pass
         self.usable = usable
         f2 = getattr(raw, "iono_free_f2_hz", None)
+        if f2 is not None and np.shape(f2) != prn.shape:
+            raise ConfigError(f"tight measurements: iono_free_f2_hz must have one value per row {prn.shape}, "
+                              f"got {np.shape(f2)}")
         self.iono_free = np.zeros(prn.shape[0], dtype=bool) if f2 is None else raw.iono_free_rows()
         self.code_factor = np.ones(prn.shape[0]) if f2 is None else iono_free_noise_factor(f2)
         self.rr_meas = -LAMBDA_L1 * np.asarray(raw.doppler_hz, dtype=float)
