@@ -195,6 +195,7 @@ def _smoother_run(rng, runs, nz, K=10, n=15, nhc_every=2, q=1e-6):
     Phi, Q, H, R = _random_system(rng, q=q, r=(1e-4, 2e-4))
     P0 = np.diag(rng.uniform(1e-6, 1e-5, n))
     cc = ConsiderCovariance(nz, P0, nhc_sigma=0.1)
+    cc.track = True
     st = _Nodes(K, n, cc.pss)
     Phis, Pp, Pq = np.tile(np.eye(n), (K, 1, 1)), np.zeros((K, n, n)), np.zeros((K, n, n))
     Pd = P0.copy()

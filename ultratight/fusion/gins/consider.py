@@ -30,6 +30,9 @@ from ultratight.ins import error_model as em
 
 # off-diagonal (i, j) entries of the cross-axis matrix, in the order of the parameters
 CROSS_PAIRS = ((0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1))
+# per parameter of one sensor: the axis whose reading is wrong (i) and the axis it senses (j)
+_SEL_READ = np.eye(3)[:, [0, 1, 2] + [i for i, _ in CROSS_PAIRS]]          # (3, 9): C @ it = C's column i
+_SEL_SENSED = np.eye(3)[[0, 1, 2] + [j for _, j in CROSS_PAIRS]]           # (9, 3): it @ inc = inc[j]
 
 
 def consider_sensitivity(C, dth, dv, n_states):
@@ -42,12 +45,9 @@ def consider_sensitivity(C, dth, dv, n_states):
     the velocity error as an accelerometer bias does (δv̇ = C δf); over a step the body increments
     ``dth``, ``dv`` (rad, m/s: the step's sums) replace ω dt and f dt.  ``C``: C_lb (body FLU to ENU)."""
     G = np.zeros((n_states, 18))
-    for s, (rows, sign, inc) in enumerate(((em.ATT, -1.0, dth), (em.VEL, 1.0, dv))):
-        o = 9 * s
-        for i in range(3):
-            G[rows, o + i] = sign * C[:, i] * inc[i]
-        for c, (i, j) in enumerate(CROSS_PAIRS):
-            G[rows, o + 3 + c] = sign * C[:, i] * inc[j]
+    Cr = C @ _SEL_READ
+    G[em.ATT, 0:9] = -Cr * (_SEL_SENSED @ dth)
+    G[em.VEL, 9:18] = Cr * (_SEL_SENSED @ dv)
     return G
 
 
@@ -78,20 +78,30 @@ class ConsiderCovariance:
         self.Pt = np.array(P0, float)
         self.Pts = np.zeros((self.Pt.shape[0], self.pss.size))
 
+    track = False       # keep each node's composite update (L, J, N) and its step's Γ, Q: the smoother's
+
     def predict(self, Phi, Qd, C, dth, dv):
         """One covariance step (Φ, Q_d of the design model; C_lb and the step's body increments)."""
         if not self.on:
             return
-        G = np.zeros((Phi.shape[0], self.pss.size))
-        G[:, :self.n_sensor] = consider_sensitivity(C, dth, dv, Phi.shape[0])[:, self.keep]
-        n = Phi.shape[0]            # the node's composite update e⁺ = L e⁻ − J s + η (smoother)
-        self.G, self.Q = G, Qd
-        self.L, self.J, self.N = np.eye(n), np.zeros((n, self.pss.size)), np.zeros((n, n))
-        GP = G * self.pss
+        n = Phi.shape[0]
+        G6 = np.zeros((6, self.pss.size))            # Γ has rows in the attitude and velocity blocks only
+        G = consider_sensitivity(C, dth, dv, 6)
+        G6[:, :self.n_sensor] = G if self.n_sensor == 18 else G[:, self.keep]
         A = Phi @ self.Pts
-        Pt = Phi @ self.Pt @ Phi.T + A @ G.T + G @ A.T + GP @ G.T + Qd
+        AG = A @ G6.T
+        Pt = Phi @ self.Pt @ Phi.T + Qd
+        Pt[:, :6] += AG
+        Pt[:6, :] += AG.T
+        Pt[:6, :6] += (G6 * self.pss) @ G6.T
         self.Pt = 0.5 * (Pt + Pt.T)
-        self.Pts = A + GP
+        A[:6] += G6 * self.pss
+        self.Pts = A
+        if self.track:                                # the node's composite update e⁺ = L e⁻ − J s + η
+            self.G = np.zeros((n, self.pss.size))
+            self.G[:6] = G6
+            self.Q = Qd
+            self.L, self.J, self.N = np.eye(n), np.zeros((n, self.pss.size)), np.zeros((n, n))
 
     def update(self, P_design, H, R, nhc=False):
         """An update of the design filter with prior ``P_design`` and rows (H, R): its gain applied
@@ -105,16 +115,18 @@ class ConsiderCovariance:
         KRK = K @ R @ K.T
         Pt = A @ self.Pt @ A.T + KRK
         Pts = A @ self.Pts
-        J = A @ self.J
+        J = A @ self.J if self.track else None
         if nhc and self.pss.size > self.n_sensor:
             b = slice(self.n_sensor, self.n_sensor + 2)
             KB = K @ self.Pts[:, b].T @ A.T
             Pt = Pt + K @ np.diag(self.pss[b]) @ K.T - KB - KB.T
             Pts[:, b] -= K * self.pss[b]
-            J[:, b] += K
+            if self.track:
+                J[:, b] += K
         self.Pt = 0.5 * (Pt + Pt.T)
         self.Pts = Pts
-        self.L, self.J, self.N = A @ self.L, J, A @ self.N @ A.T + KRK
+        if self.track:
+            self.L, self.J, self.N = A @ self.L, J, A @ self.N @ A.T + KRK
 
     def covariance(self, P_design):
         """The covariance of the filter's actual error (P_t; the design P when nothing is considered)."""

@@ -120,6 +120,7 @@ class GinsRun:
         m_gnss = 6 if (not self.tight and self._has_velocity()) else 3
         self.core = make_core(opts.filter, P0, opts, m_gnss)
         self.consider = ConsiderCovariance(nz, self.core.P, opts.nhc_sigma_mps if opts.nhc else None)
+        self.consider.track = bool(opts.smooth)
         self.nodes, self.by_node, self.reason = _schedule(imu, al.j0, src, opts)
         self.store = results.Storage(imu, al.j0, self.nodes, self.ns, opts.smooth, src.n)
         self.store.node_post(0, self.x, self.bias, self.clk, self.core.P, np.zeros(self.ns), self.core.P,
