@@ -363,7 +363,7 @@ def walk(shared_data):
     folder = shared_data / WALK
     if not (folder / "gnss_1730.ubx").is_file() or not (folder / "gnss_1730_sf.pos").is_file():
         pytest.skip(f"walk_0827 data not found in {folder}")
-    log = ubx.read_ubx(folder / "gnss_1730.ubx")
+    log = ubx.read_ubx(folder / "gnss_1730.ubx", signals="l1")      # the L1 C/A rows as recorded
     pos = _read_pos(folder / "gnss_1730_sf.pos")
     undulation = np.array([(m.height - m.hMSL) / 1000.0 for m in log.nav_pvt])
     assert np.ptp(undulation) < 0.01
@@ -390,7 +390,9 @@ def test_real_ublox_prediction_equals_rtklib(walk, shared_data):
         p.input_ubx(rraw, b)
     nav_r = rraw.nav
     ephs = {nav_r.eph[i].sat: nav_r.eph[i] for i in range(nav_r.n) if 1 <= nav_r.eph[i].sat <= 32}
-    meas = TightMeasurements(log.raw, log.nav, iono="off")       # the log holds no Klobuchar page
+    # the L1 C/A rows of the satellites with an LNAV set (RTKLIB decodes LNAV only); no ionosphere
+    # model on either side
+    meas = TightMeasurements(log.raw, log.nav, iono="off", sats=sorted(ephs))
     n = 0
     for k, p_e, _, _ in ref[::60]:
         r = meas.rows(k, p_e, np.zeros(3), 0.0, 0.0)
@@ -425,7 +427,8 @@ def test_real_ublox_residuals_at_rtk_positions(walk):
     Klobuchar page, so no ionosphere model), Doppler 0.167 m/s, 0.0184 m/s while static, clock
     slope against the Doppler drift 0.061 m/s; the bounds are 1.2 × those."""
     log, ref = walk
-    meas = TightMeasurements(log.raw, log.nav)
+    # the four satellites with a complete LNAV set in the log, without an ionosphere model, as measured
+    meas = TightMeasurements(log.raw, log.nav, iono="off", sats=[10, 23, 27, 32])
     pr, rr, rr_static, clock = [], [], [], []
     for k, p_e, v_e, speed in ref:
         clk, d = meas.initial_clock(k, p_e, v_e)
