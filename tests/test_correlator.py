@@ -5,6 +5,7 @@ import pytest
 
 from ultratight.constants import CA_LEN, F_CA, F_L1
 from ultratight.errors import ConfigError
+from ultratight.receiver.dsp.chipbits import code_window, unit_chips
 from ultratight.receiver.dsp.correlator import (
     COLUMNS, COS_LUT, LUT_BITS, LUT_SIZE, SIN_LUT, CorrelatorBank, code_rate_from_doppler, estimate_sigma_arm,
     integrate_channel, nco_fixed_point, tap_fixed_point)
@@ -152,6 +153,65 @@ def test_integrate_channel_float32_rounding_on_noise(is_complex, n, cp_chips, f_
     mu = (1024 + 3) * 2.0 ** -24
     assert np.all(np.abs(acc - ref) <= mu / (1 - mu) * abs_sum)
     assert np.max(np.abs(ref)) > 10.0                  # the sums are not trivially small
+
+
+# (fs, start code phase in chips, carrier Hz, taps): from near the chip rate (few samples per 64-chip
+# window) to 16 MHz, spacings up to 1.9 chips (early and late two chips apart in the window),
+# taps not in the bank's [P, E, L] order (late tap not the lowest: the float64 loop)
+RATE_CASES = [(1.1e6, 5.5, 3100.0, (0.0, 0.5, -0.5)), (2.046e6, 1000.9, -700.0, (0.0, 0.95, -0.95)),
+              (2.5e6, 17.25, 60.0, (0.0, 0.05, -0.05)), (16.0e6, 512.0, -4400.0, (0.0, 0.5, -0.5)),
+              (4.0e6, 200.0, 1234.5, (0.0, -0.5, 0.5)), (4.0e6, 0.0, 0.0, (0.25, 0.75, -0.25))]
+
+
+@pytest.mark.parametrize("is_complex", [True, False])
+@pytest.mark.parametrize("fs,cp_chips,f_hz,taps", RATE_CASES)
+def test_integrate_channel_exact_across_rates(is_complex, fs, cp_chips, f_hz, taps):
+    """As the dyadic test above, one code period at other sampling rates and tap sets: the chips the
+    kernel reads from its windows of code sign bits are those of the floor rule at every sample."""
+    rng = np.random.default_rng(int(fs) % 1000 + len(taps))
+    bank = CorrelatorBank([5], fs, 0.0, is_complex, spacing_chips=1.9)
+    code_ext = bank.code_ext[0]
+    cos_t = (rng.integers(-8, 9, LUT_SIZE) / 8.0).astype(np.float32)
+    sin_t = (rng.integers(-8, 9, LUT_SIZE) / 8.0).astype(np.float32)
+    dp = F_CA * (1.0 + f_hz / F_L1) / fs
+    n = int((CA_LEN - cp_chips) / dp)
+    buf = rng.integers(-4, 5, n * (2 if is_complex else 1)).astype(np.float32)
+    cp0, cstep, ph0, phstep = nco_fixed_point(cp_chips, bank.pad, dp, 0.7, f_hz, fs)
+    tap_fix = tap_fixed_point(np.array(taps))
+    acc = np.zeros(6)
+    integrate_channel(buf, is_complex, 0, n, code_ext, cp0, cstep, ph0, phstep, tap_fix, cos_t, sin_t, acc)
+    ref, _ = fixed_point_sums(buf, is_complex, 0, n, code_ext, cp0, cstep, ph0, phstep, tap_fix, cos_t, sin_t)
+    np.testing.assert_array_equal(acc, ref)
+
+
+def test_integrate_channel_chip_table_not_unit():
+    """A chip table with an entry other than +-1 (the windows hold signs only) takes the float64
+    loop: the sums are still those of the table's values (dyadic data: exact)."""
+    rng = np.random.default_rng(9)
+    fs, n = 4.0e6, 3000
+    bank = CorrelatorBank([8], fs, 0.0, True)
+    code_ext = bank.code_ext[0].copy()
+    code_ext[40] = 0.5
+    cos_t = (rng.integers(-8, 9, LUT_SIZE) / 8.0).astype(np.float32)
+    sin_t = (rng.integers(-8, 9, LUT_SIZE) / 8.0).astype(np.float32)
+    buf = rng.integers(-4, 5, 2 * n).astype(np.float32)
+    cp0, cstep, ph0, phstep = nco_fixed_point(1.0, bank.pad, F_CA / fs, 0.2, 900.0, fs)
+    tap_fix = tap_fixed_point(bank.tap_offsets_chips)
+    acc = np.zeros(6)
+    integrate_channel(buf, True, 0, n, code_ext, cp0, cstep, ph0, phstep, tap_fix, cos_t, sin_t, acc)
+    ref, _ = fixed_point_sums(buf, True, 0, n, code_ext, cp0, cstep, ph0, phstep, tap_fix, cos_t, sin_t)
+    np.testing.assert_array_equal(acc, ref)
+    assert np.any(code_ext[(cp0 + np.arange(n) * cstep) >> 32] == 0.5)     # the odd entry is read
+
+
+def test_code_window_bits():
+    """Window bit c is the sign of chip j0 + c, also where fewer than 64 chips remain."""
+    code = CorrelatorBank([3], 4e6, 0.0, True).code_ext[0]
+    for j0 in (0, 17, code.shape[0] - 64, code.shape[0] - 30, code.shape[0] - 1):
+        w = int(code_window(code, j0))
+        want = sum(1 << c for c in range(min(64, code.shape[0] - j0)) if code[j0 + c] < 0)
+        assert w == want, j0
+    assert unit_chips(code) and not unit_chips(np.where(np.arange(code.size) == 5, 2.0, code).astype(np.float32))
 
 
 def test_column_names():

@@ -7,9 +7,12 @@ made, without atmosphere, pinned in :data:`STATIC_TOML`), compared with values s
 ``tests/data/regression_v1.npz``.
 
 The stored values were computed by the receiver before its stages were separated into modules, and
-written again once since: when the correlator's three-tap sums were reassociated for vectorisation
+written again since when the correlator's three-tap sums were reassociated for vectorisation
 (``correlator._epl_block``), which changes them by float32 rounding — amplified through the closed
-tracking loops to up to 1.5 Hz of Doppler on the ultra-tight methods, none on the scalar paths. A
+tracking loops to up to 1.5 Hz of Doppler on the ultra-tight methods, none on the scalar paths —
+and when that kernel took its chips from windows of code sign bits (float32 sums over shorter
+stretches, float32 rounding again: 0.45 Hz on paper-highdyn; in the burst case, where it moves
+loss-of-lock decisions, up to 15 Hz and one loss of lock more or fewer; the scalar paths unchanged). A
 change of any per-epoch Doppler or code estimate, navigation solution, acquisition or fix by more
 than 1e-9 (absolute; 1e-12 relative for ECEF positions) fails. Regenerate the file only for an intended change of behaviour:
 ``python tests/test_regression_fixture.py --write``.

@@ -39,7 +39,9 @@ Implementation: the carrier uses a 32-bit phase accumulator (int64 arithmetic,
 wrapped by masking) indexing a ``2**LUT_BITS``-entry float32 cos/sin table
 built at bin centres (unbiased; phase error uniform within +-pi/2**LUT_BITS);
 the code uses a fixed-point (32 fractional bits) code-phase accumulator
-indexing a +-1 chip table padded on both sides so that no modulo is needed.
+indexing a +-1 chip table padded on both sides so that no modulo is needed
+(the three-tap kernel reads those chips from 64-bit windows of their sign bits,
+:mod:`ultratight.receiver.dsp.chipbits`: the same chips, without a look-up per tap).
 The NCO state kept in the public float64 arrays is advanced exactly (float64)
 after every integration, so accumulator quantisation never accumulates.
 
@@ -74,6 +76,7 @@ from ultratight.errors import ConfigError
 from ultratight.signals.nco import NcoBank
 from ultratight.signals.signal import GPS_L1CA
 from ultratight.receiver.dsp.blockstream import block_sigma_arm
+from ultratight.receiver.dsp.chipbits import chip_at, code_window, unit_chips
 
 LUT_BITS = 14                   # carrier table: 2**LUT_BITS entries, indexed by the top phase bits
 LUT_SIZE = 1 << LUT_BITS
@@ -128,21 +131,36 @@ def estimate_sigma_arm(block, is_complex):
 
 
 @njit(cache=True, fastmath={"reassoc", "contract"})
-def _epl_block(buf, is_complex, off, m, code_ext, cp, cstep, ph, phstep, dE, dL, cos_lut, sin_lut):
+def _epl_block(buf, is_complex, off, m, w, u, cstep, ph, phstep, s_p, t_p, s_e, t_e, cos_lut, sin_lut):
     """float32 sums ``(I_P, I_E, I_L, Q_P, Q_E, Q_L)`` over the ``m`` samples from buffer offset
-    ``off`` (``cp``/``ph``: the code and carrier accumulators at the first of them; arguments
-    otherwise as :func:`integrate_channel`, ``dE``/``dL`` the early/late tap offsets in fixed point).
+    ``off``, the chips read from ``w``, the 64-bit window of code sign bits that starts at a chip
+    ``j0`` (bit ``c``: chip ``j0 + c``, :func:`ultratight.receiver.dsp.chipbits.code_window`).
 
-    Its own kernel so that only these sums are reassociated: LLVM then splits each of the six over
-    the lanes of 8-wide vectors (the table look-ups stay one load per sample and lane, the
-    wipe-off and multiply-adds run eight samples at a time; contraction fuses each multiply-add).
-    That took the bank from 0.42 to 0.63 G channel-samples/s per core (8 channels); the sums change only by
-    float32 rounding (a different order of the additions).  Indices are unsigned (``np.uint64``):
-    numba then leaves out the negative-index wraparound of every look-up.
+    ``u`` (uint64) is the late tap's code accumulator relative to chip ``j0`` at the first sample
+    (the late tap has the lowest offset): its chip is bit ``u >> 32`` of the window.  A tap whose
+    offset above the late tap's is ``h*2**32 + l`` (``0 <= l < 2**32``) reads the bit ``h`` or
+    ``h + 1`` above it, ``h + 1`` when the low 32 bits of ``u`` plus ``l`` carry: with the low bits
+    sign-flipped (``lo``) the carry is the signed ``lo > t``, ``t = (2**32 - 1 - l) ^ 2**31``, and
+    ``s = 31 - h`` (:func:`_tap_shift`; ``s_p, t_p`` prompt, ``s_e, t_e`` early).  These are the
+    chips of the documented rule ``floor(p_k + o)`` exactly (integer arithmetic throughout).
+    ``ph``/``phstep``: the carrier accumulator at the first sample and its step, as
+    :func:`integrate_channel`.
+
+    Its own kernel so that only these sums are reassociated: LLVM splits each of the six over the
+    lanes of 8-wide float32 vectors, contracts the multiply-adds, and computes the chips of eight
+    samples with a few vector shifts and compares (:mod:`ultratight.receiver.dsp.chipbits`); only
+    the two carrier-table look-ups remain one load per sample and lane.  That took the bank from
+    0.63-0.64 to 0.80-0.84 G channel-samples/s per core (8 channels, complex input; 13 channels
+    0.63-0.65 -> 0.74-0.79; AMD EPYC Zen 3, load 2-2.6), the kernel before doing three code
+    look-ups per sample; the sums change by float32 rounding only (shorter float32 stretches,
+    another order of the additions); commands and figures in docs/receiver_blocks.md.
+    Indices are unsigned (``np.uint64``): numba then leaves out the negative-index wraparound of
+    every look-up.
     """
     shift = 32 - LUT_BITS
     mask = LUT_SIZE - 1
     one = np.uint64(1)
+    flip = np.uint32(0x80000000)
     ip = np.float32(0.0); ie = np.float32(0.0); il = np.float32(0.0)
     qp = np.float32(0.0); qe = np.float32(0.0); ql = np.float32(0.0)
     if is_complex:
@@ -150,32 +168,54 @@ def _epl_block(buf, is_complex, off, m, code_ext, cp, cstep, ph, phstep, dE, dL,
             j = np.uint64(2 * (off + kk))
             xr = buf[j]
             xi = buf[j + one]
-            li = np.uint64((ph >> shift) & mask)
+            li = np.uint64((ph + kk * phstep) >> shift) & np.uint64(mask)
             c = cos_lut[li]
             s = sin_lut[li]
             bi = xr * c + xi * s
             bq = xi * c - xr * s
-            cP = code_ext[np.uint64(cp >> 32)]
-            cE = code_ext[np.uint64((cp + dE) >> 32)]
-            cL = code_ext[np.uint64((cp + dL) >> 32)]
+            v = np.uint32(w >> (u >> np.uint64(32)))
+            lo = np.uint32(u) ^ flip
+            cP = chip_at(v, s_p, lo, t_p)
+            cE = chip_at(v, s_e, lo, t_e)
+            cL = chip_at(v, 31, 0, 0)
             ip += bi * cP; ie += bi * cE; il += bi * cL
             qp += bq * cP; qe += bq * cE; ql += bq * cL
-            cp += cstep
-            ph += phstep
-    else:
-        for kk in range(m):
-            xr = buf[np.uint64(off + kk)]
-            li = np.uint64((ph >> shift) & mask)
-            bi = xr * cos_lut[li]
-            bq = -xr * sin_lut[li]
-            cP = code_ext[np.uint64(cp >> 32)]
-            cE = code_ext[np.uint64((cp + dE) >> 32)]
-            cL = code_ext[np.uint64((cp + dL) >> 32)]
-            ip += bi * cP; ie += bi * cE; il += bi * cL
-            qp += bq * cP; qe += bq * cE; ql += bq * cL
-            cp += cstep
-            ph += phstep
+            u += cstep
+        return ip, ie, il, qp, qe, ql
+    for kk in range(m):
+        xr = buf[np.uint64(off + kk)]
+        li = np.uint64((ph + kk * phstep) >> shift) & np.uint64(mask)
+        bi = xr * cos_lut[li]
+        bq = -xr * sin_lut[li]
+        v = np.uint32(w >> (u >> np.uint64(32)))
+        lo = np.uint32(u) ^ flip
+        cP = chip_at(v, s_p, lo, t_p)
+        cE = chip_at(v, s_e, lo, t_e)
+        cL = chip_at(v, 31, 0, 0)
+        ip += bi * cP; ie += bi * cE; il += bi * cL
+        qp += bq * cP; qe += bq * cE; ql += bq * cL
+        u += cstep
     return ip, ie, il, qp, qe, ql
+
+
+@njit(cache=True)
+def _tap_shift(d):
+    """``(s, t)`` of :func:`_epl_block` for a tap ``d >= 0`` (fixed point) above the late tap."""
+    low = d & 0xFFFFFFFF
+    return np.int32(31 - (d >> 32)), np.int32(np.uint32((0xFFFFFFFF - low) ^ 0x80000000))
+
+
+@njit(cache=True)
+def _window_block(tap_fix, cstep):
+    """Samples per :func:`_epl_block` call (a multiple of 8, at most 1024) such that every tap's chip
+    stays inside one 64-chip window; 0 when the taps are not ``[P, E, L]`` with the late tap lowest
+    and the others less than 30 chips above it, or not even 8 samples fit."""
+    d_l = tap_fix[2]
+    span = max(tap_fix[0], tap_fix[1]) - d_l
+    room = (63 << 32) - span - 1
+    if cstep <= 0 or span > (30 << 32) or tap_fix[0] < d_l or tap_fix[1] < d_l:
+        return 0
+    return min(room // cstep + 1, 1024) & ~7
 
 
 @njit(cache=True)
@@ -184,59 +224,63 @@ def integrate_channel(buf, is_complex, off, n, code_ext, cp_fix0, cstep, ph0, ph
     """Fused wipe-off + taps for one channel over n samples starting at buffer offset ``off``.
 
     ``buf`` is float32: interleaved I,Q for complex input, plain samples for real.
-    ``code_ext`` is one row of :attr:`CorrelatorBank.code_ext`; ``cp_fix0``/``cstep`` the code
+    ``code_ext`` is one row of :attr:`CorrelatorBank.code_ext` (entries +-1); ``cp_fix0``/``cstep`` the code
     phase (``floor((code_phase + pad) * 2**32)``) and its step per sample, ``ph0``/``phstep`` the
     32-bit carrier phase and step; ``cos_lut``/``sin_lut`` are :data:`COS_LUT`/:data:`SIN_LUT`.
     ``tap_fix[t]`` are the tap offsets in fixed point (code chips * 2**32).
     ``acc`` (2*n_taps,) receives [I_t..., Q_t...] raw sums (float64).
 
-    Three taps (the receiver's hot spot): float32 sums over blocks of 1024 samples
-    (:func:`_epl_block`, vectorised) flushed to float64; the accumulators at a block's first
-    sample ``k`` are ``cp_fix0 + k*cstep`` and ``ph0 + k*phstep`` exactly (integers).  Other tap
-    counts: one float64 loop.
+    Three taps ``[P, E, L]`` with the late tap lowest (the bank's; the receiver's hot spot):
+    float32 sums over stretches of samples whose chips fit one 64-chip window (at most 1024
+    samples; 240 at 4 MHz; :func:`_epl_block`, vectorised), each flushed to float64; the
+    accumulators at a stretch's first sample ``k`` are ``cp_fix0 + k*cstep`` and
+    ``ph0 + k*phstep`` exactly (integers).  Other taps, or a chip table that is not all +-1: one
+    float64 loop.
     """
     n_taps = tap_fix.shape[0]
     shift = 32 - LUT_BITS
     mask = LUT_SIZE - 1
     cp = cp_fix0
     ph = ph0
-    if n_taps == 3:
-        dE = tap_fix[1]
-        dL = tap_fix[2]
-        for t in range(6):
-            acc[t] = 0.0
+    for t in range(2 * n_taps):
+        acc[t] = 0.0
+    blk = _window_block(tap_fix, cstep) if n_taps == 3 else 0
+    if blk > 0 and unit_chips(code_ext):
+        d_l = tap_fix[2]
+        s_p, t_p = _tap_shift(tap_fix[0] - d_l)
+        s_e, t_e = _tap_shift(tap_fix[1] - d_l)
         k = 0
         while k < n:
-            m = min(1024, n - k)
-            s6 = _epl_block(buf, is_complex, off + k, m, code_ext, cp_fix0 + k * cstep, cstep,
-                            ph0 + k * phstep, phstep, dE, dL, cos_lut, sin_lut)
+            m = min(blk, n - k)
+            cpk = cp_fix0 + k * cstep + d_l
+            j0 = cpk >> 32
+            s6 = _epl_block(buf, is_complex, off + k, m, code_window(code_ext, j0), np.uint64(cpk - (j0 << 32)),
+                            np.uint64(cstep), ph0 + k * phstep, phstep, s_p, t_p, s_e, t_e, cos_lut, sin_lut)
             for t in range(6):
                 acc[t] += s6[t]
             k += m
-    else:
-        for t in range(2 * n_taps):
-            acc[t] = 0.0
-        for kk in range(n):
-            if is_complex:
-                j = 2 * (off + kk)
-                xr = buf[j]
-                xi = buf[j + 1]
-                li = (ph >> shift) & mask
-                c = cos_lut[li]
-                s = sin_lut[li]
-                bi = xr * c + xi * s
-                bq = xi * c - xr * s
-            else:
-                xr = buf[off + kk]
-                li = (ph >> shift) & mask
-                bi = xr * cos_lut[li]
-                bq = -xr * sin_lut[li]
-            for t in range(n_taps):
-                ct = code_ext[(cp + tap_fix[t]) >> 32]
-                acc[t] += bi * ct
-                acc[n_taps + t] += bq * ct
-            cp += cstep
-            ph += phstep
+        return
+    for kk in range(n):
+        if is_complex:
+            j = 2 * (off + kk)
+            xr = buf[j]
+            xi = buf[j + 1]
+            li = (ph >> shift) & mask
+            c = cos_lut[li]
+            s = sin_lut[li]
+            bi = xr * c + xi * s
+            bq = xi * c - xr * s
+        else:
+            xr = buf[off + kk]
+            li = (ph >> shift) & mask
+            bi = xr * cos_lut[li]
+            bq = -xr * sin_lut[li]
+        for t in range(n_taps):
+            ct = code_ext[(cp + tap_fix[t]) >> 32]
+            acc[t] += bi * ct
+            acc[n_taps + t] += bq * ct
+        cp += cstep
+        ph += phstep
 
 
 @njit(cache=True)
