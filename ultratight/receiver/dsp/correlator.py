@@ -150,8 +150,8 @@ def _epl_block(buf, is_complex, off, m, w, u, cstep, ph, phstep, s_p, t_p, s_e, 
     lanes of 8-wide float32 vectors, contracts the multiply-adds, and computes the chips of eight
     samples with a few vector shifts and compares (:mod:`ultratight.receiver.dsp.chipbits`); only
     the two carrier-table look-ups remain one load per sample and lane.  That took the bank from
-    0.63-0.64 to 0.80-0.84 G channel-samples/s per core (8 channels, complex input; 13 channels
-    0.63-0.65 -> 0.74-0.79; AMD EPYC Zen 3, load 2-2.6), the kernel before doing three code
+    0.60-0.65 to 0.79-0.84 G channel-samples/s per core (8 channels, complex input; 13 channels
+    0.63-0.65 -> 0.74-0.79; AMD EPYC Zen 3, load 0.7-2.6), the kernel before doing three code
     look-ups per sample; the sums change by float32 rounding only (shorter float32 stretches,
     another order of the additions); commands and figures in docs/receiver_blocks.md.
     Indices are unsigned (``np.uint64``): numba then leaves out the negative-index wraparound of
