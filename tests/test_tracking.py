@@ -245,3 +245,27 @@ def test_long_coherent_integration_at_low_cn0():
     assert np.mean(ri[late, RI_FLAGS] & FL_PLL_LOCK > 0) > 0.95
     assert np.sqrt(np.mean(_code_err(p, ri, rf)[late] ** 2)) < 0.08
     assert rf[-1, R_CN0] == pytest.approx(30.0, abs=1.5)
+
+
+def test_threaded_tracking_with_idle_channels_equals_one_thread():
+    """An all-in-view receiver's bank: tracked channels first, then idle ones (inactive). The threaded
+    kernel (channels over numba's threads, the loop over the active ones only) gives every record
+    bit for bit as the one-thread kernel; idle channels write nothing."""
+    x1, p1, _ = synth(0.6, 7, 45.0, 1500.0, seed=5)
+    x2, p2, _ = synth(0.6, 12, 42.0, -900.0, seed=6)
+    x = (x1 + x2).astype(np.complex64)            # two satellites (the noise of both: 3 dB more)
+    out = []
+    for parallel in (False, True):
+        tr = ScalarTracker(10, FS, 0.0, True, None, parallel=parallel)
+        tr.start_channel(0, 7, p1[0] % CA_LEN, 1500.0, 0, None)
+        tr.start_channel(5, 12, p2[0] % CA_LEN, -900.0, 0, None)
+        recs = []
+        for _ in range(5):
+            start = tr.next_needed_sample()
+            recs.append(tr.run(x[start:start + int(0.1 * FS)], start, 1.0))
+        out.append(recs)
+    for (rf_a, ri_a, n_a), (rf_b, ri_b, n_b) in zip(*out):
+        np.testing.assert_array_equal(n_a, n_b)
+        assert n_a[0] > 0 and n_a[5] > 0 and n_a[[1, 2, 3, 4, 6, 7, 8, 9]].sum() == 0
+        np.testing.assert_array_equal(rf_a, rf_b)
+        np.testing.assert_array_equal(ri_a, ri_b)

@@ -440,8 +440,13 @@ def track_block(buf, is_complex, buf_start, n_buf, stop_sample, code_ext, pad, a
 def track_block_parallel(buf, is_complex, buf_start, n_buf, stop_sample, code_ext, pad, active, sample_ptr,
                      code_phase, code_rate, carr_phase, carr_freq, fs, if_hz, tap_off, sigma_arm,
                      sf, si, hist, prm, rec_f, rec_i, n_rec, half_tab, bse):
-    """:func:`track_block` with channels spread over threads (channels are independent)."""
-    for ch in prange(code_phase.shape[0]):
+    """:func:`track_block` with channels spread over threads (channels are independent). The loop runs
+    over the channels active at the start of the block only: numba gives each thread an equal share of
+    the loop's range, and the idle channels of an all-in-view receiver (a block of them after the
+    tracked ones) would otherwise leave one thread all the work."""
+    act = np.flatnonzero(active)
+    for k in prange(act.shape[0]):
+        ch = act[k]
         _track_channel(ch, buf, is_complex, buf_start, n_buf, stop_sample, code_ext, pad, active, sample_ptr,
                        code_phase, code_rate, carr_phase, carr_freq, fs, if_hz, tap_off, sigma_arm,
                        sf, si, hist, prm, rec_f, rec_i, n_rec, half_tab, bse)
