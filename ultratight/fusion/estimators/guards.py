@@ -22,6 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.linalg.lapack import dpotrf as _potrf     # LAPACK Cholesky: the PD test of check_covariance
 from scipy.special import chdtri      # the χ² inverse survival function (scipy.stats is slow to import)
 
 from ultratight.errors import DivergenceError, FilterError
@@ -116,7 +117,8 @@ def check_covariance(name: str, P, n: int | None = None) -> np.ndarray:
     if asym > _SYM_RTOL * mag:
         raise FilterError(f"{name}: not symmetric (max |P - Pᵀ| = {asym:.3e}, max |P| = {mag:.3e})")
     a = symmetrize(a)
-    cholesky_lower(a, name)  # raises FilterError when not PD beyond round-off
+    if a.size and _potrf(a, lower=1, clean=0)[1] != 0:
+        cholesky_lower(a, name)  # the jittered retries; raises FilterError when not PD beyond round-off
     return a
 
 

@@ -94,6 +94,12 @@ def enu_offset(llh_a, llh_b):
     return np.array([d[1] * (rn + llh_b[2]) * math.cos(llh_b[0]), d[0] * (rm + llh_b[2]), d[2]])
 
 
+def cross3(a, b):
+    """a × b of two 3-vectors (the products and differences of np.cross, without its general-shape
+    set-up, which cost more than the arithmetic at every GNSS epoch)."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
 def loose_rows(fix, x, omega_b, lever_b, t_node):
     """(z, H, R) of a loose GNSS epoch (module docstring) at the SINS state ``x`` of time ``t_node``."""
     C = quat_to_dcm(x[0:4])
@@ -107,7 +113,7 @@ def loose_rows(fix, x, omega_b, lever_b, t_node):
     Hp[:, em.ATT] = skew(l_l)
     Hs, sig = [Hp], [fix.sig_pos]
     if np.all(np.isfinite(fix.vel_enu)):
-        a_l = C @ np.cross(omega_b, lever_b)
+        a_l = C @ cross3(omega_b, lever_b)
         rows.append(v + a_l - fix.vel_enu)
         Hv = np.zeros((3, em.N15))
         Hv[:, em.VEL] = np.eye(3)
@@ -227,7 +233,7 @@ class TightSource:
         C = quat_to_dcm(x[0:4])
         lever_b = np.asarray(lever_b, float)
         l_l = C @ lever_b
-        a_l = C @ np.cross(omega_b, lever_b)
+        a_l = C @ cross3(omega_b, lever_b)
         C_el = dcm_ecef_from_enu(x[7], x[8])
         pos_e = np.asarray(llh_to_ecef(x[7], x[8], x[9]), float) + C_el @ l_l
         vel_e = C_el @ (x[4:7] + a_l)
