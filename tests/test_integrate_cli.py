@@ -181,3 +181,16 @@ def test_walk_tight_on_the_raw_log_runs_end_to_end(tmp_path):
     assert s["coupling"] == "tight" and s["gnss"]["epochs_used"] > 400
     assert "L2C" in s["gnss"]["signals"] and "ionosphere-free" in s["gnss"]["ionosphere"], s["gnss"]
     assert s["evaluation"]["rms_outside_h_m"] <= 9.9, s["evaluation"]
+
+
+@needs_walk
+def test_walk_tight_signals_l1_keeps_the_rows_as_measured(tmp_path):
+    """``--signals l1``: the u-blox log's L1 C/A pseudoranges as measured (the four satellites with an
+    LNAV set and the three with CNAV sets, no ionosphere-free rows left out), named so in the summary."""
+    res = cli(walk_args("--coupling", "tight", "--signals", "l1", "--json", gnss=WALK / "gnss_1730.ubx"),
+              cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    s = json.loads(res.stdout)
+    assert s["gnss"]["signals"] == "GPS L1 C/A", s["gnss"]
+    assert "ionosphere-free" not in s["gnss"]["ionosphere"] and "ionosphere-free combination" not in res.stderr
+    assert s["gnss"]["epochs_used"] > 400

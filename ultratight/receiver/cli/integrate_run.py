@@ -170,7 +170,7 @@ def _raw_and_nav(args, kind):
     nav = read_rinex_nav(args.nav) if args.nav else None
     if kind == "ubx":
         from ultratight.signals.ubx import read_ubx
-        log = read_ubx(args.gnss)
+        log = read_ubx(args.gnss, signals=getattr(args, "signals", "auto"))
         raw = log.raw
         if nav is None:
             nav = log.nav

@@ -42,6 +42,10 @@ def add_arguments(p):
                         "(observations, tight) (default: recognised from the file)")
     g.add_argument("--nav", default=None, metavar="NAV",
                    help="RINEX navigation file (tight coupling on RINEX observations; optional with a .ubx)")
+    g.add_argument("--signals", choices=("auto", "l1"), default="auto",
+                   help="u-blox raw log, tight coupling: auto (GPS L1 C/A + L2C, else L5, ionosphere-free when "
+                        "the log has them; satellites without the second pseudorange left out) or l1 (L1 C/A "
+                        "as measured, every satellite) (default auto; docs/spp.md)")
     g.add_argument("--date", default=None, metavar="YYYY-MM-DD",
                    help="UTC date of an NMEA log without RMC sentences")
     g.add_argument("--leap-seconds", type=int, default=18, metavar="S",
