@@ -40,10 +40,11 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from ultratight.receiver.dsp.chipbits import unit_chips
 from ultratight.receiver.dsp.correlator import (COS_LUT, SIN_LUT, integrate_channel, nco_fixed_point,
                                                 period_samples, tap_fixed_point)
-from ultratight.receiver.dsp.tracking_kernels import (_CS_LUT, _integrate_pel, costas_disc, dll_disc,
-                                                      dll_disc_dot, dll_update, fll_disc, pll_fll_update)
+from ultratight.receiver.dsp.tracking_kernels import (costas_disc, dll_disc, dll_disc_dot, dll_update, fll_disc,
+                                                      integrate_pel, pll_fll_update)
 from ultratight.receiver.dsp.tracking_layout import (
     F_AIE, F_AIL, F_AIP, F_AQE, F_AQL, F_AQP, F_AT, F_BIT_SUM, F_CARR_ACC, F_CN0_DB, F_CN0_P, F_CN0_T,
     F_DLL_ERR, F_DLL_U, F_DLL_Z, F_DOPP, F_FLL_ERR, F_LAST_I, F_LOCK_T, F_LOW_T, F_PLI, F_PLI_D, F_PLI_N,
@@ -369,6 +370,7 @@ def _track_channel(ch, buf, is_complex, buf_start, n_buf, stop_sample, code_ext,
     chip_rate = prm[P_CHIP_RATE]
     carrier = prm[P_CARRIER]
     max_rows = rec_f.shape[1]
+    unit = unit_chips(code_ext[ch])
     while active[ch] and n_rec[ch] < max_rows:
         dp = code_rate[ch] / fs
         n = period_samples(code_phase[ch], dp, code_len)
@@ -377,7 +379,8 @@ def _track_channel(ch, buf, is_complex, buf_start, n_buf, stop_sample, code_ext,
             break
         cp_fix0, cstep, ph0, phstep = nco_fixed_point(code_phase[ch], pad, dp, carr_phase[ch], carr_freq[ch], fs)
         if prm[P_PEL] > 0.0:
-            _integrate_pel(buf, is_complex, off, n, half_tab[ch], cp_fix0, cstep, ph0, phstep, _CS_LUT, acc)
+            integrate_pel(buf, is_complex, off, n, code_ext[ch], unit, half_tab[ch], cp_fix0, cstep, ph0, phstep,
+                          tap_fix, acc)
         else:
             integrate_channel(buf, is_complex, off, n, code_ext[ch], cp_fix0, cstep, ph0, phstep,
                               tap_fix, COS_LUT, SIN_LUT, acc)

@@ -29,7 +29,8 @@ import math
 import numpy as np
 from numba import njit
 
-from ultratight.receiver.dsp.correlator import COS_LUT, LUT_BITS, LUT_SIZE, SIN_LUT
+from ultratight.receiver.dsp.chipbits import chip_at, code_window
+from ultratight.receiver.dsp.correlator import COS_LUT, LUT_BITS, LUT_SIZE, SIN_LUT, _tap_shift, _window_block
 from ultratight.signals.signal import GPS_L1CA
 
 A2, A3, B3 = math.sqrt(2.0), 1.1, 2.4
@@ -111,6 +112,94 @@ def dll_update(z, dtau, t, bn, order):
 
 
 # ------------------------------------------------------------------------------ prompt / E-L integration
+@njit(cache=True, fastmath={"reassoc", "contract"})
+def _pel_block(buf, is_complex, off, m, w, u, cstep, ph, phstep, s_p, t_p, s_e, t_e, cos_lut, sin_lut):
+    """float32 sums ``(I_P, I_EL, Q_P, Q_EL)`` over the ``m`` samples from buffer offset ``off``, the
+    chips read from the 64-bit code window ``w`` exactly as the correlator's three-tap block
+    (:func:`ultratight.receiver.dsp.correlator._epl_block`: ``u``, ``s_*``, ``t_*`` the same): the
+    prompt chip and the early minus the late chip (-2, 0 or 2, as the half-chip table of
+    :func:`_integrate_pel`).  Its own kernel so that only these four sums are reassociated (LLVM
+    splits each over the lanes of 8-wide float32 vectors)."""
+    shift = 32 - LUT_BITS
+    mask = LUT_SIZE - 1
+    one = np.uint64(1)
+    flip = np.uint32(0x80000000)
+    ip = np.float32(0.0); idl = np.float32(0.0)
+    qp = np.float32(0.0); qd = np.float32(0.0)
+    if is_complex:
+        for kk in range(m):
+            j = np.uint64(2 * (off + kk))
+            xr = buf[j]
+            xi = buf[j + one]
+            li = np.uint64((ph + kk * phstep) >> shift) & np.uint64(mask)
+            c = cos_lut[li]
+            s = sin_lut[li]
+            bi = xr * c + xi * s
+            bq = xi * c - xr * s
+            v = np.uint32(w >> (u >> np.uint64(32)))
+            lo = np.uint32(u) ^ flip
+            cP = chip_at(v, s_p, lo, t_p)
+            cD = chip_at(v, s_e, lo, t_e) - chip_at(v, 31, 0, 0)
+            ip += bi * cP; idl += bi * cD
+            qp += bq * cP; qd += bq * cD
+            u += cstep
+        return ip, idl, qp, qd
+    for kk in range(m):
+        xr = buf[np.uint64(off + kk)]
+        li = np.uint64((ph + kk * phstep) >> shift) & np.uint64(mask)
+        bi = xr * cos_lut[li]
+        bq = -xr * sin_lut[li]
+        v = np.uint32(w >> (u >> np.uint64(32)))
+        lo = np.uint32(u) ^ flip
+        cP = chip_at(v, s_p, lo, t_p)
+        cD = chip_at(v, s_e, lo, t_e) - chip_at(v, 31, 0, 0)
+        ip += bi * cP; idl += bi * cD
+        qp += bq * cP; qd += bq * cD
+        u += cstep
+    return ip, idl, qp, qd
+
+
+@njit(cache=True)
+def integrate_pel(buf, is_complex, off, n, code_ext, unit, tab, cp_fix0, cstep, ph0, phstep, tap_fix, acc):
+    """Prompt and early-minus-late sums of one code period, ``acc`` as :func:`_integrate_pel`.
+
+    With a chip table of +-1 entries (``unit``: :func:`ultratight.receiver.dsp.chipbits.unit_chips`
+    of ``code_ext``) and taps ``tap_fix`` = [P, E, L] at 0, +1/2, -1/2 chip: float32 sums over
+    stretches whose chips fit one 64-chip window (:func:`_pel_block`, vectorised), each flushed to
+    float64 -- the same chips as the half-chip table, the sums in another order (float32 rounding);
+    otherwise :func:`_integrate_pel` on the half-chip table ``tab``."""
+    blk = _window_block(tap_fix, cstep) if unit else 0
+    if blk == 0:
+        _integrate_pel(buf, is_complex, off, n, tab, cp_fix0, cstep, ph0, phstep, _CS_LUT, acc)
+        return
+    d_l = tap_fix[2]
+    s_p, t_p = _tap_shift(tap_fix[0] - d_l)
+    s_e, t_e = _tap_shift(tap_fix[1] - d_l)
+    ip64 = 0.0
+    id64 = 0.0
+    qp64 = 0.0
+    qd64 = 0.0
+    k = 0
+    while k < n:
+        m = min(blk, n - k)
+        cpk = cp_fix0 + k * cstep + d_l
+        j0 = cpk >> 32
+        ip, idl, qp, qd = _pel_block(buf, is_complex, off + k, m, code_window(code_ext, j0),
+                                     np.uint64(cpk - (j0 << 32)), np.uint64(cstep), ph0 + k * phstep, phstep,
+                                     s_p, t_p, s_e, t_e, COS_LUT, SIN_LUT)
+        ip64 += ip
+        id64 += idl
+        qp64 += qp
+        qd64 += qd
+        k += m
+    acc[0] = ip64
+    acc[1] = id64
+    acc[2] = 0.0
+    acc[3] = qp64
+    acc[4] = qd64
+    acc[5] = 0.0
+
+
 @njit(cache=True)
 def _integrate_pel(buf, is_complex, off, n, tab, cp_fix0, cstep, ph0, phstep, lut, acc):
     """Prompt and early-minus-late (1 chip spacing) sums in one pass.
