@@ -26,6 +26,7 @@ parity in ``LnavDecoder.iono``.
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 from ultratight.constants import SECONDS_PER_WEEK
 from ultratight.errors import NavDataError
@@ -324,14 +325,15 @@ class LnavDecoder:
     def _search(self, b):
         pre = np.array(PREAMBLE, dtype=np.uint8)
         n = len(b)
-        for i in range(0, n - 2 * WORD_BITS + 1):
-            seg = b[i:i + 8]
-            if np.array_equal(seg, pre):
-                inv = 0
-            elif np.array_equal(seg, 1 - pre):
-                inv = 1
-            else:
-                continue
+        n_start = n - 2 * WORD_BITS + 1
+        if n_start <= 0:
+            return None, None, False
+        # the starts whose 8 bits are the preamble, upright or inverted, in order
+        win = sliding_window_view(b[:n_start + 7], 8)
+        upright = (win == pre).all(axis=1)
+        inverted = (win == 1 - pre).all(axis=1)
+        for i in np.flatnonzero(upright | inverted).tolist():
+            inv = 0 if upright[i] else 1
             r = self._tlm_how_ok(b, i, inv)
             if r is None:
                 return None, None, True           # need more bits
