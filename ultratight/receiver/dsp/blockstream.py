@@ -49,7 +49,7 @@ def _complex_block_sigma(v):
     return math.sqrt(s / n / 2.0)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)
 def _complex_block_sigmas(v, block_len, out):
     """:func:`_complex_block_sigma` of each of the ``out.shape[0]`` consecutive blocks of
     ``block_len`` complex samples in ``v`` (float32 (re, im) view), the blocks spread over numba's

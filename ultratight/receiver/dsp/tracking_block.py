@@ -425,7 +425,7 @@ def _track_channel(ch, buf, is_complex, buf_start, n_buf, stop_sample, code_ext,
             active[ch] = False
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def track_block(buf, is_complex, buf_start, n_buf, stop_sample, code_ext, pad, active, sample_ptr,
                  code_phase, code_rate, carr_phase, carr_freq, fs, if_hz, tap_off, sigma_arm,
                  sf, si, hist, prm, rec_f, rec_i, n_rec, half_tab, bse):
@@ -439,7 +439,7 @@ def track_block(buf, is_complex, buf_start, n_buf, stop_sample, code_ext, pad, a
                        sf, si, hist, prm, rec_f, rec_i, n_rec, half_tab, bse)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)
 def track_block_parallel(buf, is_complex, buf_start, n_buf, stop_sample, code_ext, pad, active, sample_ptr,
                      code_phase, code_rate, carr_phase, carr_freq, fs, if_hz, tap_off, sigma_arm,
                      sf, si, hist, prm, rec_f, rec_i, n_rec, half_tab, bse):

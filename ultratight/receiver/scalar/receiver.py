@@ -54,6 +54,7 @@ root attributes and every other output.
 
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import replace
 
 import numba
@@ -171,12 +172,14 @@ class ScalarReceiver:
                        "predicted": [], "below_mask": [], "cpu_s": 0.0}
 
     # ----------------------------------------------------------------- per block
-    def _track_block(self, s):
-        """Track every active channel through the block starting at sample ``s``; False at the end."""
+    def _read_track(self, s):
+        """Track every active channel through the block starting at sample ``s`` (read from the
+        stream); the records, or None at the end. Touches only the stream and the tracking bank."""
         n_read = min(self.block_len + self.margin, self.stop - s)
-        recs = self.tracker.track_at(self.stream, s, n_read, SIGMA_SAMPLES, self.margin, self.stop)
-        if recs is None:
-            return False
+        return self.tracker.track_at(self.stream, s, n_read, SIGMA_SAMPLES, self.margin, self.stop)
+
+    def _take_records(self, s, recs):
+        """Hand the block's records to the channels' histories, decoders and outputs."""
         rf, ri, nr = recs
         self.n_blocks_done += 1
         if self.n_blocks_done % RELEASE_EVERY == 0:
@@ -185,7 +188,6 @@ class ScalarReceiver:
             m = int(nr[ch])
             if m:
                 self._channel_records(ch, rf[ch, :m], ri[ch, :m])
-        return True
 
     def _channel_records(self, ch, f_ch, i_ch):
         info = self.chinfo[ch]
@@ -200,10 +202,14 @@ class ScalarReceiver:
             self.tracker.stop_channel(ch)
             st.si[ch, S_MODE] = MODE_LOST
 
-    def _observation_epochs(self):
-        """Observables / PVT at every observation epoch fully covered by every active channel."""
+    def _observation_limit(self):
+        """The sample every active channel's history has reached (the observation epochs up to it are
+        complete)."""
         ends = [self.hists[ch].end_sample for ch in range(self.n_ch) if self.tracker.active[ch]]
-        limit = min(ends) if ends else max(h.end_sample for h in self.hists)
+        return min(ends) if ends else max(h.end_sample for h in self.hists)
+
+    def _observation_epochs(self, limit):
+        """Observables / PVT at every observation epoch before ``limit`` (:meth:`_observation_limit`)."""
         while True:
             s_obs = int(round(self.k_obs * self.obs_step))
             if s_obs + self.h_samp + 1 >= limit:
@@ -341,6 +347,8 @@ class ScalarReceiver:
             return tracker.next_needed_sample()
 
     def _after_block(self, s):
+        """Re-acquisition and the search of idle PRNs after the block at ``s``; returns the limit of the
+        block's observation epochs (:meth:`_observation_epochs`, run while the next block is tracked)."""
         tracker = self.tracker
         if self.cfg.reacquire:
             for ch in range(self.n_ch):
@@ -348,7 +356,43 @@ class ScalarReceiver:
                     self._reacquire(ch, self.hists[ch].end_sample if self.hists[ch].end_sample > 0 else s)
         if self.all_in_view:
             self._search_idle(max(h.end_sample for h in self.hists))
-        self._observation_epochs()
+        return self._observation_limit()
+
+    def _blocks(self, bar, t_wall0):
+        """The block loop. The tracking of a block (compiled, the GIL released) runs on a second
+        thread while this one computes the observation epochs of the block before: those read only
+        the channels' histories, decoders and the limit taken before the block (nothing the
+        tracking writes), and the search after a block still sees every fix before it, so the
+        results are those of the sequential order."""
+        pending = None          # observation limit of the block before, its epochs not yet computed
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tracking") as pool:
+            while True:
+                if pending is not None and self.tracker.next_needed_sample() is None:
+                    self._observation_epochs(pending)      # before re-acquiring (it counts restarts)
+                    pending = None
+                s = self._next_sample()
+                if s is None or s + self.margin >= self.stop:
+                    break
+                job = pool.submit(self._read_track, s)
+                try:
+                    if pending is not None:
+                        self._observation_epochs(pending)
+                        pending = None
+                finally:
+                    wait([job])
+                recs = job.result()
+                if recs is None:
+                    break
+                self._take_records(s, recs)
+                pending = self._after_block(s)
+                new_done = (max(h.end_sample for h in self.hists) - self.start_sample) / self.fs
+                if bar is not None and new_done > self.done_s:
+                    bar.update(round(new_done - self.done_s, 3))
+                    el = time.perf_counter() - t_wall0
+                    bar.set_postfix_str(f"rtf {el / max(new_done, 1e-9):.3f}, fixes {len(self.fixes)}", refresh=False)
+                self.done_s = max(self.done_s, new_done)
+        if pending is not None:
+            self._observation_epochs(pending)
 
     # ----------------------------------------------------------------- run
     def run(self, out_path=None, csv_path=None, kml_path=None, progress=False, run_config=None, assist=None,
@@ -373,21 +417,11 @@ class ScalarReceiver:
             if bar is not None:
                 bar.close()
             raise
-        done_s = 0.0
+        self.done_s = 0.0          # seconds of signal processed (kept on an interruption)
         complete = False
         try:
             self.recorder.acquisition(self.acq)
-            while True:
-                s = self._next_sample()
-                if s is None or s + self.margin >= self.stop or not self._track_block(s):
-                    break
-                self._after_block(s)
-                new_done = (max(h.end_sample for h in self.hists) - self.start_sample) / self.fs
-                if bar is not None and new_done > done_s:
-                    bar.update(round(new_done - done_s, 3))
-                    el = time.perf_counter() - t_wall0
-                    bar.set_postfix_str(f"rtf {el / max(new_done, 1e-9):.3f}, fixes {len(self.fixes)}", refresh=False)
-                done_s = max(done_s, new_done)
+            self._blocks(bar, t_wall0)
             complete = True
         except KeyboardInterrupt:
             result.interrupted = True
@@ -397,7 +431,7 @@ class ScalarReceiver:
                 self.recorder.rinex_obs.abort()
             if bar is not None:
                 bar.close()
-            result.signal_s = max(done_s, 0.0)
+            result.signal_s = max(self.done_s, 0.0)
             result.wall_s = time.perf_counter() - t_wall0
             result.cpu_s = time.process_time() - t_cpu0
             self._finish(result, complete, run_config, csv_path, kml_path, rinex_nav_path, nmea_path)
