@@ -13,11 +13,13 @@ tracking loops to up to 1.5 Hz of Doppler on the ultra-tight methods, none on th
 and when that kernel took its chips from windows of code sign bits (float32 sums over shorter
 stretches, float32 rounding again: 0.45 Hz on paper-highdyn; in the burst case, where it moves
 loss-of-lock decisions, up to 15 Hz and one loss of lock more or fewer; the scalar paths unchanged), and
-when the scalar tracking's prompt / early-minus-late pass did the same
-(``tracking_kernels._pel_block``: float32 rounding again; the ultra-tight paths unchanged; on the
-paper-highdyn scalar cut one noisy channel's Doppler up to 7.6 Hz apart, the others 0.12 Hz; on the
-static file 1.3 Hz, one epoch boundary one sample later, fixes 5 mm apart; on the real recordings
-5 mHz). A
+when the scalar tracking's prompt / early-minus-late pass did the same and took its carrier from a
+table of 2048 entries instead of the correlator's 16384 (``tracking_kernels._pel_block``,
+``TRK_LUT_BITS``: float32 rounding and a phase quantisation of +-0.09 deg; the ultra-tight paths
+unchanged; on the paper-highdyn scalar cut one noisy channel's Doppler up to 7.3 Hz apart, the
+others 0.1 Hz; on the static file 4 Hz at one epoch of one channel (median 1 mHz), one epoch
+boundary one sample later, fixes 1 cm apart; on the real recordings up to 0.8 Hz, median below
+1 mHz). A
 change of any per-epoch Doppler or code estimate, navigation solution, acquisition or fix by more
 than 1e-9 (absolute; 1e-12 relative for ECEF positions) fails. Regenerate the file only for an intended change of behaviour:
 ``python tests/test_regression_fixture.py --write``.

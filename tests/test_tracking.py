@@ -134,26 +134,44 @@ def test_discriminators_closed_form():
             assert tk.dll_disc_dot((e - l) * c, (e - l) * s_, pr * c, pr * s_) == pytest.approx(dtau)
 
 
-def test_prompt_el_kernel_matches_three_tap_kernel():
-    from ultratight.receiver.dsp.correlator import COS_LUT, SIN_LUT, integrate_channel
+def test_prompt_el_kernels_match_a_direct_sum():
+    """Both prompt / early-minus-late passes of the scalar tracking (the vectorised one on 64-bit code
+    windows and the half-chip table one) give the sums of the taps P, E, L at 0, +-1/2 chip with the
+    tracking's carrier table, computed here sample by sample in float64 (complex and real input)."""
+    from ultratight.receiver.dsp.correlator import tap_fixed_point
     rng = np.random.default_rng(4)
     pad = 3
     code = ca_code(9).astype(np.float32)
     code_ext = code[(np.arange(CA_LEN + 2 * pad) - pad) % CA_LEN]
     tab = tk.half_chip_tables(9, pad)
-    for fs, n in ((2.6e6, 2600), (4e6, 4000)):
-        x = rng.normal(size=2 * n).astype(np.float32)
+    taps = tap_fixed_point(np.array([0.0, 0.5, -0.5]))
+    for fs, n, is_complex in ((2.6e6, 2600, True), (4e6, 4000, True), (4e6, 4000, False)):
+        x = rng.normal(size=(2 if is_complex else 1) * n).astype(np.float32)
         dp = F_CA * (1 + 1234.0 / F_L1) / fs
         cp0 = np.int64(np.floor((0.37 + pad) * 2 ** 32))
         cst = np.int64(np.floor(dp * 2 ** 32 + 0.5))
         ph0, phs = np.int64(123456789), np.int64(np.floor(1234.0 / fs * 2 ** 32))
-        a3, a2 = np.zeros(6), np.zeros(6)
-        taps = np.array([0, 2 ** 31, -2 ** 31], dtype=np.int64)
-        integrate_channel(x, True, 0, n, code_ext, cp0, cst, ph0, phs, taps, COS_LUT, SIN_LUT, a3)
-        tk._integrate_pel(x, True, 0, n, tab, cp0, cst, ph0, phs, tk._CS_LUT, a2)
-        assert a2[0] == pytest.approx(a3[0], rel=1e-5) and a2[3] == pytest.approx(a3[3], rel=1e-5)
-        assert a2[1] == pytest.approx(a3[1] - a3[2], rel=1e-4, abs=1e-3)
-        assert a2[4] == pytest.approx(a3[4] - a3[5], rel=1e-4, abs=1e-3)
+        k = np.arange(n, dtype=np.int64)
+        cp = cp0 + k * cst
+        p_chip = code_ext[cp >> 32].astype(float)
+        el_chip = code_ext[(cp + 2 ** 31) >> 32].astype(float) - code_ext[(cp - 2 ** 31) >> 32]
+        li = ((ph0 + k * phs) >> (32 - tk.TRK_LUT_BITS)) & (tk.TRK_LUT_SIZE - 1)
+        c, s = tk.TRK_COS_LUT[li].astype(float), tk.TRK_SIN_LUT[li].astype(float)
+        if is_complex:
+            xr, xi = x[0::2].astype(float), x[1::2].astype(float)
+            bi, bq = xr * c + xi * s, xi * c - xr * s
+        else:
+            bi, bq = x * c, -x.astype(float) * s
+        ref = np.array([bi @ p_chip, bi @ el_chip, 0.0, bq @ p_chip, bq @ el_chip, 0.0])
+        window, half = np.zeros(6), np.zeros(6)
+        tk.integrate_pel(x, is_complex, 0, n, code_ext, True, tab, cp0, cst, ph0, phs, taps, window)
+        tk._integrate_pel(x, is_complex, 0, n, tab, cp0, cst, ph0, phs, tk._CS_LUT, half)
+        for got in (window, half):
+            np.testing.assert_allclose(got, ref, rtol=1e-5, atol=2e-3)
+        # a table that is not all +-1 takes the half-chip pass
+        fallback = np.zeros(6)
+        tk.integrate_pel(x, is_complex, 0, n, code_ext, False, tab, cp0, cst, ph0, phs, taps, fallback)
+        np.testing.assert_array_equal(fallback, half)
 
 
 def test_cn0_estimators_against_model():
