@@ -89,6 +89,7 @@ first sample of the acquisition block), ready for
 
 import functools
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from fractions import Fraction
 
@@ -97,6 +98,7 @@ import scipy.fft
 from scipy.ndimage import median_filter
 from scipy.special import gammainccinv
 
+from ultratight.cores import allowed_cores
 from ultratight.errors import ConfigError
 from ultratight.receiver.dsp.blockstream import block_sigma_arm
 from ultratight.signals.geometry import light_time
@@ -248,7 +250,9 @@ def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=Non
         Kaiser FIR); None or 0 disables.
     excise_cw : zero narrowband-interference bins of the block spectra before correlating
         (see :func:`_excise_cw`); the count is reported in ``AcqResult.n_excised_bins``.
-    workers : scipy.fft worker threads (-1: all cores).
+    workers : threads (-1 or None: every allowed core, :func:`ultratight.cores.allowed_cores`): the PRNs are
+        searched in that many threads (each with its own FFTs; the results do not depend on it), a
+        single PRN's FFTs use them.
     signal : the signal searched: its PRNs, code generator, chip rate, code length and carrier.
     """
     coherent_ms, noncoherent, frac, prns, fs_hz = _check_arguments(
@@ -268,8 +272,15 @@ def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=Non
     blk = _SearchBlocks(x, fs_hz, if_hz, is_complex, coherent_ms, noncoherent, frac, decimate_to_hz, excise_cw,
                         workers, signal)
     exclude = int(math.ceil(exclude_chips * blk.fs_s / signal.chip_rate_hz))
-    return [_search_prn(blk, prn, ctr_hz[prn], rng_hz[prn], float(pfa), exclude, refine, int(start_sample))
-            for prn in prns]
+    threads = min(len(prns), allowed_cores() if workers is None or workers < 1 else int(workers))
+    if threads <= 1:
+        return [_search_prn(blk, prn, ctr_hz[prn], rng_hz[prn], float(pfa), exclude, refine, int(start_sample))
+                for prn in prns]
+    # one PRN per thread (numpy and the FFTs release the GIL), each FFT then on its own thread
+    blk.workers = 1
+    with ThreadPoolExecutor(threads, thread_name_prefix="acquisition") as pool:
+        return list(pool.map(lambda prn: _search_prn(blk, prn, ctr_hz[prn], rng_hz[prn], float(pfa), exclude,
+                                                     refine, int(start_sample)), prns))
 
 
 def _check_arguments(source, fs_hz, coherent_ms, noncoherent, pfa, bin_fraction, prns, signal):
