@@ -1,6 +1,6 @@
 """``python -m ultratight.receiver.cli``: the ``ultratight`` command."""
 import sys
 
-from ultratight.receiver.cli.main import main
+from ultratight.receiver.cli.main import console_main
 
-sys.exit(main())
+sys.exit(console_main())
