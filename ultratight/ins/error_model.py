@@ -32,6 +32,7 @@ docs/references.md):
 import math
 
 import numpy as np
+from numba import njit
 from scipy.linalg import expm
 
 from ultratight.constants import OMEGA_E
@@ -75,17 +76,41 @@ def F_matrix(att, vel_l, llh, f_b, n_states=N15, tau_g=math.inf, tau_a=math.inf)
     """
     if n_states not in (N15, N17):
         raise ValueError("n_states must be 15 or 17")
-    C = _as_dcm(att)
-    vE, vN, vU = vel_l
-    lat, h = llh[0], llh[2]
+    F = np.zeros((n_states, n_states))
+    _f_fill(F, np.ascontiguousarray(_as_dcm(att), dtype=float), np.asarray(vel_l, float), float(llh[0]),
+            float(llh[2]), np.asarray(f_b, float), float(tau_g), float(tau_a))
+    if n_states == N17:
+        F[CLK, DRIFT] = 1.0
+    return F
+
+
+@njit(cache=True)
+def _skew_into(F, r0, c0, v, sign):
+    """``F[r0:r0+3, c0:c0+3] = sign * [v x]``."""
+    F[r0, c0 + 1] = -sign * v[2]
+    F[r0, c0 + 2] = sign * v[1]
+    F[r0 + 1, c0] = sign * v[2]
+    F[r0 + 1, c0 + 2] = -sign * v[0]
+    F[r0 + 2, c0] = -sign * v[1]
+    F[r0 + 2, c0 + 1] = sign * v[0]
+
+
+@njit(cache=True)
+def _f_fill(F, C, vel, lat, h, f_b, tau_g, tau_a):
+    """The 15 navigation / bias rows and columns of :func:`F_matrix` written into the zeroed ``F``
+    (Groves 2013 ch. 14 in ENU; gravity partials by central differences of the model the
+    mechanisation uses), compiled: one call instead of a few dozen small array operations."""
+    vE, vN = vel[0], vel[1]
     rm, rn = radii(lat)
     sl, cl = math.sin(lat), math.cos(lat)
     tl = sl / cl
     Rm, Rn = rm + h, rn + h
     w_ie = np.array([0.0, OMEGA_E * cl, OMEGA_E * sl])
     w_en = np.array([-vN / Rm, vE / Rn, vE * tl / Rn])
-    w_in = w_ie + w_en
-    f_l = C @ np.asarray(f_b, float)
+    f_l = np.zeros(3)
+    for i in range(3):
+        for k in range(3):
+            f_l[i] += C[i, k] * f_b[k]
     M1 = np.zeros((3, 3))            # d w_ie / d pos
     M1[1, 0] = -OMEGA_E * sl
     M1[2, 0] = OMEGA_E * cl
@@ -94,37 +119,48 @@ def F_matrix(att, vel_l, llh, f_b, n_states=N15, tau_g=math.inf, tau_a=math.inf)
     Mav[1, 0] = 1.0 / Rn
     Mav[2, 0] = tl / Rn
     M2 = np.zeros((3, 3))            # d w_en / d pos
-    M2[0, 2] = vN / Rm ** 2
-    M2[1, 2] = -vE / Rn ** 2
+    M2[0, 2] = vN / (Rm * Rm)
+    M2[1, 2] = -vE / (Rn * Rn)
     M2[2, 0] = vE / (Rn * cl * cl)
-    M2[2, 2] = -vE * tl / Rn ** 2
-    # gravity partials (central differences of the model used by the mechanisation)
+    M2[2, 2] = -vE * tl / (Rn * Rn)
     dlat, dh = 1e-6, 1.0
+    g_n, g_s = gravity_l(lat + dlat, h), gravity_l(lat - dlat, h)
+    g_u, g_d = gravity_l(lat, h + dh), gravity_l(lat, h - dh)
     Mg = np.zeros((3, 3))
-    Mg[:, 0] = (gravity_l(lat + dlat, h) - gravity_l(lat - dlat, h)) / (2 * dlat)
-    Mg[:, 2] = (gravity_l(lat, h + dh) - gravity_l(lat, h - dh)) / (2 * dh)
-    F = np.zeros((n_states, n_states))
-    F[ATT, ATT] = -_skew(w_in)
-    F[ATT, VEL] = Mav
-    F[ATT, POS] = M1 + M2
-    F[ATT, BG] = -C
-    F[VEL, ATT] = _skew(f_l)
-    F[VEL, VEL] = _skew(vel_l) @ Mav - _skew(2.0 * w_ie + w_en)
-    F[VEL, POS] = _skew(vel_l) @ (2.0 * M1 + M2) + Mg
-    F[VEL, BA] = C
+    for i in range(3):
+        Mg[i, 0] = (g_n[i] - g_s[i]) / (2 * dlat)
+        Mg[i, 2] = (g_u[i] - g_d[i]) / (2 * dh)
+    _skew_into(F, 0, 0, w_ie + w_en, -1.0)                 # attitude <- attitude
+    _skew_into(F, 3, 0, f_l, 1.0)                          # velocity <- attitude
+    _skew_into(F, 3, 3, 2.0 * w_ie + w_en, -1.0)           # velocity <- velocity (Coriolis part)
+    sv = np.zeros((3, 3))
+    _skew_into(sv, 0, 0, vel, 1.0)
+    M12 = 2.0 * M1 + M2
+    for i in range(3):
+        for j in range(3):
+            F[i, 3 + j] = Mav[i, j]
+            F[i, 6 + j] = M1[i, j] + M2[i, j]
+            F[i, 9 + j] = -C[i, j]
+            F[3 + i, 12 + j] = C[i, j]
+            a = 0.0
+            b = 0.0
+            for k in range(3):
+                a += sv[i, k] * Mav[k, j]
+                b += sv[i, k] * M12[k, j]
+            F[3 + i, 3 + j] += a
+            F[3 + i, 6 + j] = b + Mg[i, j]
     F[6, 4] = 1.0 / Rm
-    F[6, 8] = -vN / Rm ** 2
+    F[6, 8] = -vN / (Rm * Rm)
     F[7, 3] = 1.0 / (Rn * cl)
     F[7, 6] = vE * tl / (Rn * cl)
     F[7, 8] = -vE / (Rn * Rn * cl)
     F[8, 5] = 1.0
     if math.isfinite(tau_g):
-        F[BG, BG] = -np.eye(3) / tau_g
+        for i in range(3):
+            F[9 + i, 9 + i] = -1.0 / tau_g
     if math.isfinite(tau_a):
-        F[BA, BA] = -np.eye(3) / tau_a
-    if n_states == N17:
-        F[CLK, DRIFT] = 1.0
-    return F
+        for i in range(3):
+            F[12 + i, 12 + i] = -1.0 / tau_a
 
 
 def G_matrix(att, n_states=N15):
