@@ -20,8 +20,10 @@ trapezoidal integrators; ``w0`` natural frequency in rad/s, phase in cycles, fre
   ``code_rate = f_chip (1 + f/f_carrier) + u`` with ``u = 4 Bn dtau`` (order 1) or
   ``z += T w0^2 dtau``; ``u = z + a2 w0 dtau`` (order 2).
 
-The per-sample correlation loop (:func:`_integrate_pel`, like ``correlator.integrate_channel``) is
-the hot path and stays one function.
+The per-sample correlation (:func:`integrate_pel`: prompt and early-minus-late in one pass) is the
+hot path: vectorised over 64-bit code windows (:func:`_pel_block`, as
+``correlator.integrate_channel``), with :func:`_integrate_pel` on the half-chip tables where a chip
+table is not all +-1.
 """
 
 import math
