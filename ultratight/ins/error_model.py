@@ -212,11 +212,15 @@ def discretize(F, G, Qc, dt):
     return Phi, 0.5 * (Qd + Qd.T)
 
 
+def taylor_phi(F, dt):
+    """Φ = I + F dt + (F dt)²/2, the transition matrix of :func:`discretize_taylor` alone."""
+    Fd = F * dt
+    return np.eye(F.shape[0]) + Fd + 0.5 * Fd @ Fd
+
+
 def discretize_taylor(F, G, Qc, dt):
     """Second-order Taylor discretisation (fast; for small F dt)."""
-    n = F.shape[0]
-    Fd = F * dt
-    Phi = np.eye(n) + Fd + 0.5 * Fd @ Fd
+    Phi = taylor_phi(F, dt)
     Qc = np.asarray(Qc, float)
     GQG = G @ (np.diag(Qc) if Qc.ndim == 1 else Qc) @ G.T
     Qd = 0.5 * (Phi @ GQG + GQG @ Phi.T) * dt

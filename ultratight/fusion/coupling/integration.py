@@ -249,7 +249,7 @@ def discrete_model(sins_x, f_b, dt, q_psd, n_states, clock_qd=None, basis=False)
     q_lb, vel, llh = sins_x[0:4], sins_x[4:7], sins_x[7:10]
     F = em.F_matrix(q_lb, vel, llh, f_b, n_states=n_states)
     G = em.G_matrix(q_lb, n_states=n_states)
-    Phi, _ = em.discretize_taylor(F, G, np.zeros(G.shape[1]), dt)
+    Phi = em.taylor_phi(F, dt)
     GQG = (G * q_psd) @ G.T
     Qd = 0.5 * (Phi @ GQG @ Phi.T + GQG) * dt
     if clock_qd is not None:
