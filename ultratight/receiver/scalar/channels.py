@@ -21,6 +21,11 @@ def _peak_cn0(metric, coh_ms):
     return 10.0 * math.log10(max(metric - 1.0, 1e-12) / (coh_ms * 1e-3))
 
 
+def _search_threads(cfg):
+    """Threads of a search: ``--threads`` when given, else every allowed core (:func:`acquire`'s default)."""
+    return int(cfg.threads) if cfg.threads else -1
+
+
 def cold_search(source, cfg, start_sample, signal=GPS_L1CA, centres=None, half_width_hz=None):
     """Cold-start search; each result gets ``peak_cn0_dbhz = 10 log10((metric - 1) / T_coh)``.
 
@@ -48,11 +53,13 @@ def cold_search(source, cfg, start_sample, signal=GPS_L1CA, centres=None, half_w
         # weak-signal settings: the full search at the requested integration (a 1 ms first stage
         # would lose the coherent gain)
         res = acquire(source, prns=prns, doppler_center_hz=ctr, doppler_range_hz=rng, coherent_ms=coh,
-                      noncoherent=nc, pfa=cfg.acq_pfa, start_sample=start_sample, signal=signal)
+                      noncoherent=nc, pfa=cfg.acq_pfa, start_sample=start_sample, signal=signal,
+                      workers=_search_threads(cfg))
     else:
         nc1 = max(1, min(avail_ms, 10))
         res = acquire(source, prns=prns, doppler_center_hz=ctr, doppler_range_hz=rng, coherent_ms=1,
-                      noncoherent=nc1, pfa=cfg.acq_pfa, start_sample=start_sample, signal=signal)
+                      noncoherent=nc1, pfa=cfg.acq_pfa, start_sample=start_sample, signal=signal,
+                      workers=_search_threads(cfg))
     if nc == 1 and coh > 1:
         # stage 2: the declared search (coh ms coherent) only for the candidates, in a window of
         # +-STAGE2_HZ around their stage-1 Doppler; a second look one block later for long files
@@ -98,7 +105,7 @@ def _declared_search(source, cfg, centres, half_width_hz, start_sample, coh, nc,
     for look in range(looks):
         r2 = acquire(source, prns=cand, doppler_center_hz={p: centres[p] for p in cand},
                      doppler_range_hz=half_width_hz, coherent_ms=coh, noncoherent=nc, pfa=cfg.acq_pfa,
-                     start_sample=start_sample + look * n_blk, signal=signal)
+                     start_sample=start_sample + look * n_blk, signal=signal, workers=_search_threads(cfg))
         for b in r2:
             if b.prn not in by_prn or b.metric > by_prn[b.prn].metric:
                 by_prn[b.prn] = b

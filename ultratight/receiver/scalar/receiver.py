@@ -52,6 +52,7 @@ The options and the coefficients used are recorded in the summary (``corrections
 root attributes and every other output.
 """
 
+import contextlib
 import math
 import time
 from concurrent.futures import ThreadPoolExecutor, wait
@@ -363,24 +364,29 @@ class ScalarReceiver:
         thread while this one computes the observation epochs of the block before: those read only
         the channels' histories, decoders and the limit taken before the block (nothing the
         tracking writes), and the search after a block still sees every fix before it, so the
-        results are those of the sequential order."""
+        results are those of the sequential order (``--threads 1``: that order, on this thread)."""
         pending = None          # observation limit of the block before, its epochs not yet computed
-        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tracking") as pool:
+        one_thread = self.cfg.threads == 1          # --threads 1: everything on this thread, in order
+        with contextlib.nullcontext() if one_thread else \
+                ThreadPoolExecutor(max_workers=1, thread_name_prefix="tracking") as pool:
             while True:
-                if pending is not None and self.tracker.next_needed_sample() is None:
+                if pending is not None and (one_thread or self.tracker.next_needed_sample() is None):
                     self._observation_epochs(pending)      # before re-acquiring (it counts restarts)
                     pending = None
                 s = self._next_sample()
                 if s is None or s + self.margin >= self.stop:
                     break
-                job = pool.submit(self._read_track, s)
-                try:
-                    if pending is not None:
-                        self._observation_epochs(pending)
-                        pending = None
-                finally:
-                    wait([job])
-                recs = job.result()
+                if one_thread:
+                    recs = self._read_track(s)
+                else:
+                    job = pool.submit(self._read_track, s)
+                    try:
+                        if pending is not None:
+                            self._observation_epochs(pending)
+                            pending = None
+                    finally:
+                        wait([job])
+                    recs = job.result()
                 if recs is None:
                     break
                 self._take_records(s, recs)

@@ -231,8 +231,8 @@ def _add_receiver_arguments(p):
                         "others are searched again every 15 s around their predicted Doppler once ephemerides and "
                         "a fix are known, every 30 s in full before; with N, the N strongest, no periodic search)")
     p.add_argument("--threads", type=int, default=None, metavar="K",
-                   help="threads of the channel stages (default: one per core this process may use, "
-                        "at most one per channel)")
+                   help="threads of the channel stages and the acquisition (default: one per core this process "
+                        "may use, at most one per channel; 1: everything on one thread)")
     p.add_argument("--duration", type=float, metavar="S", help="process only the first S seconds")
     p.add_argument("--start", type=float, default=0.0, metavar="S", help="skip the first S seconds")
     p.add_argument("--obs-rate", type=float, default=10.0, metavar="HZ",
