@@ -19,7 +19,6 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import h5py
 import numpy as np
 
 from ultratight.errors import InputFileError
@@ -113,6 +112,8 @@ def _attr_number(f, key, path, default=None):
 def read_imu_h5(path):
     """Read an IMU HDF5 file written by :func:`write_imu_h5` (InputFileError on problems: missing
     or malformed datasets/attributes, non-finite increments or stamps)."""
+    import h5py        # here: a CSV or log reader does not pay its import (about 0.08 s)
+
     path = Path(path)
     if not path.is_file():
         raise InputFileError(f"{path}: IMU file not found")
