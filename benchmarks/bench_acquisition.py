@@ -4,8 +4,8 @@ table on the real IF files.
     python benchmarks/bench_acquisition.py [--quick] [--json OUT.json] [--repeat 3] [--real] [-v]
 
 Speed: 32 PRNs, +-10 kHz, 1 ms x 10 non-coherent, 4 MHz complex noise.  "Cold" is the first
-acquire() call in a fresh process (includes building the code FFTs for this fs and scipy.fft
-planning); the module import time is reported separately.  The reference, timed in the same run,
+acquire() call in a fresh process (includes building the code FFTs for this fs and the FFT
+plans); the module import time is reported separately.  The reference, timed in the same run,
 is a plain parallel code-phase search (scipy.fft, same worker count, same number of Doppler
 bins, no decimation / CW excision / refinement / detection statistics): ``warm_over_reference``
 is the ratio of the best warm acquire() time to it.  ``--quick`` times one warm call.

@@ -22,7 +22,7 @@ ALLOWED = {
     "fusion": {"ins", "signals", "airdata"},
     "receiver": {"ins", "signals", "fusion", "airdata"},
 }
-TOP_LEVEL = {"errors", "constants", "config", "cores", "io_guard"}
+TOP_LEVEL = {"errors", "constants", "config", "cores", "io_guard", "chi2"}
 # inside a layer: what each sub-package may import from its siblings ("" = the layer's own files)
 INNER = {
     "signals": {"": set(), "recording": {""}, "synth": {"", "recording"}},

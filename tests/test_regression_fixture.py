@@ -19,7 +19,10 @@ table of 2048 entries instead of the correlator's 16384 (``tracking_kernels._pel
 unchanged; on the paper-highdyn scalar cut one noisy channel's Doppler up to 7.3 Hz apart, the
 others 0.1 Hz; on the static file 4 Hz at one epoch of one channel (median 1 mHz), one epoch
 boundary one sample later, fixes 1 cm apart; on the real recordings up to 0.8 Hz, median below
-1 mHz). A
+1 mHz), and when acquisition's FFTs moved from scipy.fft to numpy.fft (the same pocketfft
+algorithm; the forward transforms differ by float32 rounding: acquired Doppler and code phase up
+to 1e-4 Hz / chip apart, on the static file one channel's Doppler up to 0.44 Hz at one epoch and
+the fixes 1.3 cm; the real recordings' code phases 6e-8 chip; the ultra-tight paths unchanged). A
 change of any per-epoch Doppler or code estimate, navigation solution, acquisition or fix by more
 than 1e-9 (absolute; 1e-12 relative for ECEF positions) fails. Regenerate the file only for an intended change of behaviour:
 ``python tests/test_regression_fixture.py --write``.

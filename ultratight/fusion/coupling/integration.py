@@ -51,7 +51,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import chdtri      # the χ² inverse survival function (scipy.stats is slow to import)
+from ultratight.chi2 import chdtri
 
 from ultratight.errors import ConfigError
 from ultratight.fusion.estimators.adaptive import AKF, IAKF

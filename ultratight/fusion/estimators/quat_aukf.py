@@ -67,7 +67,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from scipy.special import chdtri      # the χ² inverse survival function (scipy.stats is slow to import)
+from ultratight.chi2 import chdtri
 
 from ultratight.constants import OMEGA_E
 from ultratight.errors import FilterError

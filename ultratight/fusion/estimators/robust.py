@@ -33,7 +33,7 @@ from __future__ import annotations
 from math import comb
 
 import numpy as np
-from scipy.special import chdtri      # the χ² inverse survival function (scipy.stats is slow to import)
+from ultratight.chi2 import chdtri
 
 from ultratight.errors import FilterError
 from ultratight.fusion.estimators.filters import (

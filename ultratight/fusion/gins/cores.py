@@ -50,7 +50,7 @@ error state after the feedback.  ``prior_used`` is the prior covariance of the l
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import chdtri      # the χ² inverse survival function (scipy.stats is slow to import)
+from ultratight.chi2 import chdtri
 
 from ultratight.fusion.estimators.adaptive import AKF, IAKF, apply_fading, fading_matrix
 from ultratight.fusion.estimators.filters import kf_update

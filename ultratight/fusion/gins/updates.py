@@ -36,7 +36,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from scipy.special import chdtri      # the χ² inverse survival function (scipy.stats is slow to import)
+from ultratight.chi2 import chdtri
 
 from ultratight.fusion.coupling.tight import measurement_matrix
 from ultratight.fusion.estimators.guards import symmetrize

@@ -12,12 +12,11 @@ The input (complex baseband, or real IF mixed down to complex baseband with
 block is wiped with ``exp(-j*2*pi*f*n/fs)`` and circularly correlated with the
 sampled local code ``c_rep[n] = code(floor(n * f_chip / fs) mod L)`` (repeated
 ``coherent_ms`` times) by ``IFFT(FFT(x) * conj(FFT(c_rep)))``, all code phases
-at once.  The Doppler grid is ``f_j = j * step`` (anchored at 0 Hz) with
-``step = (p/q) * fs/N`` (default ``p/q = 2/3``, i.e. ~2/(3T)); a shift by a
-whole FFT bin ``fs/N`` is a circular shift of the spectrum, so only ``q`` mixed
-FFTs per block are computed and every Doppler bin reuses them (the shift is
-applied to the code spectrum, which leaves the correlation magnitude unchanged).
-Code FFTs are cached per ``(fs, N)``.
+at once.  The Doppler grid is ``f_j = j * step`` (anchored at 0 Hz) with ``step = (p/q) *
+fs/N`` (default ``p/q = 2/3``, i.e. ~2/(3T)); a shift by a whole FFT bin ``fs/N`` is a circular shift of
+the spectrum, so only ``q`` mixed FFTs per block are computed and every Doppler bin reuses them (the
+shift is applied to the code spectrum, which leaves the correlation magnitude unchanged). Code FFTs
+are cached per ``(fs, N)``.
 
 The detection statistic is the non-coherent sum ``S(f, m) = sum_k |Y_k(f, m)|^2``
 where block ``k``'s correlation is circularly shifted by ``round(k*drift)``, the
@@ -62,10 +61,9 @@ threshold lies at another code phase (the raw peak then sat in a row raised by
 interference).  ``metric = S(candidate) / floor(row)`` is compared with that
 row's threshold.
 
-CW excision: before correlating, spectral bins of the blocks whose power
-exceeds the local median level by the factor a noise-only bin exceeds with
-probability 1e-4 are zeroed with one neighbour each side (unless more than 5 % of
-the bins are flagged: that is not narrowband interference).
+CW excision: before correlating, spectral bins of the blocks whose power exceeds the local median level
+by the factor a noise-only bin exceeds with probability 1e-4 are zeroed with one neighbour each side
+(unless more than 5 % of the bins are flagged: that is not narrowband interference).
 
 Refinement and C/N0 (detected PRNs)
 -----------------------------------
@@ -94,13 +92,12 @@ from dataclasses import dataclass
 from fractions import Fraction
 
 import numpy as np
-import scipy.fft
-from scipy.ndimage import median_filter
-from scipy.special import gammainccinv
 
+from ultratight.chi2 import gammainccinv
 from ultratight.cores import allowed_cores
 from ultratight.errors import ConfigError
 from ultratight.receiver.dsp.blockstream import block_sigma_arm
+from ultratight.receiver.dsp.medfilt import running_median_wrap
 from ultratight.signals.geometry import light_time
 from ultratight.signals.signal import GPS_L1CA
 
@@ -147,7 +144,7 @@ def _code_spectra(fs_hz, n, coherent_ms, signal=GPS_L1CA):
 def _code_spectra_of(code, prns, chip_rate_hz, code_length, fs_hz, n, coherent_ms):
     idx = np.floor(np.arange(n) * (chip_rate_hz / fs_hz)).astype(np.int64) % code_length
     codes = np.stack([code(p) for p in prns]).astype(np.float32)[:, idx]
-    spec = np.conj(scipy.fft.fft(codes, axis=1, workers=-1)).astype(np.complex64)
+    spec = np.conj(np.fft.fft(codes, axis=1)).astype(np.complex64)
     spec.setflags(write=False)
     return spec
 
@@ -216,7 +213,7 @@ def cell_threshold(pfa, n_cells, noncoherent):
     ``chi2(2K)/(2K)`` with ``K = noncoherent`` (scalar or array: one threshold per value).
     """
     pfa_cell = -math.expm1(math.log1p(-pfa) / n_cells)
-    # chi2.isf(p, 2K) / (2K) = gammainccinv(K, p) / K  (scipy.stats is slow to import)
+    # chi2.isf(p, 2K) / (2K) = gammainccinv(K, p) / K  (ultratight.chi2)
     k = np.asarray(noncoherent, dtype=float)
     thr = gammainccinv(k, pfa_cell) / k
     return float(thr) if thr.ndim == 0 else thr
@@ -270,14 +267,13 @@ def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=Non
         if abs(ctr_hz[p]) + r >= 0.5 * fs_hz:
             raise ConfigError(f"acquire: Doppler window {ctr_hz[p]} +- {r} Hz exceeds fs/2 = {fs_hz / 2} Hz")
     blk = _SearchBlocks(x, fs_hz, if_hz, is_complex, coherent_ms, noncoherent, frac, decimate_to_hz, excise_cw,
-                        workers, signal)
+                        signal)
     exclude = int(math.ceil(exclude_chips * blk.fs_s / signal.chip_rate_hz))
     threads = min(len(prns), allowed_cores() if workers is None or workers < 1 else int(workers))
     if threads <= 1:
         return [_search_prn(blk, prn, ctr_hz[prn], rng_hz[prn], float(pfa), exclude, refine, int(start_sample))
                 for prn in prns]
-    # one PRN per thread (numpy and the FFTs release the GIL), each FFT then on its own thread
-    blk.workers = 1
+    # one PRN per thread (numpy and its FFTs release the GIL)
     with ThreadPoolExecutor(threads, thread_name_prefix="acquisition") as pool:
         return list(pool.map(lambda prn: _search_prn(blk, prn, ctr_hz[prn], rng_hz[prn], float(pfa), exclude,
                                                      refine, int(start_sample)), prns))
@@ -315,8 +311,8 @@ class _SearchBlocks:
     at the q fractional Doppler offsets, the code spectra, and what the refinement needs."""
 
     def __init__(self, x, fs_hz, if_hz, is_complex, coherent_ms, noncoherent, frac, decimate_to_hz, excise_cw,
-                 workers, signal):
-        self.signal, self.workers, self.noncoherent, self.fs_hz = signal, workers, noncoherent, fs_hz
+                 signal):
+        self.signal, self.noncoherent, self.fs_hz = signal, noncoherent, fs_hz
         self.sigma_arm = _sigma_arm(x, is_complex)
         self.xb = _to_baseband(x, fs_hz, if_hz, is_complex)
         # high sampling rates: low-pass + decimation by D for the search and the refinement
@@ -346,10 +342,10 @@ class _SearchBlocks:
         self.base = []
         for r in range(self.q_den):
             if r == 0:
-                self.base.append(scipy.fft.fft(blocks, axis=1, workers=workers))
+                self.base.append(np.fft.fft(blocks, axis=1))
             else:
                 mix = np.exp(-2j * np.pi * (r / self.q_den) * n_idx / n_coh).astype(np.complex64)
-                self.base.append(scipy.fft.fft(blocks * mix, axis=1, workers=workers))
+                self.base.append(np.fft.fft(blocks * mix, axis=1))
         self.n_excised = 0
         self.xs_ref, self.sigma_ref = xs, sigma_dec
         if excise_cw:
@@ -357,7 +353,7 @@ class _SearchBlocks:
                 self.n_excised = max(self.n_excised, _excise_cw(b))
             if self.n_excised:
                 # refinement and C/N0 on the cleaned signal (the unmixed blocks' excised spectra)
-                self.xs_ref = scipy.fft.ifft(self.base[0], axis=1, workers=workers).ravel().astype(np.complex64)
+                self.xs_ref = np.fft.ifft(self.base[0], axis=1).ravel().astype(np.complex64)
                 self.sigma_ref = _sigma_arm(self.xs_ref, True)
         self.code_spec = _code_spectra(fs_s, n_coh, coherent_ms, signal)
         self.period = fs_s * coherent_ms * 1e-3           # samples per coherent_ms (may be fractional)
@@ -373,7 +369,7 @@ def _search_prn(blk, prn, ctr_hz, rng_hz, pfa, exclude, refine, start_sample):
     cspec = blk.code_spec[sig.prns.index(prn)]
     n_fold, noncoherent = blk.n_fold, blk.noncoherent
     surf = _search_surface(blk.base, cspec, js, blk.p_num, blk.q_den, noncoherent, blk.n_coh, blk.period,
-                           blk.step, blk.workers, sig.carrier_hz)
+                           blk.step, sig.carrier_hz)
     # one code period of lags suffices (longer blocks repeat the same lags)
     surf = surf[:, :n_fold]
     self_r2 = _self_sidelobes(cspec, n_fold)
@@ -429,7 +425,7 @@ def _excise_cw(spec, p_false=1e-4, max_bin_fraction=0.05, halfwidth=1):
     k, n = spec.shape
     pw = (spec.real ** 2 + spec.imag ** 2).mean(axis=0)
     win = max(9, (n // 40) | 1)
-    local = median_filter(pw, size=win, mode="wrap")
+    local = running_median_wrap(pw, win)
     ratio = gammainccinv(k, p_false) / gammainccinv(k, 0.5)
     hit = pw > ratio * np.maximum(local, np.finfo(np.float32).tiny)
     if not np.any(hit):
@@ -444,7 +440,7 @@ def _excise_cw(spec, p_false=1e-4, max_bin_fraction=0.05, halfwidth=1):
 
 def _self_sidelobes(cspec, n_fold):
     """Squared normalised circular autocorrelation R(l)^2 of the sampled local code (first n_fold lags)."""
-    ac = scipy.fft.ifft((cspec.real.astype(np.float64) ** 2 + cspec.imag.astype(np.float64) ** 2)).real
+    ac = np.fft.ifft((cspec.real.astype(np.float64) ** 2 + cspec.imag.astype(np.float64) ** 2)).real
     return (ac[:n_fold] / ac[0]) ** 2
 
 
@@ -486,7 +482,7 @@ def _parabolic(ym, y0, yp):
     return float(np.clip(0.5 * (ym - yp) / den, -0.5, 0.5))
 
 
-def _search_surface(base, cspec, js, p_num, q_den, k_blocks, n, period, step, workers, carrier_hz):
+def _search_surface(base, cspec, js, p_num, q_den, k_blocks, n, period, step, carrier_hz):
     """S(j, m) for Doppler bins j (float32 (len(js), n))."""
     surf = np.zeros((js.size, n), dtype=np.float32)
     tot = js * p_num
@@ -501,7 +497,7 @@ def _search_surface(base, cspec, js, p_num, q_den, k_blocks, n, period, step, wo
             # rolled code spectra: C*[m - s]
             cs = cspec[(ar[None, :] - shifts[rr][:, None]) % n]
             prod = base[r][None, :, :] * cs[:, None, :]
-            y = scipy.fft.ifft(prod, axis=2, workers=workers, overwrite_x=True)
+            y = np.fft.ifft(prod, axis=2, out=prod)
             pw = (y.real * y.real + y.imag * y.imag).astype(np.float32)
             # lag drift per block (samples): non-integer period and code Doppler
             drift = (period - n) - n * (js[rr] * step) / carrier_hz

@@ -32,7 +32,7 @@ import functools
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.special import chdtri      # the χ² inverse survival function (scipy.stats is slow to import)
+from ultratight.chi2 import chdtri
 
 from ultratight.constants import C, OMEGA_E
 from ultratight.ins.earth import dcm_ecef_from_enu, ecef_to_llh, elev_azim
