@@ -50,6 +50,7 @@ def test_without_shared_memory_each_method_streams_its_own_if(tmp_path, capsys, 
             raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(scenario_runner, "IfRing", NoShm)
+    monkeypatch.setattr(scenario_runner, "write_if_ahead", lambda *a, **k: False)    # whatever numba's cache holds
     kw = dict(methods=("dlb-rackf", "pb-kf-utc"), runs=1, seed=4, duration_s=1.0, plots=False, overrides=CUT)
     run_scenario("paper-highdyn", out_dir=tmp_path / "one", workers=1, progress=False, **kw)
     run_scenario("paper-highdyn", out_dir=tmp_path / "fallback", progress=False, **kw)
@@ -58,3 +59,32 @@ def test_without_shared_memory_each_method_streams_its_own_if(tmp_path, capsys, 
     a = _strip(json.loads((tmp_path / "one" / "metrics.json").read_text()))
     b = _strip(json.loads((tmp_path / "fallback" / "metrics.json").read_text()))
     assert a == b
+
+
+def test_first_run_writes_the_if_while_compiling_then_removes_it(tmp_path, capsys, monkeypatch):
+    """numba's cache without the engine (the first run after an install): the IF goes into the cache
+    entry while the kernels compile, the methods read it (the same tables), and it is removed after."""
+    from ultratight.receiver.cli import first_run
+    monkeypatch.setattr(first_run, "engine_kernels_cached", lambda: False)
+    kw = dict(methods=("dlb-rackf", "pb-kf-utc"), runs=1, seed=4, duration_s=1.0, plots=False, overrides=CUT)
+    run_scenario("paper-highdyn", out_dir=tmp_path / "one", workers=1, progress=False, **kw)
+    run_scenario("paper-highdyn", out_dir=tmp_path / "first", progress=True, **kw)
+    out = capsys.readouterr().out
+    assert "the IF is written into the cache while the kernels compile" in out
+    assert re.search(r"in 2 worker process\(es\) of \d+ thread\(s\), the IF read from the cache", out), out
+    a = _strip(json.loads((tmp_path / "one" / "metrics.json").read_text()))
+    b = _strip(json.loads((tmp_path / "first" / "metrics.json").read_text()))
+    assert a == b
+    # the entry keeps the truth and IMU, lists no IF, and holds no IF file
+    entries = [d for d in (tmp_path / "first" / "cache").iterdir() if (d / "done.json").is_file()]
+    run_entry = [d for d in entries if "if" not in json.loads((d / "done.json").read_text())["files"]]
+    assert len(run_entry) == len(entries) >= 1
+    for d in entries:
+        listed = {f["name"] for f in json.loads((d / "done.json").read_text())["files"].values()}
+        assert {p.name for p in d.iterdir()} - {"done.json"} <= listed
+    # a later run reuses the entry (no regeneration) and streams again
+    monkeypatch.setattr(first_run, "engine_kernels_cached", lambda: True)
+    run_scenario("paper-highdyn", out_dir=tmp_path / "first", progress=True, **kw)
+    out = capsys.readouterr().out
+    assert "data reused" in out and "the IF generated once per run and shared" in out
+    assert _strip(json.loads((tmp_path / "first" / "metrics.json").read_text())) == a

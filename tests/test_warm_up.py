@@ -99,6 +99,7 @@ def recorded_run(monkeypatch):
             _fresh_kernel_call(3)                 # an empty cache: the method's kernels compile now
 
     monkeypatch.setattr(scenario_runner, "WorkerPool", Pool)
+    monkeypatch.setattr(scenario_runner, "write_if_ahead", lambda *a, **k: False)    # whatever numba's cache holds
     monkeypatch.setattr(scenario_runner, "run_method", run_method)
     monkeypatch.setattr(scenario_runner, "_prepare_run", lambda cfg, r, *a, **k: {"truth": "t.h5", "if_seed": r})
     # the warm-up's own short data (not the run's)

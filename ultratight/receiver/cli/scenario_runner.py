@@ -29,7 +29,6 @@ import sys
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from types import SimpleNamespace
 
 import h5py
 import numpy as np
@@ -38,7 +37,7 @@ from ultratight import __version__, io_guard
 from ultratight.errors import ConfigError, InputFileError
 from ultratight.ins.imu_data import read_imu_h5
 from ultratight.ins.trajectory import build_trajectory
-from ultratight.io_guard import atomic_path, json_clean, note_complete, output_error, write_h5_atomic, write_text_atomic
+from ultratight.io_guard import atomic_path, json_clean, note_complete, output_error, write_text_atomic
 from ultratight.receiver.cli import metrics as M
 from ultratight.receiver.dsp.burst import PLACE_IF, event_place
 from ultratight.receiver.deep.options import EngineOptions, monitor_mode
@@ -49,6 +48,8 @@ from ultratight.receiver.deep.scalar_reference import run_scalar  # noqa: F401 (
 from ultratight.receiver.cli.scenario_config import IMU_DEFAULTS, load_scenario
 from ultratight.receiver.deep.startup import StartupErrors, perturb_state
 from ultratight.cores import plan
+from ultratight.receiver.cli.first_run import drop_if_file, write_if_ahead
+from ultratight.receiver.cli.scenario_results import SCHEMA, write_results_h5  # noqa: F401 (SCHEMA: public here)
 from ultratight.receiver.cli.workers import WorkerPool, check_workers, fix_mmap_threshold, release_heap, warm_up
 from ultratight.signals.constellation import ephemerides_for
 from ultratight.signals.synth.generator import generate, generation_estimate
@@ -60,9 +61,6 @@ try:
     import fcntl
 except ImportError:      # pragma: no cover - no fcntl (not POSIX): cache entries are not locked
     fcntl = None
-
-SCHEMA = "ultratight scenario results v1 (docs/ultratight.md)"
-
 
 def _cfg_key(cfg):
     evs = cfg.get("noise_events") or []
@@ -383,12 +381,13 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
     """Every method on every run's data: per-run summaries and raw (result, errors) per (run, method).
 
     The data of every run are prepared first, here (``cache``: with the IF files); then the (run, method)
-    jobs run in worker processes (:mod:`ultratight.receiver.cli.workers`), as many as :func:`ultratight.
-    cores.plan` gives for the jobs and the allowed cores (at least one), so this process, which collects
-    every method's results and writes the outputs, never holds an engine's working memory as well;
-    ``workers`` = 1 runs them here, one after the other. Streamed with the default workers and several methods, a run's IF is generated once, here,
-    into a ring the run's methods read at the same time, one worker process each
-    (:mod:`ultratight.signals.synth.ifring`); otherwise every method streams its own copy. The results do
+    jobs run in worker processes (:mod:`ultratight.receiver.cli.workers`), as many as :func:`ultratight.cores.
+    plan` gives (at least one), so this process, which collects the results and writes the outputs, never
+    holds an engine's working memory as well; ``workers`` = 1 runs them here, one after the other. Streamed,
+    with the default workers and several methods, a run's IF is generated once, here, into a ring the run's
+    methods read at the same time, one worker process each (:mod:`ultratight.signals.synth.ifring`; on the
+    first run after an install written into the cache while the kernels compile instead,
+    :mod:`ultratight.receiver.cli.first_run`); otherwise every method streams its own copy. The results do
     not depend on where a job ran nor on where its samples came from. A streamed IF keeps a core busy
     beside the engines: it is reserved (:func:`ultratight.cores.plan`)."""
     n_jobs = runs * len(methods)
@@ -397,6 +396,10 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
                  threads=getattr(options, "threads", None), reserved=0 if cache else 1)
     n_workers, threads = cores.workers, cores.threads
     here = workers is not None and int(workers) == 1
+    ahead = write_if_ahead(runs, n_workers, shared, generation_estimate(_generator_cfg(cfg))["if_bytes"], out)
+    if ahead and progress:
+        print("numba's cache is empty (the first run after an install): the IF is written into the cache while the "
+              "kernels compile, and removed after the run", flush=True)
     per_job = {}
     keys = [(r, m) for r in range(runs) for m in methods]
     truths = {}
@@ -418,19 +421,24 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
         # several workers would compile the same kernels: compiled by one first, meanwhile the data
         warm = pool.start(_warm_methods, cfg, methods, base_seed, options, threads, progress, out) if n_workers > 1 \
             else None
-        all_paths = [_prepare_run(cfg, r, runs, base_seed + r, out, channel, progress, cache, shared)
+        all_paths = [_prepare_run(cfg, r, runs, base_seed + r, out, channel, progress, cache or ahead, shared)
                      for r in range(runs)]
         jobs = [(all_paths[r], cfg, m, base_seed + r, options) + (() if here else (threads,)) for r, m in keys]
         if progress and not here:
-            how = ", the IF generated once per run and shared" if shared else ""
+            how = ", the IF read from the cache" if ahead else ", the IF generated once per run and shared" if shared \
+                else ""
             print(f"{len(jobs)} method run(s) in {n_workers} worker process(es) of {threads} thread(s){how}",
                   flush=True)
-        if warm is not None:
-            warm.result()
-        if shared:
-            _map_shared(pool, cfg, methods, runs, base_seed, jobs, done)
-        else:
-            pool.map(_method_here if here else _method_job, jobs, on_done=done)
+        try:
+            if warm is not None:
+                warm.result()
+            if shared and not ahead:
+                _map_shared(pool, cfg, methods, runs, base_seed, jobs, done)
+            else:
+                pool.map(_method_here if here else _method_job, jobs, on_done=done)
+        finally:
+            if ahead:
+                drop_if_file(all_paths[0], _cache_lock, CACHE_VERSION)
     per = {m: [] for m in methods}
     raw = {}
     for i, (r, m) in enumerate(keys):
@@ -517,7 +525,7 @@ def _report(name, cfg, methods, runs, base_seed, out, channel, plots, options, p
     write_text_atomic(mpath, json.dumps(json_clean(js), indent=2))
     hpath = out / "results.h5"
     # each (run, method) is dropped once in the file's image, but for what the figures draw (run 0)
-    write_results_h5(hpath, cfg, raw, methods, runs, base_seed, consume=True,
+    write_results_h5(hpath, cfg, run_settings(cfg), raw, methods, runs, base_seed, consume=True,
                      keep={(0, m) for m in methods} if plots else ())
     note_complete(mpath)
     note_complete(hpath)
@@ -625,42 +633,6 @@ def _check_out_dir(out, cfg, runs, cache=True):
     # the truth (HDF5 written as it is generated) must fit the file-size limit
     io_guard.check_file_size(est["truth_bytes"], f"the truth file of a run of {cfg['duration_s']:g} s")
     io_guard.check_memory(est["memory_bytes"], f"a run of {cfg['duration_s']:g} s")
-
-
-def write_results_h5(path, cfg, raw, methods, runs, base_seed, consume=False, keep=()):
-    """``results.h5`` of the (run, method) results ``raw`` (docs/ultratight.md). ``consume``: remove each
-    entry from ``raw`` once it is in the file's image (the image and all the results are then never
-    held at once) — but for the keys in ``keep``, which keep what :func:`make_plots` draws (times,
-    PRNs, errors)."""
-
-    def build(f):
-        f.attrs["schema"] = SCHEMA
-        f.attrs["version"] = __version__
-        f.attrs["config_json"] = json.dumps(cfg, default=str)
-        f.attrs["methods"] = ",".join(methods)
-        f.attrs["runs"] = int(runs)
-        f.attrs["seed"] = int(base_seed)
-        f.attrs["run_settings_json"] = json.dumps(run_settings(cfg))
-        for r, m in list(raw):
-            res, d_err, c_err = raw.pop((r, m)) if consume else raw[(r, m)]
-            if consume and (r, m) in keep:
-                raw[(r, m)] = (SimpleNamespace(t_start=res.t_start, prns=res.prns), d_err, c_err)
-            g = f.create_group(f"run{r:03d}/{m}")
-            g.attrs["seed"] = int(base_seed + r)
-            g.attrs["prn"] = np.asarray(res.prns, dtype=np.int64)
-            g.attrs["runtime_s"] = float(res.runtime_s)
-            g.attrs["info_json"] = json.dumps(res.info, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
-            for k, v in (("t_start_s", res.t_start), ("doppler_hz", res.doppler_hz),
-                         ("code_phase_chips", res.code_phase_chips), ("amplitude", res.amp),
-                         ("mode", res.mode), ("doppler_err_hz", d_err), ("code_err_chips", c_err),
-                         ("nav_t_s", res.nav_t), ("nav_pos_e", res.nav_pos_e), ("nav_vel_e", res.nav_vel_e),
-                         ("nav_clk", res.nav_clk), ("nav_sigma_doppler_hz", res.nav_sigma_doppler_hz)):
-                g.create_dataset(k, data=np.asarray(v), compression="gzip", compression_opts=1, shuffle=True)
-            if getattr(res, "bit_source", None) is not None:
-                g.create_dataset("bit_source", data=np.asarray(res.bit_source), compression="gzip",
-                                 compression_opts=1)
-
-    write_h5_atomic(path, build)
 
 
 def make_plots(out, raw, methods, channel):

@@ -1,0 +1,68 @@
+"""The scenario's first run after an install: the IF written while the kernels compile.
+
+A warm run of several methods reads one generated IF from a shared-memory ring, the generator
+running beside the engines (:mod:`ultratight.signals.synth.ifring`). On the first run after an
+install numba's cache is empty: one worker compiles the kernels for about a minute
+(:func:`ultratight.receiver.cli.workers.warm_up`) while this process only generates the truth and
+IMU, and a core waits. Then the IF of the run is written into the run's cache entry during the
+compilation instead (the ``--cache`` path: the samples of the ring bit for bit, so the results are
+the same), the methods read the file with no generator beside them, and the file is removed from
+the entry afterwards (the truth and IMU stay for the next run): about 40 s less on the 2-core
+reference machine for ``ultratight scenario paper-highdyn``.
+
+"First run" is decided from the work, not from the clock or the load: the compiled engine's epoch
+runner has no entry in numba's cache for its current source (:func:`engine_kernels_cached`).
+Only for one run of several methods in worker processes, and only when the output folder has room
+for the file (twice its size free).
+"""
+
+import json
+from pathlib import Path
+
+from ultratight.io_guard import free_disk, write_text_atomic
+
+DISK_MARGIN = 2.0          # free space needed, in IF file sizes
+
+
+def engine_kernels_cached():
+    """True when numba's cache holds the engine's compiled epoch runner for its current source (or
+    when that cannot be told: the usual path is then taken)."""
+    try:
+        from ultratight.receiver.deep.epochs import run_epochs
+        return bool(run_epochs._cache._cache_file._load_index())
+    except Exception:            # noqa: BLE001 - numba's cache layout is not public: assume warm
+        return True
+
+
+def write_if_ahead(runs, n_workers, shared, if_bytes, out_dir):
+    """Whether this run writes its IF into the cache while the kernels compile (module docstring)."""
+    if not shared or runs != 1 or n_workers < 2:
+        return False
+    try:
+        room = free_disk(out_dir) >= DISK_MARGIN * float(if_bytes)
+    except OSError:
+        room = False
+    return room and not engine_kernels_cached()
+
+
+def drop_if_file(paths, lock, version):
+    """Remove the IF file and its sidecar from the run's cache entry (``paths`` of ``prepare_data``),
+    under the entry's ``lock``: ``done.json`` is rewritten without them first, so an interruption
+    leaves a valid entry (at worst with a file it no longer lists)."""
+    if "if" not in paths:
+        return
+    d = Path(paths["if"]).parent
+    done = d / "done.json"
+    with lock(d):
+        try:
+            entry = json.loads(done.read_text(encoding="utf-8"))
+            files = dict(entry["files"])
+        except (OSError, ValueError, KeyError, TypeError):
+            return
+        gone = [files.pop(k) for k in ("if", "meta") if k in files]
+        write_text_atomic(done, json.dumps({"version": version, "files": files}))
+        for rec in gone:
+            try:
+                (d / rec["name"]).unlink()
+            except OSError:
+                pass
