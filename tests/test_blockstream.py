@@ -93,3 +93,20 @@ def test_release_keeps_samples_readable(src):
         def read(self, start, count):
             return np.arange(10, dtype=np.float32)[start:start + count]
     assert BlockStream(NoRelease(), 5).release(5) == 0
+
+
+def test_reading_on_releases_the_pages_behind_the_kept_samples(src, monkeypatch):
+    """A long file read through its mapping: the stream hands the pages behind the samples it keeps
+    back every RELEASE_BLOCKS blocks (the data stay readable), so the resident set does not grow to
+    the file's size."""
+    from ultratight.receiver.dsp import blockstream
+    monkeypatch.setattr(blockstream, "RELEASE_BLOCKS", 2)
+    calls = []
+    real = src.release
+    monkeypatch.setattr(src, "release", lambda upto: calls.append(upto) or real(upto))
+    want = src.read(500, 9500).copy()
+    st = BlockStream(src, 1000)
+    for hi in range(1000, 10_001, 1000):
+        st.ensure(hi, keep_from=hi - 1000)
+    assert calls == [2000, 4000, 6000, 8000]
+    np.testing.assert_array_equal(st.view(500)[0], want)         # released samples read back from the file

@@ -109,6 +109,9 @@ class NoiseFloor:
         return math.sqrt(self.var)
 
 
+RELEASE_BLOCKS = 64      # blocks passed between releases of the mapping's pages behind the kept samples
+
+
 class BlockStream:
     """IF samples of ``src`` (an :class:`ultratight.signals.recording.iffile.IfSource`-like object with
     ``read``, ``is_complex``, ``n_samples``) in blocks of ``block_len`` samples.
@@ -132,6 +135,7 @@ class BlockStream:
         self.buf_start = 0
         self._sigma = np.zeros(64)  # per aligned block, in order of reading (first _n_sigma valid)
         self._n_sigma = 0
+        self._released = 0          # the file mapping's pages before this sample are out of the resident set
 
     @property
     def buf_end(self):
@@ -173,6 +177,10 @@ class BlockStream:
         buf_end += x.shape[0]
         self.buf = y
         self.buf_start = lo
+        if lo - self._released >= RELEASE_BLOCKS * bl:
+            # a file read through its mapping would otherwise stay resident up to its size
+            self.release(lo)
+            self._released = lo
         return hi <= buf_end
 
     def _full_block_sigmas(self, x, start, n_full):
