@@ -397,9 +397,12 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
     n_workers, threads = cores.workers, cores.threads
     here = workers is not None and int(workers) == 1
     ahead = write_if_ahead(runs, n_workers, shared, generation_estimate(_generator_cfg(cfg))["if_bytes"], out)
-    if ahead and progress:
-        print("numba's cache is empty (the first run after an install): the IF is written into the cache while the "
-              "kernels compile, and removed after the run", flush=True)
+    if ahead:                   # the methods read a file, as with --cache: one worker per core
+        cores = plan(n_jobs, threads=getattr(options, "threads", None))
+        n_workers, threads = cores.workers, cores.threads
+        if progress:
+            print("numba's cache is empty (the first run after an install): the IF is written into the cache while "
+                  "the kernels compile, and removed after the run", flush=True)
     per_job = {}
     keys = [(r, m) for r in range(runs) for m in methods]
     truths = {}
