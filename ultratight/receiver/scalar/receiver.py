@@ -66,7 +66,8 @@ from ultratight.errors import InputFileError
 from ultratight.receiver.dsp.acquisition import acquire
 from ultratight.receiver.dsp.blockstream import BlockStream
 from ultratight.receiver.dsp.tracking import ScalarTracker
-from ultratight.receiver.dsp.tracking_layout import F_DOPP, FL_PLL_LOCK, MODE_LOST, MODE_TRACK, RI_FLAGS, S_MODE
+from ultratight.receiver.dsp.tracking_layout import (F_DOPP, FL_PLL_LOCK, MODE_LOST, MODE_TRACK, RI_FLAGS, RI_N, RI_PTR,
+                                                     S_MODE)
 from ultratight.receiver.scalar.channels import (acquire_signals, allocate_channels, channel_info, cold_search,
                                                  predicted_search, search_rate)
 from ultratight.receiver.scalar.nav_pvt import NavBitStage, ObservableStage, PvtStage, ephemeris_lookup
@@ -179,29 +180,52 @@ class ScalarReceiver:
         n_read = min(self.block_len + self.margin, self.stop - s)
         return self.tracker.track_at(self.stream, s, n_read, SIGMA_SAMPLES, self.margin, self.stop)
 
-    def _take_records(self, s, recs):
-        """Hand the block's records to the channels' histories, decoders and outputs."""
-        rf, ri, nr = recs
+    def _block_done(self, s, recs):
+        """What must follow a block before the next one is tracked: the file mapping released now and
+        then, and the channels that lost lock in the block stopped."""
         self.n_blocks_done += 1
         if self.n_blocks_done % RELEASE_EVERY == 0:
             self.stream.release(s - self.margin)          # keeps the resident set flat on long files
+        nr, st = recs[2], self.tracker.state
+        for ch in range(self.n_ch):
+            if nr[ch] and st.si[ch, S_MODE] == MODE_LOST:
+                self.chinfo[ch]["losses"] += 1
+                self.tracker.stop_channel(ch)
+                st.si[ch, S_MODE] = MODE_LOST
+
+    def _take_records(self, recs):
+        """Hand the block's records to the channels' histories, decoders and outputs."""
+        rf, ri, nr = recs
         for ch in range(self.n_ch):
             m = int(nr[ch])
             if m:
-                self._channel_records(ch, rf[ch, :m], ri[ch, :m])
+                info = self.chinfo[ch]
+                f_ch, i_ch = rf[ch, :m], ri[ch, :m]
+                self.hists[ch].append(f_ch, i_ch)
+                info["epochs"] += m
+                info["locked_epochs"] += int(np.count_nonzero(i_ch[:, RI_FLAGS] & FL_PLL_LOCK))
+                self.recorder.tracking(info["prn"], f_ch, i_ch)
+                self.navbits.feed(ch, f_ch, i_ch, info)
 
-    def _channel_records(self, ch, f_ch, i_ch):
-        info = self.chinfo[ch]
-        self.hists[ch].append(f_ch, i_ch)
-        info["epochs"] += f_ch.shape[0]
-        info["locked_epochs"] += int(np.count_nonzero(i_ch[:, RI_FLAGS] & FL_PLL_LOCK))
-        self.recorder.tracking(info["prn"], f_ch, i_ch)
-        self.navbits.feed(ch, f_ch, i_ch, info)
-        st = self.tracker.state
-        if st.si[ch, S_MODE] == MODE_LOST:
-            info["losses"] += 1
-            self.tracker.stop_channel(ch)
-            st.si[ch, S_MODE] = MODE_LOST
+    def _after_block_due(self, s, recs):
+        """Whether the re-acquisition or the search after the block at ``s`` may act (:meth:`_after_block`
+        with the block's records handed over); when not, the records can wait until the next block is
+        being tracked."""
+        tracker = self.tracker
+        if not tracker.active.any():
+            return True
+        ri, nr = recs[1], recs[2]
+        ends = [int(ri[ch, nr[ch] - 1, RI_PTR] + ri[ch, nr[ch] - 1, RI_N]) if nr[ch] else self.hists[ch].end_sample
+                for ch in range(self.n_ch)]
+        if self.cfg.reacquire:
+            for ch in range(self.n_ch):
+                if not tracker.active[ch] and tracker.state.si[ch, S_MODE] == MODE_LOST:
+                    retry = self.chinfo[ch]["next_retry"]
+                    if retry is None or (ends[ch] if ends[ch] > 0 else s) >= retry:
+                        return True
+        srch = self.search
+        return bool(self.all_in_view and max(ends) >= min(srch["next"], srch["next_coarse"])
+                    and not all(c["started"] for c in self.chinfo))
 
     def _observation_limit(self):
         """The sample every active channel's history has reached (the observation epochs up to it are
@@ -361,18 +385,23 @@ class ScalarReceiver:
 
     def _blocks(self, bar, t_wall0):
         """The block loop. The tracking of a block (compiled, the GIL released) runs on a second
-        thread while this one computes the observation epochs of the block before: those read only
-        the channels' histories, decoders and the limit taken before the block (nothing the
-        tracking writes), and the search after a block still sees every fix before it, so the
-        results are those of the sequential order (``--threads 1``: that order, on this thread)."""
+        thread while this one hands over the records of the block before and computes their
+        observation epochs: those read only the channels' histories, decoders and the limit taken
+        before the block (nothing the tracking writes). The channels that lost lock are stopped, and
+        when the re-acquisition or the search may act after a block (:meth:`_after_block_due`) its
+        records go in and they run, before the next block is tracked, so every search still sees
+        every fix before it and the results are those of the sequential order (``--threads 1``: that
+        order, on this thread)."""
         pending = None          # observation limit of the block before, its epochs not yet computed
+        held = None             # records of the block before, not yet handed over
         one_thread = self.cfg.threads == 1          # --threads 1: everything on this thread, in order
         with contextlib.nullcontext() if one_thread else \
                 ThreadPoolExecutor(max_workers=1, thread_name_prefix="tracking") as pool:
             while True:
-                if pending is not None and (one_thread or self.tracker.next_needed_sample() is None):
-                    self._observation_epochs(pending)      # before re-acquiring (it counts restarts)
-                    pending = None
+                waiting = held is not None or pending is not None
+                if waiting and (one_thread or self.tracker.next_needed_sample() is None):
+                    self._hand_over(held, pending, bar, t_wall0)   # before re-acquiring (it counts restarts)
+                    held = pending = None
                 s = self._next_sample()
                 if s is None or s + self.margin >= self.stop:
                     break
@@ -381,24 +410,40 @@ class ScalarReceiver:
                 else:
                     job = pool.submit(self._read_track, s)
                     try:
-                        if pending is not None:
-                            self._observation_epochs(pending)
-                            pending = None
+                        if held is not None or pending is not None:
+                            self._hand_over(held, pending, bar, t_wall0)
+                            held = pending = None
                     finally:
                         wait([job])
                     recs = job.result()
                 if recs is None:
                     break
-                self._take_records(s, recs)
-                pending = self._after_block(s)
-                new_done = (max(h.end_sample for h in self.hists) - self.start_sample) / self.fs
-                if bar is not None and new_done > self.done_s:
-                    bar.update(round(new_done - self.done_s, 3))
-                    el = time.perf_counter() - t_wall0
-                    bar.set_postfix_str(f"rtf {el / max(new_done, 1e-9):.3f}, fixes {len(self.fixes)}", refresh=False)
-                self.done_s = max(self.done_s, new_done)
+                self._block_done(s, recs)
+                if one_thread or self._after_block_due(s, recs):
+                    self._take_records(recs)
+                    pending = self._after_block(s)
+                    self._progress(bar, t_wall0)
+                else:
+                    held = recs
+        if held is not None or pending is not None:
+            self._hand_over(held, pending, bar, t_wall0)
+
+    def _hand_over(self, held, pending, bar, t_wall0):
+        """The held block's records (then the limit of its observation epochs), and the epochs."""
+        if held is not None:
+            self._take_records(held)
+            pending = self._observation_limit()
+            self._progress(bar, t_wall0)
         if pending is not None:
             self._observation_epochs(pending)
+
+    def _progress(self, bar, t_wall0):
+        new_done = (max(h.end_sample for h in self.hists) - self.start_sample) / self.fs
+        if bar is not None and new_done > self.done_s:
+            bar.update(round(new_done - self.done_s, 3))
+            el = time.perf_counter() - t_wall0
+            bar.set_postfix_str(f"rtf {el / max(new_done, 1e-9):.3f}, fixes {len(self.fixes)}", refresh=False)
+        self.done_s = max(self.done_s, new_done)
 
     # ----------------------------------------------------------------- run
     def run(self, out_path=None, csv_path=None, kml_path=None, progress=False, run_config=None, assist=None,
