@@ -51,8 +51,8 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from ultratight.chi2 import chdtri
 
+from ultratight.chi2 import chdtri
 from ultratight.errors import ConfigError
 from ultratight.fusion.estimators.adaptive import AKF, IAKF
 from ultratight.fusion.estimators.filters import kf_update

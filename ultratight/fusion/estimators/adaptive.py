@@ -43,8 +43,8 @@ from __future__ import annotations
 from collections import deque
 
 import numpy as np
-from ultratight.chi2 import chdtri
 
+from ultratight.chi2 import chdtri
 from ultratight.errors import FilterError
 from ultratight.fusion.estimators.filters import (
     UpdateResult,

@@ -23,8 +23,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.linalg.lapack import dpotrf as _potrf     # LAPACK Cholesky: the PD test of check_covariance
-from ultratight.chi2 import chdtri
 
+from ultratight.chi2 import chdtri
 from ultratight.errors import DivergenceError, FilterError
 
 __all__ = [

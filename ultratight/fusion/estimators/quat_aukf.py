@@ -67,8 +67,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from ultratight.chi2 import chdtri
 
+from ultratight.chi2 import chdtri
 from ultratight.constants import OMEGA_E
 from ultratight.errors import FilterError
 from ultratight.fusion.estimators.adaptive import apply_fading, fading_factor, fading_matrix, fading_terms

@@ -33,8 +33,8 @@ from __future__ import annotations
 from math import comb
 
 import numpy as np
-from ultratight.chi2 import chdtri
 
+from ultratight.chi2 import chdtri
 from ultratight.errors import FilterError
 from ultratight.fusion.estimators.filters import (
     UpdateResult,

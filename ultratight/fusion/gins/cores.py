@@ -50,8 +50,8 @@ error state after the feedback.  ``prior_used`` is the prior covariance of the l
 from __future__ import annotations
 
 import numpy as np
-from ultratight.chi2 import chdtri
 
+from ultratight.chi2 import chdtri
 from ultratight.fusion.estimators.adaptive import AKF, IAKF, apply_fading, fading_matrix
 from ultratight.fusion.estimators.filters import kf_update
 from ultratight.fusion.estimators.guards import symmetrize

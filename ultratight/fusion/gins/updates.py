@@ -36,8 +36,8 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from ultratight.chi2 import chdtri
 
+from ultratight.chi2 import chdtri
 from ultratight.fusion.coupling.tight import measurement_matrix
 from ultratight.fusion.estimators.guards import symmetrize
 from ultratight.ins import error_model as em

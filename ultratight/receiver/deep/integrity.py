@@ -47,8 +47,8 @@ from collections import deque
 from dataclasses import asdict, dataclass, fields
 
 import numpy as np
-from ultratight.chi2 import chdtri
 
+from ultratight.chi2 import chdtri
 from ultratight.errors import ConfigError
 from ultratight.fusion.coupling.tight import measurement_matrix
 

@@ -32,8 +32,8 @@ import functools
 from dataclasses import dataclass, field
 
 import numpy as np
-from ultratight.chi2 import chdtri
 
+from ultratight.chi2 import chdtri
 from ultratight.constants import C, OMEGA_E
 from ultratight.ins.earth import dcm_ecef_from_enu, ecef_to_llh, elev_azim
 # the scalar receiver's fix records import the elevation/azimuth function from here by this name
