@@ -196,6 +196,30 @@ def test_threads_give_the_one_thread_result(gen9, tmp_path, capsys):
         np.testing.assert_array_equal(a, outs["2"][name], err_msg=name)
 
 
+def test_all_in_view_threads_give_the_one_thread_result(gen9, tmp_path):
+    # all in view with fixes: the periodic search after some blocks (their records go in before the
+    # next block is tracked), the records of the others while it is tracked — the one-thread order
+    from ultratight.receiver.scalar.receiver import ProcessConfig, process
+    from ultratight.signals.constellation import nominal_ephemerides
+    from ultratight.signals.recording.iffile import open_if
+
+    truth = h5py.File(gen9["truth"], "r")
+    eph = nominal_ephemerides(int(truth.attrs["week"]), float(truth.attrs["tow0_s"]))
+    outs, runs = {}, {}
+    for k in (1, 2):
+        cfg = ProcessConfig(threads=k, search_every_s=1.0, iono="off", tropo="off")
+        runs[k] = process(open_if(gen9["if"]), cfg, ephemerides=eph, out_path=tmp_path / f"a{k}.h5")
+        with h5py.File(tmp_path / f"a{k}.h5", "r") as f:
+            data = {}
+            f.visititems(lambda name, o: data.__setitem__(name, o[...]) if isinstance(o, h5py.Dataset) else None)
+        outs[k] = data
+    srch = runs[2].search
+    assert srch["runs"] >= 2 and len(runs[2].fixes) >= 10, srch
+    assert outs[1].keys() == outs[2].keys() and sum(n.startswith("tracking/prn") for n in outs[1]) >= 6
+    for name, a in outs[1].items():
+        np.testing.assert_array_equal(a, outs[2][name], err_msg=name)
+
+
 def test_cli_with_rinex_ephemeris(tmp_path, rinex_path, capsys):
     """Satellites from the real broadcast ephemeris, with the scenario's atmosphere; the receiver
     gets the same RINEX via --ephemeris, whose header carries the broadcast alpha/beta the generator
