@@ -88,3 +88,13 @@ def test_first_run_writes_the_if_while_compiling_then_removes_it(tmp_path, capsy
     out = capsys.readouterr().out
     assert "data reused" in out and "the IF generated once per run and shared" in out
     assert _strip(json.loads((tmp_path / "first" / "metrics.json").read_text())) == a
+
+    # an IF file a --cache run wrote stays where it is
+    run_scenario("paper-highdyn", out_dir=tmp_path / "kept", progress=False, cache=True, **kw)
+    monkeypatch.setattr(first_run, "engine_kernels_cached", lambda: False)
+    run_scenario("paper-highdyn", out_dir=tmp_path / "kept", progress=True, **kw)
+    out = capsys.readouterr().out
+    assert "the IF read from the cache" in out and "data reused" in out
+    assert _strip(json.loads((tmp_path / "kept" / "metrics.json").read_text())) == a
+    assert any("if" in json.loads((d / "done.json").read_text())["files"]
+               for d in (tmp_path / "kept" / "cache").iterdir() if (d / "done.json").is_file())

@@ -47,9 +47,10 @@ def write_if_ahead(runs, n_workers, shared, if_bytes, out_dir):
 
 def drop_if_file(paths, lock, version):
     """Remove the IF file and its sidecar from the run's cache entry (``paths`` of ``prepare_data``),
-    under the entry's ``lock``: ``done.json`` is rewritten without them first, so an interruption
-    leaves a valid entry (at worst with a file it no longer lists)."""
-    if "if" not in paths:
+    under the entry's ``lock``, when this run wrote them (``paths["if_written"]``; an IF file a
+    ``--cache`` run put there before stays): ``done.json`` is rewritten without them first, so an
+    interruption leaves a valid entry (at worst with a file it no longer lists)."""
+    if "if" not in paths or not paths.get("if_written"):
         return
     d = Path(paths["if"]).parent
     done = d / "done.json"

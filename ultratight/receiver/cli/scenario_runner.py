@@ -497,7 +497,7 @@ def _prepare_run(cfg, r, runs, seed, out, channel, progress, cache=False, shared
                                  + ("once for all methods" if shared else "for each method"))
         print(f"run {r + 1}/{runs} seed {seed}: data {'reused' if cached else 'generated'} "
               f"({time.perf_counter() - t0:.1f} s{what})", flush=True)
-    return paths
+    return dict(paths, if_written=not cached) if "if" in paths else paths    # if_written: first_run.drop_if_file
 
 
 def _summarize_method(res, truth, channel, seed):
