@@ -7,8 +7,8 @@ install numba's cache is empty: one worker compiles the kernels for about a minu
 IMU, and a core waits. Then the IF of the run is written into the run's cache entry during the
 compilation instead (the ``--cache`` path: the samples of the ring bit for bit, so the results are
 the same), the methods read the file with no generator beside them, and the file is removed from
-the entry afterwards (the truth and IMU stay for the next run): about 40 s less on the 2-core
-reference machine for ``ultratight scenario paper-highdyn``.
+the entry afterwards (the truth and IMU stay for the next run): 152 s → 131–145 s for the first
+``ultratight scenario paper-highdyn`` on the 2-core reference machine (README).
 
 "First run" is decided from the work, not from the clock or the load: the compiled engine's epoch
 runner has no entry in numba's cache for its current source (:func:`engine_kernels_cached`).
