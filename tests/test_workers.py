@@ -26,3 +26,26 @@ def test_worker_count():
     for bad in (0, -1, 1.5, True):
         with pytest.raises(ConfigError, match="--workers"):
             workers.check_workers(bad)
+
+
+def test_a_failure_here_does_not_wait_for_the_queued_jobs():
+    """An error (or an interruption) in this process while the workers run: the jobs still queued or
+    running are stopped, not waited for (each would sleep 30 s)."""
+    import signal
+    import time
+    t0 = time.perf_counter()
+    with pytest.raises(RuntimeError, match="stop"):
+        with workers.WorkerPool(2, processes=True) as pool:
+            futs = [pool.start(time.sleep, 30.0) for _ in range(4)]
+            time.sleep(1.0)
+            raise RuntimeError("stop")
+    assert time.perf_counter() - t0 < 20.0
+    assert not any(f.done() and f.exception() is None for f in futs)
+    # a worker's SIGINT: a running job stops with KeyboardInterrupt, an idle worker exits quietly
+    assert workers._BUSY is False
+    with pytest.raises(SystemExit) as ex:
+        workers._on_sigint(signal.SIGINT, None)
+    assert ex.value.code == 128 + signal.SIGINT
+    with pytest.raises(KeyboardInterrupt):
+        workers._run_job(workers._on_sigint, (signal.SIGINT, None))
+    assert workers._BUSY is False

@@ -18,6 +18,7 @@ import ctypes
 import importlib
 import multiprocessing
 import os
+import signal
 import sys
 import time
 from concurrent.futures import FIRST_EXCEPTION, Future, ProcessPoolExecutor, wait
@@ -90,7 +91,30 @@ def limit_numba_threads(threads):
     return threads
 
 
+_BUSY = False           # a worker process is running a job (signals: :func:`_on_sigint`)
+
+
+def _on_sigint(signum, frame):
+    """SIGINT in a worker process (a terminal's Ctrl-C reaches the whole process group): a running job
+    stops with KeyboardInterrupt, handed to the parent like any job's error; a worker waiting for its
+    next job leaves quietly instead of printing the interrupted queue read's traceback (the parent
+    reports the interruption in one line)."""
+    if _BUSY:
+        raise KeyboardInterrupt
+    raise SystemExit(128 + signum)
+
+
+def _run_job(fn, args):
+    global _BUSY
+    _BUSY = True
+    try:
+        return fn(*args)
+    finally:
+        _BUSY = False
+
+
 def _init_worker(preload, threads=1):
+    signal.signal(signal.SIGINT, _on_sigint)
     limit_numba_threads(threads)
     fix_mmap_threshold(streaming=True)
     for name in preload:              # import the job's modules now, while the parent still works
@@ -122,23 +146,37 @@ class WorkerPool:
             self._warm = [self._pool.submit(_ready) for _ in range(self.workers)]   # spawns them all now
         return self
 
-    def __exit__(self, *exc):
-        if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
+    def __exit__(self, exc_type, *exc):
+        pool, self._pool = self._pool, None
+        if pool is None:
+            return False
+        if exc_type is None:
+            pool.shutdown(wait=True, cancel_futures=True)
+            return False
+        # a failure or an interruption: the jobs still queued or running are not waited for (a
+        # graceful shutdown waited for the queued jobs to run, and could hang once a worker had
+        # been interrupted in the middle of one)
+        procs = list((getattr(pool, "_processes", None) or {}).values())
+        pool.shutdown(wait=False, cancel_futures=True)
+        for p in procs:
+            if p.is_alive():
+                p.terminate()
+        for p in procs:
+            p.join(timeout=10)
         return False
 
     def call(self, fn, *args):
         """``fn(*args)`` in one worker (here without worker processes), waited for; its result."""
         if self._pool is None:
             return fn(*args)
-        return self._pool.submit(fn, *args).result()
+        return self._pool.submit(_run_job, fn, args).result()
 
     def start(self, fn, *args):
         """``fn(*args)`` in one worker, not waited for: a future (``.result()`` waits and returns it or
         raises); here, without worker processes, run at once."""
         fut = Future()
         if self._pool is not None:
-            return self._pool.submit(fn, *args)
+            return self._pool.submit(_run_job, fn, args)
         try:
             fut.set_result(fn(*args))
         except Exception as exc:        # handed on like a worker's: raised by .result()
@@ -158,7 +196,7 @@ class WorkerPool:
                     on_done(i, out[-1])
             return out
         results = [None] * len(jobs)
-        futs = {self._pool.submit(fn, *job): i for i, job in enumerate(jobs)}
+        futs = {self._pool.submit(_run_job, fn, tuple(job)): i for i, job in enumerate(jobs)}
         pending = set(futs)
         try:
             while pending:
