@@ -248,8 +248,7 @@ def acquire(source_or_samples, fs_hz=None, if_hz=None, is_complex=None, prns=Non
     excise_cw : zero narrowband-interference bins of the block spectra before correlating
         (see :func:`_excise_cw`); the count is reported in ``AcqResult.n_excised_bins``.
     workers : threads (-1 or None: every allowed core, :func:`ultratight.cores.allowed_cores`): the PRNs are
-        searched in that many threads (each with its own FFTs; the results do not depend on it), a
-        single PRN's FFTs use them.
+        searched in that many threads (numpy's FFTs release the GIL; the results do not depend on it).
     signal : the signal searched: its PRNs, code generator, chip rate, code length and carrier.
     """
     coherent_ms, noncoherent, frac, prns, fs_hz = _check_arguments(

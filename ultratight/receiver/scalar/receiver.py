@@ -217,15 +217,23 @@ class ScalarReceiver:
         ri, nr = recs[1], recs[2]
         ends = [int(ri[ch, nr[ch] - 1, RI_PTR] + ri[ch, nr[ch] - 1, RI_N]) if nr[ch] else self.hists[ch].end_sample
                 for ch in range(self.n_ch)]
-        if self.cfg.reacquire:
-            for ch in range(self.n_ch):
-                if not tracker.active[ch] and tracker.state.si[ch, S_MODE] == MODE_LOST:
-                    retry = self.chinfo[ch]["next_retry"]
-                    if retry is None or (ends[ch] if ends[ch] > 0 else s) >= retry:
-                        return True
+        if self.cfg.reacquire and any(self._lost(ch) and self._retry_due(ch, ends[ch] if ends[ch] > 0 else s)
+                                      for ch in range(self.n_ch)):
+            return True
+        return self.all_in_view and self._search_due(max(ends))
+
+    def _lost(self, ch):
+        """Channel ``ch`` lost lock and was stopped (re-acquisition may restart it)."""
+        return not self.tracker.active[ch] and self.tracker.state.si[ch, S_MODE] == MODE_LOST
+
+    def _retry_due(self, ch, now_sample):
+        retry = self.chinfo[ch]["next_retry"]
+        return retry is None or now_sample >= retry
+
+    def _search_due(self, now_sample):
+        """The periodic search's time has come at ``now_sample`` and some PRN has no channel running."""
         srch = self.search
-        return bool(self.all_in_view and max(ends) >= min(srch["next"], srch["next_coarse"])
-                    and not all(c["started"] for c in self.chinfo))
+        return now_sample >= min(srch["next"], srch["next_coarse"]) and not all(c["started"] for c in self.chinfo)
 
     def _observation_limit(self):
         """The sample every active channel's history has reached (the observation epochs up to it are
@@ -264,7 +272,7 @@ class ScalarReceiver:
     # ----------------------------------------------------------------- re-acquisition / search
     def _reacquire(self, ch, now_sample):
         info = self.chinfo[ch]
-        if info["next_retry"] is not None and now_sample < info["next_retry"]:
+        if not self._retry_due(ch, now_sample):
             return
         n_need = int(self.fs * self.signal.code_period_s * 10) + 1
         if now_sample + n_need >= self.stop:
@@ -293,11 +301,9 @@ class ScalarReceiver:
         not searched, and the others (no ephemeris, or no fix yet) get the coarse full search every
         ``coarse_search_every_s`` (:mod:`ultratight.receiver.scalar.search_plan`)."""
         srch, fs = self.search, self.fs
-        if now_sample < min(srch["next"], srch["next_coarse"]):
+        if not self._search_due(now_sample) or now_sample + int(0.05 * fs) >= self.stop:
             return
         idle = [ch for ch in range(self.n_ch) if not self.chinfo[ch]["started"]]
-        if not idle or now_sample + int(0.05 * fs) >= self.stop:
-            return
         c0 = time.process_time()
         plan = self._search_plan([self.chinfo[ch]["prn"] for ch in idle], now_sample)
         found = []
@@ -374,10 +380,9 @@ class ScalarReceiver:
     def _after_block(self, s):
         """Re-acquisition and the search of idle PRNs after the block at ``s``; returns the limit of the
         block's observation epochs (:meth:`_observation_epochs`, run while the next block is tracked)."""
-        tracker = self.tracker
         if self.cfg.reacquire:
             for ch in range(self.n_ch):
-                if not tracker.active[ch] and tracker.state.si[ch, S_MODE] == MODE_LOST:
+                if self._lost(ch):
                     self._reacquire(ch, self.hists[ch].end_sample if self.hists[ch].end_sample > 0 else s)
         if self.all_in_view:
             self._search_idle(max(h.end_sample for h in self.hists))
