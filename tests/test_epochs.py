@@ -98,3 +98,36 @@ def test_scalar_receiver_threads_give_the_serial_results(tmp_path):
     assert sorted(one.epochs) == sorted(two.epochs)
     for prn in one.epochs:
         np.testing.assert_array_equal(one.epochs[prn]["doppler_hz"], two.epochs[prn]["doppler_hz"])
+
+
+def test_the_kernels_compiled_ahead_are_the_ones_the_engine_calls(data):
+    """receiver.deep.compile_ahead declares the epoch chain's signatures (a second worker compiles them
+    on a first run): its records are those run_epochs is called with, and after a run nothing it
+    declares needs compiling — each is the engine's own entry in numba's cache."""
+    from numba.core import event
+
+    from ultratight.receiver.deep import compile_ahead, epochs
+
+    cfg, paths = data
+    run_method(paths, cfg, "dlb-rackf", 5, options=EngineOptions(threads=1))
+    # run_epochs(k_ep, src, corr, wipe, bank, outer, window, rec, law, sig, burst)
+    assert [tuple(s[1:]) for s in epochs.run_epochs.signatures] == [compile_ahead._records()]
+
+    compiled = []
+
+    class Counter(event.Listener):
+        def on_start(self, ev):
+            compiled.append(ev.data["dispatcher"].py_func.__name__)
+
+        def on_end(self, ev):
+            pass
+
+    counter = Counter()
+    event.register("numba:compile", counter)
+    try:
+        for fn, sig in compile_ahead.kernels():
+            fn.compile(sig)
+    finally:
+        event.unregister("numba:compile", counter)
+    assert compiled == []
+    assert len(compile_ahead.kernels()) == 4

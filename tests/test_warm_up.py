@@ -101,6 +101,12 @@ def recorded_run(monkeypatch):
     monkeypatch.setattr(scenario_runner, "WorkerPool", Pool)
     monkeypatch.setattr(scenario_runner, "write_if_ahead", lambda *a, **k: False)    # whatever numba's cache holds
     monkeypatch.setattr(scenario_runner, "run_method", run_method)
+    # a first run: the epoch chain's late part compiled ahead in another worker (recorded, not compiled here)
+    monkeypatch.setattr(scenario_runner, "compile_in_parallel", lambda n: state["cold"] and n >= 2)
+    def compile_ahead():
+        pass
+
+    monkeypatch.setattr(scenario_runner, "compile_ahead", compile_ahead)
     monkeypatch.setattr(scenario_runner, "_prepare_run", lambda cfg, r, *a, **k: {"truth": "t.h5", "if_seed": r})
     # the warm-up's own short data (not the run's)
     monkeypatch.setattr(scenario_runner, "prepare_data",
@@ -124,9 +130,11 @@ def recorded_run(monkeypatch):
 def test_methods_warmed_by_one_worker_before_the_workers_get_jobs(recorded_run, workers):
     methods = ["pb-kf-utc", "dlb-ukf", "dlb-ckf", "dlb-rackf"]
     events = recorded_run(methods, workers)
-    start, call, *warm, jobs = events
+    start, ahead, call, *warm, jobs = events
     assert start[0] == "start" and start[1] >= 2
     threads = start[2]
+    # another worker compiles the epoch chain's late part meanwhile (numba's cache is empty here)
+    assert ahead == ("call", "compile_ahead")
     # in one worker: every method once, on the workers' threads, WARM_S of signal; then the jobs
     assert call == ("call", "_warm_methods")
     assert warm == [("method", m, scenario_runner.WARM_S, threads) for m in methods]

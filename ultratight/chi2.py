@@ -156,7 +156,8 @@ def _gammainccinv(a, p):
 
 
 @numba.njit(cache=True)
-def _map2(fn_id, a, b):
+def gamma_map(fn_id, a, b):
+    """Q(a, x) (``fn_id`` 0) or its inverse in x (1) element by element over two flat arrays."""
     out = np.empty(a.size)
     for i in range(a.size):
         out[i] = _gammaincc(a[i], b[i]) if fn_id == 0 else _gammainccinv(a[i], b[i])
@@ -165,7 +166,7 @@ def _map2(fn_id, a, b):
 
 def _apply(fn_id, a, b):
     a_arr, b_arr = np.broadcast_arrays(np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64))
-    out = _map2(fn_id, np.ascontiguousarray(a_arr).ravel(), np.ascontiguousarray(b_arr).ravel())
+    out = gamma_map(fn_id, np.ascontiguousarray(a_arr).ravel(), np.ascontiguousarray(b_arr).ravel())
     return float(out[0]) if a_arr.ndim == 0 else out.reshape(a_arr.shape)
 
 

@@ -77,7 +77,7 @@ def F_matrix(att, vel_l, llh, f_b, n_states=N15, tau_g=math.inf, tau_a=math.inf)
     if n_states not in (N15, N17):
         raise ValueError("n_states must be 15 or 17")
     F = np.zeros((n_states, n_states))
-    _f_fill(F, np.ascontiguousarray(_as_dcm(att), dtype=float), np.asarray(vel_l, float), float(llh[0]),
+    fill_f_matrix(F, np.ascontiguousarray(_as_dcm(att), dtype=float), np.asarray(vel_l, float), float(llh[0]),
             float(llh[2]), np.asarray(f_b, float), float(tau_g), float(tau_a))
     if n_states == N17:
         F[CLK, DRIFT] = 1.0
@@ -96,7 +96,7 @@ def _skew_into(F, r0, c0, v, sign):
 
 
 @njit(cache=True)
-def _f_fill(F, C, vel, lat, h, f_b, tau_g, tau_a):
+def fill_f_matrix(F, C, vel, lat, h, f_b, tau_g, tau_a):
     """The 15 navigation / bias rows and columns of :func:`F_matrix` written into the zeroed ``F``
     (Groves 2013 ch. 14 in ENU; gravity partials by central differences of the model the
     mechanisation uses), compiled: one call instead of a few dozen small array operations."""

@@ -45,6 +45,12 @@ def write_if_ahead(runs, n_workers, shared, if_bytes, out_dir):
     return room and not engine_kernels_cached()
 
 
+def compile_in_parallel(n_workers):
+    """Whether a second worker compiles the engine's late kernels while the first compiles from the
+    start (:mod:`ultratight.receiver.deep.compile_ahead`): on a first run, with two workers or more."""
+    return n_workers >= 2 and not engine_kernels_cached()
+
+
 def drop_if_file(paths, lock, version):
     """Remove the IF file and its sidecar from the run's cache entry (``paths`` of ``prepare_data``),
     under the entry's ``lock``, when this run wrote them (``paths["if_written"]``; an IF file a

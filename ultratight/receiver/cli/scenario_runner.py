@@ -42,13 +42,14 @@ from ultratight.receiver.cli import metrics as M
 from ultratight.receiver.dsp.burst import PLACE_IF, event_place
 from ultratight.receiver.deep.options import EngineOptions, monitor_mode
 from ultratight.receiver.deep.atmosphere_terms import scenario_model
+from ultratight.receiver.deep.compile_ahead import compile_ahead
 from ultratight.receiver.deep.engine import UltratightEngine
 from ultratight.receiver.deep.methods import check_method, method_spec
 from ultratight.receiver.deep.scalar_reference import run_scalar  # noqa: F401 (public here too)
 from ultratight.receiver.cli.scenario_config import IMU_DEFAULTS, load_scenario
 from ultratight.receiver.deep.startup import StartupErrors, perturb_state
 from ultratight.cores import plan
-from ultratight.receiver.cli.first_run import drop_if_file, write_if_ahead
+from ultratight.receiver.cli.first_run import compile_in_parallel, drop_if_file, write_if_ahead
 from ultratight.receiver.cli.scenario_results import SCHEMA, write_results_h5  # noqa: F401 (SCHEMA: public here)
 from ultratight.receiver.cli.workers import WorkerPool, check_workers, fix_mmap_threshold, release_heap, warm_up
 from ultratight.signals.constellation import ephemerides_for
@@ -348,14 +349,22 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
 WARM_S = 0.5     # s of signal each method runs in one worker before the jobs start (_warm_methods)
 
 
-def _warm_methods(cfg, methods, seed, options, threads, progress, out):
-    """Compile once (:func:`ultratight.receiver.cli.workers.warm_up`) in one worker while this process
-    generates the runs' data: each method on ``WARM_S`` s of data of its own (a data cache entry of its
-    own in ``out``, reused by later runs); the other workers then load the kernels from numba's cache.
-    Returns the kernels compiled; a failure is left to the jobs proper to meet and report."""
+def _start_warm_up(pool, cfg, methods, seed, options, threads, progress, out):
+    """Compile once (:func:`ultratight.receiver.cli.workers.warm_up`): each method on ``WARM_S`` s of data of
+    its own (a data cache entry of its own in ``out``, reused by later runs, prepared here first so that the
+    compilation starts early), in one worker while this process generates the runs' data; the other workers
+    then load the kernels from numba's cache. A future of the kernels compiled, or None when the short data
+    cannot be made (the jobs proper meet and report the failure)."""
     short = dict(cfg, duration_s=min(WARM_S, float(cfg["duration_s"])))
     try:
         paths, _ = prepare_data(short, seed, out, progress=False, cache_if=False)
+    except Exception:
+        return None
+    return pool.start(_warm_methods, paths, short, methods, seed, options, threads, progress)
+
+
+def _warm_methods(paths, short, methods, seed, options, threads, progress):
+    try:
         n = warm_up(_warm_method, [(paths, short, m, seed, options, threads, short["duration_s"])
                                    for m in dict.fromkeys(methods)], progress=progress)
     except Exception:
@@ -422,7 +431,9 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
     # the workers start (and import the engine) while this process generates the data
     with WorkerPool(n_workers, preload=(__name__,), processes=not here, threads=threads) as pool:
         # several workers would compile the same kernels: compiled by one first, meanwhile the data
-        warm = pool.start(_warm_methods, cfg, methods, base_seed, options, threads, progress, out) if n_workers > 1 \
+        if compile_in_parallel(n_workers):      # the epoch chain's late part in another worker meanwhile
+            pool.start(compile_ahead)
+        warm = _start_warm_up(pool, cfg, methods, base_seed, options, threads, progress, out) if n_workers > 1 \
             else None
         all_paths = [_prepare_run(cfg, r, runs, base_seed + r, out, channel, progress, cache or ahead, shared)
                      for r in range(runs)]
