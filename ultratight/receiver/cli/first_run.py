@@ -8,7 +8,9 @@ IMU, and a core waits. Then the IF of the run is written into the run's cache en
 compilation instead (the ``--cache`` path: the samples of the ring bit for bit, so the results are
 the same), the methods read the file with no generator beside them, and the file is removed from
 the entry afterwards (the truth and IMU stay for the next run): 152 s → 131–145 s for the first
-``ultratight scenario paper-highdyn`` on the 2-core reference machine (README).
+``ultratight scenario paper-highdyn`` on the 2-core reference machine; with the engine's epoch chain
+compiled ahead in a second worker (:func:`compile_in_parallel`,
+:mod:`ultratight.receiver.deep.compile_ahead`) 104–107 s (README).
 
 "First run" is decided from the work, not from the clock or the load: the compiled engine's epoch
 runner has no entry in numba's cache for its current source (:func:`engine_kernels_cached`).
