@@ -102,7 +102,7 @@ def recorded_run(monkeypatch):
     monkeypatch.setattr(scenario_runner, "write_if_ahead", lambda *a, **k: False)    # whatever numba's cache holds
     monkeypatch.setattr(scenario_runner, "run_method", run_method)
     # a first run: the epoch chain's late part compiled ahead in another worker (recorded, not compiled here)
-    monkeypatch.setattr(scenario_runner, "compile_in_parallel", lambda n: state["cold"] and n >= 2)
+    monkeypatch.setattr(scenario_runner, "first_compilation", lambda: state["cold"])
     def compile_ahead():
         pass
 
@@ -147,13 +147,20 @@ def test_warm_cache_runs_only_the_first_method_here(recorded_run):
                                           ("jobs", ["dlb-rackf", "dlb-ckf", "pb-kf-utc"])]
 
 
-@pytest.mark.parametrize("methods,workers", [
-    (["dlb-rackf", "dlb-ckf"], 1),      # --workers 1: the jobs run here, one after the other
-    (["dlb-rackf"], None),              # one job: one worker, which compiles what it needs once anyway
+@pytest.mark.parametrize("methods,workers,cold", [
+    (["dlb-rackf", "dlb-ckf"], 1, True),     # --workers 1: the jobs run here, one after the other
+    (["dlb-rackf"], None, False),           # one job, the kernels in numba's cache: one worker, no warm-up
 ])
-def test_no_warm_up_without_several_workers(recorded_run, methods, workers):
-    events = recorded_run(methods, workers)
+def test_no_warm_up_without_several_workers(recorded_run, methods, workers, cold):
+    events = recorded_run(methods, workers, cold=cold)
     assert [e[0] for e in events] == ["start", "jobs"] and events[0][1] == 1
+
+
+def test_one_job_on_a_first_run_compiles_in_two_workers_while_the_data_are_made(recorded_run):
+    events = recorded_run(["dlb-rackf"], None, cold=True)
+    assert events[0][0] == "start" and events[0][1] == 2
+    assert [e[:2] for e in events[1:]] == [("call", "compile_ahead"), ("call", "_warm_methods"),
+                                          ("method", "dlb-rackf"), ("jobs", ["dlb-rackf"])]
 
 
 def test_pool_call_runs_in_one_worker_process():

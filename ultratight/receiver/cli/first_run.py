@@ -9,7 +9,7 @@ compilation instead (the ``--cache`` path: the samples of the ring bit for bit, 
 the same), the methods read the file with no generator beside them, and the file is removed from
 the entry afterwards (the truth and IMU stay for the next run): 152 s → 131–145 s for the first
 ``ultratight scenario paper-highdyn`` on the 2-core reference machine; with the engine's epoch chain
-compiled ahead in a second worker (:func:`compile_in_parallel`,
+compiled ahead in a second worker (:func:`first_compilation`,
 :mod:`ultratight.receiver.deep.compile_ahead`) 104–107 s (README).
 
 "First run" is decided from the work, not from the clock or the load: the compiled engine's epoch
@@ -47,10 +47,11 @@ def write_if_ahead(runs, n_workers, shared, if_bytes, out_dir):
     return room and not engine_kernels_cached()
 
 
-def compile_in_parallel(n_workers):
-    """Whether a second worker compiles the engine's late kernels while the first compiles from the
-    start (:mod:`ultratight.receiver.deep.compile_ahead`): on a first run, with two workers or more."""
-    return n_workers >= 2 and not engine_kernels_cached()
+def first_compilation():
+    """Whether the engine's kernels are still to be compiled (numba's cache lacks its epoch runner): a
+    second worker then compiles the epoch chain's late part while the first compiles from the start
+    (:mod:`ultratight.receiver.deep.compile_ahead`), with one job too."""
+    return not engine_kernels_cached()
 
 
 def drop_if_file(paths, lock, version):

@@ -49,7 +49,7 @@ from ultratight.receiver.deep.scalar_reference import run_scalar  # noqa: F401 (
 from ultratight.receiver.cli.scenario_config import IMU_DEFAULTS, load_scenario
 from ultratight.receiver.deep.startup import StartupErrors, perturb_state
 from ultratight.cores import plan
-from ultratight.receiver.cli.first_run import compile_in_parallel, drop_if_file, write_if_ahead
+from ultratight.receiver.cli.first_run import drop_if_file, first_compilation, write_if_ahead
 from ultratight.receiver.cli.scenario_results import SCHEMA, write_results_h5  # noqa: F401 (SCHEMA: public here)
 from ultratight.receiver.cli.workers import WorkerPool, check_workers, fix_mmap_threshold, release_heap, warm_up
 from ultratight.signals.constellation import ephemerides_for
@@ -428,13 +428,16 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
                   f"{np.round(summ['code_rms_chips'], 4).tolist()} chip, lost {summ['lock_lost_channels']}, "
                   f"{res.runtime_s:.1f} s (real-time factor {summ['realtime_factor']:.3f})", flush=True)
 
+    first = not here and first_compilation()         # numba's cache lacks the engine: a first run
     # the workers start (and import the engine) while this process generates the data
-    with WorkerPool(n_workers, preload=(__name__,), processes=not here, threads=threads) as pool:
-        # several workers would compile the same kernels: compiled by one first, meanwhile the data
-        if compile_in_parallel(n_workers):      # the epoch chain's late part in another worker meanwhile
+    with WorkerPool(max(n_workers, 2) if first else n_workers, preload=(__name__,), processes=not here,
+                    threads=threads) as pool:
+        if first:           # the epoch chain's late part compiled in a second worker meanwhile
             pool.start(compile_ahead)
-        warm = _start_warm_up(pool, cfg, methods, base_seed, options, threads, progress, out) if n_workers > 1 \
-            else None
+        # several workers would compile the same kernels: compiled by one first, meanwhile the data (on a
+        # first run also with one worker, which would otherwise start compiling once the data are made)
+        warm = _start_warm_up(pool, cfg, methods, base_seed, options, threads, progress, out) \
+            if n_workers > 1 or first else None
         all_paths = [_prepare_run(cfg, r, runs, base_seed + r, out, channel, progress, cache or ahead, shared)
                      for r in range(runs)]
         jobs = [(all_paths[r], cfg, m, base_seed + r, options) + (() if here else (threads,)) for r, m in keys]
