@@ -169,3 +169,31 @@ def test_pool_call_runs_in_one_worker_process():
     assert pid != os.getpid()
     with workers.WorkerPool(1) as pool:              # no worker processes: here
         assert pool.call(os.getpid) == os.getpid()
+
+
+@pytest.mark.parametrize("cached", [True, False])
+def test_process_compiles_ahead_in_a_helper_only_on_a_first_run(monkeypatch, cached):
+    """``process --mode ultratight`` runs inside first_run.compiling_ahead: on a first run a helper
+    process compiles the engine's epoch chain beside it (here the kernels are cached, so it loads them)
+    and is gone afterwards; otherwise no process is started."""
+    import multiprocessing
+
+    from ultratight.receiver.cli import first_run
+    monkeypatch.setattr(first_run, "engine_kernels_cached", lambda: cached)
+    before = set(multiprocessing.active_children())
+    with first_run.compiling_ahead():
+        during = set(multiprocessing.active_children()) - before
+    assert len(during) == (0 if cached else 1)
+    assert not set(multiprocessing.active_children()) - before
+
+
+def test_an_error_in_the_body_stops_the_helper(monkeypatch):
+    import multiprocessing
+
+    from ultratight.receiver.cli import first_run
+    monkeypatch.setattr(first_run, "engine_kernels_cached", lambda: False)
+    before = set(multiprocessing.active_children())
+    with pytest.raises(KeyboardInterrupt):
+        with first_run.compiling_ahead():
+            raise KeyboardInterrupt
+    assert not set(multiprocessing.active_children()) - before

@@ -14,11 +14,14 @@ compiled ahead in a second worker (:func:`first_compilation`,
 
 "First run" is decided from the work, not from the clock or the load: the compiled engine's epoch
 runner has no entry in numba's cache for its current source (:func:`engine_kernels_cached`).
-Only for one run of several methods in worker processes, and only when the output folder has room
-for the file (twice its size free).
+The IF is written ahead only for one run of several methods in worker processes, and only when the
+output folder has room for the file (twice its size free). The epoch chain is compiled ahead on
+every first run of the engine: by the scenario's second worker, and for ``process --mode
+ultratight`` by a helper process (:func:`compiling_ahead`).
 """
 
 import json
+from contextlib import contextmanager
 from pathlib import Path
 
 from ultratight.io_guard import free_disk, write_text_atomic
@@ -52,6 +55,22 @@ def first_compilation():
     second worker then compiles the epoch chain's late part while the first compiles from the start
     (:mod:`ultratight.receiver.deep.compile_ahead`), with one job too."""
     return not engine_kernels_cached()
+
+
+@contextmanager
+def compiling_ahead():
+    """On a first run (:func:`first_compilation`) a helper process compiles the engine's epoch chain
+    (:func:`ultratight.receiver.deep.compile_ahead.compile_ahead`) while the body runs, which then loads
+    it from numba's cache; waited for at the end, stopped on an error or an interruption. Otherwise
+    nothing is started."""
+    if not first_compilation():
+        yield
+        return
+    from ultratight.receiver.cli.workers import WorkerPool
+    from ultratight.receiver.deep.compile_ahead import compile_ahead
+    with WorkerPool(1, processes=True) as pool:
+        pool.start(compile_ahead)
+        yield
 
 
 def drop_if_file(paths, lock, version):

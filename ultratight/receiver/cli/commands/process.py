@@ -416,11 +416,14 @@ def _run_ultratight(args):
     check_strategy(bits)
     if args.out:
         note_partial(args.out)
-    res = run_ultratight_on_files(args.iffile, args.imu, method=args.method or DEFAULT_METHOD, meta=args.meta,
-                                  nav_path=args.ephemeris, prns=prns, duration_s=args.duration,
-                                  startup=args.startup, init_overrides=overrides, start_s=args.start, handover=hcfg,
-                                  imu_declaration=imu_decl, options=EngineOptions(bits=bits, threads=args.threads or 0),
-                                  iono=args.iono, tropo=args.tropo, imu_noise=noise or None)
+    from ultratight.receiver.cli.first_run import compiling_ahead
+    with compiling_ahead():             # a first run: the engine's epoch chain compiled beside it
+        res = run_ultratight_on_files(args.iffile, args.imu, method=args.method or DEFAULT_METHOD, meta=args.meta,
+                                      nav_path=args.ephemeris, prns=prns, duration_s=args.duration,
+                                      startup=args.startup, init_overrides=overrides, start_s=args.start,
+                                      handover=hcfg, imu_declaration=imu_decl,
+                                      options=EngineOptions(bits=bits, threads=args.threads or 0),
+                                      iono=args.iono, tropo=args.tropo, imu_noise=noise or None)
     from ultratight.receiver.deep import outputs as ut_outputs
     try:
         if args.out:
