@@ -1,12 +1,13 @@
 """Peer benchmark: ``ultratight process`` with its defaults beside GNSS-SDR on the same generated file.
 
     python benchmarks/bench_vs_gnss_sdr.py [--quick] [--json OUT.json] [--duration S] [--workdir DIR]
-                                           [--gnss-sdr PATH]
+                                           [--gnss-sdr PATH] [--seed N]
 
 Generates (once, cached in ``--workdir``) the ``static-open-sky-atmosphere`` scenario (Klobuchar
 ionosphere and Saastamoinen troposphere in the signals, 13 satellites above 5 deg, 45 dB-Hz) as
 complex int8 I/Q at 2.6 MHz, ``--duration`` seconds (60 s; 40 s with ``--quick``, enough for both
-receivers' first fix), seed 1.  Then, in the same run and one after the other:
+receivers' first fix), seed 1 (``--seed``: another draw).  Then, in the same run and one after the
+other:
 
 * GNSS-SDR (the ``gnss-sdr`` binary, e.g. from the Debian package ``gnss-sdr``) with a configuration
   this script writes: file signal source read as interleaved int8 I/Q (``ibyte``) at 2.6 MHz, 8 GPS
@@ -48,15 +49,15 @@ MASK_DEG = 5.0
 LEAP_S = 18                      # GPS - UTC since 2017-01-01 (the NMEA times are UTC)
 
 
-def ensure_file(workdir, duration):
+def ensure_file(workdir, duration, seed=1):
     """The generated file (IF path, sidecar JSON, truth HDF5) and the generator's summary (with
     ``cached``: the file was there from an earlier run)."""
-    stem = Path(workdir) / f"{SCENARIO}-{int(duration)}s-{FS_HZ / 1e6:g}MHz"
+    stem = Path(workdir) / (f"{SCENARIO}-{int(duration)}s-{FS_HZ / 1e6:g}MHz" + ("" if seed == 1 else f"-seed{seed}"))
     summary = Path(str(stem) + ".generate.json")
     cached = summary.is_file() and all(Path(p).is_file() for p in json.loads(summary.read_text())["files"].values())
     if not cached:
         r = subprocess.run([sys.executable, "-m", "ultratight.receiver.cli", "generate", SCENARIO,
-                            "--duration", str(duration), "--fs", str(FS_HZ), "--format", "ci8", "--seed", "1",
+                            "--duration", str(duration), "--fs", str(FS_HZ), "--format", "ci8", "--seed", str(seed),
                             "--out", str(stem), "--no-progress", "--json"], check=True, capture_output=True, text=True)
         summary.write_text(r.stdout)
     gen = json.loads(summary.read_text())
@@ -216,6 +217,8 @@ def main():
     ap.add_argument("--duration", type=float, default=None, help="file length, s (60; --quick 40)")
     ap.add_argument("--workdir", default=os.path.join(tempfile.gettempdir(), "ultratight-bench-vs-gnss-sdr"))
     ap.add_argument("--gnss-sdr", default="gnss-sdr", help="the GNSS-SDR binary (default: gnss-sdr on PATH)")
+    ap.add_argument("--seed", type=int, default=1, help="the generator's seed (1: the benchmark's file; others: "
+                                                        "other draws of the same sky and noise level)")
     args = ap.parse_args()
     exe = shutil.which(args.gnss_sdr)
     if exe is None:
@@ -227,7 +230,7 @@ def main():
     os.makedirs(args.workdir, exist_ok=True)
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
-    path, meta, truth, gen = ensure_file(args.workdir, duration)
+    path, meta, truth, gen = ensure_file(args.workdir, duration, args.seed)
     t_gen = time.perf_counter() - t0
     import h5py
 
@@ -237,7 +240,7 @@ def main():
     with tempfile.TemporaryDirectory() as tmp:
         gs = run_gnss_sdr(exe, os.path.abspath(path), tmp)
         ut = run_ultratight(os.path.abspath(path), tmp)
-    rep = {"scenario": SCENARIO, "duration_s": duration, "fs_hz": FS_HZ, "format": "ci8 (int8 I/Q)",
+    rep = {"scenario": SCENARIO, "duration_s": duration, "seed": args.seed, "fs_hz": FS_HZ, "format": "ci8 (int8 I/Q)",
            "satellites": len(gen["prns"]), "generate_s": None if gen["cached"] else round(t_gen, 2),
            "file_cached": gen["cached"], "gnss_sdr_binary": exe,
            "gnss_sdr_channels": CHANNELS, "load_avg_1m_start": round(load0, 2)}
@@ -257,7 +260,8 @@ def main():
 def _print(rep):
     def g(v, fmt):
         return "n/a" if v is None else format(v, fmt)
-    print(f"{rep['scenario']} {rep['duration_s']:g} s, {rep['fs_hz'] / 1e6:g} MHz {rep['format']}, "
+    print(f"{rep['scenario']} {rep['duration_s']:g} s (seed {rep['seed']}), {rep['fs_hz'] / 1e6:g} MHz "
+          f"{rep['format']}, "
           f"{rep['satellites']} satellites ("
           + ("generated earlier" if rep["file_cached"] else f"generated in {rep['generate_s']} s")
           + f"; load average at the start {rep['load_avg_1m_start']:.2f})")
