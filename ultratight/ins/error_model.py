@@ -78,7 +78,7 @@ def F_matrix(att, vel_l, llh, f_b, n_states=N15, tau_g=math.inf, tau_a=math.inf)
         raise ValueError("n_states must be 15 or 17")
     F = np.zeros((n_states, n_states))
     fill_f_matrix(F, np.ascontiguousarray(_as_dcm(att), dtype=float), np.asarray(vel_l, float), float(llh[0]),
-            float(llh[2]), np.asarray(f_b, float), float(tau_g), float(tau_a))
+                  float(llh[2]), np.asarray(f_b, float), float(tau_g), float(tau_a))
     if n_states == N17:
         F[CLK, DRIFT] = 1.0
     return F

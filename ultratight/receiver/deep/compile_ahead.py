@@ -7,7 +7,7 @@ per-channel epoch (:func:`~ultratight.receiver.deep.epochs.epoch_channel`, the t
 inside: about 30 s of it), then the post-processing kernels. A compilation looks for the kernel in
 numba's on-disk cache first, also when another process wrote it there. So while one worker compiles
 the chain from its start (:func:`ultratight.receiver.cli.workers.warm_up`), another compiles the
-chain's late, large parts (:data:`KERNELS`) from their declared signatures; the first then loads them
+chain's late, large parts (:func:`kernels`) from their declared signatures; the first then loads them
 from the cache when it gets there. The signatures are those the engine calls the kernels with (the
 records of :mod:`ultratight.receiver.deep.epochs`, :data:`RECORD_FIELDS`); a test checks them against
 a run's. A declared signature the engine no longer uses costs the second process's time only.
