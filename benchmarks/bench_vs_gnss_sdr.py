@@ -220,6 +220,8 @@ def main():
     ap.add_argument("--seed", type=int, default=1, help="the generator's seed (1: the benchmark's file; others: "
                                                         "other draws of the same sky and noise level)")
     args = ap.parse_args()
+    if args.seed < 0:
+        ap.error(f"--seed must be >= 0, got {args.seed}")
     exe = shutil.which(args.gnss_sdr)
     if exe is None:
         reason = f"{args.gnss_sdr} not found on PATH (the Debian package gnss-sdr provides it): peer benchmark skipped"
