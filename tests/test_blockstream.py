@@ -110,3 +110,24 @@ def test_reading_on_releases_the_pages_behind_the_kept_samples(src, monkeypatch)
         st.ensure(hi, keep_from=hi - 1000)
     assert calls == [2000, 4000, 6000, 8000]
     np.testing.assert_array_equal(st.view(500)[0], want)         # released samples read back from the file
+
+
+def test_block_noise_estimate_is_exact_and_independent_of_where_the_block_lies():
+    """The fast kernel against an exactly rounded two-pass reference (``math.fsum``), and the same
+    value for the same block at every alignment in memory (the reassociated sums keep one order)."""
+    from ultratight.receiver.dsp.blockstream import input_sigma
+
+    rng = np.random.default_rng(11)
+    z = (rng.normal(size=4001) + 1j * rng.normal(size=4001)) * 37.0 + (2.0 - 1.0j)
+    for x in (z.astype(np.complex64), np.round(z).astype(np.complex64)):      # any values; integer levels
+        x64 = x.astype(np.complex128)
+        m = complex(math.fsum(x64.real), math.fsum(x64.imag)) / x.size
+        ref = math.sqrt(math.fsum(np.abs(x64 - m) ** 2) / x.size / 2.0)
+        values = set()
+        for off in range(8):                      # 0-7 samples of 8 bytes: every alignment in a 64-byte line
+            buf = np.empty(x.size + 8, np.complex64)
+            y = buf[off:off + x.size]
+            y[:] = x
+            values.add(input_sigma(y, True, fast=True))
+        assert len(values) == 1
+        assert values.pop() == pytest.approx(ref, rel=1e-13)

@@ -29,10 +29,14 @@ from ultratight.io_guard import check_interrupted
 from ultratight.signals.corr_model import noise_sigma_arm
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"reassoc"})
 def _complex_block_sigma(v):
-    """``sqrt(mean(|x - mean x|^2) / 2)`` of a complex block given as its float32 (re, im) view, in
-    one pass without temporaries (two-pass mean removal, float64 sums)."""
+    """``sqrt(mean(|x - mean x|^2) / 2)`` of a complex block given as its float32 (re, im) view,
+    without temporaries (two-pass mean removal, float64 sums). The sums may be reassociated, so the
+    compiler adds in vector lanes (3.3 times faster than one running sum: the estimate took 6 % of the
+    ultra-tight engine's time); the order is fixed by the block's length, so a block always gives
+    the same value, and samples on integer levels (every quantised recording) give exact sums of
+    the mean."""
     n = v.shape[0] // 2
     mr = 0.0
     mi = 0.0
