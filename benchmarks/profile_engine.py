@@ -11,7 +11,8 @@ A diagnostic, not a timing benchmark (``ultratight bench`` does not run it). It 
    functions loaded from an existing cache carry no names this script can read);
 3. a symbol map ``/tmp/perf-PID.map`` written from the process's own dispatchers (the address of
    every compiled function in numba's execution engine), which ``perf`` reads to name JIT code;
-4. ``perf record`` of the method on the cut on one thread, with 64 bytes of user stack per sample;
+4. ``perf record`` of the method on the cut on one thread, with 64 bytes of user stack per sample
+   (the heap set up as in a scenario's worker process, ``workers.fix_mmap_threshold``);
 5. the share of every function (self time), and for the samples inside numba's reference counting
    (``NRT_incref`` / ``NRT_decref``, tiny leaf functions that do not touch the stack) the function
    that called it: the return address is the word at the sampled stack pointer.
@@ -138,7 +139,10 @@ def main():
         os.environ["NUMBA_CACHE_DIR"] = str(Path(tmp) / "numba")     # before numba loads: step 2
         from ultratight.receiver.cli.scenario_config import load_scenario
         from ultratight.receiver.cli.scenario_runner import prepare_data, run_method
+        from ultratight.receiver.cli.workers import fix_mmap_threshold
         from ultratight.receiver.deep.options import EngineOptions
+
+        fix_mmap_threshold(streaming=True)        # the heap of a scenario's worker process
 
         cfg = load_scenario("paper-highdyn", {"duration_s": max(dur, 1.0)})
         paths, _ = prepare_data(cfg, 1, Path(a.workdir or tmp))
