@@ -61,7 +61,10 @@ def test_ultratight_mode_json_and_output_against_truth(cut, tmp_path, capsys):
     assert 0 < summ["realtime_factor"] * DURATION_S <= t_wall, (summ["realtime_factor"], t_wall)
     assert summ["lock_losses"] == 0           # 20 dB-Hz, no noise event in the first 3 s
     assert summ["startup"] == "truth-perturbed" and summ["lock_lost_channels"] == []
-    assert len(summ["assisted"]) == 2 and "truth-perturbed" in summ["assisted"][0]
+    assert len(summ["assisted"]) == 3 and "truth-perturbed" in summ["assisted"][0]
+    # paper-highdyn puts no troposphere on its signals; the truth-perturbed start-up has no fixes to test
+    # the recording on, so the correction follows the generator's configuration, an assisted part
+    assert "troposphere correction off" in summ["assisted"][2] and summ["atmosphere"]["tropo"] == "off"
     # every output of an assisted run says so
     for name in ("n.csv", "n.nmea", "n.kml", "n.obs"):
         head = (tmp_path / name).read_text()[:4000]
@@ -105,7 +108,9 @@ def test_ultratight_human_summary_other_method(cut, capsys):
     assert rc == 0
     out = capsys.readouterr().out
     assert out.startswith("ASSISTED run: start-up from the IMU file's truth (truth-perturbed); data bits re-encoded "
-                          "from the ephemeris (--bits assisted)\nultratight dlb-ckf: PRN 31, 20, 18, 28, 21, 15\n")
+                          "from the ephemeris (--bits assisted); troposphere correction off: the generator's "
+                          "configuration (sidecar) put none on the signal (the truth-perturbed start-up has no "
+                          "fixes to test it on)\nultratight dlb-ckf: PRN 31, 20, 18, 28, 21, 15\n")
     assert "signal 1.00 s in " in out and "lock losses: 0" in out
 
 
@@ -135,6 +140,35 @@ def test_ultratight_out_of_order_imu_stamp(cut, tmp_path):
     msg = _one_line_error(_cli("process", str(cut["if"]), "--mode", "ultratight", "--imu", str(bad)))
     assert str(bad) in msg and "out-of-order" in msg
     assert f"sample {k + 1}:" in msg          # the first stamp not after its predecessor
+
+
+def test_truth_start_keeps_a_troposphere_asked_for(cut, capsys):
+    """``--tropo saastamoinen`` given: the truth-perturbed start-up keeps the correction on a signal the
+    generator made without a troposphere (the user's choice), and nothing of it is assisted."""
+    rc = main(["process", str(cut["if"]), "--mode", "ultratight", "--imu", str(cut["imu"]), "--json",
+               "--startup", "truth-perturbed", "--bits", "assisted", "--duration", "1", "--tropo", "saastamoinen"])
+    assert rc == 0
+    summ = json.loads(capsys.readouterr().out)
+    assert summ["atmosphere"]["tropo"] == "saastamoinen (cosz)"
+    assert len(summ["assisted"]) == 2 and not any("troposphere" in a for a in summ["assisted"])
+
+
+def test_truth_start_troposphere_follows_the_generator():
+    """The truth-perturbed start-up's troposphere (receiver.deep.recordings.truth_start_troposphere): off
+    only when the correction was not asked for and the generator's configuration applied none."""
+    from ultratight.receiver.deep.atmosphere_terms import receiver_model
+    from ultratight.receiver.deep.handover import HandoverConfig
+    from ultratight.receiver.deep.recordings import truth_start_troposphere
+
+    on = receiver_model(iono="off", tropo="saastamoinen")
+    how = (None, None, "off")
+    vacuum = {"name": "x"}
+    sky = {"atmosphere": {"iono": "off", "tropo": "saastamoinen", "broadcast": False}}
+    atmo, _, note = truth_start_troposphere(vacuum, None, how, on, None)
+    assert atmo.tropo == "off" and "generator" in note
+    for gen, hcfg in ((sky, None), (vacuum, HandoverConfig(tropo_check=False)), (None, None)):
+        atmo, _, note = truth_start_troposphere(gen, hcfg, how, on, None)
+        assert atmo is on and note is None
 
 
 def test_parser_does_not_import_the_engine():

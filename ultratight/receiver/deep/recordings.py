@@ -130,11 +130,7 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
     Returns an :class:`EngineResult`.
     """
     from ultratight.receiver.deep import handover as ho
-    if not method_spec(method).needs_imu:
-        raise ConfigError(f"method {method!r} is the scalar receiver: use `ultratight process` without "
-                          f"--mode ultratight")
-    if startup not in ("auto", ho.STARTUP_SCALAR, ho.STARTUP_TRUTH):
-        raise ConfigError(f"unknown start-up {startup!r}; expected auto, {ho.STARTUP_SCALAR} or {ho.STARTUP_TRUTH}")
+    _check_method_and_startup(method, startup)
     src, imu, imu_path, dur, warnings = _open_recording(if_path, imu_path, meta, imu_declaration, duration_s,
                                                         imu_noise)
     if startup != ho.STARTUP_TRUTH:
@@ -155,7 +151,8 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
     source, hand, t_h, init_state, prns = _startup(
         src, imu, imu_path, nav if nav is not None else ephs, ephs, prns, startup, init_state,
         dict(init_overrides or {}), start_s, handover, gen_cfg, startup_errors, rng, atmo)
-    atmo, iono_source = _after_startup(hand, warnings, (nav, gen_cfg, iono), atmo, iono_source)
+    atmo, iono_source, tropo_note = _after_startup(hand, warnings, (nav, gen_cfg, iono), atmo, iono_source,
+                                                   (source == ho.STARTUP_TRUTH, handover))
     prns = _tracked_prns(prns, given, source, hand, init_state, (nav, ephs, nav_path, week, tow0, t_h), warnings,
                          if_path)
     file_start = {"week": int(week), "tow_s": float(tow0)}
@@ -163,7 +160,7 @@ def run_ultratight_on_files(if_path, imu_path, method=DEFAULT_METHOD, meta=None,
         (src, imu, ephs, [int(p) for p in prns], method, options, rng, dur, atmo, iono_source),
         (nav if nav is not None else ephs, handover), init_state, t_h, warnings)
     res.info["warnings"] = list(warnings)
-    res.info["assisted"] = assisted_parts(source, opt.bits)
+    res.info["assisted"] = assisted_parts(source, opt.bits) + ([tropo_note] if tropo_note else [])
     _note_start(res, t_h, source, hand, file_start)
     t_mid = file_start["tow_s"] + t_h + 0.5 * res.duration_s
     res.info["sat_pos_e"] = [np.asarray(sat_state(ephs[int(p)], np.array([t_mid]))[0][0]).tolist() for p in prns]
@@ -372,14 +369,48 @@ def _file_ephemerides(if_path, nav_path, gen_cfg, week, tow0):
     raise ConfigError(f"{if_path}: no ephemerides: give a RINEX navigation file (--ephemeris)")
 
 
-def _after_startup(hand, warnings, how, atmo, iono_source):
-    """The start-up's warnings added to ``warnings``; the run's ``(atmosphere, iono source)``: without
-    the troposphere when the scalar hand-over found the signal carries none (receiver.deep.tropo_check;
-    ``how`` = ``(nav, generator config, iono)`` of :func:`_atmosphere`)."""
+def _check_method_and_startup(method, startup):
+    """One line (ConfigError) for a method that needs no IMU or an unknown start-up."""
+    from ultratight.receiver.deep import handover as ho
+    if not method_spec(method).needs_imu:
+        raise ConfigError(f"method {method!r} is the scalar receiver: use `ultratight process` without "
+                          f"--mode ultratight")
+    if startup not in ("auto", ho.STARTUP_SCALAR, ho.STARTUP_TRUTH):
+        raise ConfigError(f"unknown start-up {startup!r}; expected auto, {ho.STARTUP_SCALAR} or {ho.STARTUP_TRUTH}")
+
+
+def _after_startup(hand, warnings, how, atmo, iono_source, truth_start):
+    """The start-up's warnings added to ``warnings``; the run's ``(atmosphere, iono source, assisted
+    note or None)``: without the troposphere when the scalar hand-over found the signal carries none
+    (receiver.deep.tropo_check), or, after the truth-perturbed start-up (``truth_start`` = (True, its
+    hand-over configuration or None)), when the generator put none on it (:func:`truth_start_troposphere`);
+    ``how`` = ``(nav, generator config, iono)`` of :func:`_atmosphere`."""
     warnings.extend((hand or {}).get("warnings") or [])
     if ((hand or {}).get("troposphere") or {}).get("troposphere") == "absent":
-        return _atmosphere(*how, "off")
-    return atmo, iono_source
+        return (*_atmosphere(*how, "off"), None)
+    is_truth, handover = truth_start
+    if is_truth:
+        return truth_start_troposphere(how[1], handover, how, atmo, iono_source)
+    return atmo, iono_source, None
+
+
+def truth_start_troposphere(gen_cfg, handover, how, atmo, iono_source):
+    """The troposphere of a run with the truth-perturbed (assisted) start-up, which has no scalar fixes
+    to test the recording with (:mod:`ultratight.receiver.deep.tropo_check`): when the correction was
+    not asked for (``handover.tropo_check``, true by default) and the generator's configuration in the
+    sidecar (``gen_cfg``) put no troposphere on the signal, the correction is off — knowledge of the
+    generator, so the returned note joins the run's assisted parts. ``(atmosphere, iono source, note or
+    None)``; ``how`` = ``(nav, generator config, iono)`` of :func:`_atmosphere`."""
+    from ultratight.receiver.deep.handover import HandoverConfig
+    if not (handover or HandoverConfig()).tropo_check or not isinstance(gen_cfg, dict) \
+            or getattr(atmo, "tropo", "off") == "off":
+        return atmo, iono_source, None
+    atm = gen_cfg.get("atmosphere")
+    if isinstance(atm, dict) and atm.get("tropo", "off") != "off":
+        return atmo, iono_source, None
+    atmo, iono_source = _atmosphere(*how, "off")
+    return atmo, iono_source, ("troposphere correction off: the generator's configuration (sidecar) put none on "
+                               "the signal (the truth-perturbed start-up has no fixes to test it on)")
 
 
 def _atmosphere(nav, gen_cfg, iono, tropo):
