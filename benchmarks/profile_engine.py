@@ -1,7 +1,7 @@
 """Where one ultra-tight engine run spends its time: a ``perf`` profile with numba's functions named.
 
     python benchmarks/profile_engine.py [--method dlb-rackf] [--duration S] [--workdir DIR]
-                                        [--top N] [--json OUT.json]
+                                        [--top N] [--nonatomic] [--json OUT.json]
 
 A diagnostic, not a timing benchmark (``ultratight bench`` does not run it). It needs Linux ``perf``
 (Debian package ``linux-perf``) and says so when it is missing. Steps:
@@ -128,6 +128,10 @@ def main():
     ap.add_argument("--duration", type=float, default=None, help="signal seconds profiled (20; --quick 5)")
     ap.add_argument("--workdir", default=None, help="data cache (default: a temporary folder)")
     ap.add_argument("--top", type=int, default=15, help="functions listed")
+    ap.add_argument("--nonatomic", action="store_true",
+                    help="compile with numba's non-atomic reference counts (its measurement switch "
+                         "nrtdynmod._disable_atomicity; unsafe with threads: the run is on one): what the "
+                         "atomic counts cost, from the epochs' time of two runs with and without")
     a = ap.parse_args()
     perf = shutil.which("perf")
     if perf is None:
@@ -137,6 +141,9 @@ def main():
     dur = a.duration or (5.0 if a.quick else 20.0)
     with tempfile.TemporaryDirectory() as tmp:
         os.environ["NUMBA_CACHE_DIR"] = str(Path(tmp) / "numba")     # before numba loads: step 2
+        if a.nonatomic:
+            from numba.core.runtime import nrtdynmod
+            nrtdynmod._disable_atomicity = 1
         from ultratight.receiver.cli.scenario_config import load_scenario
         from ultratight.receiver.cli.scenario_runner import prepare_data, run_method
         from ultratight.receiver.cli.workers import fix_mmap_threshold
@@ -167,13 +174,17 @@ def main():
             shares.append((float(m.group(1)), _short(m.group(2))))
     callers = _callers(dump, rows)
     n_ref = sum(callers.values())
-    print(f"{a.method}, {dur:g} s of paper-highdyn on one thread: {res.runtime_s:.2f} s; {len(rows)} functions named")
+    epochs = float(res.info.get("timing_s", {}).get("epochs", float("nan")))
+    how = " (non-atomic reference counts)" if a.nonatomic else ""
+    print(f"{a.method}, {dur:g} s of paper-highdyn on one thread{how}: {res.runtime_s:.2f} s, epochs {epochs:.2f} s; "
+          f"{len(rows)} functions named")
     for pct, name in shares[:a.top]:
         print(f"  {pct:5.1f} %  {name}")
     print(f"reference counting by caller ({n_ref} samples):")
     for name, k in callers.most_common(a.top):
         print(f"  {100.0 * k / max(n_ref, 1):5.1f} %  {name}")
-    out = {"method": a.method, "duration_s": dur, "runtime_s": res.runtime_s,
+    out = {"method": a.method, "duration_s": dur, "runtime_s": res.runtime_s, "epochs_s": epochs,
+           "nonatomic": bool(a.nonatomic),
            "self_share_percent": {n: p for p, n in shares[:50]},
            "nrt_share_percent": sum(p for p, n in shares if n in NRT),
            "nrt_callers_percent": {n: 100.0 * k / max(n_ref, 1) for n, k in callers.most_common()}}
