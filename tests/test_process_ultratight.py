@@ -161,13 +161,12 @@ def test_truth_start_troposphere_follows_the_generator():
     from ultratight.receiver.deep.recordings import truth_start_troposphere
 
     on = receiver_model(iono="off", tropo="saastamoinen")
-    how = (None, None, "off")
     vacuum = {"name": "x"}
     sky = {"atmosphere": {"iono": "off", "tropo": "saastamoinen", "broadcast": False}}
-    atmo, _, note = truth_start_troposphere(vacuum, None, how, on, None)
+    atmo, _, note = truth_start_troposphere(None, (None, vacuum, "off"), on, None)
     assert atmo.tropo == "off" and "generator" in note
     for gen, hcfg in ((sky, None), (vacuum, HandoverConfig(tropo_check=False)), (None, None)):
-        atmo, _, note = truth_start_troposphere(gen, hcfg, how, on, None)
+        atmo, _, note = truth_start_troposphere(hcfg, (None, gen, "off"), on, None)
         assert atmo is on and note is None
 
 

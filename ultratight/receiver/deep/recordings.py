@@ -390,23 +390,23 @@ def _after_startup(hand, warnings, how, atmo, iono_source, truth_start):
         return (*_atmosphere(*how, "off"), None)
     is_truth, handover = truth_start
     if is_truth:
-        return truth_start_troposphere(how[1], handover, how, atmo, iono_source)
+        return truth_start_troposphere(handover, how, atmo, iono_source)
     return atmo, iono_source, None
 
 
-def truth_start_troposphere(gen_cfg, handover, how, atmo, iono_source):
+def truth_start_troposphere(handover, how, atmo, iono_source):
     """The troposphere of a run with the truth-perturbed (assisted) start-up, which has no scalar fixes
     to test the recording with (:mod:`ultratight.receiver.deep.tropo_check`): when the correction was
     not asked for (``handover.tropo_check``, true by default) and the generator's configuration in the
-    sidecar (``gen_cfg``) put no troposphere on the signal, the correction is off — knowledge of the
-    generator, so the returned note joins the run's assisted parts. ``(atmosphere, iono source, note or
-    None)``; ``how`` = ``(nav, generator config, iono)`` of :func:`_atmosphere`."""
+    sidecar put no troposphere on the signal (:func:`~ultratight.receiver.deep.atmosphere_terms.
+    scenario_model`, as a scenario run reads it), the correction is off — knowledge of the generator, so
+    the returned note joins the run's assisted parts. ``(atmosphere, iono source, note or None)``;
+    ``how`` = ``(nav, generator config, iono)`` of :func:`_atmosphere`."""
+    from ultratight.receiver.deep.atmosphere_terms import scenario_model
     from ultratight.receiver.deep.handover import HandoverConfig
+    gen_cfg = how[1]
     if not (handover or HandoverConfig()).tropo_check or not isinstance(gen_cfg, dict) \
-            or getattr(atmo, "tropo", "off") == "off":
-        return atmo, iono_source, None
-    atm = gen_cfg.get("atmosphere")
-    if isinstance(atm, dict) and atm.get("tropo", "off") != "off":
+            or getattr(atmo, "tropo", "off") == "off" or getattr(scenario_model(gen_cfg), "tropo", "off") != "off":
         return atmo, iono_source, None
     atmo, iono_source = _atmosphere(*how, "off")
     return atmo, iono_source, ("troposphere correction off: the generator's configuration (sidecar) put none on "
