@@ -438,6 +438,8 @@ def run_campaign(scenario, *, runs, methods=None, seed=None, workers=None, sched
         except BaseException:
             if local:                   # the cluster's workers are gone: so are the writers of any temporaries
                 remove_orphaned_temporaries(out / "cache")
+                if out in created and not any((out / "runs").glob("*")):
+                    shutil.rmtree(out / "cache", ignore_errors=True)   # OUT is this call's, no run kept: its data go
             for d in reversed(created):     # no run file kept: leave no empty OUT/runs (or OUT) behind
                 _remove_empty_dir(d)
             raise
