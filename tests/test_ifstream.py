@@ -11,7 +11,7 @@ import pytest
 from ultratight.receiver.cli.scenario_config import load_scenario
 from ultratight.signals.synth.generator import generate
 from ultratight.signals.recording.iffile import open_if
-from ultratight.signals.synth.ifstream import GeneratedIf
+from ultratight.signals.synth.ifstream import GeneratedIf, HeldBytes
 
 SHORT = {"duration_s": 0.35, "frontend.fs_hz": 2.046e6, "satellites.max_count": 3}
 
@@ -173,3 +173,26 @@ def test_campaign_run_streams_unless_cached(tmp_path):
                               equal_nan=True)
     with pytest.raises(ConfigError, match="--cache"):
         run_campaign("paper-afm-jump", runs=1, out_dir=tmp_path / "afm", cache=True, progress=False)
+
+
+def test_held_bytes_spans_and_drops_like_one_array():
+    # the chunked store against the one concatenated array it replaces: random chunk sizes (empty ones
+    # too), drops inside and across chunks, spans inside one chunk (a view) and across several (a copy)
+    rng = np.random.default_rng(3)
+    held, flat, base = HeldBytes(), np.zeros(0, np.uint8), 0
+    for _ in range(400):
+        op = rng.integers(3)
+        if op == 0:
+            c = rng.integers(0, 256, int(rng.integers(0, 50)), dtype=np.uint8)
+            held.append(c)
+            flat = np.concatenate([flat, c])
+        elif op == 1:
+            nb = int(rng.integers(0, flat.size + 1))
+            held.drop(nb)
+            flat, base = flat[nb:], base + nb
+        elif flat.size:
+            b0 = int(rng.integers(0, flat.size + 1))
+            b1 = int(rng.integers(b0, flat.size + 1))
+            got = held.span(b0, b1)
+            assert got.dtype == np.uint8 and np.array_equal(got, flat[b0:b1]), (base, b0, b1)
+        assert held.size == flat.size
