@@ -51,7 +51,8 @@ from ultratight.receiver.deep.startup import StartupErrors, perturb_state
 from ultratight.cores import plan
 from ultratight.receiver.cli.first_run import drop_if_file, first_compilation, write_if_ahead
 from ultratight.receiver.cli.scenario_results import SCHEMA, write_results_h5  # noqa: F401 (SCHEMA: public here)
-from ultratight.receiver.cli.workers import WorkerPool, check_workers, fix_mmap_threshold, release_heap, warm_up
+from ultratight.receiver.cli.workers import (WorkerPool, check_workers, fix_mmap_threshold, release_heap,
+                                             streaming_heap, warm_up)
 from ultratight.signals.constellation import ephemerides_for
 from ultratight.signals.synth.generator import generate, generation_estimate
 from ultratight.signals.recording.iffile import open_if
@@ -478,11 +479,12 @@ def _map_shared(pool, cfg, methods, runs, base_seed, jobs, done):
                   f"generates its own copy", file=sys.stderr, flush=True)
             ring = None
         try:
-            if ring is not None:
-                ring.start()
-                run_jobs = [(dict(paths, if_ring=ring.name, if_consumer=j), *rest)
-                            for j, (paths, *rest) in enumerate(run_jobs)]
-            pool.map(_method_job, run_jobs, on_done=lambda j, res, r=r: done(r * n + j, res))
+            with streaming_heap():          # the ring's blocks reuse heap memory (workers.streaming_heap)
+                if ring is not None:
+                    ring.start()
+                    run_jobs = [(dict(paths, if_ring=ring.name, if_consumer=j), *rest)
+                                for j, (paths, *rest) in enumerate(run_jobs)]
+                pool.map(_method_job, run_jobs, on_done=lambda j, res, r=r: done(r * n + j, res))
         except BaseException:
             if ring is not None:
                 ring.abort()

@@ -21,6 +21,7 @@ import os
 import signal
 import sys
 import time
+from contextlib import contextmanager
 from concurrent.futures import FIRST_EXCEPTION, Future, ProcessPoolExecutor, wait
 
 from ultratight.cores import check_workers, plan  # noqa: F401 (check_workers: used by the runners)
@@ -32,6 +33,7 @@ MMAP_THRESHOLD = 1 << 20       # bytes: larger blocks are mapped on their own an
 # a worker that streams IF keeps its block buffers (about 3.5 MB at 4 MHz) on the heap for reuse
 STREAM_MMAP_THRESHOLD = 4 << 20
 STREAM_TRIM_THRESHOLD = 16 << 20   # bytes of free heap top kept before they are returned
+TRIM_THRESHOLD = 128 << 10         # glibc's default M_TRIM_THRESHOLD
 
 
 def _libc():
@@ -65,6 +67,24 @@ def fix_mmap_threshold(streaming=False):
         return bool(lib.mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD))
     return bool(lib.mallopt(M_MMAP_THRESHOLD, STREAM_MMAP_THRESHOLD)
                 and lib.mallopt(M_TRIM_THRESHOLD, STREAM_TRIM_THRESHOLD))
+
+
+@contextmanager
+def streaming_heap():
+    """The streaming thresholds of :func:`fix_mmap_threshold` inside the block, the fixed threshold (and
+    glibc's default heap top) after it, and the heap released: for the process that generates the IF
+    ring of a run (3.2 MB blocks every 100 ms at 4 MHz: 0.9 of the main job's 1.7 million page faults
+    came from mapping them fresh) while the per-epoch results it collects afterwards are unmapped when
+    freed."""
+    fix_mmap_threshold(streaming=True)
+    try:
+        yield
+    finally:
+        lib = _libc()
+        if lib:
+            lib.mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD)
+        fix_mmap_threshold()
+        release_heap()
 
 
 def release_heap():
