@@ -27,11 +27,21 @@ import numpy as np
 
 from ultratight.errors import ConfigError
 from ultratight.signals.synth.generator import BLOCK_INTERVALS
-from ultratight.signals.synth.ifstream import GeneratedIf
+from ultratight.signals.synth.ifstream import GeneratedIf, HeldBytes
 
 _PRODUCED, _TOTAL, _ABORT, _NCONS = 0, 1, 2, 3
 _DONE = np.iinfo(np.int64).max        # "taken every block": a closed consumer
-_POLL_S = 0.0005
+_POLL_S = 0.0005                      # first wait of a poll; doubled up to _POLL_MAX_S while nothing changes
+_POLL_MAX_S = 0.008
+
+
+def _pause(waited):
+    """Sleep once in a poll loop that has slept ``waited`` times; returns ``waited + 1``. The pause
+    doubles from :data:`_POLL_S` to :data:`_POLL_MAX_S`: a party that waits for a whole block (tens of
+    ms while the engines and the generator share the cores) wakes a few times instead of every 0.5 ms
+    (each wake costs CPU the engines need), while a short wait still ends within a millisecond."""
+    time.sleep(min(_POLL_MAX_S, _POLL_S * (1 << min(waited, 8))))
+    return waited + 1
 
 
 def _segment_name(tag):
@@ -80,10 +90,11 @@ class IfRing:
             for chunk in self._src._chunks():
                 if chunk.size > self.slot_bytes:          # pragma: no cover - sized from the format
                     raise ConfigError(f"IF ring: block of {chunk.size} bytes exceeds the slot ({self.slot_bytes})")
+                waited = 0
                 while k - int(ctl[4:4 + n].min()) >= self.slots:
                     if ctl[_ABORT]:
                         return
-                    time.sleep(_POLL_S)
+                    waited = _pause(waited)
                 if ctl[_ABORT]:
                     return
                 s = k % self.slots
@@ -148,7 +159,7 @@ class RingIf(GeneratedIf):
         if self._opened:
             raise ConfigError(f"{where}: the shared IF cannot be read again from its start")
         self._opened = True
-        self._buf = np.zeros(0, dtype=np.uint8)
+        self._held = HeldBytes()
         self._s0 = 0
         self._done = False
         self._k = 0
@@ -173,6 +184,7 @@ class RingIf(GeneratedIf):
 
     def _next_chunk(self):
         ctl, k = self._ctl, self._k
+        waited = 0
         while int(ctl[_PRODUCED]) <= k:
             total = int(ctl[_TOTAL])
             if 0 <= total <= k:
@@ -180,7 +192,7 @@ class RingIf(GeneratedIf):
             if ctl[_ABORT]:
                 raise ConfigError(f"{self.path}: the IF ring stopped (another method of the run failed, or the "
                                   f"generator did)")
-            time.sleep(_POLL_S)
+            waited = _pause(waited)
         s = k % self._slots
         chunk = self._ring[s, :int(ctl[4 + self._n + s])].copy()
         self._k = k + 1
