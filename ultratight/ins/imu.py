@@ -52,6 +52,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
 from ultratight.constants import OMEGA_E, WGS84_A
 from ultratight.errors import ConfigError
@@ -356,9 +357,24 @@ def lever_arm_truth(k, lever_arm_b):
     return llh, vel_l, dcm_to_quat_vec(C_lb)
 
 
+@njit(cache=True)
+def _first_order_recursion(drive, phi):
+    """``y[k] = phi y[k-1] + drive[k]`` down the columns of ``drive`` (``y[0] = drive[0]``), in that order of
+    operations (no fused multiply-add): the values of ``scipy.signal.lfilter([1], [1, -phi], ...)``, bit for
+    bit (tests/test_ins_sins.py), without importing scipy.signal (about a second, on the critical path of
+    every scenario start)."""
+    out = np.empty_like(drive)
+    n, m = drive.shape
+    for j in range(m):
+        y = 0.0
+        for k in range(n):
+            y = phi * y + drive[k, j]
+            out[k, j] = y
+    return out
+
+
 def _gauss_markov(rng, n, sigma, tau, dt):
     """First-order Gauss-Markov samples (n, 3), stationary start, steady-state std sigma."""
-    from scipy.signal import lfilter      # here: scipy.signal costs ~0.5 s of import for every reader of this module
     out = np.zeros((n, 3))
     if not np.any(sigma) or n == 0:
         return out
@@ -366,9 +382,7 @@ def _gauss_markov(rng, n, sigma, tau, dt):
     drive = rng.standard_normal((n, 3)) * (sigma * math.sqrt(1.0 - phi * phi))
     x0 = rng.standard_normal(3) * sigma
     drive[0] = x0
-    for ax in range(3):
-        out[:, ax] = lfilter([1.0], [1.0, -phi], drive[:, ax])
-    return out
+    return _first_order_recursion(drive, phi)
 
 
 def _quantise(x, q):
@@ -450,7 +464,8 @@ def synthesize_imu(traj, rate_hz, errors=None, rng=None, duration_s=None, with_t
     recorded in the data.
     """
     if errors is not None and errors.bias_reading == "realised":
-        raise ConfigError("synthesize_imu: errors must be a declaration (a preset or [imu] figures), not a drawn sensor")
+        raise ConfigError("synthesize_imu: errors must be a declaration (a preset or [imu] figures), "
+                          "not a drawn sensor")
     lever = None
     if lever_arm_b is not None and np.any(np.asarray(lever_arm_b, float)):
         lever = np.asarray(lever_arm_b, float).reshape(3)
