@@ -66,11 +66,37 @@ C0, C1, C2, P0, P1, P2 = range(6)
 # ------------------------------------------------------------------------------------------
 # numba kernels
 # ------------------------------------------------------------------------------------------
+@njit(cache=True, fastmath=True, nogil=True, inline="always")
+def _interval_indices(cis, lis, L, c0, c1, c2, p0, p1, p2, mask):
+    """Per sample of one interval of one satellite: the extended code table's index ``cis`` (the code
+    phase ``u = c0 + (c1 + c2 i) i`` truncated, never negative, clamped to the table) and the carrier
+    table's ``lis`` (``p0 + (p1 + p2 i) i`` in table steps, rounded, wrapped by ``mask``). Arithmetic
+    only, so the loop runs in vector lanes."""
+    for i in range(L):
+        fi = float(i)
+        u = c0 + (c1 + c2 * fi) * fi
+        cis[i] = np.int32(min(int(u), N_EXT - 1))
+        lis[i] = np.int32(int(p0 + (p1 + p2 * fi) * fi + 0.5) & mask)
+
+
+@njit(cache=True, fastmath=True, nogil=True, inline="always")
+def _signed_code(gc, codes, s, d0, d1, d2):
+    """The satellite's extended code table times the amplitude and data bit of each of the three code
+    periods an interval can span (``d0``, ``d1``, ``d2``)."""
+    us = np.uint64(s)
+    for q in range(CA_LEN):
+        gc[q] = d0 * codes[us, np.uint64(q)]
+        gc[q + CA_LEN] = d1 * codes[us, np.uint64(q + CA_LEN)]
+        gc[q + 2 * CA_LEN] = d2 * codes[us, np.uint64(q + 2 * CA_LEN)]
+
+
 @njit(cache=True, fastmath=True, parallel=True, nogil=True)
 def _synth_complex(out, L, n_int, codes, coefs, amps, bits, cos_lut, sin_lut):
-    """Add the satellites' signals to ``out`` (float32 (n_int*L, 2): I, Q). Indices are unsigned
-    (``np.uint64``), so numba leaves out the negative-index wraparound of every look-up (the code
-    phase ``u`` and the carrier index are never negative)."""
+    """Add the satellites' signals to ``out`` (float32 (n_int*L, 2): I, Q). Per interval and satellite
+    the table indices of every sample are computed first (:func:`_interval_indices`, vector lanes),
+    then the look-ups and sums run over them (the same operations per sample, in the same order, as
+    one loop doing both: the samples are the same to the bit, in about two thirds of the time). Indices
+    are unsigned, so numba leaves out the negative-index wraparound of every look-up."""
     nsat = codes.shape[0]
     lutn = cos_lut.shape[0]
     mask = lutn - 1
@@ -79,33 +105,19 @@ def _synth_complex(out, L, n_int, codes, coefs, amps, bits, cos_lut, sin_lut):
     one = np.uint64(1)
     for k in prange(n_int):          # intervals are independent: spread over numba's threads
         base = k * L
+        cis = np.empty(L, np.int32)
+        lis = np.empty(L, np.int32)
+        gc = np.empty(N_EXT, np.float32)
         for s in range(nsat):
             a = amps[k, s]
             if a == 0.0:
                 continue
-            c0 = coefs[k, s, 0]
-            c1 = coefs[k, s, 1]
-            c2 = coefs[k, s, 2]
-            p0 = coefs[k, s, 3] * flut
-            p1 = coefs[k, s, 4] * flut
-            p2 = coefs[k, s, 5] * flut
-            d0 = a * bits[k, s, 0]
-            d1 = a * bits[k, s, 1]
-            d2 = a * bits[k, s, 2]
-            us = np.uint64(s)
+            _interval_indices(cis, lis, L, coefs[k, s, 0], coefs[k, s, 1], coefs[k, s, 2], coefs[k, s, 3] * flut,
+                              coefs[k, s, 4] * flut, coefs[k, s, 5] * flut, mask)
+            _signed_code(gc, codes, s, a * bits[k, s, 0], a * bits[k, s, 1], a * bits[k, s, 2])
             for i in range(L):
-                fi = float(i)
-                u = c0 + (c1 + c2 * fi) * fi
-                ci = int(u)
-                if ci > N_EXT - 1:
-                    ci = N_EXT - 1
-                g = d0
-                if ci >= CA_LEN:
-                    g = d1
-                if ci >= 2 * CA_LEN:
-                    g = d2
-                v = g * codes[us, np.uint64(ci)]
-                li = np.uint64(int(p0 + (p1 + p2 * fi) * fi + 0.5) & mask)
+                v = gc[np.uint32(cis[i])]
+                li = np.uint32(lis[i])
                 j = np.uint64(base + i)
                 out[j, zero] += v * cos_lut[li]
                 out[j, one] += v * sin_lut[li]
@@ -113,40 +125,25 @@ def _synth_complex(out, L, n_int, codes, coefs, amps, bits, cos_lut, sin_lut):
 
 @njit(cache=True, fastmath=True, parallel=True, nogil=True)
 def _synth_real(out, L, n_int, codes, coefs, amps, bits, cos_lut):
-    """Add the satellites' signals to ``out`` (float32 (n_int*L,))."""
+    """Add the satellites' signals to ``out`` (float32 (n_int*L,)); as :func:`_synth_complex`."""
     nsat = codes.shape[0]
     lutn = cos_lut.shape[0]
     mask = lutn - 1
     flut = float(lutn)
     for k in prange(n_int):          # intervals are independent: spread over numba's threads
         base = k * L
+        cis = np.empty(L, np.int32)
+        lis = np.empty(L, np.int32)
+        gc = np.empty(N_EXT, np.float32)
         for s in range(nsat):
             a = amps[k, s]
             if a == 0.0:
                 continue
-            c0 = coefs[k, s, 0]
-            c1 = coefs[k, s, 1]
-            c2 = coefs[k, s, 2]
-            p0 = coefs[k, s, 3] * flut
-            p1 = coefs[k, s, 4] * flut
-            p2 = coefs[k, s, 5] * flut
-            d0 = a * bits[k, s, 0]
-            d1 = a * bits[k, s, 1]
-            d2 = a * bits[k, s, 2]
-            us = np.uint64(s)
+            _interval_indices(cis, lis, L, coefs[k, s, 0], coefs[k, s, 1], coefs[k, s, 2], coefs[k, s, 3] * flut,
+                              coefs[k, s, 4] * flut, coefs[k, s, 5] * flut, mask)
+            _signed_code(gc, codes, s, a * bits[k, s, 0], a * bits[k, s, 1], a * bits[k, s, 2])
             for i in range(L):
-                fi = float(i)
-                u = c0 + (c1 + c2 * fi) * fi
-                ci = int(u)
-                if ci > N_EXT - 1:
-                    ci = N_EXT - 1
-                g = d0
-                if ci >= CA_LEN:
-                    g = d1
-                if ci >= 2 * CA_LEN:
-                    g = d2
-                li = np.uint64(int(p0 + (p1 + p2 * fi) * fi + 0.5) & mask)
-                out[np.uint64(base + i)] += g * codes[us, np.uint64(ci)] * cos_lut[li]
+                out[np.uint64(base + i)] += gc[np.uint32(cis[i])] * cos_lut[np.uint32(lis[i])]
 
 
 # ------------------------------------------------------------------------------------------
