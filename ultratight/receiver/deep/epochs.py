@@ -204,39 +204,46 @@ def correlate(src, corr, sig):
 
 
 @njit(cache=True)
-def epoch_channel(c, k_ep, e_row, epoch, src, corr, wipe, bank, outer, window, rec, law, sig, burst, tap_fix, W1, W2,
+def epoch_channel(c, E, k_ep0, epoch0, src, corr, wipe, bank, outer, window, rec, law, sig, burst, tap_fix, W1, W2,
                   WA):
-    """One epoch of channel ``c`` through every stage (touches only channel ``c``'s rows): 0, or
-    ERR_CORR / ERR_BANK. ``epoch``: the tracking bank's epoch count; ``e_row``: the row of
-    ``window.pend`` for the epoch's residual inputs (:func:`settle` forms them); ``W1``/``W2``: the
-    tracking bank's work arrays, ``WA`` the correlator's (2 * number of taps)."""
-    corr.cp0[c] = corr.code_phase[c]
-    corr.f0[c] = corr.carr_freq[c]
-    corr.sig[c] = src.sigma[corr.sample_ptr[c] // src.block_len]
-    correlate_one(c, src.buf, src.is_complex, src.buf_start, src.n_buf, corr.code_ext, corr.pad, corr.active,
-                  corr.sample_ptr, corr.code_phase, corr.code_rate, corr.carr_phase, corr.carr_freq, corr.fs,
-                  tap_fix, corr.sig, corr.out, corr.t_start, corr.n_s, sig.code_len, WA)
-    if corr.n_s[c] <= 0:
-        return ERR_CORR
-    burst_one(c, k_ep, corr.t_start[c] / corr.fs, burst, corr.out)
-    wipe_channel(c, k_ep, wipe.bits, wipe.t0_ms, wipe.ms, wipe.D, wipe.per_bit, wipe.code, wipe.adapt, wipe.kb,
-                 wipe.acc, wipe.pol, wipe.ps, wipe.pss, wipe.pn, wipe.src, wipe.rec_src, wipe.soft,
-                 corr.out, bank.x, wipe.half_t)
-    if bank.bank_type == BANK_PBKF:
-        sb = pbkf_channel_epoch(bank.fbuf, bank.ibuf, c, corr.out, wipe.D, burst.rscale, bank.n_prm, bank.n_tab)
-    else:
-        sb = bank_channel_epoch(bank.kind, bank.fbuf, bank.ibuf, c, corr.out, wipe.D, burst.rscale, epoch, W1, W2)
-    if sb < 0:
-        return ERR_BANK
-    record_one(c, k_ep, corr.t_start, corr.fs, sig.if_hz, corr.f0, corr.cp0, bank.x_post, bank.P, bank.i_ptau,
-               bank.i_pf, rec.rec_t, rec.rec_f, rec.rec_cp, rec.rec_a, rec.rec_mode, rec.mode_now, outer.aid_grid,
-               outer.n_filled, corr.sample_ptr, sig.half_period_s, sig.code_len, law.aid, outer.aid_dt,
-               window.pend[e_row], window.pend_ts[e_row])
-    feedback_one(c, bank.x, bank.active, corr.code_phase, corr.code_rate, corr.carr_phase, corr.carr_freq,
-                 law.aid, law.aid_prev, law.rate_prev, law.hist, law.use_aid, law.prm, law.dx)
-    if bank.bank_type == BANK_PBKF:
-        pbkf_note_correction_one(bank.fbuf, bank.ibuf, c, law.dx, bank.n_prm, bank.n_tab)
-    law.aid_prev_ff[c] = law.aid[c]
+    """``E`` epochs of channel ``c`` from epoch ``k_ep0`` (the tracking bank's epoch count ``epoch0``)
+    through every stage (touches only channel ``c``'s rows): 0, or ERR_CORR / ERR_BANK at the epoch
+    that failed. Epoch ``e`` of the call puts its residual inputs in row ``e`` of ``window.pend``
+    (:func:`settle` forms them); ``W1``/``W2``: the tracking bank's work arrays, ``WA`` the
+    correlator's (2 * number of taps). The epochs loop here rather than in the callers: numba counts
+    a reference to every array of the records at every call, and one call per epoch and channel spent
+    a tenth of a run in those counts (docs/ultratight.md, "Where an engine's time goes")."""
+    for e in range(E):
+        k_ep = k_ep0 + e
+        e_row = e
+        epoch = epoch0 + e
+        corr.cp0[c] = corr.code_phase[c]
+        corr.f0[c] = corr.carr_freq[c]
+        corr.sig[c] = src.sigma[corr.sample_ptr[c] // src.block_len]
+        correlate_one(c, src.buf, src.is_complex, src.buf_start, src.n_buf, corr.code_ext, corr.pad, corr.active,
+                      corr.sample_ptr, corr.code_phase, corr.code_rate, corr.carr_phase, corr.carr_freq, corr.fs,
+                      tap_fix, corr.sig, corr.out, corr.t_start, corr.n_s, sig.code_len, WA)
+        if corr.n_s[c] <= 0:
+            return ERR_CORR
+        burst_one(c, k_ep, corr.t_start[c] / corr.fs, burst, corr.out)
+        wipe_channel(c, k_ep, wipe.bits, wipe.t0_ms, wipe.ms, wipe.D, wipe.per_bit, wipe.code, wipe.adapt, wipe.kb,
+                     wipe.acc, wipe.pol, wipe.ps, wipe.pss, wipe.pn, wipe.src, wipe.rec_src, wipe.soft,
+                     corr.out, bank.x, wipe.half_t)
+        if bank.bank_type == BANK_PBKF:
+            sb = pbkf_channel_epoch(bank.fbuf, bank.ibuf, c, corr.out, wipe.D, burst.rscale, bank.n_prm, bank.n_tab)
+        else:
+            sb = bank_channel_epoch(bank.kind, bank.fbuf, bank.ibuf, c, corr.out, wipe.D, burst.rscale, epoch, W1, W2)
+        if sb < 0:
+            return ERR_BANK
+        record_one(c, k_ep, corr.t_start, corr.fs, sig.if_hz, corr.f0, corr.cp0, bank.x_post, bank.P, bank.i_ptau,
+                   bank.i_pf, rec.rec_t, rec.rec_f, rec.rec_cp, rec.rec_a, rec.rec_mode, rec.mode_now, outer.aid_grid,
+                   outer.n_filled, corr.sample_ptr, sig.half_period_s, sig.code_len, law.aid, outer.aid_dt,
+                   window.pend[e_row], window.pend_ts[e_row])
+        feedback_one(c, bank.x, bank.active, corr.code_phase, corr.code_rate, corr.carr_phase, corr.carr_freq,
+                     law.aid, law.aid_prev, law.rate_prev, law.hist, law.use_aid, law.prm, law.dx)
+        if bank.bank_type == BANK_PBKF:
+            pbkf_note_correction_one(bank.fbuf, bank.ibuf, c, law.dx, bank.n_prm, bank.n_tab)
+        law.aid_prev_ff[c] = law.aid[c]
     return 0
 
 
@@ -281,12 +288,21 @@ def _channels_parallel(E, k_ep, epoch0, src, corr, wipe, bank, outer, window, re
         W1 = np.empty((N_W1, NZ))
         W2 = np.empty((N_W2, NZ, NZ))
         WA = np.empty(2 * tap_fix.shape[0])
-        for e in range(E):
-            r = epoch_channel(c, k_ep + e, e, epoch0 + e, src, corr, wipe, bank, outer, window, rec, law, sig,
-                              burst, tap_fix, W1, W2, WA)
-            if r != 0:
-                err[c] = r
-                break
+        r = epoch_channel(c, E, k_ep, epoch0, src, corr, wipe, bank, outer, window, rec, law, sig, burst, tap_fix,
+                          W1, W2, WA)
+        if r != 0:
+            err[c] = r
+
+
+@njit(cache=True)
+def _channels_serial(E, k_ep, epoch0, src, corr, wipe, bank, outer, window, rec, law, sig, burst, tap_fix, W1, W2,
+                     WA, err):
+    """:func:`_channels_parallel` on this thread: ``E`` epochs of one channel after the other."""
+    for c in range(corr.sample_ptr.shape[0]):
+        r = epoch_channel(c, E, k_ep, epoch0, src, corr, wipe, bank, outer, window, rec, law, sig, burst, tap_fix,
+                          W1, W2, WA)
+        if r != 0:
+            err[c] = r
 
 
 @njit(cache=True)
@@ -294,8 +310,8 @@ def _serial_epoch(n, k_ep, src, corr, wipe, bank, outer, window, rec, law, sig, 
     """One epoch of every channel, one after the other (``err`` as :func:`_channels_parallel`)."""
     epoch = _bank_epoch_count(bank, n)
     for c in range(n):
-        # e_row as int64, not the literal 0: one compiled epoch_channel for both paths
-        r = epoch_channel(c, k_ep, np.int64(0), epoch, src, corr, wipe, bank, outer, window, rec, law, sig, burst,
+        # E as int64, not the literal 1: one compiled epoch_channel for every path
+        r = epoch_channel(c, np.int64(1), k_ep, epoch, src, corr, wipe, bank, outer, window, rec, law, sig, burst,
                           tap_fix, W1, W2, WA)
         if r != 0:
             err[c] = r
@@ -339,8 +355,15 @@ def run_epochs(k_ep, src, corr, wipe, bank, outer, window, rec, law, sig, burst)
         st = epoch_gate(k_ep, src, corr, outer, rec)
         if st != CONTINUE:
             return st, k_ep, 0
-        _serial_epoch(n, k_ep, src, corr, wipe, bank, outer, window, rec, law, sig, burst, tap_fix, W1, W2, WA, err)
-        st, k_ep, info = _after_epochs(1, n, k_ep, corr, bank, outer, window, sig, err)
+        E = safe_epochs(k_ep, src, corr, outer, window, rec)
+        if E >= 2:
+            _channels_serial(E, k_ep, _bank_epoch_count(bank, n), src, corr, wipe, bank, outer, window, rec, law, sig,
+                             burst, tap_fix, W1, W2, WA, err)
+        else:
+            E = 1
+            _serial_epoch(n, k_ep, src, corr, wipe, bank, outer, window, rec, law, sig, burst, tap_fix, W1, W2, WA,
+                          err)
+        st, k_ep, info = _after_epochs(E, n, k_ep, corr, bank, outer, window, sig, err)
         if st != CONTINUE:
             return st, k_ep, info
 
