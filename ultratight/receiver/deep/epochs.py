@@ -213,37 +213,59 @@ def epoch_channel(c, E, k_ep0, epoch0, src, corr, wipe, bank, outer, window, rec
     correlator's (2 * number of taps). The epochs loop here rather than in the callers: numba counts
     a reference to every array of the records at every call, and one call per epoch and channel spent
     a tenth of a run in those counts (docs/ultratight.md, "Where an engine's time goes")."""
+    # the records' fields taken once per call: numba counts a reference at every field access, which
+    # inside the loop was once per epoch
+    corr_active, corr_carr_freq, corr_carr_phase = corr.active, corr.carr_freq, corr.carr_phase
+    corr_code_ext, corr_code_phase, corr_code_rate = corr.code_ext, corr.code_phase, corr.code_rate
+    corr_cp0, corr_f0, corr_fs, corr_n_s, corr_out = corr.cp0, corr.f0, corr.fs, corr.n_s, corr.out
+    corr_pad, corr_sample_ptr, corr_sig, corr_t_start = corr.pad, corr.sample_ptr, corr.sig, corr.t_start
+    src_block_len, src_buf, src_buf_start, src_is_complex = src.block_len, src.buf, src.buf_start, src.is_complex
+    src_n_buf, src_sigma = src.n_buf, src.sigma
+    sig_code_len, sig_half_period_s, sig_if_hz = sig.code_len, sig.half_period_s, sig.if_hz
+    wipe_D, wipe_acc, wipe_adapt, wipe_bits, wipe_code = wipe.D, wipe.acc, wipe.adapt, wipe.bits, wipe.code
+    wipe_half_t, wipe_kb, wipe_ms, wipe_per_bit, wipe_pn = wipe.half_t, wipe.kb, wipe.ms, wipe.per_bit, wipe.pn
+    wipe_pol, wipe_ps, wipe_pss, wipe_rec_src, wipe_soft = wipe.pol, wipe.ps, wipe.pss, wipe.rec_src, wipe.soft
+    wipe_src, wipe_t0_ms = wipe.src, wipe.t0_ms
+    bank_P, bank_active, bank_bank_type, bank_fbuf = bank.P, bank.active, bank.bank_type, bank.fbuf
+    bank_i_pf, bank_i_ptau, bank_ibuf, bank_kind = bank.i_pf, bank.i_ptau, bank.ibuf, bank.kind
+    bank_n_prm, bank_n_tab, bank_x, bank_x_post = bank.n_prm, bank.n_tab, bank.x, bank.x_post
+    rec_mode_now, rec_rec_a, rec_rec_cp, rec_rec_f = rec.mode_now, rec.rec_a, rec.rec_cp, rec.rec_f
+    rec_rec_mode, rec_rec_t = rec.rec_mode, rec.rec_t
+    outer_aid_dt, outer_aid_grid, outer_n_filled = outer.aid_dt, outer.aid_grid, outer.n_filled
+    law_aid, law_aid_prev, law_aid_prev_ff, law_dx = law.aid, law.aid_prev, law.aid_prev_ff, law.dx
+    law_hist, law_prm, law_rate_prev, law_use_aid = law.hist, law.prm, law.rate_prev, law.use_aid
+    window_pend, window_pend_ts, burst_rscale = window.pend, window.pend_ts, burst.rscale
     for e in range(E):
         k_ep = k_ep0 + e
         e_row = e
         epoch = epoch0 + e
-        corr.cp0[c] = corr.code_phase[c]
-        corr.f0[c] = corr.carr_freq[c]
-        corr.sig[c] = src.sigma[corr.sample_ptr[c] // src.block_len]
-        correlate_one(c, src.buf, src.is_complex, src.buf_start, src.n_buf, corr.code_ext, corr.pad, corr.active,
-                      corr.sample_ptr, corr.code_phase, corr.code_rate, corr.carr_phase, corr.carr_freq, corr.fs,
-                      tap_fix, corr.sig, corr.out, corr.t_start, corr.n_s, sig.code_len, WA)
-        if corr.n_s[c] <= 0:
+        corr_cp0[c] = corr_code_phase[c]
+        corr_f0[c] = corr_carr_freq[c]
+        corr_sig[c] = src_sigma[corr_sample_ptr[c] // src_block_len]
+        correlate_one(c, src_buf, src_is_complex, src_buf_start, src_n_buf, corr_code_ext, corr_pad, corr_active,
+                      corr_sample_ptr, corr_code_phase, corr_code_rate, corr_carr_phase, corr_carr_freq, corr_fs,
+                      tap_fix, corr_sig, corr_out, corr_t_start, corr_n_s, sig_code_len, WA)
+        if corr_n_s[c] <= 0:
             return ERR_CORR
-        burst_one(c, k_ep, corr.t_start[c] / corr.fs, burst, corr.out)
-        wipe_channel(c, k_ep, wipe.bits, wipe.t0_ms, wipe.ms, wipe.D, wipe.per_bit, wipe.code, wipe.adapt, wipe.kb,
-                     wipe.acc, wipe.pol, wipe.ps, wipe.pss, wipe.pn, wipe.src, wipe.rec_src, wipe.soft,
-                     corr.out, bank.x, wipe.half_t)
-        if bank.bank_type == BANK_PBKF:
-            sb = pbkf_channel_epoch(bank.fbuf, bank.ibuf, c, corr.out, wipe.D, burst.rscale, bank.n_prm, bank.n_tab)
+        burst_one(c, k_ep, corr_t_start[c] / corr_fs, burst, corr_out)
+        wipe_channel(c, k_ep, wipe_bits, wipe_t0_ms, wipe_ms, wipe_D, wipe_per_bit, wipe_code, wipe_adapt, wipe_kb,
+                     wipe_acc, wipe_pol, wipe_ps, wipe_pss, wipe_pn, wipe_src, wipe_rec_src, wipe_soft,
+                     corr_out, bank_x, wipe_half_t)
+        if bank_bank_type == BANK_PBKF:
+            sb = pbkf_channel_epoch(bank_fbuf, bank_ibuf, c, corr_out, wipe_D, burst_rscale, bank_n_prm, bank_n_tab)
         else:
-            sb = bank_channel_epoch(bank.kind, bank.fbuf, bank.ibuf, c, corr.out, wipe.D, burst.rscale, epoch, W1, W2)
+            sb = bank_channel_epoch(bank_kind, bank_fbuf, bank_ibuf, c, corr_out, wipe_D, burst_rscale, epoch, W1, W2)
         if sb < 0:
             return ERR_BANK
-        record_one(c, k_ep, corr.t_start, corr.fs, sig.if_hz, corr.f0, corr.cp0, bank.x_post, bank.P, bank.i_ptau,
-                   bank.i_pf, rec.rec_t, rec.rec_f, rec.rec_cp, rec.rec_a, rec.rec_mode, rec.mode_now, outer.aid_grid,
-                   outer.n_filled, corr.sample_ptr, sig.half_period_s, sig.code_len, law.aid, outer.aid_dt,
-                   window.pend[e_row], window.pend_ts[e_row])
-        feedback_one(c, bank.x, bank.active, corr.code_phase, corr.code_rate, corr.carr_phase, corr.carr_freq,
-                     law.aid, law.aid_prev, law.rate_prev, law.hist, law.use_aid, law.prm, law.dx)
-        if bank.bank_type == BANK_PBKF:
-            pbkf_note_correction_one(bank.fbuf, bank.ibuf, c, law.dx, bank.n_prm, bank.n_tab)
-        law.aid_prev_ff[c] = law.aid[c]
+        record_one(c, k_ep, corr_t_start, corr_fs, sig_if_hz, corr_f0, corr_cp0, bank_x_post, bank_P, bank_i_ptau,
+                   bank_i_pf, rec_rec_t, rec_rec_f, rec_rec_cp, rec_rec_a, rec_rec_mode, rec_mode_now, outer_aid_grid,
+                   outer_n_filled, corr_sample_ptr, sig_half_period_s, sig_code_len, law_aid, outer_aid_dt,
+                   window_pend[e_row], window_pend_ts[e_row])
+        feedback_one(c, bank_x, bank_active, corr_code_phase, corr_code_rate, corr_carr_phase, corr_carr_freq,
+                     law_aid, law_aid_prev, law_rate_prev, law_hist, law_use_aid, law_prm, law_dx)
+        if bank_bank_type == BANK_PBKF:
+            pbkf_note_correction_one(bank_fbuf, bank_ibuf, c, law_dx, bank_n_prm, bank_n_tab)
+        law_aid_prev_ff[c] = law_aid[c]
     return 0
 
 
