@@ -447,3 +447,43 @@ def test_phase_cap_decorrelates_so_a_relock_moves_phase_not_frequency(kind):
     xp = bank.x_post[0]
     assert 0.3 < xp[pf.IPHI] < 0.9                              # the phase is pulled in ...
     assert abs(xp[pf.IF] - f_before) / (2 * math.pi) < 0.02      # ... not the frequency (Hz)
+
+
+@pytest.mark.parametrize("kind", pf.KINDS)
+def test_channel_by_channel_with_held_arrays_equals_the_bank_step(kind):
+    # the receiver's epoch chain steps one channel at a time with the bank's arrays held across epochs
+    # (kernel_arrays, channel_settings, inputs_finite, channel_update, the reset count); that composition,
+    # written here, against PrefilterBank.step (bank_epoch) on a twin bank: bit for bit over 120 epochs
+    # that cross RACKF correction epochs, a diverging channel and an inactive one
+    rng = np.random.default_rng(4)
+    a, b = pf.PrefilterBank(3, kind=kind), pf.PrefilterBank(3, kind=kind)
+    for bank in (a, b):
+        bank.reset([0, 1, 2])
+        bank.set_active([True, True, False])
+        bank.P[1] *= 1e9                            # channel 1 diverges and is reset along the way
+    kind_code, _, ibuf = b.packed
+    held = b.kernel_arrays()
+    x0, P0, innov, nis, theta, acc, Phi, Qd, R, prm, flags = held
+    period, robust_every, win_mode, resets_at = pf.channel_settings(ibuf, 3)
+    W1, W2 = np.empty((pf.N_W1, pf.NZ)), np.empty((pf.N_W2, pf.NZ, pf.NZ))
+    rscale = np.ones(3)
+    for k in range(120):
+        z = rng.standard_normal((3, 6)) + A20 * np.array([1.0, 0.5, 0.5, 0.1, 0.05, 0.05])
+        bits = rng.choice([-1.0, 0.0, 1.0], 3)
+        a.step(z, bits)
+        epoch = b.epoch
+        for c in range(3):
+            if b.active_flags[c]:
+                assert pf.inputs_finite(c, z, bits)
+            pf.channel_update(kind_code, c, b.x, b.P, b.x_post, x0, P0, Phi, Qd, R, z, bits, rscale, b.active_flags,
+                              prm, epoch % period == 0, robust_every, win_mode, innov, nis, theta, flags, W1, W2, acc)
+            if flags[c] & pf.FLAG_DIVERGED:
+                ibuf[resets_at + c] += 1
+        b.epoch = epoch + 1
+    for name in ("x", "P", "x_post", "innov", "nis", "theta", "n_resets"):
+        np.testing.assert_array_equal(getattr(b, name), getattr(a, name), err_msg=name)
+    assert b.n_resets[1] >= 1
+    z = np.ones((3, 6))
+    z[0, 4] = np.nan
+    assert not pf.inputs_finite(0, z, np.ones(3)) and pf.inputs_finite(1, z, np.ones(3))
+    assert not pf.inputs_finite(1, np.ones((3, 6)), np.array([1.0, np.inf, 1.0]))

@@ -16,8 +16,9 @@ from the state with :meth:`PrefilterBank.correct` (error-state feedback).
 
 The bank's whole state lives in one float and one int buffer (:attr:`PrefilterBank.packed`); its
 attributes are views of them, and compiled callers step it with :func:`bank_epoch` or, channel by
-channel, :func:`bank_channel_epoch`.  This module is the prefilter's import path for the receiver and
-the tests: it also provides the names of the model and the kernels they use (``__all__``).
+channel, :func:`channel_update` with the arrays of :meth:`PrefilterBank.kernel_arrays`.  This module is
+the prefilter's import path for the receiver and the tests: it also provides the names of the model and
+the kernels they use (``__all__``).
 """
 
 from __future__ import annotations
@@ -26,7 +27,8 @@ import numpy as np
 
 from ultratight.constants import BETA_CODE_CARRIER, T_CA
 from ultratight.errors import FilterError
-from ultratight.fusion.channel.prefilter_kernels import _views, bank_channel_epoch, bank_epoch
+from ultratight.fusion.channel.prefilter_kernels import (_views, bank_epoch, channel_settings, channel_update,
+                                                        inputs_finite)
 from ultratight.fusion.channel.prefilter_kernels import _h  # noqa: F401  (the eq. 3 kernel, tested as prefilter._h)
 from ultratight.fusion.channel.prefilter_model import (
     ACC_LAM,
@@ -52,6 +54,7 @@ from ultratight.fusion.channel.prefilter_model import (
     ITAU,
     KIND_CODES,
     KINDS,
+    NACC,
     N_W1,
     N_W2,
     NX,
@@ -82,10 +85,19 @@ from ultratight.signals import corr_model
 
 # the names imported from this module by the receiver, the PB-KF baseline, the benchmarks and the tests
 __all__ = [
-    "PackedActiveMask", "PrefilterBank", "bank_channel_epoch", "bank_epoch", "N_W1", "N_W2", "NX", "NZ", "IE", "IF",
+    "PackedActiveMask", "PrefilterBank", "bank_epoch", "channel_settings", "channel_update", "empty_kernel_arrays",
+    "inputs_finite", "N_W1", "N_W2", "NX", "NZ", "IE", "IF",
     "IL", "IPHI", "QP", "KINDS", "FLAG_DIVERGED", "FLAG_ROBUST", "default_initial_covariance", "measurement_model",
     "prefilter_model",
 ]
+
+
+def empty_kernel_arrays():
+    """Arrays of the kinds of :meth:`PrefilterBank.kernel_arrays`, empty: what a compiled caller holds in
+    their place for a tracking bank of another kind (the PB-KF), so that one compiled chain serves both."""
+    return (np.zeros((0, NX)), np.zeros((0, NX, NX)), np.zeros((0, NZ)), np.zeros(0), np.zeros(0),
+            np.zeros((0, NACC)), np.zeros((NX, NX)), np.zeros((NX, NX)), np.zeros((NZ, NZ)), np.zeros(0),
+            np.zeros(0, dtype=np.int64))
 
 
 def _checked_n_ch(n_ch, kind, spacing_chips, huber_c, correction_period, robust_mode, adaptive_stat, theta_min):
@@ -331,6 +343,14 @@ class PrefilterBank(PackedActiveMask):
         """``(kind code, float buffer, int buffer)``: the bank's whole state for compiled callers
         (:func:`bank_epoch`); the attributes are views of these buffers."""
         return self._kind, self._fbuf, self._ibuf
+
+    def kernel_arrays(self):
+        """The bank's arrays :func:`channel_update` takes besides the state, the posterior, the covariance and the
+        active flags: ``(x0, P0, innov, nis, theta, acc, Phi, Qd, R, prm, flags)``, views of the packed buffers,
+        for a compiled caller that holds them across epochs (the receiver's epoch chain): building them from
+        the buffers at every epoch (eighteen views) took a twentieth of an engine run."""
+        return (self.x0, self.P0, self.innov, self.nis, self.theta, self._acc, self.Phi, self.Qd, self.R, self._prm,
+                self.flags)
 
     @property
     def diverged(self):

@@ -1,7 +1,8 @@
 """Compiled kernels of the per-channel I/Q prefilters (Zhao et al. 2014, §2.2–2.3): CKF, UKF and RACKF.
 
-One call steps one channel (:func:`bank_channel_epoch`) or all channels (:func:`bank_epoch`) of a
-bank held in two packed buffers (layout and the model: ``prefilter_model``): the measurement update
+One call updates one channel (:func:`channel_update`, with the bank's arrays; the receiver's epoch
+chain calls it, :func:`channel_settings`) or steps all channels (:func:`bank_epoch`) of a bank held in
+two packed buffers (layout and the model: ``prefilter_model``): the measurement update
 of the interval just integrated (eqs. 9–17, or Algorithm 1 for RACKF), then the time update (eqs.
 4–8, in the closed form x <- Phi x, P <- Phi P Phi^T + Q of the linear dynamics) to the start of the
 next interval.  The measurement update always *redraws* points from the predicted covariance.
@@ -367,30 +368,29 @@ def bank_step(kind, fbuf, ibuf, z, bits, rscale):
 
 
 @njit(cache=True)
-def bank_channel_epoch(kind, fbuf, ibuf, c, z, bits, rscale, epoch, W1, W2):
-    """Channel ``c``'s part of :func:`bank_epoch` at epoch count ``epoch`` (the counter itself is not
-    advanced), with work arrays ``W1`` (N_W1, 6) / ``W2`` (N_W2, 6, 6) of the caller's: channels
-    stepped by different threads need their own. Returns -1 - c for a non-finite input, else 0."""
-    n = z.shape[0]
-    x, P, xpost, x0, P0, innov, nis, theta, acc, Phi, Qd, R, prm, _, _, flags, active, iprm = _views(fbuf, ibuf, n)
-    if active[c]:
-        for m in range(NZ):
-            if not np.isfinite(z[c, m]):
-                return -1 - c
-        if not np.isfinite(bits[c]):
-            return -1 - c
+def channel_settings(ibuf, n):
+    """A packed bank's settings as one channel's epoch needs them: ``(correction period, robust every
+    epoch, adaptive statistic, offset of the per-channel reset counts in ibuf)``. A channel's epoch (the
+    receiver's compiled chain, ``receiver.deep.epochs.epoch_channel``) is: inputs checked
+    (:func:`inputs_finite`, active channels only), :func:`channel_update` with ``do_corr = epoch % period
+    == 0``, and the channel's reset count raised when the update flags it diverged."""
     io = packed_int_offsets(n)
-    _channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, rscale, active, prm,
-                    epoch % ibuf[io[ISEG_COUNTERS] + CNT_CORRECTION_PERIOD] == 0, iprm[IPRM_ROBUST_EVERY] != 0,
-                    iprm[IPRM_ADAPTIVE_STAT], innov, nis, theta, flags, W1, W2, acc)
-    if (flags[c] & FLAG_DIVERGED) != 0:
-        ibuf[io[ISEG_RESETS] + c] += 1
-    return 0
+    return (ibuf[io[ISEG_COUNTERS] + CNT_CORRECTION_PERIOD], ibuf[io[ISEG_IPRM] + IPRM_ROBUST_EVERY] != 0,
+            ibuf[io[ISEG_IPRM] + IPRM_ADAPTIVE_STAT], io[ISEG_RESETS])
 
 
 @njit(cache=True)
-def _channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, rscale, active, prm, do_corr, robust_every,
-                    win_mode, innov, nis, theta, flags, W1, W2, acc):
+def inputs_finite(c, z, bits):
+    """Channel ``c``'s six correlator outputs and its data bit are finite."""
+    for m in range(NZ):
+        if not np.isfinite(z[c, m]):
+            return False
+    return bool(np.isfinite(bits[c]))
+
+
+@njit(cache=True)
+def channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, rscale, active, prm, do_corr, robust_every,
+                   win_mode, innov, nis, theta, flags, W1, W2, acc):
     """One epoch of channel ``c`` (the loop body of :func:`_bank_step`; touches only row ``c`` and the
     work arrays ``W1``/``W2``, so channels with work arrays of their own may run concurrently).
     ``do_corr``, ``robust_every``, ``win_mode``: the entries of ``iprm`` (see :func:`_bank_step`).
@@ -630,8 +630,8 @@ def _bank_step(kind, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, rscale, active, p
             if not np.isfinite(bits[c]):
                 return -1 - c
     for c in range(n_ch):
-        _channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, rscale, active, prm,
-                        iprm[IPRM_DO_CORRECTION] != 0, iprm[IPRM_ROBUST_EVERY] != 0, iprm[IPRM_ADAPTIVE_STAT],
-                        innov, nis, theta, flags, W1, W2, acc)
+        channel_update(kind, c, x, P, xpost, x0, P0, Phi, Qd, R, z, bits, rscale, active, prm,
+                       iprm[IPRM_DO_CORRECTION] != 0, iprm[IPRM_ROBUST_EVERY] != 0, iprm[IPRM_ADAPTIVE_STAT],
+                       innov, nis, theta, flags, W1, W2, acc)
     return 0
 

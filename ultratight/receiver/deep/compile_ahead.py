@@ -27,7 +27,7 @@ RECORD_FIELDS = {
     E.If: "f4:1 b1 i8 i8 i8 i8 f8:1",
     E.Corr: "f4:2 i8 b1:1 i8:1 f8:1 f8:1 f8:1 f8:1 f8 f8:1 i8 b1 f8:2 i8:1 i8:1 f8:1 f8:1 f8:1",
     E.Wipe: "i1:2 i8:1 i8:1 f8:1 i8 i1:1 b1:1 i8:1 f8:1 f8:1 f8:1 f8:1 i8:1 i1:1 i1:2 f8:2 f8",
-    E.Bank: "i8 i8 f8:1 i8:1 i8 i8 f8:2 f8:2 f8:3 i8 i8 i8:1",
+    E.Bank: "i8 i8 f8:1 i8:1 i8 i8 f8:2 f8:2 f8:3 i8 i8 i8:1 f8:2 f8:3 f8:2 f8:1 f8:1 f8:2 f8:2 f8:2 f8:2 f8:1 i8:1",
     E.Outer: "f8:1 f8:2 f8:2 f8:2 i8:1 i8 f8 f8:2 i8 f8 b1",
     E.Window: "f8 f8:2 f8:3 i8:2",
     E.Rec: "f8:2 f8:2 f8:2 f8:2 i1:2 i1:1 i8",

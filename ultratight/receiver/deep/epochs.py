@@ -6,7 +6,7 @@ One epoch (:func:`run_epochs`, in this order; every step is a compiled stage of 
     IF block (noise sigma of its aligned block) ─► correlators (one code period per channel,
     receiver.dsp.correlator; channels spread over the threads)
     ─► noise events inside the receiver (receiver.dsp.burst; none by default) ─► data wipe-off
-    (receiver.dsp.wipeoff) ─► tracking bank epoch (fusion.channel.prefilter.bank_channel_epoch or
+    (receiver.dsp.wipeoff) ─► tracking bank epoch (fusion.channel.prefilter.channel_update or
     fusion.channel.pbkf.pbkf_channel_epoch) ─► recorder + residuals against the outer loop's predictions
     + decimator window + outer-loop aiding of the next interval (:func:`epoch_post`)
     ─► inner-loop NCO command (fusion.channel.innerloop)
@@ -30,7 +30,8 @@ from numba import njit, prange
 
 from ultratight.fusion.channel.innerloop import feedback_one
 from ultratight.fusion.channel.pbkf import pbkf_channel_epoch, pbkf_note_correction_one
-from ultratight.fusion.channel.prefilter import N_W1, N_W2, NZ, bank_channel_epoch
+from ultratight.fusion.channel.prefilter import (FLAG_DIVERGED, N_W1, N_W2, NZ, channel_settings, channel_update,
+                                                 inputs_finite)
 from ultratight.fusion.channel.prefilter_model import CNT_EPOCH, ISEG_COUNTERS, packed_int_offsets
 from ultratight.receiver.dsp.burst import burst_one
 from ultratight.receiver.dsp.correlator import correlate_one, step_bank, tap_fixed_point
@@ -52,7 +53,9 @@ If = namedtuple("If", "buf is_complex buf_start n_buf n_total block_len sigma")
 Corr = namedtuple("Corr", "code_ext pad active sample_ptr code_phase code_rate carr_phase carr_freq fs "
                           "tap_off per_max parallel out t_start n_s cp0 f0 sig")
 Wipe = namedtuple("Wipe", "bits t0_ms ms D per_bit code adapt kb acc pol ps pss pn src rec_src soft half_t")
-Bank = namedtuple("Bank", "bank_type kind fbuf ibuf n_prm n_tab x x_post P i_ptau i_pf active")
+# x0 ... flags: the prefilter's arrays (PrefilterBank.kernel_arrays; empty for a PB-KF bank)
+Bank = namedtuple("Bank", "bank_type kind fbuf ibuf n_prm n_tab x x_post P i_ptau i_pf active "
+                          "x0 P0 innov nis theta acc Phi Qd R prm flags")
 Outer = namedtuple("Outer", "ring_t ring_cp ring_r ring_f ring_nf ring_k imu_dt aid_grid n_filled aid_dt sins_more")
 Window = namedtuple("Window", "t_next_upd acc pend pend_ts")
 Rec = namedtuple("Rec", "rec_t rec_f rec_cp rec_a rec_mode mode_now n_ep_max")
@@ -204,6 +207,15 @@ def correlate(src, corr, sig):
 
 
 @njit(cache=True)
+def _prefilter_settings(bank_type, ibuf, n):
+    """:func:`~ultratight.fusion.channel.prefilter_kernels.channel_settings` of a prefilter bank; placeholders
+    for a PB-KF bank, whose buffer has another layout."""
+    if bank_type == BANK_PBKF:
+        return 1, False, 0, 0
+    return channel_settings(ibuf, n)
+
+
+@njit(cache=True)
 def epoch_channel(c, E, k_ep0, epoch0, src, corr, wipe, bank, outer, window, rec, law, sig, burst, tap_fix, W1, W2,
                   WA):
     """``E`` epochs of channel ``c`` from epoch ``k_ep0`` (the tracking bank's epoch count ``epoch0``)
@@ -235,6 +247,9 @@ def epoch_channel(c, E, k_ep0, epoch0, src, corr, wipe, bank, outer, window, rec
     law_aid, law_aid_prev, law_aid_prev_ff, law_dx = law.aid, law.aid_prev, law.aid_prev_ff, law.dx
     law_hist, law_prm, law_rate_prev, law_use_aid = law.hist, law.prm, law.rate_prev, law.use_aid
     window_pend, window_pend_ts, burst_rscale = window.pend, window.pend_ts, burst.rscale
+    b_x0, b_P0, b_innov, b_nis, b_theta, b_acc = bank.x0, bank.P0, bank.innov, bank.nis, bank.theta, bank.acc
+    b_Phi, b_Qd, b_R, b_prm, b_flags = bank.Phi, bank.Qd, bank.R, bank.prm, bank.flags
+    period, robust_every, win_mode, resets_at = _prefilter_settings(bank_bank_type, bank_ibuf, corr_sample_ptr.shape[0])
     for e in range(E):
         k_ep = k_ep0 + e
         e_row = e
@@ -253,8 +268,15 @@ def epoch_channel(c, E, k_ep0, epoch0, src, corr, wipe, bank, outer, window, rec
                      corr_out, bank_x, wipe_half_t)
         if bank_bank_type == BANK_PBKF:
             sb = pbkf_channel_epoch(bank_fbuf, bank_ibuf, c, corr_out, wipe_D, burst_rscale, bank_n_prm, bank_n_tab)
-        else:
-            sb = bank_channel_epoch(bank_kind, bank_fbuf, bank_ibuf, c, corr_out, wipe_D, burst_rscale, epoch, W1, W2)
+        else:       # the prefilter's epoch (prefilter_kernels.channel_settings) with its arrays held
+            if bank_active[c] and not inputs_finite(c, corr_out, wipe_D):
+                return ERR_BANK
+            channel_update(bank_kind, c, bank_x, bank_P, bank_x_post, b_x0, b_P0, b_Phi, b_Qd, b_R, corr_out, wipe_D,
+                           burst_rscale, bank_active, b_prm, epoch % period == 0, robust_every, win_mode, b_innov,
+                           b_nis, b_theta, b_flags, W1, W2, b_acc)
+            if (b_flags[c] & FLAG_DIVERGED) != 0:
+                bank_ibuf[resets_at + c] += 1
+            sb = 0
         if sb < 0:
             return ERR_BANK
         record_one(c, k_ep, corr_t_start, corr_fs, sig_if_hz, corr_f0, corr_cp0, bank_x_post, bank_P, bank_i_ptau,

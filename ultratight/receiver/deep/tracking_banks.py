@@ -82,7 +82,7 @@ def bank_view(bank):
     if isinstance(bank, pbkf.PbKfBank):
         fbuf, ibuf, n_prm, n_tab = bank.packed
         return Bank(BANK_PBKF, 0, fbuf, ibuf, n_prm, n_tab, bank.x, bank.x_post, bank.P, bank.P_ITAU, bank.P_IF,
-                    bank.active_flags)
+                    bank.active_flags, *prefilter.empty_kernel_arrays())
     kind, fbuf, ibuf = bank.packed
     return Bank(BANK_PREFILTER, kind, fbuf, ibuf, 0, 0, bank.x, bank.x_post, bank.P, bank.P_ITAU, bank.P_IF,
-                bank.active_flags)
+                bank.active_flags, *bank.kernel_arrays())
