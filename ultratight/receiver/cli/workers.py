@@ -73,8 +73,8 @@ def fix_mmap_threshold(streaming=False):
 def streaming_heap():
     """The streaming thresholds of :func:`fix_mmap_threshold` inside the block, the fixed threshold (and
     glibc's default heap top) after it, and the heap released: for the process that generates the IF
-    ring of a run (3.2 MB blocks every 100 ms at 4 MHz: 0.9 of the main job's 1.7 million page faults
-    came from mapping them fresh) while the per-epoch results it collects afterwards are unmapped when
+    ring of a run (3.2 MB blocks every 100 ms at 4 MHz: mapping them fresh made about 0.6 of the main job's
+    1.7 million page faults) while the per-epoch results it collects afterwards are unmapped when
     freed."""
     fix_mmap_threshold(streaming=True)
     try:

@@ -252,7 +252,6 @@ def epoch_channel(c, E, k_ep0, epoch0, src, corr, wipe, bank, outer, window, rec
     period, robust_every, win_mode, resets_at = _prefilter_settings(bank_bank_type, bank_ibuf, corr_sample_ptr.shape[0])
     for e in range(E):
         k_ep = k_ep0 + e
-        e_row = e
         epoch = epoch0 + e
         corr_cp0[c] = corr_code_phase[c]
         corr_f0[c] = corr_carr_freq[c]
@@ -267,7 +266,8 @@ def epoch_channel(c, E, k_ep0, epoch0, src, corr, wipe, bank, outer, window, rec
                      wipe_acc, wipe_pol, wipe_ps, wipe_pss, wipe_pn, wipe_src, wipe_rec_src, wipe_soft,
                      corr_out, bank_x, wipe_half_t)
         if bank_bank_type == BANK_PBKF:
-            sb = pbkf_channel_epoch(bank_fbuf, bank_ibuf, c, corr_out, wipe_D, burst_rscale, bank_n_prm, bank_n_tab)
+            if pbkf_channel_epoch(bank_fbuf, bank_ibuf, c, corr_out, wipe_D, burst_rscale, bank_n_prm, bank_n_tab) < 0:
+                return ERR_BANK
         else:       # the prefilter's epoch (prefilter_kernels.channel_settings) with its arrays held
             if bank_active[c] and not inputs_finite(c, corr_out, wipe_D):
                 return ERR_BANK
@@ -276,13 +276,10 @@ def epoch_channel(c, E, k_ep0, epoch0, src, corr, wipe, bank, outer, window, rec
                            b_nis, b_theta, b_flags, W1, W2, b_acc)
             if (b_flags[c] & FLAG_DIVERGED) != 0:
                 bank_ibuf[resets_at + c] += 1
-            sb = 0
-        if sb < 0:
-            return ERR_BANK
         record_one(c, k_ep, corr_t_start, corr_fs, sig_if_hz, corr_f0, corr_cp0, bank_x_post, bank_P, bank_i_ptau,
                    bank_i_pf, rec_rec_t, rec_rec_f, rec_rec_cp, rec_rec_a, rec_rec_mode, rec_mode_now, outer_aid_grid,
                    outer_n_filled, corr_sample_ptr, sig_half_period_s, sig_code_len, law_aid, outer_aid_dt,
-                   window_pend[e_row], window_pend_ts[e_row])
+                   window_pend[e], window_pend_ts[e])
         feedback_one(c, bank_x, bank_active, corr_code_phase, corr_code_rate, corr_carr_phase, corr_carr_freq,
                      law_aid, law_aid_prev, law_rate_prev, law_hist, law_use_aid, law_prm, law_dx)
         if bank_bank_type == BANK_PBKF:
