@@ -71,7 +71,7 @@ def recorded_run(monkeypatch):
     state = {"cold": True}
 
     class Pool:
-        def __init__(self, workers, preload=(), processes=None, threads=1):
+        def __init__(self, workers, preload=(), processes=None, threads=1, join_on_exit=True):
             events.append(("start", workers, threads))
 
         def __enter__(self):

@@ -50,3 +50,45 @@ def test_a_failure_here_does_not_wait_for_the_queued_jobs():
     with pytest.raises(KeyboardInterrupt):
         workers._run_job(workers._on_sigint, (signal.SIGINT, None))
     assert workers._BUSY is False
+
+
+def _pid_and_exit_later():
+    import os
+    return os.getpid()
+
+
+@pytest.mark.parametrize("join", [True, False])
+def test_workers_end_with_status_zero_whether_joined_or_not(join):
+    """The workers end through :func:`workers._exit_now` (no interpreter teardown) with status 0; with
+    ``join_on_exit=False`` leaving the block does not wait for them, and they still end."""
+    import time
+    with workers.WorkerPool(2, processes=True, join_on_exit=join) as pool:
+        pool.map(_pid_and_exit_later, [(), ()])
+        procs = list(pool._pool._processes.values())
+    t0 = time.perf_counter()        # the executor's thread reaps them: their status is polled
+    while any(p.exitcode is None for p in procs) and time.perf_counter() - t0 < 30.0:
+        time.sleep(0.05)
+    assert [p.exitcode for p in procs] == [0, 0]
+
+
+def test_a_worker_ended_by_a_signal_keeps_its_status():
+    """An idle worker's SIGINT ends it with 128 + SIGINT, also through the fast exit."""
+    import multiprocessing
+    import os
+    import signal
+    import time
+    ctx = multiprocessing.get_context("spawn")
+    p = ctx.Process(target=_idle_worker)
+    p.start()
+    time.sleep(3.0)                 # the worker imports and waits
+    assert p.exitcode is None
+    os.kill(p.pid, signal.SIGINT)
+    p.join(timeout=30)
+    assert p.exitcode == 128 + signal.SIGINT
+
+
+def _idle_worker():
+    import time
+    workers._init_worker(())
+    while True:
+        time.sleep(0.1)

@@ -50,7 +50,8 @@ from ultratight.receiver.cli.scenario_config import IMU_DEFAULTS, load_scenario
 from ultratight.receiver.deep.startup import StartupErrors, perturb_state
 from ultratight.cores import plan
 from ultratight.receiver.cli.first_run import drop_if_file, first_compilation, write_if_ahead
-from ultratight.receiver.cli.scenario_results import SCHEMA, write_results_h5  # noqa: F401 (SCHEMA: public here)
+from ultratight.receiver.cli.scenario_results import (SCHEMA, deflate_pool, pack_result,  # noqa: F401 (SCHEMA: public here)
+                                                      write_results_h5)
 from ultratight.receiver.cli.workers import (WorkerPool, check_workers, fix_mmap_threshold, release_heap,
                                              streaming_heap, warm_up)
 from ultratight.signals.constellation import ephemerides_for
@@ -343,8 +344,15 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
     except OSError as exc:
         raise output_error(out, exc, "cannot create output directory") from None
     fix_mmap_threshold()        # per-epoch result arrays return to the system when freed
-    per, raw = _run_all(cfg, methods, int(runs), base_seed, out, channel, progress, options, workers, bool(cache))
-    return _report(name, cfg, methods, int(runs), base_seed, out, channel, plots, options, per, raw)
+    packed = {}                 # results.h5's arrays, compressed on threads as each result comes in
+    with deflate_pool() as deflater:
+        try:
+            per, raw = _run_all(cfg, methods, int(runs), base_seed, out, channel, progress, options, workers,
+                                bool(cache), packed=(packed, deflater))
+            return _report(name, cfg, methods, int(runs), base_seed, out, channel, plots, options, per, raw, packed)
+        except BaseException:
+            deflater.shutdown(wait=False, cancel_futures=True)
+            raise
 
 
 WARM_S = 0.5     # s of signal each method runs in one worker before the jobs start (_warm_methods)
@@ -387,8 +395,11 @@ def _method_job(paths, cfg, method, seed, options, threads=1):
     return res
 
 
-def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, workers=None, cache=False):
-    """Every method on every run's data: per-run summaries and raw (result, errors) per (run, method).
+def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, workers=None, cache=False,
+             packed=None):
+    """Every method on every run's data: per-run summaries and raw (result, errors) per (run, method);
+    ``packed`` = (dict, thread pool): each result's ``results.h5`` entry is packed into the dict on the
+    pool as it comes in (:func:`ultratight.receiver.cli.scenario_results.pack_result`).
 
     The data of every run are prepared first, here (``cache``: with the IF files); then the (run, method)
     jobs run in worker processes (:mod:`ultratight.receiver.cli.workers`), as many as :func:`ultratight.cores.
@@ -422,6 +433,8 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
         if r not in truths:                  # one truth per run, shared by its methods
             truths[r] = load_truth(all_paths[r]["truth"])
         per_job[i] = _summarize_method(res, truths[r], channel, base_seed + r)
+        if packed is not None:
+            packed[0][(r, m)] = pack_result(*per_job[i][1], packed[1])
         if progress:
             summ = per_job[i][0]
             print(f"  {m:10s} {'' if runs == 1 else f'(seed {base_seed + r}) '}Doppler RMS "
@@ -431,8 +444,9 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
 
     first = not here and first_compilation()         # numba's cache lacks the engine: a first run
     # the workers start (and import the engine) while this process generates the data
+    # the workers are not waited for at the end: they end while this process writes the outputs
     with WorkerPool(max(n_workers, 2) if first else n_workers, preload=(__name__,), processes=not here,
-                    threads=threads) as pool:
+                    threads=threads, join_on_exit=False) as pool:
         if first:           # the epoch chain's late part compiled in a second worker meanwhile
             pool.start(compile_ahead)
         # several workers would compile the same kernels: compiled by one first, meanwhile the data (on a
@@ -528,8 +542,9 @@ def _summarize_method(res, truth, channel, seed):
     return summ, (res, d_err, c_err)
 
 
-def _report(name, cfg, methods, runs, base_seed, out, channel, plots, options, per, raw):
-    """metrics.json, results.h5, figures and the text tables of a scenario run."""
+def _report(name, cfg, methods, runs, base_seed, out, channel, plots, options, per, raw, packed=None):
+    """metrics.json, results.h5 (``packed``: its entries packed so far), figures and the text tables of a
+    scenario run."""
     dur = float(cfg["duration_s"])
     segs = M.SEGMENTS_S
     agg = aggregate_methods(cfg, per, raw, methods, channel)
@@ -543,12 +558,12 @@ def _report(name, cfg, methods, runs, base_seed, out, channel, plots, options, p
     mpath = out / "metrics.json"
     write_text_atomic(mpath, json.dumps(json_clean(js), indent=2))
     hpath = out / "results.h5"
-    # each (run, method) is dropped once in the file's image, but for what the figures draw (run 0)
-    write_results_h5(hpath, cfg, run_settings(cfg), raw, methods, runs, base_seed, consume=True,
-                     keep={(0, m) for m in methods} if plots else ())
+    # the figures first, while the threads still compress the last results' arrays (results_h5 waits
+    # for them); then each (run, method) is dropped once in the file's image
+    figs = make_plots(out, raw, methods, channel) if plots else []
+    write_results_h5(hpath, cfg, run_settings(cfg), raw, methods, runs, base_seed, consume=True, packed=packed)
     note_complete(mpath)
     note_complete(hpath)
-    figs = make_plots(out, raw, methods, channel) if plots else []
     text = M.format_tables(agg, segs) + "\n" + (
         f"\n{runs} run(s), seeds {base_seed}..{base_seed + runs - 1}; RMS over all channels and runs; "
         "'\\' = lock lost (diverged) in that segment.")
