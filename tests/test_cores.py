@@ -120,9 +120,9 @@ def test_scenario_command_on_one_and_two_cores(machine, monkeypatch, tmp_path, c
     pools = []
 
     class Pool(scenario_runner.WorkerPool):
-        def __init__(self, workers, preload=(), processes=None, threads=1):
+        def __init__(self, workers, preload=(), processes=None, threads=1, **kw):
             pools.append((workers, threads))
-            super().__init__(workers, preload, processes, threads)
+            super().__init__(workers, preload, processes, threads, **kw)
 
     monkeypatch.setattr(scenario_runner, "WorkerPool", Pool)
     out = tmp_path / "X"

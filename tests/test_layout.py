@@ -3,8 +3,8 @@ a folder, and the size limits that keep every room readable.
 
 Layers, left to right: ``ins ← signals ← fusion ← receiver``, with ``airdata`` beside ``ins`` (it may
 import ``ins``); the top-level modules (``errors``, ``constants``, ``config``, ``cores``,
-``io_guard``) are usable from every layer and import none. Inside a layer, the sub-packages run one
-way too (:data:`INNER`): ``receiver``'s ``io`` and ``dsp`` at the bottom, ``scalar`` above them,
+``io_guard``, ``chi2``, ``h5deflate``) are usable from every layer and import none. Inside a layer, the
+sub-packages run one way too (:data:`INNER`): ``receiver``'s ``io`` and ``dsp`` at the bottom, ``scalar`` above them,
 ``deep`` above ``scalar``, ``cli`` on top. Every import counts, also those inside functions.
 """
 
@@ -22,7 +22,7 @@ ALLOWED = {
     "fusion": {"ins", "signals", "airdata"},
     "receiver": {"ins", "signals", "fusion", "airdata"},
 }
-TOP_LEVEL = {"errors", "constants", "config", "cores", "io_guard", "chi2"}
+TOP_LEVEL = {"errors", "constants", "config", "cores", "io_guard", "chi2", "h5deflate"}
 # inside a layer: what each sub-package may import from its siblings ("" = the layer's own files)
 INNER = {
     "signals": {"": set(), "recording": {""}, "synth": {"", "recording"}},

@@ -44,12 +44,13 @@ def test_shared_if_ring_equals_one_stream_per_method(tmp_path, capsys):
 
 
 def test_without_shared_memory_each_method_streams_its_own_if(tmp_path, capsys, monkeypatch):
-    from ultratight.receiver.cli import scenario_runner
+    from ultratight.receiver.cli import scenario_data, scenario_runner
+
     class NoShm:
         def __init__(self, *a, **k):
             raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(scenario_runner, "IfRing", NoShm)
+    monkeypatch.setattr(scenario_data, "IfRing", NoShm)
     monkeypatch.setattr(scenario_runner, "write_if_ahead", lambda *a, **k: False)    # whatever numba's cache holds
     kw = dict(methods=("dlb-rackf", "pb-kf-utc"), runs=1, seed=4, duration_s=1.0, plots=False, overrides=CUT)
     run_scenario("paper-highdyn", out_dir=tmp_path / "one", workers=1, progress=False, **kw)

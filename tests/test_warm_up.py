@@ -100,6 +100,9 @@ def recorded_run(monkeypatch):
 
     monkeypatch.setattr(scenario_runner, "WorkerPool", Pool)
     monkeypatch.setattr(scenario_runner, "write_if_ahead", lambda *a, **k: False)    # whatever numba's cache holds
+    # whatever runs completed before: no run of this kind known (test_a_known_warm_cache_skips_the_warm_up)
+    monkeypatch.setattr(scenario_runner, "warm_cache_known", lambda key: state.get("known", False))
+    monkeypatch.setattr(scenario_runner, "note_warm_cache", lambda key: events.append(("noted", key)))
     monkeypatch.setattr(scenario_runner, "run_method", run_method)
     # a first run: the epoch chain's late part compiled ahead in another worker (recorded, not compiled here)
     monkeypatch.setattr(scenario_runner, "first_compilation", lambda: state["cold"])
@@ -112,13 +115,18 @@ def recorded_run(monkeypatch):
     monkeypatch.setattr(scenario_runner, "prepare_data",
                         lambda cfg, seed, out, **k: ({"truth": "warm.h5", "if_seed": seed}, False))
 
-    def go(methods, workers=None, cold=True):
+    def go(methods, workers=None, cold=True, known=False):
         state["cold"] = cold
+        state["known"] = known
         cfg = scenario_runner.scenario_config("paper-highdyn", methods, 1, 2.0)
         shared = workers is None and len(methods) > 1
         if shared:
-            monkeypatch.setattr(scenario_runner, "_map_shared",
-                                lambda pool, cfg, methods, runs, seed, jobs, done: pool.map(None, jobs))
+            def map_shared(pool, cfg, methods, base_seed, out, channel, progress, tail, all_paths, done, ready=None):
+                if ready is not None:
+                    ready()             # the warm-up, waited for before the jobs are handed out
+                pool.map(None, [({}, cfg, m, base_seed) + tail for m in methods])
+
+            monkeypatch.setattr(scenario_runner, "_map_shared", map_shared)
         with pytest.raises(_Stop):
             scenario_runner._run_all(cfg, list(methods), 1, 1, "unused", 0, False, None, workers)
         return events
@@ -145,6 +153,46 @@ def test_warm_cache_runs_only_the_first_method_here(recorded_run):
     events = recorded_run(["dlb-rackf", "dlb-ckf", "pb-kf-utc"], workers=3, cold=False)
     assert [e[:3] for e in events[1:]] == [("call", "_warm_methods"), ("method", "dlb-rackf", scenario_runner.WARM_S),
                                           ("jobs", ["dlb-rackf", "dlb-ckf", "pb-kf-utc"])]
+
+
+def test_a_known_warm_cache_skips_the_warm_up(recorded_run):
+    """A run of the same kind completed since the sources changed (first_run.warm_cache_known): the
+    workers get their jobs at once; on a first run (the engine not in the cache) the warm-up stays."""
+    events = recorded_run(["dlb-rackf", "dlb-ckf", "pb-kf-utc"], workers=3, cold=False, known=True)
+    assert [e[0] for e in events] == ["start", "jobs"]
+    events.clear()
+    events = recorded_run(["dlb-rackf", "dlb-ckf"], workers=2, cold=True, known=True)
+    assert ("call", "_warm_methods") in events
+
+
+def test_the_kind_of_run_follows_the_sources(tmp_path, monkeypatch):
+    """warm_key changes with a source file's modification time or size and with the run's settings;
+    note_warm_cache / warm_cache_known keep the keys in a marker beside numba's cache."""
+    from ultratight.receiver.cli import first_run
+    src = tmp_path / "src" / "pkg"
+    src.mkdir(parents=True)
+    (src / "a.py").write_text("x = 1\n")
+    (src / "b.py").write_text("y = 2\n")
+    monkeypatch.setattr(first_run, "_marker_path", lambda: tmp_path / first_run.WARM_MARKER)
+
+    def key(*what):
+        return first_run.warm_key(*what, root=tmp_path / "src")
+
+    a = key(["dlb-rackf"], 1, {"frontend": {"fs_hz": 4e6}})
+    assert a == key(["dlb-rackf"], 1, {"frontend": {"fs_hz": 4e6}})
+    assert a != key(["dlb-ckf"], 1, {"frontend": {"fs_hz": 4e6}})
+    assert a != key(["dlb-rackf"], 1, {"frontend": {"fs_hz": 2e6}})
+    assert not first_run.warm_cache_known(a)
+    first_run.note_warm_cache(a)
+    assert first_run.warm_cache_known(a)
+    st = (src / "a.py").stat()
+    os.utime(src / "a.py", ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000_000))
+    b = key(["dlb-rackf"], 1, {"frontend": {"fs_hz": 4e6}})
+    assert b != a and not first_run.warm_cache_known(b)
+    os.utime(src / "a.py", ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert key(["dlb-rackf"], 1, {"frontend": {"fs_hz": 4e6}}) == a
+    (src / "b.py").write_text("y = 22\n")              # another size
+    assert key(["dlb-rackf"], 1, {"frontend": {"fs_hz": 4e6}}) != a
 
 
 @pytest.mark.parametrize("methods,workers,cold", [

@@ -95,3 +95,81 @@ def drop_if_file(paths, lock, version):
                 (d / rec["name"]).unlink()
             except OSError:
                 pass
+
+
+# ------------------------------------------------------------------------------------------
+# a warm cache known to hold a run's kernels: no warm-up
+# ------------------------------------------------------------------------------------------
+WARM_MARKER = "ultratight-warm-runs.json"
+WARM_MARKER_KEYS = 64          # run kinds remembered
+
+
+def _sources_stamp(root=None):
+    """numba's cache is valid for a kernel while its source file keeps its modification time and size:
+    those of every module of the package (or under ``root``), with numba's and Python's versions."""
+    import sys
+
+    import numba
+
+    root = Path(__file__).resolve().parents[2] if root is None else Path(root)
+    files = sorted(root.rglob("*.py"))
+    parts = [numba.__version__, sys.version]
+    for p in files:
+        try:
+            st = p.stat()
+        except OSError:
+            continue
+        parts.append(f"{p.relative_to(root)}:{st.st_mtime_ns}:{st.st_size}")
+    return parts
+
+
+def warm_key(*what, root=None):
+    """The key of a kind of run (``what``: anything JSON can hold that decides which kernels and
+    argument types it compiles, e.g. the methods, the generator's front end and the engine's options)
+    at the package's current sources (``root``: another source tree's)."""
+    import hashlib
+
+    blob = json.dumps([_sources_stamp(root), what], sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:24]
+
+
+def _marker_path():
+    try:
+        from ultratight.receiver.deep.epochs import run_epochs
+        return Path(run_epochs._cache._cache_path) / WARM_MARKER
+    except Exception:            # noqa: BLE001 - numba's cache layout is not public: no marker
+        return None
+
+
+def warm_cache_known(key):
+    """Whether a run of kind ``key`` (:func:`warm_key`) completed since the sources last changed: its
+    kernels are then in numba's cache (it compiled them, or loaded them), and the run's warm-up
+    (:func:`ultratight.receiver.cli.workers.warm_up`) would only load them once more. The marker
+    lives beside numba's cache files, so removing the cache removes it too."""
+    path = _marker_path()
+    if path is None or not path.is_file():
+        return False
+    try:
+        return key in json.loads(path.read_text(encoding="utf-8")).get("keys", [])
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+def note_warm_cache(key):
+    """Record that a run of kind ``key`` completed (:func:`warm_cache_known`); quietly nothing where the
+    cache folder cannot be written (numba does not cache there either)."""
+    path = _marker_path()
+    if path is None or not path.parent.is_dir():
+        return
+    keys = []
+    try:
+        keys = list(json.loads(path.read_text(encoding="utf-8")).get("keys", []))
+    except (OSError, ValueError, AttributeError):
+        pass
+    if key in keys:
+        return
+    keys = (keys + [key])[-WARM_MARKER_KEYS:]
+    try:
+        write_text_atomic(path, json.dumps({"keys": keys}))
+    except OSError:
+        pass

@@ -23,18 +23,15 @@ figures like the paper's Fig. 4–7 when matplotlib is installed.
 """
 
 import dataclasses
-import hashlib
 import json
 import sys
 import time
-from contextlib import contextmanager
 from pathlib import Path
 
-import h5py
 import numpy as np
 
 from ultratight import __version__, io_guard
-from ultratight.errors import ConfigError, InputFileError
+from ultratight.errors import ConfigError
 from ultratight.ins.imu_data import read_imu_h5
 from ultratight.ins.trajectory import build_trajectory
 from ultratight.io_guard import atomic_path, json_clean, note_complete, output_error, write_text_atomic
@@ -49,134 +46,20 @@ from ultratight.receiver.deep.scalar_reference import run_scalar  # noqa: F401 (
 from ultratight.receiver.cli.scenario_config import IMU_DEFAULTS, load_scenario
 from ultratight.receiver.deep.startup import StartupErrors, perturb_state
 from ultratight.cores import plan
-from ultratight.receiver.cli.first_run import drop_if_file, first_compilation, write_if_ahead
+from ultratight.receiver.cli.first_run import (drop_if_file, first_compilation, note_warm_cache, warm_cache_known,
+                                               warm_key, write_if_ahead)
+from ultratight.receiver.cli.scenario_data import (CACHE_VERSION, DATA_MODEL, NoSharedMemory,  # noqa: F401
+                                                   _cache_lock, _cfg_key, _generator_cfg, load_truth,
+                                                   prepare_data, shared_run_data)
 from ultratight.receiver.cli.scenario_results import (SCHEMA, deflate_pool, pack_result,  # noqa: F401 (SCHEMA: public here)
                                                       write_results_h5)
 from ultratight.receiver.cli.workers import (WorkerPool, check_workers, fix_mmap_threshold, release_heap,
                                              streaming_heap, warm_up)
 from ultratight.signals.constellation import ephemerides_for
-from ultratight.signals.synth.generator import generate, generation_estimate
+from ultratight.signals.synth.generator import generation_estimate
 from ultratight.signals.recording.iffile import open_if
-from ultratight.signals.synth.ifring import IfRing, RingIf
+from ultratight.signals.synth.ifring import RingIf
 from ultratight.signals.synth.ifstream import GeneratedIf
-
-try:
-    import fcntl
-except ImportError:      # pragma: no cover - no fcntl (not POSIX): cache entries are not locked
-    fcntl = None
-
-def _cfg_key(cfg):
-    evs = cfg.get("noise_events") or []
-    if any(event_place(ev) != PLACE_IF for ev in evs):
-        # noise events inside the receiver do not change the data: one cache entry for their readings
-        cfg = dict(cfg, noise_events=[ev for ev in evs if event_place(ev) == PLACE_IF])
-    blob = json.dumps(cfg, sort_keys=True, default=str) + __version__ + DATA_MODEL
-    return hashlib.sha256(blob.encode()).hexdigest()[:16]
-
-
-# the generated data's model, part of the cache key: entries of an older model are never reused
-# ("imu-realised": the IMU sensor drawn per seed from the [imu] declaration, ultratight.ins.imu)
-DATA_MODEL = "imu-realised"
-CACHE_VERSION = 2       # done.json layout: {"version", "files": {kind: {"name", "size"}}}
-
-
-def _cache_entry_ok(d, done, need_if=True):
-    """Paths of a verified cache entry, or None (missing, unparsable, wrong sizes, bad sidecar; without
-    the IF file when ``need_if``)."""
-    try:
-        entry = json.loads(done.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    if not isinstance(entry, dict) or entry.get("version") != CACHE_VERSION or not isinstance(entry.get("files"), dict):
-        return None
-    paths = {}
-    for kind, rec in entry["files"].items():
-        if not isinstance(rec, dict) or not isinstance(rec.get("name"), str) or "/" in rec["name"]:
-            return None
-        p = d / rec["name"]
-        try:
-            if not p.is_file() or p.stat().st_size != rec.get("size"):
-                return None
-        except OSError:
-            return None
-        paths[kind] = p
-    if "truth" not in paths or (need_if and "if" not in paths):
-        return None
-    if "if" in paths:
-        try:
-            open_if(paths["if"]).close()
-        except (OSError, ValueError):
-            return None
-    return paths
-
-
-@contextmanager
-def _cache_lock(d):
-    """Exclusive per-key lock (``fcntl.flock`` on ``OUT/cache/<key>.lock``): concurrent runs of the same
-    configuration wait for each other instead of writing the same files."""
-    lock_path = d.with_name(d.name + ".lock")
-    fh = open(lock_path, "a+")
-    try:
-        if fcntl is not None:
-            fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
-        yield
-    finally:
-        fh.close()               # releases the lock
-
-
-def prepare_data(cfg, seed, out_dir, progress=False, cache_if=True):
-    """Generate the scenario's files under OUT/cache/<key>/ unless a verified entry is already there.
-
-    The entry is guarded by a per-key lock; ``done.json`` records every file's name and size and is
-    written last (atomically); an entry that does not verify is regenerated. ``cache_if=False``: the
-    entry needs no IF file (one without is generated without it) and the paths returned have no
-    ``if``/``meta`` but ``if_seed``, the seed :func:`run_method` streams the IF of."""
-    c = _generator_cfg(cfg)          # processing settings are not part of the generated data
-    c["seed"] = int(seed)
-    key = _cfg_key(c)
-    d = Path(out_dir) / "cache" / key
-    done = d / "done.json"
-    try:
-        d.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise output_error(d.parent, exc, "cannot create cache directory") from None
-    with _cache_lock(d):
-        paths = _cache_entry_ok(d, done, need_if=cache_if) if done.is_file() else None
-        if paths is not None:
-            return _data_paths(paths, cache_if, seed), True
-        try:
-            done.unlink()
-        except FileNotFoundError:
-            pass
-        except OSError as exc:
-            raise output_error(done, exc, "cannot remove stale cache entry") from None
-        try:
-            d.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise output_error(d, exc, "cannot create cache directory") from None
-        try:
-            res = generate(c, d, "data", seed=int(seed), progress=progress, write_if=cache_if)
-        except BaseException as exc:
-            try:
-                d.rmdir()                # only when empty: the generator removed its temporary files
-            except OSError:
-                pass
-            if isinstance(exc, OSError) and not isinstance(exc, (ConfigError, InputFileError)):
-                raise output_error(d, exc, "cannot write scenario data in") from None
-            raise
-        files = {k: {"name": Path(v).name, "size": Path(v).stat().st_size} for k, v in res.items() if k != "summary"}
-        write_text_atomic(done, json.dumps({"version": CACHE_VERSION, "files": files}))
-        return _data_paths({k: d / v["name"] for k, v in files.items()}, cache_if, seed), False
-
-
-def _data_paths(paths, cache_if, seed):
-    """The paths a method reads: with the cached IF file, or (streamed) without it and with ``if_seed``."""
-    if cache_if:
-        return paths
-    out = {k: v for k, v in paths.items() if k not in ("if", "meta")}
-    out["if_seed"] = int(seed)
-    return out
-
 
 def open_source(paths, cfg):
     """The IF source of a run's data: the cached file (``paths["if"]``) or, without one, the generator of
@@ -190,24 +73,6 @@ def open_source(paths, cfg):
     if "if_ring" in paths:
         return RingIf(c, int(paths["if_seed"]), paths["if_ring"], int(paths["if_consumer"]))
     return GeneratedIf(c, int(paths["if_seed"]))
-
-
-def _generator_cfg(cfg):
-    """The generator's part of a scenario (processing settings left out)."""
-    return {k: v for k, v in cfg.items() if k not in ("source_file", "engine")}
-
-
-def load_truth(path):
-    """Truth arrays of the generator (docs/generator.md): t_s (n,), prn (n_ch,), code phase,
-    Doppler (n, n_ch)."""
-    try:
-        with h5py.File(path, "r") as f:
-            return {"t_s": f["t_s"][()], "prn": [int(p) for p in f.attrs["prn"]],
-                    "code_phase_chips": f["code_phase_chips"][()], "doppler_hz": f["doppler_hz"][()],
-                    "config": json.loads(f.attrs["config_json"]), "fs_hz": float(f.attrs["fs_hz"]),
-                    "week": int(f.attrs["week"]), "tow0_s": float(f.attrs["tow0_s"])}
-    except (OSError, KeyError) as exc:
-        raise InputFileError(f"{path}: cannot read generator truth ({exc})") from None
 
 
 def truth_initial_state(cfg):
@@ -273,7 +138,9 @@ def run_method(paths, cfg, method, seed, options=None, startup_errors=None, dura
     generator); returns (EngineResult, truth dict)."""
     spec = method_spec(method)
     options = engine_options_for(cfg, options, seed)
-    truth = load_truth(paths["truth"])
+    # what the method reads of the truth (satellites, time base): given while the truth is still being
+    # written (scenario_data.shared_run_data), else from the file
+    truth = paths.get("truth_head") or load_truth(paths["truth"])
     if not spec.scalar and "imu" not in paths:
         raise ConfigError(f"method {method!r} needs the scenario's IMU data; the scenario has no [imu] table")
     src = open_source(paths, cfg)
@@ -356,6 +223,8 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
 
 
 WARM_S = 0.5     # s of signal each method runs in one worker before the jobs start (_warm_methods)
+# what does not change the kernels a run compiles (first_run.warm_key): its length, seed, name and text
+RUN_ONLY_KEYS = ("duration_s", "seed", "name", "description")
 
 
 def _start_warm_up(pool, cfg, methods, seed, options, threads, progress, out):
@@ -413,17 +282,8 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
     beside the engines: it is reserved (:func:`ultratight.cores.plan`)."""
     n_jobs = runs * len(methods)
     shared = not cache and workers is None and len(methods) > 1
-    cores = plan(len(methods) if shared else n_jobs, workers=len(methods) if shared else workers,
-                 threads=getattr(options, "threads", None), reserved=0 if cache else 1)
-    n_workers, threads = cores.workers, cores.threads
     here = workers is not None and int(workers) == 1
-    ahead = write_if_ahead(runs, n_workers, shared, generation_estimate(_generator_cfg(cfg))["if_bytes"], out)
-    if ahead:                   # the methods read a file, as with --cache: one worker per core
-        cores = plan(n_jobs, threads=getattr(options, "threads", None))
-        n_workers, threads = cores.workers, cores.threads
-        if progress:
-            print("numba's cache is empty (the first run after an install): the IF is written into the cache while "
-                  "the kernels compile, and removed after the run", flush=True)
+    n_workers, threads, ahead = _worker_plan(cfg, len(methods), runs, out, options, workers, cache, shared, progress)
     per_job = {}
     keys = [(r, m) for r in range(runs) for m in methods]
     truths = {}
@@ -436,11 +296,7 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
         if packed is not None:
             packed[0][(r, m)] = pack_result(*per_job[i][1], packed[1])
         if progress:
-            summ = per_job[i][0]
-            print(f"  {m:10s} {'' if runs == 1 else f'(seed {base_seed + r}) '}Doppler RMS "
-                  f"{np.round(summ['doppler_rms_hz'], 4).tolist()} Hz, code RMS "
-                  f"{np.round(summ['code_rms_chips'], 4).tolist()} chip, lost {summ['lock_lost_channels']}, "
-                  f"{res.runtime_s:.1f} s (real-time factor {summ['realtime_factor']:.3f})", flush=True)
+            _print_method_line(m, None if runs == 1 else base_seed + r, per_job[i][0], res)
 
     first = not here and first_compilation()         # numba's cache lacks the engine: a first run
     # the workers start (and import the engine) while this process generates the data
@@ -450,62 +306,116 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
         if first:           # the epoch chain's late part compiled in a second worker meanwhile
             pool.start(compile_ahead)
         # several workers would compile the same kernels: compiled by one first, meanwhile the data (on a
-        # first run also with one worker, which would otherwise start compiling once the data are made)
+        # first run also with one worker, which would otherwise start compiling once the data are made);
+        # not when a run of this kind completed since the sources last changed (its kernels are cached)
+        kind = warm_key(methods, threads, options, {k: v for k, v in cfg.items() if k not in RUN_ONLY_KEYS})
         warm = _start_warm_up(pool, cfg, methods, base_seed, options, threads, progress, out) \
-            if n_workers > 1 or first else None
-        all_paths = [_prepare_run(cfg, r, runs, base_seed + r, out, channel, progress, cache or ahead, shared)
-                     for r in range(runs)]
-        jobs = [(all_paths[r], cfg, m, base_seed + r, options) + (() if here else (threads,)) for r, m in keys]
+            if (n_workers > 1 and not warm_cache_known(kind)) or first else None
+        ring = shared and not ahead          # each run's data made with its ring (_map_shared)
+        all_paths = [None] * runs if ring else [
+            _prepare_run(cfg, r, runs, base_seed + r, out, channel, progress, cache or ahead, shared)
+            for r in range(runs)]
+        tail = (options,) + (() if here else (threads,))
         if progress and not here:
-            how = ", the IF read from the cache" if ahead else ", the IF generated once per run and shared" if shared \
-                else ""
-            print(f"{len(jobs)} method run(s) in {n_workers} worker process(es) of {threads} thread(s){how}",
-                  flush=True)
+            how = ", the IF read from the cache" if ahead else ", the IF generated once per run and shared" * shared
+            print(f"{n_jobs} method run(s) in {n_workers} worker process(es) of {threads} thread(s){how}", flush=True)
         try:
-            if warm is not None:
-                warm.result()
-            if shared and not ahead:
-                _map_shared(pool, cfg, methods, runs, base_seed, jobs, done)
+            if ring:            # the warm-up waited for once the first run's ring produces
+                _map_shared(pool, cfg, methods, base_seed, out, channel, progress, tail, all_paths, done,
+                            ready=warm.result if warm is not None else None)
             else:
+                if warm is not None:
+                    warm.result()
+                jobs = [(all_paths[r], cfg, m, base_seed + r) + tail for r, m in keys]
                 pool.map(_method_here if here else _method_job, jobs, on_done=done)
+            if not here:
+                note_warm_cache(kind)
         finally:
             if ahead:
                 drop_if_file(all_paths[0], _cache_lock, CACHE_VERSION)
     per = {m: [] for m in methods}
     raw = {}
     for i, (r, m) in enumerate(keys):
-        summ, entry = per_job[i]
-        per[m].append(summ)
-        raw[(r, m)] = entry
+        per[m].append(per_job[i][0])
+        raw[(r, m)] = per_job[i][1]
     return per, raw
 
 
-def _map_shared(pool, cfg, methods, runs, base_seed, jobs, done):
-    """Run by run: the run's IF ring (produced in this process), its methods' jobs at the same time
-    (each reading the ring as one consumer), results handed to ``done`` with their job index."""
-    n = len(methods)
+def _worker_plan(cfg, n_methods, runs, out, options, workers, cache, shared, progress):
+    """(workers, threads per worker, whether the IF is written ahead on this first run: first_run)."""
+    n_jobs = runs * n_methods
+    cores = plan(n_methods if shared else n_jobs, workers=n_methods if shared else workers,
+                 threads=getattr(options, "threads", None), reserved=0 if cache else 1)
+    ahead = write_if_ahead(runs, cores.workers, shared, generation_estimate(_generator_cfg(cfg))["if_bytes"], out)
+    if ahead:                   # the methods read a file, as with --cache: one worker per core
+        cores = plan(n_jobs, threads=getattr(options, "threads", None))
+        if progress:
+            print("numba's cache is empty (the first run after an install): the IF is written into the cache while "
+                  "the kernels compile, and removed after the run", flush=True)
+    return cores.workers, cores.threads, ahead
+
+
+def _print_method_line(m, seed, summ, res):
+    print(f"  {m:10s} {'' if seed is None else f'(seed {seed}) '}Doppler RMS "
+          f"{np.round(summ['doppler_rms_hz'], 4).tolist()} Hz, code RMS "
+          f"{np.round(summ['code_rms_chips'], 4).tolist()} chip, lost {summ['lock_lost_channels']}, "
+          f"{res.runtime_s:.1f} s (real-time factor {summ['realtime_factor']:.3f})", flush=True)
+
+
+def _map_shared(pool, cfg, methods, base_seed, out, channel, progress, tail, all_paths, done, ready=None):
+    """Run by run (``all_paths``: a slot per run, filled here): the run's data and IF ring
+    (:func:`ultratight.receiver.cli.scenario_data.shared_run_data`: the ring produced in this process, which
+    writes the run's truth meanwhile), its methods' jobs (``(paths, cfg, method, seed) + tail``) at the
+    same time, each reading the ring as one consumer; results handed to ``done`` with their job index
+    once the run's truth is complete. Without shared memory every method generates its own copy.
+    ``ready``: called before the first jobs are handed out (the warm-up's result), while the first
+    run's ring already produces."""
+    n, runs = len(methods), len(all_paths)
     for r in range(runs):
-        run_jobs = jobs[r * n:(r + 1) * n]
+        seed = base_seed + r
+
+        def on_done(j, res, r=r):
+            done(r * n + j, res)
+
         try:
-            ring = IfRing(_generator_cfg(cfg), base_seed + r, n)
-        except OSError as exc:          # no shared memory here (a full or missing /dev/shm)
-            print(f"ultratight scenario: no shared memory for the IF ({exc.strerror or exc}); each method "
-                  f"generates its own copy", file=sys.stderr, flush=True)
-            ring = None
-        try:
-            with streaming_heap():          # the ring's blocks reuse heap memory (workers.streaming_heap)
-                if ring is not None:
-                    ring.start()
-                    run_jobs = [(dict(paths, if_ring=ring.name, if_consumer=j), *rest)
-                                for j, (paths, *rest) in enumerate(run_jobs)]
-                pool.map(_method_job, run_jobs, on_done=lambda j, res, r=r: done(r * n + j, res))
-        except BaseException:
-            if ring is not None:
-                ring.abort()
-            raise
-        finally:
-            if ring is not None:
-                ring.close()
+            _run_shared(pool, cfg, methods, r, seed, out, channel, progress, tail, all_paths, on_done, ready)
+        except NoSharedMemory as exc:       # a full or missing /dev/shm
+            print(f"ultratight scenario: no shared memory for the IF ({exc}); each method generates its own "
+                  f"copy", file=sys.stderr, flush=True)
+            all_paths[r] = _prepare_run(cfg, r, runs, seed, out, channel, progress)
+            if ready is not None:
+                ready()
+            pool.map(_method_job, [(all_paths[r], cfg, m, seed) + tail for m in methods], on_done=on_done)
+        ready = None
+
+
+def _run_shared(pool, cfg, methods, r, seed, out, channel, progress, tail, all_paths, on_done, ready):
+    t0 = time.perf_counter()
+    with shared_run_data(cfg, seed, out, len(methods)) as data:
+        all_paths[r] = data.paths
+        _check_channel(channel, len(data.paths["truth_head"]["prn"]))
+        if progress:
+            what = "data reused" if data.reused else "IMU generated"
+            print(f"run {r + 1}/{len(all_paths)} seed {seed}: {what} ({time.perf_counter() - t0:.1f} s; the IF"
+                  f"{'' if data.reused else ' and the truth'} generated in memory while the methods run, once for "
+                  f"all)", flush=True)
+
+        def finished(j, res):
+            data.complete()               # the run's truth, written by the ring's producer
+            on_done(j, res)
+
+        with streaming_heap():          # the ring's blocks reuse heap memory (workers.streaming_heap)
+            data.ring.start()
+            if ready is not None:
+                ready()
+            jobs = [(dict(data.paths, if_ring=data.ring.name, if_consumer=j), cfg, m, seed) + tail
+                    for j, m in enumerate(methods)]
+            pool.map(_method_job, jobs, on_done=finished)
+
+
+def _check_channel(channel, n_ch):
+    if channel >= n_ch:
+        raise ConfigError(f"--channel {channel}: the scenario has {n_ch} channel(s) (0..{n_ch - 1})")
 
 
 def _method_here(paths, cfg, method, seed, options):
@@ -519,9 +429,7 @@ def _prepare_run(cfg, r, runs, seed, out, channel, progress, cache=False, shared
     t0 = time.perf_counter()
     paths, cached = prepare_data(cfg, seed, out, progress=progress, cache_if=cache)
     release_heap()              # the generator's working memory (this process keeps the results)
-    n_ch = len(load_truth(paths["truth"])["prn"])
-    if channel >= n_ch:
-        raise ConfigError(f"--channel {channel}: the scenario has {n_ch} channel(s) (0..{n_ch - 1})")
+    _check_channel(channel, len(load_truth(paths["truth"])["prn"]))
     if progress:
         what = "" if cache else (", truth and IMU: the IF is generated in memory, "
                                  + ("once for all methods" if shared else "for each method"))
@@ -557,13 +465,13 @@ def _report(name, cfg, methods, runs, base_seed, out, channel, plots, options, p
           "per_run": per, "version": __version__, "paper_table3": M.PAPER_TABLE3, "paper_table4_s": M.PAPER_TABLE4_S}
     mpath = out / "metrics.json"
     write_text_atomic(mpath, json.dumps(json_clean(js), indent=2))
-    hpath = out / "results.h5"
-    # the figures first, while the threads still compress the last results' arrays (results_h5 waits
-    # for them); then each (run, method) is dropped once in the file's image
-    figs = make_plots(out, raw, methods, channel) if plots else []
-    write_results_h5(hpath, cfg, run_settings(cfg), raw, methods, runs, base_seed, consume=True, packed=packed)
     note_complete(mpath)
+    hpath = out / "results.h5"
+    # each (run, method) is dropped once in the file's image, but for what the figures draw (run 0)
+    write_results_h5(hpath, cfg, run_settings(cfg), raw, methods, runs, base_seed, consume=True,
+                     keep={(0, m) for m in methods} if plots else (), packed=packed)
     note_complete(hpath)
+    figs = make_plots(out, raw, methods, channel) if plots else []
     text = M.format_tables(agg, segs) + "\n" + (
         f"\n{runs} run(s), seeds {base_seed}..{base_seed + runs - 1}; RMS over all channels and runs; "
         "'\\' = lock lost (diverged) in that segment.")

@@ -28,6 +28,7 @@ renamed at the end; a failure removes the temporaries.
 
 import errno
 import json
+import os
 import math
 import sys
 import time
@@ -186,7 +187,9 @@ class _TruthWriter:
             raise
 
     def _create(self, h5py, nsat, attrs):
-        self.f = h5py.File(self.tmp, "w")
+        # no chunk cache: the rows come in whole chunks (FLUSH_ROWS), and with HDF5's default cache the
+        # writer's memory grew by the file's size (about 70 MB for a 60 s paper-highdyn run), kept after close
+        self.f = h5py.File(self.tmp, "w", rdcc_nbytes=0)
         for k, v in attrs.items():
             self.f.attrs[k] = v
         self.n = 0
@@ -202,7 +205,7 @@ class _TruthWriter:
             self.ds[name] = self.f.create_dataset(name, shape=(0,) + shp, maxshape=(None,) + shp,
                                                   chunks=(1000,) + shp, dtype=dt)
 
-    FLUSH_ROWS = 5000     # rows held before they are written (one resize and write per dataset)
+    FLUSH_ROWS = 5000     # rows held before they are written (one resize and write per dataset; whole chunks)
 
     def append(self, rows):
         self._held.append(rows)
@@ -452,52 +455,36 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
     """
     t_start = time.perf_counter()
     gen = Generation(cfg, seed, ephemerides, trajectory)
-    fe, plan = gen.fe, gen.plan
+    fe = gen.fe
 
     out_dir = Path(out_dir)
     if not out_dir.is_dir():
         raise ConfigError(f"output directory does not exist: {out_dir}")
     paths = output_paths(out_dir, stem, gen.spec.name)
-    attrs = _truth_attrs(gen)
-    writer = truth = blocks = None
-    extra = []
+    writer = files = blocks = None
     bar = _progress(gen.duration, progress, f"generate {stem}")
     try:
         if write_if:
             writer = IfWriter(paths["if"], gen.spec.name, fe.fs_hz, fe.if_hz, inversion=fe.inversion,
                               start_week=gen.week, start_tow_s=gen.tow0, bits=fe.bits, extra=gen.sidecar_extra())
-        truth = _TruthWriter(paths["truth"], len(plan.ephs), attrs)
+        files = GenerationFiles(gen, paths, t_start)
         blocks = gen.blocks(samples=write_if)
         for _j0, n_valid, y, rows in blocks:
             if writer is not None:
                 writer.write(y, exact=fe.bits != 0)   # quantiser levels fit every integer format allowed
-            truth.append(rows)
+            files.append(rows)
             if bar is not None:
                 bar.update(n_valid / fe.fs_hz)
-        sent = plan.sent_bits()
-        if sent is not None:
-            truth.write_sent_bits(sent, gen.nav_data)
         result = {"if": paths["if"], "meta": paths["meta"]} if write_if else {}
-        result["truth"] = paths["truth"]
-        imu_cfg = cfg.get("imu")
-        if imu_cfg and hasattr(gen.trajectory, "save_h5"):
-            extra += _write_imu_traj(imu_cfg, gen.trajectory, paths, gen.ss_imu, gen.resolved, truth.f)
-            result["imu"] = paths["imu"]
-            result["trajectory"] = paths["trajectory"]
-        truth.f.attrs["elapsed_s"] = time.perf_counter() - t_start
-        truth.finish()
+        files.finish()
         if writer is not None:
             writer.close()
-        truth.staged.commit()
-        for staged in extra:
-            staged.commit()
+        result.update(files.commit())
     except BaseException:
         if writer is not None:
             writer.abort()
-        if truth is not None:
-            truth.abort()
-        for staged in extra:
-            staged.discard()
+        if files is not None:
+            files.abort()
         raise
     finally:
         if blocks is not None:
@@ -506,6 +493,68 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
             bar.close()
     result["summary"] = _summary(gen, write_if, t_start)
     return result
+
+
+class GenerationFiles:
+    """The files of generation ``gen`` but the IF, at ``paths`` (:func:`output_paths`), staged until
+    :meth:`commit`: the truth, whose rows come block by block (:meth:`append`, the ``rows`` of
+    :meth:`Generation.blocks`), and, with the scenario's ``[imu]``, the IMU and trajectory files, written
+    when this object is made (the sensor drawn for the run goes into the truth file) — so a receiver can
+    read the IMU while the samples and the truth are still being generated. ``t_start``: the
+    generation's start (``time.perf_counter()``), for the truth's ``elapsed_s``."""
+
+    def __init__(self, gen, paths, t_start=None):
+        self.gen, self.paths = gen, paths
+        self.t_start = time.perf_counter() if t_start is None else t_start
+        self.truth = _TruthWriter(paths["truth"], len(gen.plan.ephs), _truth_attrs(gen))
+        self.extra = []
+        self._early = []             # files committed before the truth (commit_imu)
+        self.written = {"truth": paths["truth"]}
+        try:
+            imu_cfg = gen.cfg.get("imu")
+            if imu_cfg and hasattr(gen.trajectory, "save_h5"):
+                self.extra += _write_imu_traj(imu_cfg, gen.trajectory, paths, gen.ss_imu, gen.resolved, self.truth.f)
+                self.written.update(imu=paths["imu"], trajectory=paths["trajectory"])
+        except BaseException:
+            self.abort()
+            raise
+
+    def commit_imu(self):
+        """The IMU and trajectory files renamed onto their paths now (they are complete), for a receiver
+        that runs while the truth is generated (:meth:`abort` removes them again)."""
+        for staged in self.extra:
+            staged.commit()
+            self._early.append(staged.path)
+        self.extra = []
+
+    def append(self, rows):
+        self.truth.append(rows)
+
+    def finish(self):
+        """The truth completed (its data bits, the elapsed time) and closed."""
+        sent = self.gen.plan.sent_bits()
+        if sent is not None:
+            self.truth.write_sent_bits(sent, self.gen.nav_data)
+        self.truth.f.attrs["elapsed_s"] = time.perf_counter() - self.t_start
+        self.truth.finish()
+
+    def commit(self):
+        """Every file renamed onto its path (after :meth:`finish`); returns the paths by key."""
+        self.truth.staged.commit()
+        for staged in self.extra:
+            staged.commit()
+        return dict(self.written)
+
+    def abort(self):
+        """Every file of the generation removed (staged, or committed ahead by :meth:`commit_imu`)."""
+        self.truth.abort()
+        for staged in self.extra:
+            staged.discard()
+        for path in self._early:
+            try:
+                os.unlink(path)
+            except FileNotFoundError:
+                pass
 
 
 def _truth_attrs(gen):
@@ -574,5 +623,5 @@ def read_imu_errors_truth(path):
         return {k: np.asarray(f["imu_errors"][k][()], float) for k in IMU_TRUTH_KEYS if k in f["imu_errors"]}
 
 
-__all__ = ["generate", "generation_estimate", "Generation", "noise_factor", "output_paths", "set_nav_bits",
-           "read_imu_errors_truth", "write_imu_errors_truth"]
+__all__ = ["generate", "generation_estimate", "Generation", "GenerationFiles", "noise_factor", "output_paths",
+           "set_nav_bits", "read_imu_errors_truth", "write_imu_errors_truth"]

@@ -57,6 +57,8 @@ class IfRing:
         if int(n_consumers) < 1 or int(slots) < 2:
             raise ConfigError(f"IF ring: need >= 1 consumer and >= 2 slots, got {n_consumers}, {slots}")
         self._src = GeneratedIf(cfg, seed, threaded=False)
+        self.generation = self._src._gen
+        self.files = None
         self.n_consumers = int(n_consumers)
         self.slots = int(slots)
         L = self._src._gen.plan.L
@@ -78,6 +80,14 @@ class IfRing:
         self._thread = None
         self.error = None
 
+    def write_files(self, files):
+        """Also write the generation's truth while producing (``files``: a :class:`ultratight.signals.synth.
+        generator.GenerationFiles` of :attr:`generation`): every block's rows go to it before the block is
+        published, and it is finished (closed, not committed) after the last; :meth:`wait` waits for
+        that. Before :meth:`start`."""
+        self.files = files
+        return self
+
     def start(self):
         self._thread = threading.Thread(target=self._produce, name="ultratight-if-ring", daemon=True)
         self._thread.start()
@@ -87,7 +97,7 @@ class IfRing:
         ctl, n = self._ctl, self.n_consumers
         k = 0
         try:
-            for chunk in self._src._chunks():
+            for chunk in self._src._chunks(rows_to=self.files):
                 if chunk.size > self.slot_bytes:          # pragma: no cover - sized from the format
                     raise ConfigError(f"IF ring: block of {chunk.size} bytes exceeds the slot ({self.slot_bytes})")
                 waited = 0
@@ -103,9 +113,20 @@ class IfRing:
                 k += 1
                 ctl[_PRODUCED] = k
             ctl[_TOTAL] = k
+            if self.files is not None:
+                self.files.finish()
         except BaseException as exc:      # the consumers stop on the abort flag; the parent re-raises
             self.error = exc
             ctl[_ABORT] = 1
+
+    def wait(self, quiet=False):
+        """Wait for the producer to end (its blocks all taken into the ring, the truth finished); raises
+        its error, if it had one (``quiet``: kept for :meth:`close`)."""
+        if self._thread is not None:
+            self._thread.join()
+        if self.error is not None and not quiet:
+            err, self.error = self.error, None
+            raise err
 
     def abort(self):
         """Make every waiting party stop (a consumer's read then raises)."""

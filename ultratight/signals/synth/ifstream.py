@@ -104,14 +104,18 @@ class GeneratedIf:
         self._start()
 
     # ------------------------------------------------------------------ production
-    def _chunks(self, stop=None):
-        """The encoded bytes of the file, block by block (uint8 arrays), then the encoder's tail."""
+    def _chunks(self, stop=None, rows_to=None):
+        """The encoded bytes of the file, block by block (uint8 arrays), then the encoder's tail.
+        ``rows_to``: the truth rows of every block are handed to its ``append`` (a
+        :class:`ultratight.signals.synth.generator.GenerationFiles`) before the block is yielded."""
         enc = self.spec.encoder()
-        blocks = self._gen.blocks(samples=True, truth=False)
+        blocks = self._gen.blocks(samples=True, truth=rows_to is not None)
         try:
-            for _j0, _n, y, _rows in blocks:
+            for _j0, _n, y, rows in blocks:
                 if stop is not None and stop.is_set():
                     return
+                if rows_to is not None:
+                    rows_to.append(rows)
                 if self.is_complex:
                     comps = np.ascontiguousarray(y, dtype=np.complex64).view(np.float32)
                 else:

@@ -1,0 +1,99 @@
+"""The scenario's data cache filled while the methods run (scenario_data.shared_run_data): the entry equals
+the one prepare_data generates before them (every truth dataset and attribute but the elapsed time, the
+IMU and trajectory files), is reused by the next run, and leaves nothing behind when the run fails."""
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+
+from ultratight.receiver.cli import scenario_data as SD
+from ultratight.receiver.cli.scenario_config import load_scenario
+from ultratight.signals.synth.ifring import RingIf
+
+OVERRIDES = {"duration_s": 1.0, "frontend.fs_hz": 2.046e6, "satellites.max_count": 3}
+
+
+def _cfg():
+    return load_scenario("paper-highdyn", OVERRIDES)
+
+
+def _read_all(ring, cfg, seed):
+    """Consume the ring as its one method would (every block, in order)."""
+    src = RingIf(SD._generator_cfg(cfg), seed, ring.name, 0)
+    try:
+        n = 0
+        while n < src.n_samples:
+            n += src.read(n, min(100_000, src.n_samples - n)).shape[0]
+    finally:
+        src.close()
+    return n
+
+
+def _h5_items(path):
+    out = {}
+    with h5py.File(path, "r") as f:
+        def visit(name, obj):
+            if isinstance(obj, h5py.Dataset):
+                out[name] = obj[()]
+            out.update({f"{name}@{k}": v for k, v in obj.attrs.items()})
+        f.visititems(visit)
+        out.update({f"@{k}": v for k, v in f.attrs.items() if k != "elapsed_s"})
+    return out
+
+
+def test_entry_written_by_the_ring_equals_the_one_made_before(tmp_path):
+    cfg, seed = _cfg(), 5
+    before, cached = SD.prepare_data(cfg, seed, tmp_path / "before", cache_if=False)
+    assert not cached
+    with SD.shared_run_data(cfg, seed, tmp_path / "ring", 1) as data:
+        assert not data.reused
+        # the methods' view before the truth exists: the IMU is there, the satellites and time base given
+        assert data.paths["imu"].is_file() and not data.paths["truth"].exists()
+        with h5py.File(before["truth"], "r") as f:
+            assert data.paths["truth_head"] == {"prn": [int(p) for p in f.attrs["prn"]],
+                                                "week": int(f.attrs["week"]), "tow0_s": float(f.attrs["tow0_s"])}
+        data.ring.start()
+        assert _read_all(data.ring, cfg, seed) == 2046000
+        paths = data.complete()
+    for kind in ("truth", "imu", "trajectory"):
+        a, b = _h5_items(before[kind]), _h5_items(paths[kind])
+        assert a.keys() == b.keys(), kind
+        for k in a:
+            assert np.array_equal(np.asarray(a[k]), np.asarray(b[k])), (kind, k)
+    listed = json.loads((paths["truth"].parent / "done.json").read_text())["files"]
+    assert set(listed) == {"truth", "imu", "trajectory"}
+    # the next run reuses the entry
+    with SD.shared_run_data(cfg, seed, tmp_path / "ring", 1) as again:
+        assert again.reused and again.paths["truth"] == paths["truth"]
+        again.ring.start()
+        _read_all(again.ring, cfg, seed)
+
+
+def test_a_failed_run_leaves_no_entry(tmp_path):
+    cfg, seed = _cfg(), 6
+    with pytest.raises(RuntimeError, match="a method failed"):
+        with SD.shared_run_data(cfg, seed, tmp_path, 1) as data:
+            data.ring.start()
+            raise RuntimeError("a method failed")
+    cache = tmp_path / "cache"
+    assert not [p for p in cache.iterdir() if p.is_dir()]         # the entry's folder removed with its files
+    # and the next run generates the entry afresh
+    with SD.shared_run_data(cfg, seed, tmp_path, 1) as data:
+        assert not data.reused
+        data.ring.start()
+        _read_all(data.ring, cfg, seed)
+    assert any((d / "done.json").is_file() for d in cache.iterdir() if d.is_dir())
+
+
+def test_without_shared_memory_nothing_is_written(tmp_path, monkeypatch):
+    class NoShm:
+        def __init__(self, *a, **k):
+            raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(SD, "IfRing", NoShm)
+    with pytest.raises(SD.NoSharedMemory, match="No space left on device"):
+        with SD.shared_run_data(_cfg(), 7, tmp_path, 2):
+            pass
+    assert not [p for p in (tmp_path / "cache").iterdir() if p.is_dir()]
