@@ -97,3 +97,30 @@ def test_without_shared_memory_nothing_is_written(tmp_path, monkeypatch):
         with SD.shared_run_data(_cfg(), 7, tmp_path, 2):
             pass
     assert not [p for p in (tmp_path / "cache").iterdir() if p.is_dir()]
+
+
+def test_a_truth_write_failure_reaches_the_run_and_leaves_no_entry(tmp_path, monkeypatch):
+    """The ring's producer cannot write the truth (a full disk on its third block): the methods stop
+    with the ring, the run ends with that OSError (errno kept, the CLI's one line), the entry is gone."""
+    import errno
+
+    from ultratight.errors import ConfigError
+    calls = {"n": 0}
+    append = SD.GenerationFiles.append
+
+    def failing(self, rows):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise OSError(errno.ENOSPC, "No space left on device", str(self.paths["truth"]))
+        append(self, rows)
+
+    monkeypatch.setattr(SD.GenerationFiles, "append", failing)
+    cfg, seed = _cfg(), 8
+    with pytest.raises(OSError) as err:
+        with SD.shared_run_data(cfg, seed, tmp_path, 1) as data:
+            data.ring.start()
+            _read_all(data.ring, cfg, seed)
+    assert err.value.errno == errno.ENOSPC
+    assert isinstance(err.value.__context__, ConfigError)          # what the method met: the ring stopped
+    assert "IF ring stopped" in str(err.value.__context__)
+    assert not [p for p in (tmp_path / "cache").iterdir() if p.is_dir()]
