@@ -92,3 +92,42 @@ def _idle_worker():
     workers._init_worker(())
     while True:
         time.sleep(0.1)
+
+
+def _touch_and_sleep(path):
+    import time
+    open(path, "w").close()
+    time.sleep(60.0)
+
+
+@pytest.mark.parametrize("how", ["ignored", "blocked"])
+def test_workers_stop_on_an_error_even_when_the_parent_ignores_sigterm(tmp_path, how):
+    """A run ignores further signals once interrupted (and a campaign blocks them while its cluster
+    starts); workers started meanwhile still take SIGTERM, so an error stops a running job at once
+    (WorkerPool.__exit__; SIGKILL only after 10 s)."""
+    import multiprocessing
+    import signal
+    import time
+    before = set(multiprocessing.active_children())
+    old = signal.getsignal(signal.SIGTERM)
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    if how == "ignored":
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    else:
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
+    started = tmp_path / "started"
+    try:
+        with pytest.raises(RuntimeError, match="stop"):
+            with workers.WorkerPool(1, processes=True) as pool:
+                pool.start(_touch_and_sleep, str(started))
+                t_wait = time.perf_counter()
+                while not started.exists() and time.perf_counter() - t_wait < 60.0:
+                    time.sleep(0.05)
+                assert started.exists()
+                t0 = time.perf_counter()
+                raise RuntimeError("stop")
+        assert time.perf_counter() - t0 < 9.0
+    finally:
+        signal.signal(signal.SIGTERM, old)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+    assert not set(multiprocessing.active_children()) - before

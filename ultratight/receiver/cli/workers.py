@@ -139,9 +139,9 @@ def _run_job(fn, args):
 
 def _exit_now():
     """The worker's last exit handler (registered first, so it runs after the others): its output
-    flushed, the process ends without tearing down its interpreter — the modules, numba's dispatchers
-    and the engine's heap, about 0.2 s of CPU a worker that hold nothing another process needs (the
-    results went back through the pipe; the numba cache is written when a kernel compiles)."""
+    flushed, the process ends without tearing down its interpreter (the modules, numba's dispatchers
+    and the engine's heap: about 0.2 s of CPU per worker), as nothing in it is left for another process
+    (the results went back through the pipe; the numba cache is written when a kernel compiles)."""
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()
@@ -153,6 +153,11 @@ def _exit_now():
 def _init_worker(preload, threads=1):
     atexit.register(_exit_now)
     signal.signal(signal.SIGINT, _on_sigint)
+    # the parent stops a worker with SIGTERM (WorkerPool.__exit__): never ignored nor blocked here, whatever
+    # the parent's state when it started the worker (a run ignores further signals once interrupted)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})
     limit_numba_threads(threads)
     fix_mmap_threshold(streaming=True)
     for name in preload:              # import the job's modules now, while the parent still works
@@ -205,6 +210,9 @@ class WorkerPool:
                 p.terminate()
         for p in procs:
             p.join(timeout=10)
+            if p.is_alive():         # a worker that could not take SIGTERM: none outlives the error
+                p.kill()
+                p.join(timeout=10)
         return False
 
     def call(self, fn, *args):
