@@ -124,3 +124,40 @@ def test_a_truth_write_failure_reaches_the_run_and_leaves_no_entry(tmp_path, mon
     assert isinstance(err.value.__context__, ConfigError)          # what the method met: the ring stopped
     assert "IF ring stopped" in str(err.value.__context__)
     assert not [p for p in (tmp_path / "cache").iterdir() if p.is_dir()]
+
+
+def test_a_second_run_on_the_same_entry_waits_and_reuses_it(tmp_path):
+    """While one run's ring writes the entry, another run of the same data is told (``waiting``), waits
+    for the lock and then reuses the complete entry."""
+    import threading
+
+    cfg, seed = _cfg(), 9
+    holding, release = threading.Event(), threading.Event()
+    failures = []
+
+    def first():
+        try:
+            with SD.shared_run_data(cfg, seed, tmp_path, 1) as data:
+                holding.set()
+                release.wait(60)
+                data.ring.start()
+                _read_all(data.ring, cfg, seed)
+        except BaseException as exc:          # handed to the test
+            failures.append(exc)
+            holding.set()
+
+    t = threading.Thread(target=first)
+    t.start()
+    assert holding.wait(60)
+    told = []
+
+    def waiting(lock_path):
+        told.append(lock_path)
+        release.set()
+
+    with SD.shared_run_data(cfg, seed, tmp_path, 1, waiting=waiting) as data:
+        assert data.reused
+        data.ring.start()
+        _read_all(data.ring, cfg, seed)
+    t.join(60)
+    assert not failures and len(told) == 1 and told[0].name.endswith(".lock")

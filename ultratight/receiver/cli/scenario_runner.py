@@ -391,7 +391,12 @@ def _map_shared(pool, cfg, methods, base_seed, out, channel, progress, tail, all
 
 def _run_shared(pool, cfg, methods, r, seed, out, channel, progress, tail, all_paths, on_done, ready):
     t0 = time.perf_counter()
-    with shared_run_data(cfg, seed, out, len(methods)) as data:
+    def waiting(lock_path):
+        if progress:
+            print(f"run {r + 1}/{len(all_paths)} seed {seed}: another run is writing the same data "
+                  f"({lock_path.with_suffix('')}); waiting for it", flush=True)
+
+    with shared_run_data(cfg, seed, out, len(methods), waiting) as data:
         all_paths[r] = data.paths
         _check_channel(channel, len(data.paths["truth_head"]["prn"]))
         if progress:
