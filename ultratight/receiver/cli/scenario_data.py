@@ -100,7 +100,8 @@ def prepare_data(cfg, seed, out_dir, progress=False, cache_if=True):
     The entry is guarded by a per-key lock; ``done.json`` records every file's name and size and is
     written last (atomically); an entry that does not verify is regenerated. ``cache_if=False``: the
     entry needs no IF file (one without is generated without it) and the paths returned have no
-    ``if``/``meta`` but ``if_seed``, the seed :func:`run_method` streams the IF of."""
+    ``if``/``meta`` but ``if_seed``, the seed :func:`ultratight.receiver.cli.scenario_runner.run_method`
+    streams the IF of."""
     c, d = _entry_dir(cfg, seed, out_dir)
     done = d / "done.json"
     with _cache_lock(d):
