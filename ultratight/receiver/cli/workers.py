@@ -24,6 +24,7 @@ import sys
 import time
 from contextlib import contextmanager
 from concurrent.futures import FIRST_EXCEPTION, Future, ProcessPoolExecutor, wait
+from concurrent.futures import process as _cf_process
 
 from ultratight.cores import check_workers, plan  # noqa: F401 (check_workers: used by the runners)
 
@@ -164,6 +165,19 @@ def _init_worker(preload, threads=1):
         importlib.import_module(name)
 
 
+def _stop_processes(procs):
+    """SIGTERM to each live process of ``procs``, then SIGKILL to one not ended 10 s later."""
+    procs = list(procs)
+    for p in procs:
+        if p.is_alive():
+            p.terminate()
+    for p in procs:
+        p.join(timeout=10)
+        if p.is_alive():         # a process that could not take SIGTERM
+            p.kill()
+            p.join(timeout=10)
+
+
 def _ready():
     return os.getpid()
 
@@ -188,6 +202,7 @@ class WorkerPool:
             ctx = multiprocessing.get_context("spawn")
             self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx, initializer=_init_worker,
                                              initargs=(self.preload, self.threads))
+            self._children_before = set(multiprocessing.active_children())
             self._warm = [self._pool.submit(_ready) for _ in range(self.workers)]   # spawns them all now
         return self
 
@@ -205,14 +220,16 @@ class WorkerPool:
         # been interrupted in the middle of one)
         procs = list((getattr(pool, "_processes", None) or {}).values())
         pool.shutdown(wait=False, cancel_futures=True)
-        for p in procs:
-            if p.is_alive():
-                p.terminate()
-        for p in procs:
-            p.join(timeout=10)
-            if p.is_alive():         # a worker that could not take SIGTERM: none outlives the error
-                p.kill()
-                p.join(timeout=10)
+        _stop_processes(procs)
+        # and any process the executor started that its table no longer lists: none outlives the error
+        _stop_processes(set(multiprocessing.active_children()) - self._children_before - set(procs))
+        # the executor's thread ends with its workers; joined here, so that the interpreter's exit does
+        # not wake it through the pipe it closed (Python 3.11 printed "Bad file descriptor" then)
+        manager = getattr(pool, "_executor_manager_thread", None)
+        if manager is not None:
+            manager.join(timeout=10)
+            if not manager.is_alive():
+                getattr(_cf_process, "_threads_wakeups", {}).pop(manager, None)
         return False
 
     def call(self, fn, *args):
