@@ -5,6 +5,7 @@ import math
 
 import pytest
 
+from _procs import running_since
 from ultratight.errors import ConfigError
 from ultratight.receiver.cli import workers
 def test_jobs_in_processes_equal_jobs_here():
@@ -130,4 +131,4 @@ def test_workers_stop_on_an_error_even_when_the_parent_ignores_sigterm(tmp_path,
     finally:
         signal.signal(signal.SIGTERM, old)
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)
-    assert not set(multiprocessing.active_children()) - before
+    assert not running_since(before)
