@@ -72,7 +72,7 @@ def recorded_run(monkeypatch):
     state = {"cold": True}
 
     class Pool:
-        def __init__(self, workers, preload=(), processes=None, threads=1, join_on_exit=True):
+        def __init__(self, workers, preload=(), processes=None, threads=1, join_on_exit=True, fork=False):
             events.append(("start", workers, threads))
 
         def __enter__(self):

@@ -132,3 +132,78 @@ def test_workers_stop_on_an_error_even_when_the_parent_ignores_sigterm(tmp_path,
         signal.signal(signal.SIGTERM, old)
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)
     assert not running_since(before)
+
+
+FORKED_POOL = r"""
+import json, signal, sys, threading
+from multiprocessing import shared_memory
+from ultratight import io_guard
+from ultratight.receiver.cli import workers
+
+def state(name):
+    import signal
+    from multiprocessing import shared_memory
+    seg = shared_memory.SharedMemory(name=name)      # attached as a ring consumer does
+    first = bytes(seg.buf[:4])
+    seg.close()
+    return {"hup": str(signal.getsignal(signal.SIGHUP)), "term": str(signal.getsignal(signal.SIGTERM)),
+            "int": getattr(signal.getsignal(signal.SIGINT), "__name__", "?"), "first": first.hex(),
+            "module": "ultratight.receiver.cli.scenario_runner" in sys.modules}
+
+if __name__ == "__main__":
+    io_guard.install_signal_handlers()
+    import ultratight.receiver.cli.scenario_runner            # imported here: a forked worker has it
+    out = {"safe": workers.fork_is_safe()}
+    seg = None
+    try:
+        with workers.WorkerPool(2, processes=True, fork=sys.argv[1] == "fork") as pool:
+            out["method"] = pool.start_method
+            # made after the workers started, as a run's IF ring is
+            seg = shared_memory.SharedMemory(create=True, size=4096)
+            seg.buf[:4] = b"ring"
+            out["jobs"] = pool.map(state, [(seg.name,), (seg.name,)])
+        # the workers have ended: the segment is still there (no tracker of their own removed it)
+        again = shared_memory.SharedMemory(name=seg.name)
+        out["after"] = bytes(again.buf[:4]).hex()
+        again.close()
+        t = threading.Thread(target=threading.Event().wait, args=(5.0,), daemon=True)
+        t.start()
+        out["safe_with_a_thread"] = workers.fork_is_safe()
+    finally:
+        if seg is not None:
+            seg.close()
+            seg.unlink()
+    print(json.dumps(out))
+"""
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="no fork on this system")
+@pytest.mark.parametrize("how", ["fork", "spawn"])
+def test_forked_workers_start_like_spawned_ones(tmp_path, how):
+    """``WorkerPool(fork=True)`` forks when nothing else runs in the process: the workers have the
+    parent's modules, the CLI's signal handlers are back to the defaults a spawned worker has (SIGHUP
+    ends it; SIGINT is the worker's own), and they share the parent's resource tracker, so shared memory
+    they attached outlives them (a ring consumer must not remove the ring). Not with another thread
+    running; ``fork=False`` spawns."""
+    import json
+    import subprocess
+    import sys
+    script = tmp_path / "pool.py"
+    script.write_text(FORKED_POOL)
+    r = subprocess.run([sys.executable, str(script), how], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "leaked" not in r.stderr and "resource_tracker" not in r.stderr, r.stderr
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert out["safe"] is True and out["safe_with_a_thread"] is False
+    assert out["method"] == how
+    for job in out["jobs"]:
+        assert job["hup"] == str(signal_default()) and job["term"] == str(signal_default())
+        assert job["int"] == "_on_sigint"
+        assert job["first"] == b"ring".hex()
+        assert job["module"] is (how == "fork")
+    assert out["after"] == b"ring".hex()
+
+
+def signal_default():
+    import signal
+    return signal.SIG_DFL

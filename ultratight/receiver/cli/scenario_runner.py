@@ -302,7 +302,7 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
     # the workers start (and import the engine) while this process generates the data
     # the workers are not waited for at the end: they end while this process writes the outputs
     with WorkerPool(max(n_workers, 2) if first else n_workers, preload=(__name__,), processes=not here,
-                    threads=threads, join_on_exit=False) as pool:
+                    threads=threads, join_on_exit=False, fork=True) as pool:
         if first:           # the epoch chain's late part compiled in a second worker meanwhile
             pool.start(compile_ahead)
         # several workers would compile the same kernels: compiled by one first, meanwhile the data (on a
