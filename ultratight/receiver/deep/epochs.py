@@ -36,6 +36,7 @@ from ultratight.fusion.channel.prefilter_model import CNT_EPOCH, ISEG_COUNTERS, 
 from ultratight.receiver.dsp.burst import burst_one
 from ultratight.receiver.dsp.correlator import correlate_one, step_bank, tap_fixed_point
 from ultratight.receiver.dsp.wipeoff import wipe_channel
+from ultratight.receiver.deep.borrow import borrowed
 
 # status of run_epochs
 CONTINUE = 0       # (internal) the next epoch can run
@@ -150,6 +151,8 @@ def settle(E, pend, pend_ts, per_max, fs, outer, window, sig):
     """The residuals of ``E`` recorded epochs (``pend[e]``, ``pend_ts[e]``), in epoch order, each against
     the SINS predictions as a one-epoch loop would have had them (:func:`ring_latest_for` of the
     epoch's ``j_need``)."""
+    pend, pend_ts, outer, window, sig = borrowed(pend), borrowed(pend_ts), borrowed(outer), borrowed(window), \
+        borrowed(sig)       # held by the caller (ultratight.receiver.deep.borrow)
     n_ch = pend.shape[1]
     for e in range(E):
         sp_max = pend_ts[e, 0]
@@ -225,6 +228,12 @@ def epoch_channel(c, E, k_ep0, epoch0, src, corr, wipe, bank, outer, window, rec
     correlator's (2 * number of taps). The epochs loop here rather than in the callers: numba counts
     a reference to every array of the records at every call, and one call per epoch and channel spent
     a tenth of a run in those counts (docs/ultratight.md, "Where an engine's time goes")."""
+    # the stages get borrowed arrays (ultratight.receiver.deep.borrow): this call's caller holds the records
+    # and work arrays until it returns
+    src, corr, wipe, bank, outer, window = borrowed(src), borrowed(corr), borrowed(wipe), borrowed(bank), \
+        borrowed(outer), borrowed(window)
+    rec, law, sig, burst = borrowed(rec), borrowed(law), borrowed(sig), borrowed(burst)
+    tap_fix, W1, W2, WA = borrowed(tap_fix), borrowed(W1), borrowed(W2), borrowed(WA)
     # the records' fields taken once per call: numba counts a reference at every field access, which
     # inside the loop was once per epoch
     corr_active, corr_carr_freq, corr_carr_phase = corr.active, corr.carr_freq, corr.carr_phase
