@@ -89,3 +89,39 @@ def test_a_reader_cannot_rewind_and_consumer_index_is_checked(cfg):
             src.read(src.n_samples // 2, 1000)
             with pytest.raises(ConfigError, match="cannot be read again from its start"):
                 src.read(0, 1000)
+
+
+@pytest.mark.parametrize("slots, keep_s", [(2, 0.5), (3, 0.01), (8, 0.25), (4, 1.2)])
+def test_readers_holding_slots_get_the_samples_and_never_block_the_producer(cfg, slots, keep_s):
+    """A reader reads the ring's slots in place and lets the producer reuse one only when it no longer
+    holds its block; one that keeps more samples than the ring has slots for copies what it holds
+    instead of waiting for a block the producer has no slot for. Two readers of different habits (one
+    re-reading its kept samples) get the streamed samples to the end."""
+    with GeneratedIf(cfg, 11) as g:
+        ref = _read_all(g)
+    got, errors = {}, []
+
+    def reader(i):
+        try:
+            with RingIf(cfg, 11, ring.name, i, keep_s=keep_s) as src:
+                if i == 0:
+                    got[i] = _read_all(src)
+                    return
+                out, s, back = [], 0, int(keep_s * src.fs_hz * 0.5)
+                while s < src.n_samples:            # every read starts inside the kept samples
+                    n = min(STEP, src.n_samples - s)
+                    x = src.read(max(0, s - back), n + min(back, s))
+                    out.append(x[min(back, s):])
+                    s += n
+                got[i] = np.concatenate(out)
+        except Exception as exc:                   # reported below, not lost in the thread
+            errors.append(exc)
+
+    with IfRing(cfg, 11, 2, slots=slots) as ring:
+        ts = [threading.Thread(target=reader, args=(i,)) for i in range(2)]
+        [t.start() for t in ts]
+        [t.join(timeout=120) for t in ts]
+        assert not any(t.is_alive() for t in ts), "a reader or the producer waits for a slot"
+    assert not errors, errors
+    np.testing.assert_array_equal(got[0], ref)
+    np.testing.assert_array_equal(got[1], ref)

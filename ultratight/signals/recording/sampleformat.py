@@ -101,6 +101,23 @@ class SampleFormat:
         c = self.comps
         return np.asarray(store[start * c:(start + count) * c]).astype(np.float32)
 
+    def decode_parts(self, parts, start, count):
+        """:meth:`decode` of the concatenation of ``parts`` (arrays of the stored dtype, whole samples
+        each), each converted into its place in the result rather than joined first: the same values."""
+        c = self.comps
+        out = np.empty(count * c, dtype=np.float32)
+        lo, hi = start * c, (start + count) * c
+        at = o = 0
+        for p in parts:
+            a, b = max(lo - at, 0), min(hi - at, p.shape[0])
+            if a < b:
+                out[o:o + b - a] = p[a:b]
+                o += b - a
+            at += p.shape[0]
+        if o != out.shape[0]:
+            raise ValueError(f"decode_parts: {o} of {out.shape[0]} components in the parts given")
+        return out
+
     def encoder(self):
         return _PlainEncoder(np.dtype(self.dtype))
 

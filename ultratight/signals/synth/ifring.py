@@ -5,17 +5,19 @@ of the IF — the same samples, generated once per method. :class:`IfRing` gener
 producer thread in the parent process runs the generator (:class:`~ultratight.signals.synth.ifstream.
 GeneratedIf`'s encoded blocks, so the bytes are those of the IF file) into ``slots`` shared-memory
 slots of one block (100 ms) each, and every consumer — a :class:`RingIf` in a worker process, with
-the interface of the file source — copies the blocks out in order. A slot is written again only
-when every consumer has taken its block, so the fastest consumer waits for the slowest one (at most
+the interface of the file source — reads the blocks in order, in place: a consumer holds the slots of
+the blocks it still needs (its kept samples and the read in progress) rather than copies of them, and
+copies them out only if it would otherwise hold all but one slot. A slot is written again only when
+every consumer has let its block go, so the fastest consumer waits for the slowest one (at most
 ``slots`` blocks ahead) and memory stays at ``slots`` blocks whatever the run's length. The
 consumers must therefore run at the same time (one worker process each).
 
 Control (an int64 array in a second shared-memory segment): ``[produced, total, abort, n_cons,
-consumed_0 … consumed_{n-1}, length_0 … length_{slots-1}]``. ``total`` is the block count once the
-producer has finished (-1 before); ``abort`` is set by the parent when the run fails (a consumer's
-exception, a signal) and by a consumer whose read cannot be served; waiting parties poll it. A
-consumer that closes (its method done, or failed) marks itself as having taken every block, so the
-producer never waits for it.
+consumed_0 … consumed_{n-1}, length_0 … length_{slots-1}]``; ``consumed_i``: the blocks consumer
+``i`` has let go. ``total`` is the block count once the producer has finished (-1 before); ``abort``
+is set by the parent when the run fails (a consumer's exception, a signal) and by a consumer whose
+read cannot be served; waiting parties poll it. A consumer that closes (its method done, or failed)
+marks itself as having taken every block, so the producer never waits for it.
 """
 
 import threading
@@ -184,6 +186,8 @@ class RingIf(GeneratedIf):
         self._s0 = 0
         self._done = False
         self._k = 0
+        self._acked = 0      # chunks let go (the count the producer reads)
+        self._copied = 0     # held chunks that are copies (already let go)
         try:
             # worker processes spawned by the producer's process share its resource tracker, where
             # the segments are registered once; the producer unlinks them (IfRing.close)
@@ -205,6 +209,13 @@ class RingIf(GeneratedIf):
 
     def _next_chunk(self):
         ctl, k = self._ctl, self._k
+        # chunks are the slots themselves, not copies: the producer reuses a slot only once this consumer
+        # has let its chunk go (_chunks_done); one that would hold all but one slot copies what it holds
+        # first, so that the producer always has a slot for the next chunk
+        if k - self._acked >= self._slots - 1:
+            self._held.own()
+            self._copied = self._held.count()     # the oldest held chunks, let go now (copies)
+            self._ack(k)
         waited = 0
         while int(ctl[_PRODUCED]) <= k:
             total = int(ctl[_TOTAL])
@@ -215,10 +226,21 @@ class RingIf(GeneratedIf):
                                   f"generator did)")
             waited = _pause(waited)
         s = k % self._slots
-        chunk = self._ring[s, :int(ctl[4 + self._n + s])].copy()
+        chunk = self._ring[s, :int(ctl[4 + self._n + s])]
         self._k = k + 1
-        ctl[4 + self._index] = self._k
         return chunk
+
+    def _chunks_done(self, n):
+        copied = min(int(n), self._copied)      # copies: let go when they were made
+        self._copied -= copied
+        if n - copied:
+            self._ack(self._acked + n - copied)
+
+    def _ack(self, k):
+        """The blocks before ``k`` let go: the producer may reuse their slots."""
+        self._acked = int(k)
+        if self._ctl is not None:
+            self._ctl[4 + self._index] = self._acked
 
     def _halt(self):
         ctl = getattr(self, "_ctl", None)
@@ -226,9 +248,13 @@ class RingIf(GeneratedIf):
             ctl[4 + self._index] = _DONE       # never wait for a consumer that stopped reading
             self._ctl = None
             self._ring = None
+        self._held = HeldBytes()               # views into the ring's slots: let go before it is closed
         for shm in (self._data, self._ctl_shm):
             if shm is not None:
-                shm.close()
+                try:
+                    shm.close()
+                except BufferError:            # a view still referenced (an error's traceback): the
+                    pass                       # mapping closes when the last one goes
         self._data = self._ctl_shm = None
 
 

@@ -217,9 +217,13 @@ class GeneratedIf:
         if s <= self._s0:
             return 0
         nb = self.spec.nbytes(s - self._s0, self.packing)
-        self._held.drop(nb)
+        self._chunks_done(self._held.drop(nb))
         self._s0 = s
         return nb
+
+    def _chunks_done(self, n):
+        """``n`` more of the chunks :meth:`_next_chunk` returned are no longer held (a ring consumer tells
+        its producer then)."""
 
     # ------------------------------------------------------------------ the IfSource interface
     def read(self, start, count):
@@ -242,8 +246,13 @@ class GeneratedIf:
         b0 = self.spec.nbytes(s_a - self._s0, self.packing)
         n_need = -(-(end - s_a) // self._align) * self._align
         b1 = min(self._held.size, b0 + self.spec.nbytes(n_need, self.packing))
-        store = self._held.span(b0, b1).view(self._dtype)
-        raw = self.spec.decode(store, start - s_a, count, self.packing)
+        parts = self._held.parts(b0, b1)
+        if len(parts) > 1 and self.packing is None:
+            # samples in two chunks (the kept ones and the new block): decoded from both, not joined first
+            raw = self.spec.decode_parts([p.view(self._dtype) for p in parts], start - s_a, count)
+        else:
+            store = (parts[0] if len(parts) == 1 else self._held.span(b0, b1)).view(self._dtype)
+            raw = self.spec.decode(store, start - s_a, count, self.packing)
         x = orient(raw, start, self.is_complex, False, self._conj, self._alt_sign)
         self._drop_before(start - self._keep)
         return x
@@ -298,20 +307,31 @@ class HeldBytes:
             self.size += int(chunk.size)
 
     def drop(self, nb):
-        """Forget the first ``nb`` bytes."""
+        """Forget the first ``nb`` bytes; returns how many chunks were let go whole."""
         nb = min(int(nb), self.size)
         self.size -= nb
+        gone = 0
         while nb:
             first = self._chunks[0]
             if first.size <= nb:
                 self._chunks.popleft()
                 nb -= first.size
+                gone += 1
             else:
                 self._chunks[0] = first[nb:]
                 nb = 0
+        return gone
 
-    def span(self, b0, b1):
-        """Bytes ``[b0, b1)`` of those held (uint8; a view into one chunk, or a copy across chunks)."""
+    def count(self):
+        """The chunks held (whole or in part)."""
+        return len(self._chunks)
+
+    def own(self):
+        """Hold copies of the chunks instead of the arrays appended (views into memory their owner reuses)."""
+        self._chunks = deque(c.copy() for c in self._chunks)
+
+    def parts(self, b0, b1):
+        """Bytes ``[b0, b1)`` of those held as views into the chunks they lie in (uint8), in order."""
         parts, at = [], 0
         for c in self._chunks:
             lo, hi = max(b0 - at, 0), min(b1 - at, c.size)
@@ -320,6 +340,11 @@ class HeldBytes:
             at += c.size
             if at >= b1:
                 break
+        return parts
+
+    def span(self, b0, b1):
+        """Bytes ``[b0, b1)`` of those held (uint8; a view into one chunk, or a copy across chunks)."""
+        parts = self.parts(b0, b1)
         if len(parts) == 1:
             return parts[0]
         return np.concatenate(parts) if parts else np.zeros(0, dtype=np.uint8)
