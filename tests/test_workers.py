@@ -166,6 +166,12 @@ if __name__ == "__main__":
         again = shared_memory.SharedMemory(name=seg.name)
         out["after"] = bytes(again.buf[:4]).hex()
         again.close()
+        import h5py
+        import tempfile
+        with tempfile.TemporaryDirectory() as d:
+            with h5py.File(d + "/open.h5", "w"):
+                out["safe_with_an_open_hdf5_file"] = workers.fork_is_safe()
+        out["safe_again"] = workers.fork_is_safe()
         t = threading.Thread(target=threading.Event().wait, args=(5.0,), daemon=True)
         t.start()
         out["safe_with_a_thread"] = workers.fork_is_safe()
@@ -184,7 +190,7 @@ def test_forked_workers_start_like_spawned_ones(tmp_path, how):
     parent's modules, the CLI's signal handlers are back to the defaults a spawned worker has (SIGHUP
     ends it; SIGINT is the worker's own), and they share the parent's resource tracker, so shared memory
     they attached outlives them (a ring consumer must not remove the ring). Not with another thread
-    running; ``fork=False`` spawns."""
+    running or an HDF5 file open; ``fork=False`` spawns."""
     import json
     import subprocess
     import sys
@@ -194,7 +200,8 @@ def test_forked_workers_start_like_spawned_ones(tmp_path, how):
     assert r.returncode == 0, r.stderr
     assert "leaked" not in r.stderr and "resource_tracker" not in r.stderr, r.stderr
     out = json.loads(r.stdout.strip().splitlines()[-1])
-    assert out["safe"] is True and out["safe_with_a_thread"] is False
+    assert out["safe"] is True and out["safe_again"] is True
+    assert out["safe_with_a_thread"] is False and out["safe_with_an_open_hdf5_file"] is False
     assert out["method"] == how
     for job in out["jobs"]:
         assert job["hup"] == str(signal_default()) and job["term"] == str(signal_default())

@@ -159,14 +159,23 @@ def _exit_now():
 def fork_is_safe():
     """Whether a worker forked from this process starts as cleanly as a spawned one: a POSIX system
     with ``fork``, no thread but this one (a fork copies other threads' locks held, not the threads),
-    and numba's thread pool not started (its layers do not survive a fork)."""
+    numba's thread pool not started (its layers do not survive a fork) and no HDF5 file open (the
+    library would hand a worker opening the same file this process's copied state of it)."""
     import threading
     if os.name != "posix" or "fork" not in multiprocessing.get_all_start_methods():
         return False
     if threading.active_count() != 1:
         return False
     parallel = sys.modules.get("numba.np.ufunc.parallel")
-    return parallel is None or not getattr(parallel, "_is_initialized", False)
+    if parallel is not None and getattr(parallel, "_is_initialized", False):
+        return False
+    h5py = sys.modules.get("h5py")
+    if h5py is not None:
+        try:
+            return h5py.h5f.get_obj_count(h5py.h5f.OBJ_ALL, h5py.h5f.OBJ_FILE) == 0
+        except Exception:       # an h5py without the call: not known, so not safe
+            return False
+    return True
 
 
 def _default_handlers():
