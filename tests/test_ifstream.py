@@ -178,18 +178,23 @@ def test_campaign_run_streams_unless_cached(tmp_path):
 def test_held_bytes_spans_and_drops_like_one_array():
     # the chunked store against the one concatenated array it replaces: random chunk sizes (empty ones
     # too), drops inside and across chunks, spans inside one chunk (a view) and across several (a copy)
+    # (every chunk appended, empty ones included, is either held or counted once as let go: a ring
+    # reader tells its producer a slot is free by that count)
     rng = np.random.default_rng(3)
     held, flat, base = HeldBytes(), np.zeros(0, np.uint8), 0
+    appended = gone = 0
     for _ in range(400):
         op = rng.integers(3)
         if op == 0:
             c = rng.integers(0, 256, int(rng.integers(0, 50)), dtype=np.uint8)
             held.append(c)
+            appended += 1
             flat = np.concatenate([flat, c])
         elif op == 1:
             nb = int(rng.integers(0, flat.size + 1))
-            held.drop(nb)
+            gone += held.drop(nb)
             flat, base = flat[nb:], base + nb
+            assert gone + held.count() == appended
         elif flat.size:
             b0 = int(rng.integers(0, flat.size + 1))
             b1 = int(rng.integers(b0, flat.size + 1))

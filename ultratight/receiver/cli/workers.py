@@ -5,12 +5,12 @@ Each job runs in a worker process started with ``spawn`` (no state shared with t
 thread pool, open files and signal handlers start fresh) with the plan's threads per worker (one when
 there are as many workers as cores), so the workers use the cores without competing for them. A pool
 asked to (``WorkerPool(fork=True)``: the scenario's method workers) forks its workers instead when
-that is safe — a POSIX system, no other thread in this process, numba's thread pool not started — so
-that they begin with the modules this process has imported (about 0.6 s of CPU per worker, which on
-two cores otherwise competes with the IF generator); their signal handlers are reset to what a spawned
-worker would have (:func:`_init_worker`). The
-results come back in the order of the jobs; the first failure cancels the jobs not yet started and
-is raised in the parent.
+that is safe (:func:`fork_is_safe`: a POSIX system, no other thread in this process, numba's thread
+pool not started, no HDF5 file open), so that they begin with the modules this process has imported
+(about 0.6 s of CPU per worker, which on two cores otherwise competes with the IF generator); their
+signal handlers are reset to what a spawned worker would have (:func:`_init_worker`). The results
+come back in the order of the jobs; the first failure cancels the jobs not yet started and is raised
+in the parent.
 
 A worker's numba pool is sized by ``NUMBA_NUM_THREADS`` before numba loads there
 (:func:`limit_numba_threads`). The variable is never changed once numba is loaded: numba reads its

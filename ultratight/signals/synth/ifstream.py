@@ -302,9 +302,10 @@ class HeldBytes:
         self.size = 0
 
     def append(self, chunk):
-        if chunk.size:
-            self._chunks.append(chunk)
-            self.size += int(chunk.size)
+        # an empty chunk is held too (and let go with the bytes before it), so that every chunk appended
+        # is counted once by drop()
+        self._chunks.append(chunk)
+        self.size += int(chunk.size)
 
     def drop(self, nb):
         """Forget the first ``nb`` bytes; returns how many chunks were let go whole."""
