@@ -632,6 +632,57 @@ def test_sigterm_during_scenario(tmp_path):
     assert not list(out.glob("cache/*/done.json"))
 
 
+def _worker_running(pid):
+    """Ready once the command has a worker process (not the resource tracker) that has used a second of
+    CPU (it is running a method); kills it with SIGKILL from here, as the kernel's out-of-memory killer
+    would, and returns True."""
+    for child in Path(f"/proc/{pid}/task/{pid}/children").read_text().split():
+        try:
+            cmd = Path(f"/proc/{child}/cmdline").read_bytes()
+            ticks = [int(x) for x in Path(f"/proc/{child}/stat").read_text().rsplit(")", 1)[1].split()[11:13]]
+        except OSError:
+            continue
+        if b"resource_tracker" not in cmd and sum(ticks) / os.sysconf("SC_CLK_TCK") > 1.0:
+            os.kill(int(child), signal.SIGKILL)
+            return True
+    return False
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs /proc/PID/task/PID/children")
+def test_a_worker_killed_mid_run_ends_the_scenario_in_one_line(tmp_path):
+    """A method's worker process killed from outside (SIGKILL, as by the out-of-memory killer) while the
+    scenario runs: one line naming it, status 2, no outputs, no process and no shared memory left."""
+    out = tmp_path / "out"
+    shm_before = set(os.listdir("/dev/shm")) if Path("/dev/shm").is_dir() else set()
+    p = subprocess.Popen([sys.executable, "-m", "ultratight.receiver.cli", "scenario", "paper-highdyn",
+                          "--duration", "8", "--fs-hz", "2.046e6", "--methods", "dlb-rackf,dlb-ckf", "--no-plots",
+                          "--quiet", "--out", str(out)], cwd=tmp_path, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    t0 = time.monotonic()
+    killed = False
+    while p.poll() is None and not killed and time.monotonic() - t0 < 300:
+        killed = _worker_running(p.pid)
+        time.sleep(0.05)
+    _, err = p.communicate(timeout=120)
+    assert killed, "no worker to kill: " + err
+    assert p.returncode == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "a worker process ended abruptly" in lines[0], err
+    assert not (out / "metrics.json").exists() and not (out / "results.h5").exists()
+    assert not [d for d in out.glob("cache/*") if d.is_dir() and not (d / "done.json").exists()]
+    time.sleep(1.0)                     # (forked workers carry the command's arguments, --out included)
+    alive = []
+    for d in Path("/proc").iterdir():
+        try:
+            if d.name.isdigit() and str(out).encode() in (d / "cmdline").read_bytes():
+                alive.append(d.name)
+        except OSError:
+            pass
+    assert not alive, alive
+    if Path("/dev/shm").is_dir():
+        assert not [n for n in set(os.listdir("/dev/shm")) - shm_before if n.startswith("ut-if-")]
+
+
 # ------------------------------------------------------------------------------------------
 # disk full (file-size limit) for every writer
 # ------------------------------------------------------------------------------------------

@@ -17,6 +17,7 @@ import gc
 import importlib
 import sys
 import warnings
+from concurrent.futures import BrokenExecutor
 
 from ultratight import __version__
 from ultratight.errors import UltratightError
@@ -117,6 +118,14 @@ def _main(argv, io_guard):
         return getattr(exc, "exit_code", 130)
     except MemoryError:
         print(f"{name}: error: out of memory (shorten the run: --duration, a lower rate)", file=sys.stderr)
+        return 2
+    except BrokenExecutor:
+        if io_guard.interrupted_signal() is not None:
+            return _interrupted(name, io_guard)
+        # a worker process killed from outside (a signal, the kernel's out-of-memory killer): the pool
+        # stopped the others; the run's outputs were not written
+        print(f"{name}: error: a worker process ended abruptly (killed by a signal, or by the system for "
+              f"lack of memory); the run was stopped and its outputs not written", file=sys.stderr)
         return 2
     except OSError as exc:
         if io_guard.interrupted_signal() is not None:
