@@ -99,3 +99,47 @@ def test_first_run_writes_the_if_while_compiling_then_removes_it(tmp_path, capsy
     assert _strip(json.loads((tmp_path / "kept" / "metrics.json").read_text())) == a
     assert any("if" in json.loads((d / "done.json").read_text())["files"]
                for d in (tmp_path / "kept" / "cache").iterdir() if (d / "done.json").is_file())
+
+
+def test_one_runs_aggregate_is_its_summary_and_several_runs_pool_their_errors():
+    """``aggregate`` takes one run's RMS from its summary (the same errors, the same segments) and pools
+    the errors of several runs; both against ``segment_rms`` of the errors themselves, and the summary's
+    errors against the truth whether or not the truth's unwrapped code phase was kept from a method
+    before."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from ultratight.receiver.cli import metrics as M
+    from ultratight.receiver.cli.scenario_runner import _summarize_method, aggregate
+
+    rng = np.random.default_rng(5)
+    n, nch = 60000, 4
+    t_truth = np.arange(n + 10) * 1e-3
+    truth = {"t_s": t_truth, "doppler_hz": rng.normal(0, 1e3, (n + 10, nch)),
+             "code_phase_chips": (np.arange(n + 10)[:, None] * 1023.0 + rng.uniform(0, 1023, nch)) % 1023}
+
+    def result(seed):
+        r = np.random.default_rng(seed)
+        t = np.arange(n)[:, None] * 1e-3 + np.zeros(nch)
+        cp = M.interp_truth(t_truth, M.unwrap_chips(t_truth, truth["code_phase_chips"]), t) + r.normal(0, .01,
+                                                                                                       (n, nch))
+        dop = M.interp_truth(t_truth, truth["doppler_hz"], t + 0.5e-3) + r.normal(0, 0.1, (n, nch))
+        dop[r.integers(0, n, 50), r.integers(0, nch, 50)] = np.nan
+        return SimpleNamespace(t_start=t, doppler_hz=dop, code_phase_chips=cp % 1023, runtime_s=1.0, duration_s=60.0,
+                               info={})
+
+    fresh = dict(truth)
+    summ, raw0 = _summarize_method(result(1), fresh, 1, 1)
+    assert "code_phase_unwrapped" in fresh
+    again, _ = _summarize_method(result(1), fresh, 1, 1)          # the kept unwrapped code phase
+    assert json.dumps(summ, sort_keys=True) == json.dumps(again, sort_keys=True)
+    one = aggregate([summ], {(0, "m"): raw0}, "m", M.SEGMENTS_S, 1)
+    assert one["doppler_rms_hz"] == M.segment_rms(raw0[0].t_start, raw0[1], M.SEGMENTS_S).tolist()
+    assert one["code_rms_chips_channel"] == M.segment_rms(raw0[0].t_start, raw0[2], M.SEGMENTS_S, 1).tolist()
+    summ2, raw1 = _summarize_method(result(2), dict(truth), 1, 2)
+    two = aggregate([summ, summ2], {(0, "m"): raw0, (1, "m"): raw1}, "m", M.SEGMENTS_S, 1)
+    t = np.concatenate([raw0[0].t_start, raw1[0].t_start])
+    d = np.concatenate([raw0[1], raw1[1]])
+    assert two["doppler_rms_hz"] == M.segment_rms(t, d, M.SEGMENTS_S).tolist()
+    assert two["doppler_rms_hz"] != one["doppler_rms_hz"]

@@ -82,7 +82,7 @@ def interp_truth(t_truth, y_truth, t_query):
 
 
 def tracking_errors(t_start, doppler_est_hz, code_est_chips, t_truth, doppler_truth_hz, code_truth_chips,
-                    doppler_offset_s=0.5e-3):
+                    doppler_offset_s=0.5e-3, code_truth_unwrapped=None):
     """Doppler (Hz) and code-phase (chips) tracking errors at the estimate epochs.
 
     ``t_start``, ``doppler_est_hz``, ``code_est_chips``: (n_ep, n_ch) estimates and the start
@@ -92,9 +92,13 @@ def tracking_errors(t_start, doppler_est_hz, code_est_chips, t_truth, doppler_tr
     NCO frequency + the prefilter's frequency error, which the I/Q of eq. 3 measure as the
     interval mean) is compared with the truth at ``t_start + doppler_offset_s`` (the middle of
     the 1 ms interval: at 20 g the Doppler moves ~0.5 Hz within half a millisecond).
+    ``code_truth_unwrapped``: :func:`unwrap_chips` of the truth's code phase when the caller has it
+    (one truth, several methods).
     """
     d_true = interp_truth(t_truth, doppler_truth_hz, np.asarray(t_start) + doppler_offset_s)
-    cp_true = interp_truth(t_truth, unwrap_chips(t_truth, code_truth_chips), t_start)
+    if code_truth_unwrapped is None:
+        code_truth_unwrapped = unwrap_chips(t_truth, code_truth_chips)
+    cp_true = interp_truth(t_truth, code_truth_unwrapped, t_start)
     d_err = np.asarray(doppler_est_hz, dtype=float) - d_true
     c_err = wrap_chips(np.asarray(code_est_chips, dtype=float) - cp_true)
     return d_err, c_err
@@ -117,8 +121,9 @@ def segment_rms(t, err, segments=SEGMENTS_S, channel=None):
         t = t[:, channel:channel + 1]
         err = err[:, channel:channel + 1]
     out = np.full(len(segments), np.nan)
+    finite = np.isfinite(err)
     for i, (a, b) in enumerate(segments):
-        m = (t >= a) & (t < b) & np.isfinite(err)
+        m = (t >= a) & (t < b) & finite
         if m.any():
             out[i] = float(np.sqrt(np.mean(err[m] ** 2)))
     return out

@@ -167,8 +167,13 @@ def run_method(paths, cfg, method, seed, options=None, startup_errors=None, dura
 
 
 def errors_vs_truth(res, truth):
+    """Doppler and code-phase errors of ``res`` against ``truth`` (:func:`ultratight.receiver.cli.metrics.
+    tracking_errors`); the truth's unwrapped code phase is kept in ``truth`` for the run's next method."""
+    if "code_phase_unwrapped" not in truth:
+        truth["code_phase_unwrapped"] = M.unwrap_chips(truth["t_s"], truth["code_phase_chips"])
     return M.tracking_errors(res.t_start, res.doppler_hz, res.code_phase_chips, truth["t_s"],
-                             truth["doppler_hz"], truth["code_phase_chips"])
+                             truth["doppler_hz"], truth["code_phase_chips"],
+                             code_truth_unwrapped=truth["code_phase_unwrapped"])
 
 
 def scenario_config(name, methods, runs=1, duration_s=None, fs_hz=None, overrides=None):
@@ -544,20 +549,26 @@ def event_rms(raw, method, events):
     return res
 
 
+_RMS_KEYS = ("doppler_rms_hz", "code_rms_chips", "doppler_rms_hz_channel", "code_rms_chips_channel")
+
+
 def aggregate(summaries, raw, method, segs, channel):
-    """Combine runs: RMS over all channels and runs (from the raw errors), lock figures summed."""
-    d_all = [raw[k][1] for k in raw if k[1] == method]
-    c_all = [raw[k][2] for k in raw if k[1] == method]
-    t_all = [raw[k][0].t_start for k in raw if k[1] == method]
-    t = np.concatenate(t_all, axis=0)
-    d = np.concatenate(d_all, axis=0)
-    c = np.concatenate(c_all, axis=0)
+    """Combine runs: RMS over all channels and runs (from the raw errors), lock figures summed. One run's
+    RMS are its summary's (:func:`_summarize_method` computed them from the same errors and segments)."""
     seg_div = [any(s["segment_diverged"][i] for s in summaries) for i in range(len(segs))]
+    keys = [k for k in raw if k[1] == method]
+    if len(keys) == 1 and len(summaries) == 1 and tuple(segs) == tuple(M.SEGMENTS_S):
+        rms = {k: list(summaries[0][k]) for k in _RMS_KEYS}
+    else:
+        t = np.concatenate([raw[k][0].t_start for k in keys], axis=0)
+        d = np.concatenate([raw[k][1] for k in keys], axis=0)
+        c = np.concatenate([raw[k][2] for k in keys], axis=0)
+        rms = {"doppler_rms_hz": M.segment_rms(t, d, segs).tolist(),
+               "code_rms_chips": M.segment_rms(t, c, segs).tolist(),
+               "doppler_rms_hz_channel": M.segment_rms(t, d, segs, channel).tolist(),
+               "code_rms_chips_channel": M.segment_rms(t, c, segs, channel).tolist()}
     return {
-        "doppler_rms_hz": M.segment_rms(t, d, segs).tolist(),
-        "code_rms_chips": M.segment_rms(t, c, segs).tolist(),
-        "doppler_rms_hz_channel": M.segment_rms(t, d, segs, channel).tolist(),
-        "code_rms_chips_channel": M.segment_rms(t, c, segs, channel).tolist(),
+        **rms,
         "diverged": bool(any(seg_div)),
         "segment_diverged": seg_div,
         "lock_lost_channels": int(sum(s["lock_lost_channels"] for s in summaries)),
