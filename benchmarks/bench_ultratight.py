@@ -107,9 +107,11 @@ def main(argv=None):
 
 def _compare_scenario(out, methods, dur, fs):
     """``ultratight scenario paper-highdyn --methods M --duration D`` per method, as a user runs it (its
-    IF generated in memory beside the engine, its own choice of threads), in a fresh process right
-    after the engine-only runs: its ``runtime_s`` against the engine-only run's, and the engine's split
-    of the difference (``timing_s``, ``if_read`` = waiting for the generator)."""
+    defaults: on two or more cores the IF written ahead into the cache and read by the method, else
+    generated beside it; its own choice of threads), in a fresh process right after the engine-only runs:
+    its ``runtime_s`` against the engine-only run's, the engine's split of it (``timing_s``, ``if_read`` =
+    waiting for the samples) and the command's split of its wall time (``command_timing_s``: start-up,
+    data, methods; the rest is the outputs and the exit)."""
     import json
     import subprocess
 
@@ -123,16 +125,20 @@ def _compare_scenario(out, methods, dur, fs):
             subprocess.run(cmd, capture_output=True, text=True, check=True)
             wall = time.perf_counter() - t0
             with open(Path(tmp) / "metrics.json") as f:
-                run = json.load(f)["per_run"][m][0]
+                js = json.load(f)
+        run, split = js["per_run"][m][0], js.get("command_timing_s", {})
         eng = out["methods"][m]
+        parts = {k: split.get(k) for k in ("start_up_s", "data_s", "methods_s")}
+        parts["outputs_and_exit_s"] = wall - sum(v or 0.0 for v in parts.values())
         sc = {"runtime_s": run["runtime_s"], "timing_s": run["timing_s"], "command_wall_s": wall,
-              "ratio_to_engine_only": run["runtime_s"] / eng["runtime_s"]}
+              "command_split_s": parts, "ratio_to_engine_only": run["runtime_s"] / eng["runtime_s"]}
         eng["scenario"] = sc
         tm = run["timing_s"]
-        print(f"{m:10s} scenario (IF generated beside it): runtime_s {run['runtime_s']:.2f} s = "
+        print(f"{m:10s} scenario: runtime_s {run['runtime_s']:.2f} s = "
               f"{sc['ratio_to_engine_only']:.2f} x the engine alone ({eng['runtime_s']:.2f} s); epochs "
               f"{tm.get('epochs', 0):.2f} s, waiting for IF {tm.get('if_read', 0):.2f} s, SINS + outer loop "
-              f"{tm.get('sins_outer', 0):.2f} s, tight {tm.get('tight', 0):.2f} s; whole command {wall:.1f} s",
+              f"{tm.get('sins_outer', 0):.2f} s, tight {tm.get('tight', 0):.2f} s; whole command {wall:.1f} s = "
+              + ", ".join(f"{k[:-2].replace('_', ' ')} {v:.2f} s" for k, v in parts.items() if v is not None),
               flush=True)
 
 

@@ -161,3 +161,27 @@ def test_a_second_run_on_the_same_entry_waits_and_reuses_it(tmp_path):
         _read_all(data.ring, cfg, seed)
     t.join(60)
     assert not failures and len(told) == 1 and told[0].name.endswith(".lock")
+
+
+def test_an_entry_without_its_if_gets_the_if_file_alone(tmp_path):
+    """A streamed run's entry (truth, IMU, no IF) asked for its IF file: only the IF and its sidecar are
+    written (the truth and IMU files untouched), with the bytes of a fresh entry's IF file."""
+    cfg, seed = _cfg(), 7
+    made = set()
+    streamed, cached = SD.prepare_data(cfg, seed, tmp_path / "a", cache_if=False, made=made)
+    assert not cached and made == {"truth", "imu", "trajectory"}
+    stamps = {k: (streamed[k].stat().st_ino, streamed[k].stat().st_mtime_ns) for k in ("truth", "imu", "trajectory")}
+    made = set()
+    added, cached = SD.prepare_data(cfg, seed, tmp_path / "a", cache_if=True, made=made)
+    assert cached and made == {"if", "meta"}
+    assert {k: (added[k].stat().st_ino, added[k].stat().st_mtime_ns) for k in stamps} == stamps
+    listed = json.loads((added["truth"].parent / "done.json").read_text())["files"]
+    assert set(listed) == {"truth", "imu", "trajectory", "if", "meta"}
+    fresh, cached = SD.prepare_data(cfg, seed, tmp_path / "b", cache_if=True)
+    assert not cached
+    assert added["if"].read_bytes() == fresh["if"].read_bytes()
+    a, b = (json.loads(p.read_text()) for p in (added["meta"], fresh["meta"]))
+    assert a == b
+    made = set()
+    again, cached = SD.prepare_data(cfg, seed, tmp_path / "a", cache_if=True, made=made)
+    assert cached and not made and again["if"] == added["if"]

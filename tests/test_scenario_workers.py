@@ -8,7 +8,7 @@ import re
 from ultratight.receiver.cli.scenario_runner import run_scenario
 
 CUT = {"frontend.fs_hz": 2.046e6, "satellites.max_count": 3}
-TIMING = ("runtime_s", "realtime_factor", "timing_s")
+TIMING = ("runtime_s", "realtime_factor", "timing_s", "command_timing_s")
 
 
 def _strip(o):
@@ -99,6 +99,34 @@ def test_first_run_writes_the_if_while_compiling_then_removes_it(tmp_path, capsy
     assert _strip(json.loads((tmp_path / "kept" / "metrics.json").read_text())) == a
     assert any("if" in json.loads((d / "done.json").read_text())["files"]
                for d in (tmp_path / "kept" / "cache").iterdir() if (d / "done.json").is_file())
+
+
+def test_one_method_reads_its_if_written_ahead_on_two_cores_and_streams_on_one(tmp_path, capsys, monkeypatch):
+    """One run of one method with the default workers: on two or more allowed cores the IF is written into
+    the cache entry first and the method reads it with every core (the same tables, the file removed after,
+    the command's split in metrics.json); on one core, or without room for the file, it streams."""
+    import time
+    from ultratight.receiver.cli import first_run
+    kw = dict(methods=("dlb-rackf",), runs=1, seed=5, duration_s=1.0, plots=False, overrides=CUT)
+    run_scenario("paper-highdyn", out_dir=tmp_path / "one", workers=1, progress=False, **kw)
+    a = _strip(json.loads((tmp_path / "one" / "metrics.json").read_text()))
+    cases = {"two": (2, 1e15, True), "single": (1, 1e15, False), "full": (2, 1.0, False)}
+    for name, (cores, free, ahead) in cases.items():
+        monkeypatch.setattr(first_run, "allowed_cores", lambda c=cores: c)
+        monkeypatch.setattr(first_run, "free_disk", lambda _d, f=free: f)
+        t0 = time.perf_counter()
+        run_scenario("paper-highdyn", out_dir=tmp_path / name, progress=True, **kw)
+        wall = time.perf_counter() - t0
+        out = capsys.readouterr().out
+        assert ("one method: the IF is written into the cache first" in out) == ahead, (name, out)
+        assert ("the IF read from the cache" in out) == ahead, (name, out)
+        js = json.loads((tmp_path / name / "metrics.json").read_text())
+        assert _strip(js) == a, name
+        assert not list((tmp_path / name).rglob("*.ci16")), name       # no IF file left behind
+        split = js["command_timing_s"]
+        assert set(split) == {"start_up_s", "data_s", "methods_s"}
+        assert 0 < split["methods_s"] and 0 <= split["data_s"] and split["data_s"] + split["methods_s"] <= wall
+        assert split["start_up_s"] is None or split["start_up_s"] >= 0
 
 
 def test_one_runs_aggregate_is_its_summary_and_several_runs_pool_their_errors():

@@ -15,7 +15,10 @@ compiled ahead in a second worker (:func:`first_compilation`,
 "First run" is decided from the work, not from the clock or the load: the compiled engine's epoch
 runner has no entry in numba's cache for its current source (:func:`engine_kernels_cached`).
 The IF is written ahead only for one run of several methods in worker processes, and only when the
-output folder has room for the file (twice its size free). The epoch chain is compiled ahead on
+output folder has room for the file (twice its size free). One run of one method (default workers, no
+``--cache``) on two or more allowed cores writes its IF ahead on every run, warm or not: the method then
+reads it with every core, where a generator beside it would hold one of them for the whole run
+(docs/ultratight.md "One method, one run"). The epoch chain is compiled ahead on
 every first run of the engine: by the scenario's second worker, and for ``process --mode
 ultratight`` by a helper process (:func:`compiling_ahead`).
 """
@@ -24,6 +27,7 @@ import json
 from contextlib import contextmanager
 from pathlib import Path
 
+from ultratight.cores import allowed_cores
 from ultratight.io_guard import free_disk, write_text_atomic
 
 DISK_MARGIN = 2.0          # free space needed, in IF file sizes
@@ -39,15 +43,23 @@ def engine_kernels_cached():
         return True
 
 
-def write_if_ahead(runs, n_workers, shared, if_bytes, out_dir):
-    """Whether this run writes its IF into the cache while the kernels compile (module docstring)."""
-    if not shared or runs != 1 or n_workers < 2:
+def write_if_ahead(runs, n_workers, shared, if_bytes, out_dir, single=False):
+    """Whether this run writes its IF into the cache entry before its methods read it (module
+    docstring): one run of one method (``single``: the default workers, no ``--cache``) on two or more
+    allowed cores, or one run of several methods sharing their IF (``shared``) in two or more workers on
+    a first run after an install; either only with room for the file."""
+    if runs != 1:
+        return False
+    if single:
+        wanted = allowed_cores() >= 2
+    else:
+        wanted = shared and n_workers >= 2 and not engine_kernels_cached()
+    if not wanted:
         return False
     try:
-        room = free_disk(out_dir) >= DISK_MARGIN * float(if_bytes)
+        return free_disk(out_dir) >= DISK_MARGIN * float(if_bytes)
     except OSError:
-        room = False
-    return room and not engine_kernels_cached()
+        return False
 
 
 def first_compilation():

@@ -94,27 +94,41 @@ def _cache_lock(d, waiting=None):
         fh.close()               # releases the lock
 
 
-def prepare_data(cfg, seed, out_dir, progress=False, cache_if=True):
-    """Generate the scenario's files under OUT/cache/<key>/ unless a verified entry is already there.
+def prepare_data(cfg, seed, out_dir, progress=False, cache_if=True, made=None):
+    """Generate the scenario's files under OUT/cache/<key>/ unless a verified entry is already there;
+    returns (paths, whether the truth and IMU were there).
 
     The entry is guarded by a per-key lock; ``done.json`` records every file's name and size and is
     written last (atomically); an entry that does not verify is regenerated. ``cache_if=False``: the
     entry needs no IF file (one without is generated without it) and the paths returned have no
     ``if``/``meta`` but ``if_seed``, the seed :func:`ultratight.receiver.cli.scenario_runner.run_method`
-    streams the IF of."""
+    streams the IF of. An entry verified but for its IF file gets the IF file alone (the truth and IMU
+    kept). ``made`` (a set) gets the kinds of the files this call wrote."""
     c, d = _entry_dir(cfg, seed, out_dir)
     done = d / "done.json"
+    made = set() if made is None else made
     with _cache_lock(d):
         paths = _cache_entry_ok(d, done, need_if=cache_if) if done.is_file() else None
         if paths is not None:
             return _data_paths(paths, cache_if, seed), True
+        paths = _cache_entry_ok(d, done, need_if=False) if done.is_file() else None
+        if paths is not None:            # only the IF file is missing
+            try:
+                res = generate(c, d, "data", seed=int(seed), progress=progress, write_rest=False)
+            except BaseException as exc:
+                _failed_entry(d, exc)
+                raise
+            made.update(("if", "meta"))
+            return _list_entry(done, dict(paths, **{k: res[k] for k in ("if", "meta")})), True
         _fresh_entry(d, done)
         try:
             res = generate(c, d, "data", seed=int(seed), progress=progress, write_if=cache_if)
         except BaseException as exc:
             _failed_entry(d, exc)
             raise
-        return _data_paths(_list_entry(done, {k: v for k, v in res.items() if k != "summary"}), cache_if, seed), False
+        files = {k: v for k, v in res.items() if k != "summary"}
+        made.update(files)
+        return _data_paths(_list_entry(done, files), cache_if, seed), False
 
 
 def _remove_if_empty(d):

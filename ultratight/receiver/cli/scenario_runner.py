@@ -53,8 +53,8 @@ from ultratight.receiver.cli.scenario_data import (CACHE_VERSION, DATA_MODEL, No
                                                    prepare_data, shared_run_data)
 from ultratight.receiver.cli.scenario_results import (SCHEMA, deflate_pool, pack_result,  # noqa: F401 (SCHEMA: public here)
                                                       write_results_h5)
-from ultratight.receiver.cli.workers import (WorkerPool, check_workers, fix_mmap_threshold, release_heap,
-                                             streaming_heap, warm_up)
+from ultratight.receiver.cli.workers import (WorkerPool, check_workers, fix_mmap_threshold, process_age_s,
+                                             release_heap, streaming_heap, warm_up)
 from ultratight.signals.constellation import ephemerides_for
 from ultratight.signals.synth.generator import generation_estimate
 from ultratight.signals.recording.iffile import open_if
@@ -216,12 +216,14 @@ def run_scenario(name, methods=("dlb-rackf",), runs=1, seed=None, out_dir="scena
     except OSError as exc:
         raise output_error(out, exc, "cannot create output directory") from None
     fix_mmap_threshold()        # per-epoch result arrays return to the system when freed
+    phases = {"start_up_s": process_age_s()}     # the command's split (metrics.json "command_timing_s")
     packed = {}                 # results.h5's arrays, compressed on threads as each result comes in
     with deflate_pool() as deflater:
         try:
             per, raw = _run_all(cfg, methods, int(runs), base_seed, out, channel, progress, options, workers,
-                                bool(cache), packed=(packed, deflater))
-            return _report(name, cfg, methods, int(runs), base_seed, out, channel, plots, options, per, raw, packed)
+                                bool(cache), packed=(packed, deflater), phases=phases)
+            return _report(name, cfg, methods, int(runs), base_seed, out, channel, plots, options, per, raw, packed,
+                           phases)
         except BaseException:
             deflater.shutdown(wait=False, cancel_futures=True)
             raise
@@ -270,7 +272,7 @@ def _method_job(paths, cfg, method, seed, options, threads=1):
 
 
 def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, workers=None, cache=False,
-             packed=None):
+             packed=None, phases=None):
     """Every method on every run's data: per-run summaries and raw (result, errors) per (run, method);
     ``packed`` = (dict, thread pool): each result's ``results.h5`` entry is packed into the dict on the
     pool as it comes in (:func:`ultratight.receiver.cli.scenario_results.pack_result`).
@@ -282,9 +284,10 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
     with the default workers and several methods, a run's IF is generated once, here, into a ring the run's
     methods read at the same time, one worker process each (:mod:`ultratight.signals.synth.ifring`; on the
     first run after an install written into the cache while the kernels compile instead,
-    :mod:`ultratight.receiver.cli.first_run`); otherwise every method streams its own copy. The results do
-    not depend on where a job ran nor on where its samples came from. A streamed IF keeps a core busy
-    beside the engines: it is reserved (:func:`ultratight.cores.plan`)."""
+    :mod:`ultratight.receiver.cli.first_run`; one method on two or more cores: so on every run); otherwise
+    every method streams its own copy. The results do not depend on where a job ran nor on where its samples
+    came from. A streamed IF keeps a core busy beside the engines: it is reserved (:func:`ultratight.cores.
+    plan`). ``phases`` (dict): + ``data_s`` (before the first method), ``methods_s`` (then to the last)."""
     n_jobs = runs * len(methods)
     shared = not cache and workers is None and len(methods) > 1
     here = workers is not None and int(workers) == 1
@@ -317,10 +320,12 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
         warm = _start_warm_up(pool, cfg, methods, base_seed, options, threads, progress, out) \
             if (n_workers > 1 and not warm_cache_known(kind)) or first else None
         ring = shared and not ahead          # each run's data made with its ring (_map_shared)
+        t_data = time.perf_counter()
         all_paths = [None] * runs if ring else [
             _prepare_run(cfg, r, runs, base_seed + r, out, channel, progress, cache or ahead, shared)
             for r in range(runs)]
         tail = (options,) + (() if here else (threads,))
+        t_methods = time.perf_counter()
         if progress and not here:
             how = ", the IF read from the cache" if ahead else ", the IF generated once per run and shared" * shared
             print(f"{n_jobs} method run(s) in {n_workers} worker process(es) of {threads} thread(s){how}", flush=True)
@@ -335,6 +340,8 @@ def _run_all(cfg, methods, runs, base_seed, out, channel, progress, options, wor
                 pool.map(_method_here if here else _method_job, jobs, on_done=done)
             if not here:
                 note_warm_cache(kind)
+            (phases if phases is not None else {}).update(data_s=t_methods - t_data,
+                                                          methods_s=time.perf_counter() - t_methods)
         finally:
             if ahead:
                 drop_if_file(all_paths[0], _cache_lock, CACHE_VERSION)
@@ -351,12 +358,16 @@ def _worker_plan(cfg, n_methods, runs, out, options, workers, cache, shared, pro
     n_jobs = runs * n_methods
     cores = plan(n_methods if shared else n_jobs, workers=n_methods if shared else workers,
                  threads=getattr(options, "threads", None), reserved=0 if cache else 1)
-    ahead = write_if_ahead(runs, cores.workers, shared, generation_estimate(_generator_cfg(cfg))["if_bytes"], out)
+    single = n_methods == 1 and workers is None and not cache
+    ahead = write_if_ahead(runs, cores.workers, shared, generation_estimate(_generator_cfg(cfg))["if_bytes"], out,
+                           single=single)
     if ahead:                   # the methods read a file, as with --cache: one worker per core
         cores = plan(n_jobs, threads=getattr(options, "threads", None))
         if progress:
-            print("numba's cache is empty (the first run after an install): the IF is written into the cache while "
-                  "the kernels compile, and removed after the run", flush=True)
+            why = ("one method: the IF is written into the cache first and the method reads it on every core"
+                   if single else "numba's cache is empty (the first run after an install): the IF is written into "
+                   "the cache while the kernels compile")
+            print(f"{why}, and removed after the run", flush=True)
     return cores.workers, cores.threads, ahead
 
 
@@ -437,15 +448,17 @@ def _method_here(paths, cfg, method, seed, options):
 def _prepare_run(cfg, r, runs, seed, out, channel, progress, cache=False, shared=False):
     """The data of run ``r`` (generated or reused), its channel count checked against ``channel``."""
     t0 = time.perf_counter()
-    paths, cached = prepare_data(cfg, seed, out, progress=progress, cache_if=cache)
+    made = set()
+    paths, cached = prepare_data(cfg, seed, out, progress=progress, cache_if=cache, made=made)
     release_heap()              # the generator's working memory (this process keeps the results)
     _check_channel(channel, len(load_truth(paths["truth"])["prn"]))
     if progress:
-        what = "" if cache else (", truth and IMU: the IF is generated in memory, "
-                                 + ("once for all methods" if shared else "for each method"))
+        what = (", the IF generated" if cached and "if" in made else "") if cache else (
+            ", truth and IMU: the IF is generated in memory, " + ("once for all methods" if shared
+                                                                  else "for each method"))
         print(f"run {r + 1}/{runs} seed {seed}: data {'reused' if cached else 'generated'} "
               f"({time.perf_counter() - t0:.1f} s{what})", flush=True)
-    return dict(paths, if_written=not cached) if "if" in paths else paths    # if_written: first_run.drop_if_file
+    return dict(paths, if_written="if" in made) if "if" in paths else paths    # if_written: first_run.drop_if_file
 
 
 def _summarize_method(res, truth, channel, seed):
@@ -460,9 +473,9 @@ def _summarize_method(res, truth, channel, seed):
     return summ, (res, d_err, c_err)
 
 
-def _report(name, cfg, methods, runs, base_seed, out, channel, plots, options, per, raw, packed=None):
+def _report(name, cfg, methods, runs, base_seed, out, channel, plots, options, per, raw, packed=None, phases=None):
     """metrics.json, results.h5 (``packed``: its entries packed so far), figures and the text tables of a
-    scenario run."""
+    scenario run; ``phases``: the command's split so far (``command_timing_s``)."""
     dur = float(cfg["duration_s"])
     segs = M.SEGMENTS_S
     agg = aggregate_methods(cfg, per, raw, methods, channel)
@@ -472,7 +485,8 @@ def _report(name, cfg, methods, runs, base_seed, out, channel, plots, options, p
           "segments_s": [list(x) for x in segs], "channel": channel,
           "methods": {m: {k: agg[m][k] for k in METHOD_METRICS} for m in methods}, "monitor": mon,
           "startup": settings["startup"], "imu": settings["imu"],
-          "per_run": per, "version": __version__, "paper_table3": M.PAPER_TABLE3, "paper_table4_s": M.PAPER_TABLE4_S}
+          "per_run": per, "version": __version__, "paper_table3": M.PAPER_TABLE3, "paper_table4_s": M.PAPER_TABLE4_S,
+          "command_timing_s": dict(phases or {})}
     mpath = out / "metrics.json"
     write_text_atomic(mpath, json.dumps(json_clean(js), indent=2))
     note_complete(mpath)

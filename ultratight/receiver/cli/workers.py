@@ -103,6 +103,19 @@ def release_heap():
     return bool(lib.malloc_trim(0)) if lib else False
 
 
+def process_age_s():
+    """Seconds since this process started (Linux: its start time in ``/proc/self/stat`` against
+    ``/proc/uptime``, to the kernel's clock tick), or None where that cannot be read."""
+    try:
+        with open("/proc/self/stat", encoding="ascii") as f:
+            start_ticks = int(f.read().rsplit(")", 1)[1].split()[19])       # field 22, starttime
+        with open("/proc/uptime", encoding="ascii") as f:
+            uptime = float(f.read().split()[0])
+        return max(0.0, uptime - start_ticks / os.sysconf("SC_CLK_TCK"))
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 def limit_numba_threads(threads):
     """At most ``threads`` numba threads in this process. Before numba loads: its pool is sized so
     (``NUMBA_NUM_THREADS``). Once loaded, the variable is left as it is (changed, numba's next

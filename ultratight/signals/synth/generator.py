@@ -442,7 +442,8 @@ class Generation:
         return rows
 
 
-def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, trajectory=None, write_if=True):
+def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, trajectory=None, write_if=True,
+             write_rest=True):
     """Generate the IF file, sidecar, truth (and IMU/trajectory) for a resolved scenario ``cfg``.
 
     ``seed`` overrides ``cfg['seed']``. ``ephemerides`` (list of Ephemeris, with
@@ -452,6 +453,8 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
     ``summary`` (dict). ``write_if=False`` writes everything but the IF file and its sidecar (no
     samples are synthesised: the truth does not depend on them) — for a receiver fed by
     :class:`ultratight.signals.synth.ifstream.GeneratedIf` of the same configuration and seed.
+    ``write_rest=False`` writes the IF file and its sidecar only (no truth, IMU or trajectory: for a
+    data set that has them already; the samples are the same).
     """
     t_start = time.perf_counter()
     gen = Generation(cfg, seed, ephemerides, trajectory)
@@ -467,19 +470,22 @@ def generate(cfg, out_dir, stem, seed=None, progress=True, ephemerides=None, tra
         if write_if:
             writer = IfWriter(paths["if"], gen.spec.name, fe.fs_hz, fe.if_hz, inversion=fe.inversion,
                               start_week=gen.week, start_tow_s=gen.tow0, bits=fe.bits, extra=gen.sidecar_extra())
-        files = GenerationFiles(gen, paths, t_start)
-        blocks = gen.blocks(samples=write_if)
+        files = GenerationFiles(gen, paths, t_start) if write_rest else None
+        blocks = gen.blocks(samples=write_if, truth=write_rest)
         for _j0, n_valid, y, rows in blocks:
             if writer is not None:
                 writer.write(y, exact=fe.bits != 0)   # quantiser levels fit every integer format allowed
-            files.append(rows)
+            if files is not None:
+                files.append(rows)
             if bar is not None:
                 bar.update(n_valid / fe.fs_hz)
         result = {"if": paths["if"], "meta": paths["meta"]} if write_if else {}
-        files.finish()
+        if files is not None:
+            files.finish()
         if writer is not None:
             writer.close()
-        result.update(files.commit())
+        if files is not None:
+            result.update(files.commit())
     except BaseException:
         if writer is not None:
             writer.abort()
