@@ -104,16 +104,19 @@ def test_first_run_writes_the_if_while_compiling_then_removes_it(tmp_path, capsy
 def test_one_method_reads_its_if_written_ahead_on_two_cores_and_streams_on_one(tmp_path, capsys, monkeypatch):
     """One run of one method with the default workers: on two or more allowed cores the IF is written into
     the cache entry first and the method reads it with every core (the same tables, the file removed after,
-    the command's split in metrics.json); on one core, or without room for the file, it streams."""
+    the command's split in metrics.json); on one core, without room for the file or on a first run after an
+    install (the compilation needs the cores), it streams."""
     import time
     from ultratight.receiver.cli import first_run
     kw = dict(methods=("dlb-rackf",), runs=1, seed=5, duration_s=1.0, plots=False, overrides=CUT)
     run_scenario("paper-highdyn", out_dir=tmp_path / "one", workers=1, progress=False, **kw)
     a = _strip(json.loads((tmp_path / "one" / "metrics.json").read_text()))
-    cases = {"two": (2, 1e15, True), "single": (1, 1e15, False), "full": (2, 1.0, False)}
-    for name, (cores, free, ahead) in cases.items():
+    cases = {"two": (2, 1e15, True, True), "single": (1, 1e15, True, False), "full": (2, 1.0, True, False),
+             "first": (2, 1e15, False, False)}
+    for name, (cores, free, compiled, ahead) in cases.items():
         monkeypatch.setattr(first_run, "allowed_cores", lambda c=cores: c)
         monkeypatch.setattr(first_run, "free_disk", lambda _d, f=free: f)
+        monkeypatch.setattr(first_run, "engine_kernels_cached", lambda c=compiled: c)
         t0 = time.perf_counter()
         run_scenario("paper-highdyn", out_dir=tmp_path / name, progress=True, **kw)
         wall = time.perf_counter() - t0

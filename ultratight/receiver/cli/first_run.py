@@ -16,9 +16,11 @@ compiled ahead in a second worker (:func:`first_compilation`,
 runner has no entry in numba's cache for its current source (:func:`engine_kernels_cached`).
 The IF is written ahead only for one run of several methods in worker processes, and only when the
 output folder has room for the file (twice its size free). One run of one method (default workers, no
-``--cache``) on two or more allowed cores writes its IF ahead on every run, warm or not: the method then
+``--cache``) on two or more allowed cores writes its IF ahead once the engine is compiled: the method then
 reads it with every core, where a generator beside it would hold one of them for the whole run
-(docs/ultratight.md "One method, one run"). The epoch chain is compiled ahead on
+(docs/ultratight.md "One method, one run"); on a first run the compilation needs the cores instead
+(35.8 s streamed against 42.7 s written ahead for ``ultratight scenario paper-highdyn --methods
+dlb-rackf``). The epoch chain is compiled ahead on
 every first run of the engine: by the scenario's second worker, and for ``process --mode
 ultratight`` by a helper process (:func:`compiling_ahead`).
 """
@@ -46,12 +48,12 @@ def engine_kernels_cached():
 def write_if_ahead(runs, n_workers, shared, if_bytes, out_dir, single=False):
     """Whether this run writes its IF into the cache entry before its methods read it (module
     docstring): one run of one method (``single``: the default workers, no ``--cache``) on two or more
-    allowed cores, or one run of several methods sharing their IF (``shared``) in two or more workers on
-    a first run after an install; either only with room for the file."""
+    allowed cores once the engine is compiled, or one run of several methods sharing their IF (``shared``)
+    in two or more workers on a first run after an install; either only with room for the file."""
     if runs != 1:
         return False
     if single:
-        wanted = allowed_cores() >= 2
+        wanted = allowed_cores() >= 2 and engine_kernels_cached()
     else:
         wanted = shared and n_workers >= 2 and not engine_kernels_cached()
     if not wanted:
