@@ -108,15 +108,19 @@ def test_worker_compiles_after_its_pool_started(tmp_path, threads):
     assert r.stdout.strip() == f"[({min(threads, numba.config.NUMBA_NUM_THREADS)}, 42)]"
 
 
-@pytest.mark.parametrize("n_cores,load,runs,cache,expect", [
-    (1, BUSY, 1, False, (1, 1)),      # one core: one worker, one thread
-    (2, IDLE, 1, True, (1, 2)),       # two cores, one job on a cached IF file: one worker of two threads
-    (2, BUSY, 1, False, (1, 1)),      # the same job with its IF generated beside it: the generator keeps a core
-    (2, BUSY, 2, False, (2, 1)),      # two cores, two jobs: two workers of one thread
+@pytest.mark.parametrize("n_cores,load,runs,flags,expect", [
+    (1, BUSY, 1, [], (1, 1)),                    # one core: one worker, one thread
+    (2, IDLE, 1, ["--cache"], (1, 2)),           # two cores, one job on a cached IF file: one worker of two threads
+    (2, BUSY, 1, [], (1, 2)),                    # the same job by default: its IF written ahead, read the same way
+    (2, BUSY, 1, ["--workers", "2"], (1, 1)),    # its IF generated beside it: the generator keeps a core
+    (2, BUSY, 2, [], (2, 1)),                    # two cores, two jobs: two workers of one thread
 ])
-def test_scenario_command_on_one_and_two_cores(machine, monkeypatch, tmp_path, capsys, n_cores, load, runs, cache,
+def test_scenario_command_on_one_and_two_cores(machine, monkeypatch, tmp_path, capsys, n_cores, load, runs, flags,
                                                expect):
+    from ultratight.receiver.cli import first_run
     reads = machine(n_cores, load)
+    # numba's cache holds the engine (a first run would add a compiling worker), whatever ran before
+    monkeypatch.setattr(first_run, "engine_kernels_cached", lambda: True)
     pools = []
 
     class Pool(scenario_runner.WorkerPool):
@@ -127,7 +131,7 @@ def test_scenario_command_on_one_and_two_cores(machine, monkeypatch, tmp_path, c
     monkeypatch.setattr(scenario_runner, "WorkerPool", Pool)
     out = tmp_path / "X"
     rc = main(["scenario", "static-open-sky", "--duration", "1", "--methods", "scalar", "--out", str(out),
-               "--no-plots", "--quiet", "--runs", str(runs)] + (["--cache"] if cache else []))
+               "--no-plots", "--quiet", "--runs", str(runs)] + flags)
     err = capsys.readouterr().err
     assert rc == 0, err[-2000:]
     assert "Traceback" not in err and "NUMBA_NUM_THREADS" not in err
