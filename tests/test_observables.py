@@ -84,3 +84,43 @@ def test_history_window_is_bounded():
 def test_pseudorange_week_rollover():
     assert pseudorange(0.07, 604800.0 - 0.001) == pytest.approx(C * 0.071)
     assert pseudorange(518400.075, 518400.0) == pytest.approx(C * 0.075)
+
+
+def test_code_noise_is_the_rms_of_the_code_around_the_carrier():
+    """Ranges with white code noise of known sigma per channel and an exact carrier: the smoother's
+    code-noise figure approaches each sigma (a 2 s average at 10 Hz, taken over the last 20 s here);
+    none before the channel has settled and measured a few epochs, none again after a lock loss."""
+    from ultratight.receiver.scalar.observables import NOISE_SETTLE_EPOCHS, CarrierSmoother
+    rng = np.random.default_rng(11)
+    lam = 0.19029367279836487
+    sig = np.array([0.5, 0.8, 2.0, 0.0])
+    sm = CarrierSmoother(4, 1000, wavelength_m=lam, noise_epochs=20)
+    lock = np.ones(4, dtype=bool)
+    rho0 = np.array([2.0e7, 2.1e7, 2.2e7, 2.3e7])
+    est = []
+    for k in range(600):
+        rho = rho0 + np.array([-300.0, 120.0, 40.0, 700.0]) * 0.1 * k
+        pr = rho + sig * rng.standard_normal(4)
+        sm.update(pr, rho / lam, lock)
+        nz = sm.code_noise_m()
+        if k < NOISE_SETTLE_EPOCHS + 3:
+            assert np.isnan(nz).all(), k
+        if k >= 400:
+            est.append(nz)
+    est = np.sqrt(np.mean(np.square(est), axis=0))
+    # the innovation is the code noise plus the smoothed range's own error (sigma / sqrt(M), small here)
+    assert est[:3] == pytest.approx(sig[:3], rel=0.1)
+    assert est[3] < 1e-6
+    lost = lock.copy()
+    lost[1] = False
+    sm.update(pr, rho / lam, lost)
+    assert np.isnan(sm.code_noise_m()[1]) and np.isfinite(sm.code_noise_m()[[0, 2, 3]]).all()
+
+
+def test_noise_weights_scale_the_noisy_channels_only():
+    from ultratight.receiver.scalar.observables import noise_weights
+    w = noise_weights([0.8, 0.7, 0.9, 0.8, 2.0, np.nan, 50.0])
+    # median of the six measured: 0.85; below it 1 (never trusted more than the a-priori sigma)
+    assert w == pytest.approx([1.0, 1.0, 0.9 / 0.85, 1.0, 2.0 / 0.85, 1.0, 10.0])
+    assert noise_weights([0.8, 0.9, np.nan, 1.0]) is None        # fewer than four measured
+    assert noise_weights([0.0, 0.0, 0.0, 0.0]) is None

@@ -214,16 +214,18 @@ class PvtStage:
             rr[ch] = -self.signal.wavelength_m * o["doppler_hz"] + C * float(drift[0])
         return sp, sv, prc, rr
 
-    def solve(self, row, obs, pr, steer):
+    def solve(self, row, obs, pr, steer, sigma_factor=None):
         """The fix of this epoch, or None (fewer than 4 satellites, no solution, or the first solution
         / a clock bias beyond CLOCK_STEER_S, which ``steer(bias_m)`` removes from the time scale);
-        returns ``(fix, sol, parts)``."""
+        returns ``(fix, sol, parts)``. ``sigma_factor``: per channel, a factor on the pseudoranges'
+        a-priori sigma (:func:`ultratight.receiver.scalar.observables.noise_weights`)."""
         sp, sv, prc, rr = self.satellite_states(obs, row["t_tx_sv"], pr)
         if np.isfinite(prc).sum() < 4:
             return None
         model = self.atmosphere_model()
         parts = {}
-        sol = solve_pvt(sp, prc, sv, rr, sigma_pr_m=self.cfg.sigma_pr_m, sigma_rr_mps=self.cfg.sigma_rr_mps,
+        sigma_pr = self.cfg.sigma_pr_m if sigma_factor is None else self.cfg.sigma_pr_m * sigma_factor
+        sol = solve_pvt(sp, prc, sv, rr, sigma_pr_m=sigma_pr, sigma_rr_mps=self.cfg.sigma_rr_mps,
                         x0=self.last_x, mask_deg=self.cfg.mask_deg,
                         delays=atmosphere_delays(model, row["t_rx"], parts) if model.active else None)
         if not sol.valid or sol.vel_e is None:

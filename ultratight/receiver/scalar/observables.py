@@ -126,6 +126,26 @@ def pseudorange(t_rx, t_tx_sv):
     return C * dt
 
 
+NOISE_SETTLE_EPOCHS = 10      # a channel's smoothed range settles this many epochs before its noise counts
+NOISE_WINDOW_S = 2.0          # time constant of the code-noise average (s)
+
+
+def noise_weights(code_noise_m, min_channels=4, max_factor=10.0):
+    """Factors on the pseudoranges' a-priori sigmas from the channels' measured code noise
+    (:meth:`CarrierSmoother.code_noise_m`): a channel's noise over the median of the channels that have
+    one, at least 1 (no channel is trusted more than the a-priori sigma says) and at most
+    ``max_factor``; 1 for a channel without a measurement. None (no weighting) while fewer than
+    ``min_channels`` channels have one."""
+    nz = np.asarray(code_noise_m, dtype=float)
+    have = np.isfinite(nz)
+    if have.sum() < min_channels:
+        return None
+    med = float(np.median(nz[have]))
+    if not med > 0.0:
+        return None
+    return np.where(have, np.clip(nz / med, 1.0, max_factor), 1.0)
+
+
 class CarrierSmoother:
     """Hatch filter: carrier-smoothed pseudoranges, per channel.
 
@@ -133,15 +153,36 @@ class CarrierSmoother:
     per epoch up to ``max_epochs`` (``phi`` in cycles with the range sign, as
     :func:`observe` returns it).  A channel restarts (``M = 1``) when it has no phase lock, a
     missing value or a code-carrier jump larger than ``reset_m`` (cycle slip / re-acquisition).
+
+    Each channel's code noise is measured on the way: the RMS of the raw range minus its carrier
+    prediction, ``pr_k - (ps_{k-1} + lambda (phi_k - phi_{k-1}))``, once ``M`` has reached
+    :data:`NOISE_SETTLE_EPOCHS`, averaged exponentially over ``noise_epochs`` (:meth:`code_noise_m`).
+    The carrier is millimetre-precise, so this is the code's own error: thermal noise, and what a
+    cross-correlation or multipath adds to it.
     """
 
-    def __init__(self, n_ch, max_epochs, reset_m=15.0, wavelength_m=GPS_L1CA.wavelength_m):
+    def __init__(self, n_ch, max_epochs, reset_m=15.0, wavelength_m=GPS_L1CA.wavelength_m, noise_epochs=20):
         self.lam = float(wavelength_m)
         self.max_m = max(1, int(max_epochs))
         self.reset_m = float(reset_m)
         self.m = np.zeros(n_ch, dtype=np.int64)
         self.ps = np.full(n_ch, np.nan)
         self.phi = np.full(n_ch, np.nan)
+        self.noise_epochs = max(1, int(noise_epochs))
+        self.ms = np.full(n_ch, np.nan)               # mean square of the code-minus-carrier innovation
+        self.n_ms = np.zeros(n_ch, dtype=np.int64)    # innovations in it since the channel's last restart
+
+    def code_noise_m(self, min_epochs=5):
+        """Per channel, the RMS of the code-minus-carrier innovation (m), NaN until ``min_epochs`` of
+        them since the channel's last restart."""
+        out = np.sqrt(self.ms)
+        out[self.n_ms < min_epochs] = np.nan
+        return out
+
+    def _note_innovation(self, ch, d):
+        k = self.n_ms[ch] = self.n_ms[ch] + 1
+        a = max(1.0 / k, 1.0 / self.noise_epochs)
+        self.ms[ch] = d * d if k == 1 else (1.0 - a) * self.ms[ch] + a * d * d
 
     def update(self, pr_m, phi_cycles, lock):
         pr_m = np.asarray(pr_m, dtype=float)
@@ -150,12 +191,14 @@ class CarrierSmoother:
         for ch in range(pr_m.size):
             ok = bool(lock[ch]) and np.isfinite(pr_m[ch]) and np.isfinite(phi[ch])
             if not ok:
-                self.m[ch] = 0
+                self.m[ch] = self.n_ms[ch] = 0
                 continue
             if self.m[ch] > 0:
                 pred = self.ps[ch] + self.lam * (phi[ch] - self.phi[ch])
                 if abs(pred - pr_m[ch]) > self.reset_m:
-                    self.m[ch] = 0
+                    self.m[ch] = self.n_ms[ch] = 0
+                elif self.m[ch] >= NOISE_SETTLE_EPOCHS:
+                    self._note_innovation(ch, pr_m[ch] - pred)
             if self.m[ch] == 0:
                 self.ps[ch] = pr_m[ch]
                 self.m[ch] = 1

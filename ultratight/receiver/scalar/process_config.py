@@ -44,6 +44,8 @@ class ProcessConfig:
     doppler_window_s: float = 0.05      # half-width h of the centred Doppler difference
     sigma_pr_m: float = 3.0
     smoothing_s: float = 100.0          # Hatch-filter window for the pseudoranges (0: none)
+    noise_weights: bool = True          # pseudorange sigmas scaled by each channel's measured code noise
+                                        # (observables.noise_weights; needs the smoothing)
     sigma_rr_mps: float = 0.05
     reacquire: bool = True
     reacq_retry_s: float = 1.0

@@ -72,7 +72,7 @@ from ultratight.receiver.scalar.channels import (acquire_signals, allocate_chann
                                                  predicted_search, search_rate)
 from ultratight.receiver.scalar.nav_pvt import NavBitStage, ObservableStage, PvtStage, ephemeris_lookup
 from ultratight.receiver.scalar.navdecode import channel_nav
-from ultratight.receiver.scalar.observables import CarrierSmoother, ChannelHistory
+from ultratight.receiver.scalar.observables import NOISE_WINDOW_S, CarrierSmoother, ChannelHistory, noise_weights
 from ultratight.receiver.scalar.process_config import ProcessConfig, ProcessResult
 from ultratight.receiver.scalar.recording import Recorder, finish_hdf5, write_exchange_files
 from ultratight.receiver.scalar.search_plan import plan_search
@@ -159,7 +159,8 @@ class ScalarReceiver:
                 nav.log = []
         self.hists = [ChannelHistory(fs) for _ in prns]
         self.navbits = NavBitStage(self.navs, sig, fs, self.start_sample)
-        smoother = CarrierSmoother(n_ch, cfg.smoothing_s * cfg.obs_rate_hz, wavelength_m=sig.wavelength_m)
+        smoother = CarrierSmoother(n_ch, cfg.smoothing_s * cfg.obs_rate_hz, wavelength_m=sig.wavelength_m,
+                                   noise_epochs=max(1, round(NOISE_WINDOW_S * cfg.obs_rate_hz)))
         h_samp = int(round(cfg.doppler_window_s * fs))
         self.observables = ObservableStage(self.hists, self.navs, prns, fs, self.start_sample, h_samp, smoother, sig)
         self.pvt = PvtStage(cfg, ephemeris_lookup(self.ephemerides), self.navs, prns, src.start_week,
@@ -263,7 +264,10 @@ class ScalarReceiver:
             self.recorder.smoothed(pr)
         if self.recorder.rinex_obs is not None and self.pvt.week_known is not None:
             self.recorder.rinex_epoch(self.pvt.week_known, row, pr, self.navs, self.chinfo)
-        out = self.pvt.solve(row, obs, pr, self.observables.steer)
+        factor = None
+        if self.cfg.smoothing_s > 0 and self.cfg.noise_weights:
+            factor = noise_weights(self.observables.smoother.code_noise_m())
+        out = self.pvt.solve(row, obs, pr, self.observables.steer, factor)
         if out is not None:
             fix, sol, parts = out
             self.fixes.append(fix)
